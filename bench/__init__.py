@@ -1,0 +1,1 @@
+"""Benchmarks: `make bench` prints figures (timings, throughputs); no pass/fail."""

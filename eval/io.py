@@ -1,0 +1,55 @@
+"""Output handling for the command line: validated output folders and all-or-nothing writes."""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+
+class UsageError(Exception):
+    """Bad command-line input: the CLI prints the message and exits with code 2."""
+
+
+def prepare_out_dir(path) -> Path:
+    """Create `path` if needed and check that it is writable; raise UsageError if not."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out, prefix=".probe-"):
+            pass
+    except OSError as exc:
+        raise UsageError(f"output directory {out} is not writable: {exc.strerror or exc}") from None
+    return out
+
+
+def write_atomic(path, data: bytes | str) -> Path:
+    """Write `data` to `path` through a temporary file and a rename: readers never see half a file."""
+    path = Path(path)
+    raw = data.encode() if isinstance(data, str) else data
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(raw)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_json(path, obj) -> Path:
+    """Write `obj` as indented JSON (NaN is refused: use None for 'no value')."""
+    return write_atomic(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
+
+
+def save_figure(fig, path) -> Path:
+    """Save a matplotlib figure as PNG atomically and close it."""
+    import io
+
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return write_atomic(path, buf.getvalue())

@@ -1,0 +1,56 @@
+"""Argument checks shared by the models package: clear ValueErrors, never silent coercion."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_points(P, name: str = "P", *, allow_nonfinite: bool = False) -> np.ndarray:
+    """Return P as a float (N, 3) array; a single (3,) point becomes (1, 3).
+
+    Raises ValueError naming `name` when the shape is not (N, 3) or (3,), or when a
+    value is NaN/inf (unless `allow_nonfinite`).
+    """
+    A = np.asarray(P, dtype=float)
+    if A.ndim == 1 and A.shape[0] == 3:
+        A = A[None, :]
+    if A.ndim != 2 or A.shape[1] != 3:
+        raise ValueError(f"{name} must be an (N, 3) array of points in mm, got shape {np.shape(P)}")
+    if not allow_nonfinite and not np.all(np.isfinite(A)):
+        raise ValueError(f"{name} contains NaN or inf; every coordinate must be finite (mm)")
+    return A
+
+
+def as_vector3(v, name: str) -> np.ndarray:
+    """Return v as a finite float (3,) array, or raise ValueError naming `name`."""
+    a = np.asarray(v, dtype=float)
+    if a.shape != (3,):
+        raise ValueError(f"{name} must have shape (3,), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be finite, got {a}")
+    return a
+
+
+def as_positive(x, name: str) -> float:
+    """Return x as a finite float > 0, or raise ValueError naming `name`."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a positive number, got {x!r}") from None
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{name} must be finite and > 0, got {x!r}")
+    return v
+
+
+def as_rotation(R, name: str = "rotation", tol: float = 1e-9) -> np.ndarray:
+    """Return R as a (3, 3) proper rotation matrix (R^T R = I within `tol`, det = +1)."""
+    A = np.asarray(R, dtype=float)
+    if A.shape != (3, 3):
+        raise ValueError(f"{name} must be a (3, 3) rotation matrix, got shape {A.shape}")
+    if not np.all(np.isfinite(A)):
+        raise ValueError(f"{name} must be finite")
+    err = np.max(np.abs(A.T @ A - np.eye(3)))
+    if err > tol:
+        raise ValueError(f"{name} is not orthonormal: max |R^T R - I| = {err:.3g} > {tol:g}")
+    if np.linalg.det(A) < 0:
+        raise ValueError(f"{name} is a reflection (det = -1); a proper rotation has det = +1")
+    return A
