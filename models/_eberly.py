@@ -1,0 +1,91 @@
+"""Closest points on an axis-aligned ellipsoid (Eberly's robust bisection), vectorised.
+
+Reference: D. Eberly, "Distance from a point to an ellipse, an ellipsoid, or a
+hyperellipsoid". For semi-axes e0 >= e1 >= e2 and a query y in the first octant
+the closest point is x_i = e_i^2 y_i / (t + e_i^2) where t is the unique root of
+F(t) = sum (e_i y_i / (t + e_i^2))^2 - 1 on (-e_m^2, inf), e_m the smallest axis
+whose coordinate is non-zero. Zero coordinates drop the problem to a lower
+dimension, except on the plane of the smallest axis, where the closest point can
+leave the plane (the query sits between the foci: the t = -e_m^2 branch).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+_BISECTION_STEPS = 100  # float64 interval halving: exhausts the mantissa long before
+
+
+def _bisect_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
+    """Root t of sum_i (e_i y_i / (t + e_i^2))^2 = 1 on (-em2, inf), per row.
+
+    E2: (3,) squared semi-axes; Y: (M, 3) non-negative, zero where a coordinate is
+    inactive; em2: (M,) squared smallest active semi-axis. Bisection in t.
+    """
+    ey = np.sqrt(E2) * Y
+    em = np.sqrt(em2)
+    y_m = np.max(np.where(E2 == em2[:, None], Y, 0.0), axis=1)
+    lo = -em2 + em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
+    hi = -em2 + np.linalg.norm(ey, axis=1)  # F(hi) <= 0
+    for _ in range(_BISECTION_STEPS):
+        mid = 0.5 * (lo + hi)
+        den = mid[:, None] + E2
+        ratio = np.divide(ey, den, out=np.zeros_like(ey), where=ey != 0.0)
+        F = np.einsum("ij,ij->i", ratio, ratio) - 1.0
+        pos = F > 0.0
+        lo = np.where(pos, mid, lo)
+        hi = np.where(pos, hi, mid)
+    return 0.5 * (lo + hi)
+
+
+def closest_point_first_octant(e: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Closest points X (M, 3) on the ellipsoid with semi-axes e (3,), e0 >= e1 >= e2 > 0,
+    to queries Y (M, 3) with all coordinates >= 0."""
+    E2 = e**2
+    X = np.zeros_like(Y)
+    pos = Y > 0.0
+
+    # y2 > 0: generic root with the smallest axis e2 (inactive y0, y1 give x = 0).
+    a = pos[:, 2]
+    if a.any():
+        t = _bisect_root(E2, Y[a], np.full(a.sum(), E2[2]))
+        X[a] = E2 * Y[a] / (t[:, None] + E2)
+
+    # y2 = 0: the t = -e2^2 branch leaves the plane when the query lies between the foci.
+    b = ~a
+    if b.any():
+        Yb = Y[b]
+        d = E2[:2] - E2[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xb = np.where(Yb[:, :2] > 0.0, E2[:2] * Yb[:, :2] / d, 0.0)
+        inside = np.all((Yb[:, :2] == 0.0) | (d > 0.0), axis=1)
+        disc = 1.0 - np.sum((xb / e[:2]) ** 2, axis=1)
+        off_plane = inside & (disc > 0.0)
+        Xb = np.zeros_like(Yb)
+        Xb[off_plane, :2] = xb[off_plane]
+        Xb[off_plane, 2] = e[2] * np.sqrt(disc[off_plane])
+        Xb[~off_plane] = _closest_point_ellipse(e[:2], Yb[~off_plane][:, :2], E2)
+        X[b] = Xb
+    return X
+
+
+def _closest_point_ellipse(e: np.ndarray, Y: np.ndarray, E2: np.ndarray) -> np.ndarray:
+    """Closest points (M, 3) with x2 = 0 on the ellipse of semi-axes e (2,), e0 >= e1,
+    to queries Y (M, 2) >= 0 (the 2-D case of the same construction)."""
+    X = np.zeros((len(Y), 3))
+    if len(Y) == 0:
+        return X
+    a = Y[:, 1] > 0.0
+    if a.any():
+        Ya = np.column_stack([Y[a], np.zeros(a.sum())])
+        E2a = np.array([E2[0], E2[1], 1.0])  # third term inactive (y = 0)
+        t = _bisect_root(E2a, Ya, np.full(a.sum(), E2[1]))
+        X[a, :2] = E2[:2] * Y[a] / (t[:, None] + E2[:2])
+    b = ~a
+    if b.any():
+        y0 = Y[b, 0]
+        d = E2[0] - E2[1]
+        x0 = np.where(d > 0.0, E2[0] * y0 / d if d > 0 else 0.0, np.inf)
+        between = x0 < e[0]
+        X[b, 0] = np.where(between, x0, e[0])
+        X[b, 1] = np.where(between, e[1] * np.sqrt(np.clip(1.0 - (x0 / e[0]) ** 2, 0.0, None)), 0.0)
+    return X

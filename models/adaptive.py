@@ -1,0 +1,153 @@
+"""The adaptive eye model: a sphere at first, an ellipsoid once the data supports it."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from models._validation import as_points
+from models.ellipsoid import Ellipsoid
+from models.ellipsoid_fit import LENGTH_SCALE_MM, IncrementalEllipsoidFit, taubin_residual
+from models.scan_range import ScanRange
+from models.sphere import Sphere
+from models.sphere_kalman import SphereKalmanFilter
+from models.transition import FitSnapshot, PaperCriteria
+
+
+@dataclass(frozen=True, eq=False, slots=True)
+class ModelUpdate:
+    """One entry of the model history (mm, frame of the measured points).
+
+    `criteria` maps each criterion name to (value, met); `ef_status` is "ok" or why the
+    ellipsoid fit failed at this update (the previous good fit is kept).
+    """
+
+    n_points: int
+    kind: str
+    scan_range_mm: float
+    sf_residual_mm: float
+    ef_residual_mm: float
+    axis_change: float
+    criteria: dict
+    ef_status: str
+    sphere_center: np.ndarray | None
+    sphere_radius: float
+    ellipsoid_center: np.ndarray | None
+    ellipsoid_radii: np.ndarray | None
+    ellipsoid_rotation: np.ndarray | None
+
+    @property
+    def sphere(self) -> Sphere | None:
+        return None if self.sphere_center is None else Sphere(self.sphere_center, self.sphere_radius)
+
+    @property
+    def ellipsoid(self) -> Ellipsoid | None:
+        if self.ellipsoid_center is None:
+            return None
+        return Ellipsoid(self.ellipsoid_center, self.ellipsoid_radii, self.ellipsoid_rotation)
+
+
+def _sphere_quadric(center_scaled: np.ndarray, radius_scaled: float) -> np.ndarray:
+    """Quadric coefficients (10,) of a sphere, in the ellipsoid fit's parametrisation."""
+    k = radius_scaled**2 - center_scaled @ center_scaled
+    return np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, *(-center_scaled), -k])
+
+
+class AdaptiveEyeModel:
+    """Retina model from measured retinal points: sphere (Kalman filter) -> ellipsoid.
+
+    `update(P)` absorbs a batch of points (N, 3) mm (any N, including one A-scan's
+    point); non-finite points are skipped and counted in `n_rejected_nonfinite`. Each
+    call with at least one finite point is one update: the sphere filter and the
+    ellipsoid scatter matrix absorb the points (O(1) each), the ellipsoid is refitted,
+    and the transition criteria are evaluated; the switch is made once, when all hold.
+    `kind` is "sphere" or "ellipsoid"; `shape` the current Sphere or Ellipsoid (None
+    before 4 points); `history` one ModelUpdate per update.
+    """
+
+    def __init__(self, criteria=None):
+        self.criteria = PaperCriteria() if criteria is None else criteria
+        self._sf = SphereKalmanFilter()
+        self._ef = IncrementalEllipsoidFit()
+        self._range = ScanRange()
+        self._memory = self.criteria.initial_state()
+        self._prev_radii: np.ndarray | None = None
+        self.kind = "sphere"
+        self.transition_index: int | None = None
+        self.n_rejected_nonfinite = 0
+        self.history: list[ModelUpdate] = []
+
+    @property
+    def n_points(self) -> int:
+        return self._sf.n_points
+
+    @property
+    def sphere(self) -> Sphere | None:
+        return self._sf.sphere
+
+    @property
+    def ellipsoid(self) -> Ellipsoid | None:
+        last = self._ef.last_ok
+        return None if last is None else last.ellipsoid
+
+    @property
+    def shape(self) -> Sphere | Ellipsoid | None:
+        return self.ellipsoid if self.kind == "ellipsoid" else self.sphere
+
+    @property
+    def scan_range_mm(self) -> float:
+        return self._range.diameter_mm
+
+    def update(self, P) -> ModelUpdate | None:
+        """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None if
+        every point was non-finite)."""
+        P = as_points(P, "P", allow_nonfinite=True)
+        finite = np.isfinite(P).all(axis=1)
+        if not finite.all():
+            self.n_rejected_nonfinite += int((~finite).sum())
+            P = P[finite]
+        if len(P) == 0:
+            return None
+        self._sf.absorb(P)
+        self._ef.add(P)
+        self._range.add(P)
+        entry = self._evaluate(self._ef.fit())
+        self.history.append(entry)
+        return entry
+
+    def _evaluate(self, fit) -> ModelUpdate:
+        sf = self._sf.center_radius
+        S = self._ef.S
+        sf_res = ef_res = axis_change = np.nan
+        if sf is not None:
+            c_scaled = (sf[0] - self._ef.p0) / LENGTH_SCALE_MM
+            sf_res = LENGTH_SCALE_MM * taubin_residual(S, _sphere_quadric(c_scaled, sf[1] / LENGTH_SCALE_MM))
+        if fit.ok:
+            ef_res = LENGTH_SCALE_MM * taubin_residual(S, fit.v)
+            radii = np.sort(fit.radii)
+            if self._prev_radii is not None:
+                axis_change = float(np.max(np.abs(radii - self._prev_radii) / self._prev_radii))
+            self._prev_radii = radii
+        else:
+            self._prev_radii = None
+        snap = FitSnapshot(self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change)
+        criteria, self._memory = self.criteria.evaluate(snap, self._memory)
+        if self.kind == "sphere" and fit.ok and all(met for _, met in criteria.values()):
+            self.kind = "ellipsoid"
+            self.transition_index = len(self.history)
+        last = self._ef.last_ok
+        return ModelUpdate(
+            n_points=self.n_points,
+            kind=self.kind,
+            scan_range_mm=snap.scan_range_mm,
+            sf_residual_mm=sf_res,
+            ef_residual_mm=ef_res,
+            axis_change=axis_change,
+            criteria=criteria,
+            ef_status=fit.status,
+            sphere_center=None if sf is None else sf[0],
+            sphere_radius=np.nan if sf is None else sf[1],
+            ellipsoid_center=None if last is None else last.center,
+            ellipsoid_radii=None if last is None else last.radii,
+            ellipsoid_rotation=None if last is None else last.rotation,
+        )

@@ -1,0 +1,104 @@
+"""Ellipsoids: the frozen result type with exact signed distance (Eberly)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models._eberly import closest_point_first_octant
+from models._validation import as_points, as_rotation, as_vector3
+from models.sphere import sample_quadric_surface
+
+
+@dataclass(frozen=True, eq=False)
+class Ellipsoid:
+    """{x : (x - c)^T R diag(radii)^-2 R^T (x - c) = 1} in some frame (W or E).
+
+    `center` (3,) mm; `radii` (3,) semi-axes in mm, > 0; `rotation` (3, 3) a proper
+    rotation whose column i is the direction of semi-axis i in the same frame.
+    Signed distances are > 0 inside (the vitreous side), 0 on the surface, < 0 outside.
+    """
+
+    center: np.ndarray
+    radii: np.ndarray
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    def __post_init__(self):
+        c = as_vector3(self.center, "center")
+        r = as_vector3(self.radii, "radii")
+        if np.any(r <= 0.0):
+            raise ValueError(f"radii must all be > 0 mm, got {r}")
+        R = as_rotation(self.rotation, "rotation", tol=1e-8)
+        for name, a in (("center", c), ("radii", r), ("rotation", R)):
+            a = a.copy()
+            a.setflags(write=False)
+            object.__setattr__(self, name, a)
+
+    @property
+    def volume(self) -> float:
+        """Enclosed volume in mm^3."""
+        return 4.0 / 3.0 * np.pi * float(np.prod(self.radii))
+
+    def _to_sorted_octant(self, Q: np.ndarray):
+        """Local coordinates with axes sorted by decreasing radius, reflected to the first octant."""
+        order = np.argsort(-self.radii, kind="stable")
+        L = (Q - self.center) @ self.rotation[:, order]
+        signs = np.where(L < 0.0, -1.0, 1.0)
+        return order, signs, np.abs(L)
+
+    def closest_point(self, Q) -> np.ndarray:
+        """(M, 3) exact closest surface points (mm) to points Q (M, 3) mm.
+
+        Exact on the axes and at the centre (where the closest points are the two
+        ends of the shortest axis; the + end is returned)."""
+        Q = as_points(Q, "Q")
+        order, signs, Y = self._to_sorted_octant(Q)
+        X = closest_point_first_octant(self.radii[order], Y) * signs
+        return self.center + X @ self.rotation[:, order].T
+
+    def _inside_value(self, Q: np.ndarray) -> np.ndarray:
+        """(x-c)^T A (x-c) - 1: < 0 inside, > 0 outside."""
+        L = (Q - self.center) @ self.rotation / self.radii
+        return np.einsum("ij,ij->i", L, L) - 1.0
+
+    def signed_distance(self, Q) -> np.ndarray:
+        """(M,) exact signed distance (mm) of Q (M, 3) mm; > 0 inside."""
+        Q = as_points(Q, "Q")
+        d = np.linalg.norm(Q - self.closest_point(Q), axis=1)
+        return np.where(self._inside_value(Q) < 0.0, d, -d)
+
+    def gradient(self, Q) -> np.ndarray:
+        """(M, 3) unit gradient of the signed distance: the inward normal at the closest point."""
+        X = self.closest_point(Q)
+        L = (X - self.center) @ self.rotation / self.radii**2
+        n = -(L @ self.rotation.T)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def sample_surface(self, n_theta: int, n_phi: int, z_max: float | None = None) -> np.ndarray:
+        """(n_theta * n_phi, 3) surface points, equal-area in direction (u_z and azimuth
+        uniform, x = c + R diag(radii) u). `z_max` (mm, along the third axis from the
+        centre) crops the top: the paper's anterior crop."""
+        return sample_quadric_surface(self.radii, self.rotation, self.center, n_theta, n_phi, z_max)
+
+    def ray_cast(self, origins, dirs) -> np.ndarray:
+        """(M,) distance (mm) along unit rays to the surface: first hit from inside,
+        first entry from outside; NaN where a ray misses."""
+        O = as_points(origins, "origins")
+        D = as_points(dirs, "dirs")
+        if O.shape != D.shape:
+            raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
+        Lo = (O - self.center) @ self.rotation / self.radii
+        Ld = D @ self.rotation / self.radii
+        a = np.einsum("ij,ij->i", Ld, Ld)
+        b = np.einsum("ij,ij->i", Lo, Ld)
+        c = np.einsum("ij,ij->i", Lo, Lo) - 1.0
+        disc = b * b - a * c
+        with np.errstate(invalid="ignore"):
+            sq = np.sqrt(disc)
+        # Numerically stable roots: q = -(b + sign(b) sq); t1 = q / a, t2 = c / q.
+        q = -(b + np.copysign(sq, b))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = q / a, c / q
+        t_lo, t_hi = np.minimum(t1, t2), np.maximum(t1, t2)
+        t = np.where(c < 0.0, t_hi, np.where(t_lo >= 0.0, t_lo, np.nan))
+        return np.where(disc >= 0.0, t, np.nan)

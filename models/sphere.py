@@ -1,0 +1,105 @@
+"""Spheres: the frozen result type and the batch linear least-squares fit."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from models._validation import as_points, as_positive, as_vector3
+
+
+@dataclass(frozen=True, eq=False)
+class Sphere:
+    """A sphere in some frame (usually W or E): `center` (3,) mm, `radius` mm > 0.
+
+    Signed distances are > 0 inside (the vitreous side), 0 on the surface, < 0 outside.
+    """
+
+    center: np.ndarray
+    radius: float
+
+    def __post_init__(self):
+        c = as_vector3(self.center, "center")
+        c.setflags(write=False)
+        object.__setattr__(self, "center", c)
+        object.__setattr__(self, "radius", as_positive(self.radius, "radius"))
+
+    @property
+    def volume(self) -> float:
+        """Enclosed volume in mm^3."""
+        return 4.0 / 3.0 * np.pi * self.radius**3
+
+    def signed_distance(self, Q) -> np.ndarray:
+        """(M,) exact signed distance (mm) of points Q (M, 3) mm; > 0 inside."""
+        Q = as_points(Q, "Q")
+        return self.radius - np.linalg.norm(Q - self.center, axis=1)
+
+    def gradient(self, Q) -> np.ndarray:
+        """(M, 3) unit gradient of the signed distance: the inward surface normal
+        at the closest point. At the centre (undefined) it is +z by convention."""
+        Q = as_points(Q, "Q")
+        v = self.center - Q
+        n = np.linalg.norm(v, axis=1)
+        out = np.tile([0.0, 0.0, 1.0], (len(Q), 1))
+        ok = n > 0
+        out[ok] = v[ok] / n[ok, None]
+        return out
+
+    def closest_point(self, Q) -> np.ndarray:
+        """(M, 3) closest surface points (mm) to Q (M, 3); at the centre: the +z pole."""
+        Q = as_points(Q, "Q")
+        return self.center - self.radius * self.gradient(Q)
+
+    def sample_surface(self, n_theta: int, n_phi: int, z_max: float | None = None) -> np.ndarray:
+        """(n_theta * n_phi, 3) surface points on an equal-area grid (z uniform, phi uniform).
+
+        `z_max` (mm, in this sphere's frame relative to its centre) crops the top:
+        only points with z - center_z <= z_max are produced.
+        """
+        return sample_quadric_surface(np.full(3, self.radius), np.eye(3), self.center, n_theta, n_phi, z_max)
+
+
+def sample_quadric_surface(radii, rotation, center, n_theta: int, n_phi: int, z_max=None) -> np.ndarray:
+    """Equal-area-in-direction samples of an ellipsoid x = center + R diag(radii) u, |u| = 1.
+
+    u is taken on a grid uniform in u_z (over [-1, u_z,max]) and in azimuth, which is
+    equal-area on the unit sphere (Archimedes); `z_max` (mm, local frame) crops the
+    anterior part: u_z <= z_max / radii[2]. Returns (n_theta * n_phi, 3) mm.
+    """
+    n_theta, n_phi = int(n_theta), int(n_phi)
+    if n_theta < 2 or n_phi < 3:
+        raise ValueError(f"need n_theta >= 2 and n_phi >= 3, got {n_theta}, {n_phi}")
+    uz_max = 1.0 if z_max is None else float(np.clip(z_max / radii[2], -1.0, 1.0))
+    # cell centres, so that the poles are not sampled n_phi times over
+    uz = -1.0 + (np.arange(n_theta) + 0.5) * (uz_max + 1.0) / n_theta
+    phi = (np.arange(n_phi) + 0.5) * 2.0 * np.pi / n_phi
+    s = np.sqrt(1.0 - uz**2)
+    U = np.stack(
+        [np.outer(s, np.cos(phi)), np.outer(s, np.sin(phi)), np.repeat(uz[:, None], n_phi, 1)], axis=-1
+    ).reshape(-1, 3)
+    return center + (U * radii) @ np.asarray(rotation).T
+
+
+def fit_sphere(P) -> Sphere:
+    """Linear least-squares sphere through points P (N >= 4, mm, any frame).
+
+    Solves |p|^2 = 2 p.c + (r^2 - |c|^2) for (c, r^2 - |c|^2) with the points
+    centred on their mean, which keeps the problem well conditioned far from the
+    origin (e.g. in the robot base frame). Raises ValueError on fewer than 4
+    points or coplanar points (no unique sphere).
+    """
+    P = as_points(P, "P")
+    if len(P) < 4:
+        raise ValueError(f"fit_sphere needs at least 4 points, got {len(P)}")
+    p0 = P.mean(axis=0)
+    X = P - p0
+    H = np.column_stack([2.0 * X, np.ones(len(X))])
+    z = np.einsum("ij,ij->i", X, X)
+    sol, _, rank, sv = np.linalg.lstsq(H, z, rcond=None)
+    if rank < 4 or sv[-1] < 1e-9 * sv[0]:
+        raise ValueError("fit_sphere: points are coplanar or collinear; no unique sphere")
+    c = sol[:3]
+    r2 = sol[3] + c @ c
+    if r2 <= 0:
+        raise ValueError("fit_sphere: least-squares solution has no real radius")
+    return Sphere(center=c + p0, radius=np.sqrt(r2))
