@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models._validation import as_points, as_positive, as_vector3
+from models.sampling import unit_sphere_grid
 
 
 @dataclass(frozen=True, eq=False)
@@ -62,21 +63,11 @@ class Sphere:
 def sample_quadric_surface(radii, rotation, center, n_theta: int, n_phi: int, z_max=None) -> np.ndarray:
     """Equal-area-in-direction samples of an ellipsoid x = center + R diag(radii) u, |u| = 1.
 
-    u is taken on a grid uniform in u_z (over [-1, u_z,max]) and in azimuth, which is
-    equal-area on the unit sphere (Archimedes); `z_max` (mm, local frame) crops the
-    anterior part: u_z <= z_max / radii[2]. Returns (n_theta * n_phi, 3) mm.
+    u comes from `unit_sphere_grid`; `z_max` (mm, along the third local axis from the
+    centre) crops the anterior part: u_z <= z_max / radii[2]. Returns (n_theta * n_phi, 3) mm.
     """
-    n_theta, n_phi = int(n_theta), int(n_phi)
-    if n_theta < 2 or n_phi < 3:
-        raise ValueError(f"need n_theta >= 2 and n_phi >= 3, got {n_theta}, {n_phi}")
-    uz_max = 1.0 if z_max is None else float(np.clip(z_max / radii[2], -1.0, 1.0))
-    # cell centres, so that the poles are not sampled n_phi times over
-    uz = -1.0 + (np.arange(n_theta) + 0.5) * (uz_max + 1.0) / n_theta
-    phi = (np.arange(n_phi) + 0.5) * 2.0 * np.pi / n_phi
-    s = np.sqrt(1.0 - uz**2)
-    U = np.stack(
-        [np.outer(s, np.cos(phi)), np.outer(s, np.sin(phi)), np.repeat(uz[:, None], n_phi, 1)], axis=-1
-    ).reshape(-1, 3)
+    uz_max = 1.0 if z_max is None else float(np.clip(z_max / radii[2], -1.0 + 1e-12, 1.0))
+    U = unit_sphere_grid(n_theta, n_phi, uz_max)
     return center + (U * radii) @ np.asarray(rotation).T
 
 

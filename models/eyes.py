@@ -1,0 +1,212 @@
+"""Ground-truth eye shapes (the retina), placeable at any pose.
+
+Frame E (design.md): origin at the centre of the retinal ellipsoid, z = visual axis
+pointing anterior, x horizontal (+x temporal), y vertical (+y superior). Every shape
+is a closed surface about the E origin; `make_eye(name, X_WE)` places it in W.
+Composite shapes are star-shaped about the origin by construction, so they have no
+overhangs, and their radial functions are continuous (no cracks).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from models._validation import as_points, as_rotation, as_vector3
+from models.ellipsoid import Ellipsoid
+from models.star_surface import StarSurface
+
+EYE_SHAPES = ("emmetropic", "myopic", "hyperopic", "pointed", "detached", "staphyloma")
+EMMETROPIC_RADII_MM = np.array([11.455, 11.365, 10.148])  # Atchison 2005 (gkaModelEye)
+# Full-dimension growth per dioptre of myopia: width +0.14, height +0.10, length +0.30 mm.
+RADII_PER_MYOPIC_DIOPTRE_MM = np.array([0.07, 0.05, 0.15])
+ANTERIOR_CROP_MM = 5.0  # the paper's metrics ignore the anterior 5 mm along the visual axis
+
+
+def radii_for_refraction(dioptres: float) -> np.ndarray:
+    """Retinal semi-axes [x, y, z] mm for a refraction in dioptres (myopia < 0)."""
+    return EMMETROPIC_RADII_MM - float(dioptres) * RADII_PER_MYOPIC_DIOPTRE_MM
+
+
+def _rotation_about(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    axis = axis / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * K + (1 - np.cos(angle_rad)) * K @ K
+
+
+@dataclass(frozen=True, eq=False)
+class EyePose:
+    """X_WE: rotation R_WE (3, 3) and position p_WE (3,) mm of the eye frame E in W."""
+
+    R_WE: np.ndarray = field(default_factory=lambda: np.eye(3))
+    p_WE: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self):
+        object.__setattr__(self, "R_WE", as_rotation(self.R_WE, "R_WE", tol=1e-8))
+        object.__setattr__(self, "p_WE", as_vector3(self.p_WE, "p_WE"))
+
+    @classmethod
+    def anatomical(cls, tilt_deg: float = 11.0, nasal_mm: float = 0.5, inferior_mm: float = 0.2) -> EyePose:
+        """A real eye's retinal ellipsoid (Atchison 2005): tilted `tilt_deg` about the
+        vertical axis and decentred nasally (-x) and inferiorly (-y)."""
+        return cls(_rotation_about(np.array([0.0, 1.0, 0.0]), np.radians(tilt_deg)), [-nasal_mm, -inferior_mm, 0.0])
+
+    def to_E(self, P_W: np.ndarray) -> np.ndarray:
+        return (P_W - self.p_WE) @ self.R_WE
+
+    def to_W(self, P_E: np.ndarray) -> np.ndarray:
+        return P_E @ self.R_WE.T + self.p_WE
+
+
+def _ellipsoid_rho(radii: np.ndarray):
+    inv2 = 1.0 / radii**2
+    return lambda U: 1.0 / np.sqrt((U * U) @ inv2)
+
+
+def pointed_rho(radii: np.ndarray, apex_offset_mm: float = 2.0):
+    """Myopic anterior half (z >= 0) joined at the equator to a posterior paraboloid
+    z = -h + h (x^2/a^2 + y^2/b^2), h = c + apex_offset: same rim, apex `apex_offset`
+    behind the ellipsoid's posterior pole (a convex crease at the equator)."""
+    a, b, c = radii
+    h = c + apex_offset_mm
+    ell = _ellipsoid_rho(radii)
+
+    def rho(U):
+        k = U[:, 0] ** 2 / a**2 + U[:, 1] ** 2 / b**2
+        uz = U[:, 2]
+        # root of h k r^2 - uz r - h = 0 in the cancellation-free form (uz < 0 here)
+        parab = 2.0 * h / (-uz + np.sqrt(uz * uz + 4.0 * h * h * k))
+        return np.where(uz >= 0.0, ell(U), parab)
+
+    return rho
+
+
+def staphyloma_rho(radii, centre_dir, depth_mm=1.5, curvature_radius_mm=8.4, blend_mm=1.0):
+    """The eye wall with a posterior outpouching: the union of the retinal ellipsoid and a
+    sphere of radius `curvature_radius_mm` whose far wall lies `depth_mm` beyond the retina
+    along `centre_dir`, joined by a C1 smooth maximum of width `blend_mm` (radial).
+    With the defaults the walls meet at about 21 deg before blending."""
+    ell = _ellipsoid_rho(radii)
+    u0 = centre_dir / np.linalg.norm(centre_dir)
+    D = float(ell(u0[None])[0]) + depth_mm - curvature_radius_mm
+    if D <= 0 or D >= curvature_radius_mm:
+        raise ValueError(f"staphyloma depth/curvature give a sphere centre at {D:.2f} mm; need 0 < D < radius")
+
+    def rho(U):
+        cos = U @ u0
+        r_sph = D * cos + np.sqrt(curvature_radius_mm**2 - D * D * (1.0 - cos * cos))
+        r_ell = ell(U)
+        h = np.clip(blend_mm - np.abs(r_ell - r_sph), 0.0, None) / blend_mm
+        return np.maximum(r_ell, r_sph) + 0.25 * blend_mm * h * h
+
+    return rho
+
+
+def detached_rho(radii, centre_dir, height_mm=2.0, base_diameter_mm=10.0):
+    """The eye wall with the retina lifted towards the centre by up to `height_mm` over a
+    region of `base_diameter_mm` about `centre_dir`; profile (1 - t^2)^2 in the angle
+    ratio t, smooth inside and C1 at the rim."""
+    ell = _ellipsoid_rho(radii)
+    u0 = centre_dir / np.linalg.norm(centre_dir)
+    alpha_b = 0.5 * base_diameter_mm / float(ell(u0[None])[0])
+
+    def rho(U):
+        t = np.arccos(np.clip(U @ u0, -1.0, 1.0)) / alpha_b
+        bump = np.where(t < 1.0, (1.0 - t * t) ** 2, 0.0)
+        return ell(U) - height_mm * bump
+
+    return rho
+
+
+class Eye:
+    """A ground-truth retina placed at X_WE. All points and directions are in W, mm.
+
+    `signed_distance(Q)` > 0 inside (vitreous side); `ray_cast(origins, dirs)` is the
+    distance along unit rays to the first crossing of the retina (exact for the
+    ellipsoidal shapes, bisected to well under 1 um for the composite ones).
+    """
+
+    def __init__(self, name: str, radii: np.ndarray, pose: EyePose, rho=None):
+        self.name = name
+        self.radii = np.asarray(radii, dtype=float)
+        self.pose = pose
+        self.anterior_z_mm = float(self.radii[2])  # every shape keeps the ellipsoid's front
+        self._ellipsoid_E = Ellipsoid(np.zeros(3), self.radii)
+        self._star = None if rho is None else StarSurface(rho)
+
+    @property
+    def is_ellipsoid(self) -> bool:
+        return self._star is None
+
+    @property
+    def ellipsoid(self) -> Ellipsoid:
+        """The retinal ellipsoid (for composite shapes: the one they are built on) in W."""
+        return Ellipsoid(self.pose.p_WE, self.radii, self.pose.R_WE)
+
+    def ray_cast(self, origins, dirs) -> np.ndarray:
+        """(M,) distance (mm) along unit directions `dirs` from `origins` to the retina."""
+        O = self.pose.to_E(as_points(origins, "origins"))
+        D = as_points(dirs, "dirs") @ self.pose.R_WE
+        if O.shape != D.shape:
+            raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
+        n = np.linalg.norm(D, axis=1)
+        if np.any(np.abs(n - 1.0) > 1e-6):
+            raise ValueError("dirs must be unit vectors")
+        if self._star is None:
+            return self._ellipsoid_E.ray_cast(O, D)
+        return self._star.ray_cast(O, D)
+
+    def signed_distance(self, Q) -> np.ndarray:
+        """(M,) signed distance (mm) of Q (M, 3) in W to the retina; > 0 inside."""
+        Q_E = self.pose.to_E(as_points(Q, "Q"))
+        if self._star is None:
+            return self._ellipsoid_E.signed_distance(Q_E)
+        return self._star.signed_distance_and_gradient(Q_E)[0]
+
+    def gradient(self, Q) -> np.ndarray:
+        """(M, 3) unit gradient of the signed distance in W (inward at the closest point)."""
+        Q_E = self.pose.to_E(as_points(Q, "Q"))
+        g = self._ellipsoid_E.gradient(Q_E) if self._star is None else self._star.signed_distance_and_gradient(Q_E)[1]
+        return g @ self.pose.R_WE.T
+
+    def surface_points(self, U_E: np.ndarray) -> np.ndarray:
+        """(M, 3) retina points in W in the E-frame unit directions U_E (M, 3) from the centre."""
+        rho = _ellipsoid_rho(self.radii) if self._star is None else self._star.rho
+        return self.pose.to_W(rho(U_E)[:, None] * U_E)
+
+    def in_reference_region(self, P_W, crop_mm: float = ANTERIOR_CROP_MM) -> np.ndarray:
+        """(M,) bool: points no further anterior than `crop_mm` behind the front of the eye."""
+        return self.pose.to_E(as_points(P_W, "P_W"))[:, 2] <= self.anterior_z_mm - crop_mm
+
+    def reference_samples(self, n_theta: int = 500, n_phi: int = 500, crop_mm: float = ANTERIOR_CROP_MM):
+        """The paper's ground-truth sampling in W: n_theta x n_phi points (equal-area in
+        direction) over the retina with the anterior `crop_mm` removed."""
+        P_E = self._ellipsoid_E.sample_surface(n_theta, n_phi, z_max=self.anterior_z_mm - crop_mm)
+        U = P_E / np.linalg.norm(P_E, axis=1, keepdims=True)
+        return self.surface_points(U)
+
+
+def make_eye(name: str = "emmetropic", pose: EyePose | None = None, **params) -> Eye:
+    """Ground-truth eye `name` (one of EYE_SHAPES) placed at `pose` (default: E = W).
+
+    Keyword parameters override the defaults of the composite shapes:
+    pointed: apex_offset_mm; staphyloma: depth_mm, curvature_radius_mm, blend_mm,
+    angle_deg (temporal of the posterior pole); detached: height_mm, base_diameter_mm,
+    angle_deg (inferior of the posterior pole).
+    """
+    if name not in EYE_SHAPES:
+        raise ValueError(f"unknown eye shape {name!r}; expected one of {', '.join(EYE_SHAPES)}")
+    pose = EyePose() if pose is None else pose
+    if name in ("emmetropic", "myopic", "hyperopic"):
+        if params:
+            raise ValueError(f"{name} takes no shape parameters, got {sorted(params)}")
+        return Eye(name, radii_for_refraction({"emmetropic": 0.0, "myopic": -12.0, "hyperopic": 4.0}[name]), pose)
+    radii = radii_for_refraction(-12.0)
+    if name == "pointed":
+        return Eye(name, radii, pose, pointed_rho(radii, **params))
+    angle = np.radians(params.pop("angle_deg", 15.0 if name == "staphyloma" else 40.0))
+    if name == "staphyloma":
+        centre = np.array([np.sin(angle), 0.0, -np.cos(angle)])
+        return Eye(name, radii, pose, staphyloma_rho(radii, centre, **params))
+    centre = np.array([0.0, -np.sin(angle), -np.cos(angle)])
+    return Eye(name, radii, pose, detached_rho(radii, centre, **params))
