@@ -18,6 +18,7 @@ from eval.io import UsageError
 
 SUBCOMMAND_MODULES = (
     "eval.cmd_demo",
+    "eval.cmd_paper",
 )
 
 

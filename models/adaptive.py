@@ -47,7 +47,7 @@ class ModelUpdate:
         return Ellipsoid(self.ellipsoid_center, self.ellipsoid_radii, self.ellipsoid_rotation)
 
 
-def _sphere_quadric(center_scaled: np.ndarray, radius_scaled: float) -> np.ndarray:
+def sphere_quadric(center_scaled: np.ndarray, radius_scaled: float) -> np.ndarray:
     """Quadric coefficients (10,) of a sphere, in the ellipsoid fit's parametrisation."""
     k = radius_scaled**2 - center_scaled @ center_scaled
     return np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, *(-center_scaled), -k])
@@ -66,6 +66,8 @@ class AdaptiveEyeModel:
     """
 
     def __init__(self, criteria=None):
+        """`criteria`: PaperCriteria (default, the paper's) or PredictiveCriteria, or any
+        object with the same `initial_state`/`evaluate` interface (models.transition)."""
         self.criteria = PaperCriteria() if criteria is None else criteria
         self._sf = SphereKalmanFilter()
         self._ef = IncrementalEllipsoidFit()
@@ -119,9 +121,10 @@ class AdaptiveEyeModel:
         sf = self._sf.center_radius
         S = self._ef.S
         sf_res = ef_res = axis_change = np.nan
+        v_sf = None
         if sf is not None:
-            c_scaled = (sf[0] - self._ef.p0) / LENGTH_SCALE_MM
-            sf_res = LENGTH_SCALE_MM * taubin_residual(S, _sphere_quadric(c_scaled, sf[1] / LENGTH_SCALE_MM))
+            v_sf = sphere_quadric((sf[0] - self._ef.p0) / LENGTH_SCALE_MM, sf[1] / LENGTH_SCALE_MM)
+            sf_res = LENGTH_SCALE_MM * taubin_residual(S, v_sf)
         if fit.ok:
             ef_res = LENGTH_SCALE_MM * taubin_residual(S, fit.v)
             radii = np.sort(fit.radii)
@@ -130,7 +133,9 @@ class AdaptiveEyeModel:
             self._prev_radii = radii
         else:
             self._prev_radii = None
-        snap = FitSnapshot(self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change)
+        snap = FitSnapshot(
+            self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, S, v_sf, fit.v if fit.ok else None
+        )
         criteria, self._memory = self.criteria.evaluate(snap, self._memory)
         if self.kind == "sphere" and fit.ok and all(met for _, met in criteria.values()):
             self.kind = "ellipsoid"

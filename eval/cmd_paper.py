@@ -1,0 +1,182 @@
+"""`vitreoguard paper`: reproduce (and beat) the paper's simulation results, Table 2 and Fig. 5."""
+from __future__ import annotations
+
+import argparse
+import os
+from concurrent.futures import ProcessPoolExecutor
+
+import numpy as np
+
+from eval.io import UsageError, prepare_out_dir, save_figure, write_atomic, write_json
+from eval.paper_experiment import ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, decision, optimal_transition, run_shape
+from eval.paper_figures import fig5
+from eval.progress import Progress
+from models.eyes import EYE_SHAPES, EyePose
+from models.transition import CRITERIA
+
+# table2.json key -> (which fit, which PaperMetrics field)
+METRIC_KEYS = {"mmae": ("ef", "mmae"), "sf_fmae": ("sf", "fmae"), "sf_mae": ("sf", "mae"), "ef_fmae": ("ef", "fmae"), "ef_mae": ("ef", "mae")}
+
+
+def register(sub) -> None:
+    p = sub.add_parser("paper", help="the paper's simulation experiment: table2.json/.md and fig5_<shape>.png")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--shapes", nargs="+", default=list(EYE_SHAPES), help=f"subset of: {' '.join(EYE_SHAPES)}")
+    p.add_argument("--seeds", type=int, default=1, help="number of noise seeds (>= 1); figures are means")
+    p.add_argument("--noise-um", type=float, default=20.0, help="SD of the distance noise, um (>= 0)")
+    p.add_argument("--criterion", choices=sorted(CRITERIA), default="predictive", help="transition criterion that drives the model")
+    p.add_argument("--pose", choices=["nominal", "anatomical"], default="nominal", help="eye placement: on the scan axis, or tilted 11 deg and decentred")
+    p.add_argument("--stride", type=int, default=1, help="use every k-th A-scan (1: all 5,093)")
+    p.add_argument("--grid", type=int, default=500, help="n x n sampling of the surfaces for Table 2 (paper: 500)")
+    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
+    p.set_defaults(func=main)
+
+
+def _validate(args) -> None:
+    unknown = [s for s in args.shapes if s not in EYE_SHAPES]
+    if unknown:
+        raise UsageError(f"unknown shape(s) {', '.join(unknown)}; choose from {', '.join(EYE_SHAPES)}")
+    if args.seeds < 1:
+        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
+    if not np.isfinite(args.noise_um) or args.noise_um < 0:
+        raise UsageError(f"--noise-um must be finite and >= 0, got {args.noise_um}")
+    if args.stride < 1:
+        raise UsageError(f"--stride must be >= 1, got {args.stride}")
+    if args.grid < 10:
+        raise UsageError(f"--grid must be >= 10, got {args.grid}")
+    if args.jobs < 1:
+        raise UsageError(f"--jobs must be >= 1, got {args.jobs}")
+
+
+def _mean_or_none(values):
+    return None if any(v is None for v in values) else float(np.mean(values))
+
+
+def aggregate(runs, criterion: str) -> dict:
+    """table2.json entry for one shape from its runs (one per seed)."""
+    out, spread = {}, {}
+    for key, (fit, field) in METRIC_KEYS.items():
+        for suffix in ("", "_sampled"):
+            vals = [getattr(getattr(r, fit), field + suffix) for r in runs]
+            out[key + suffix] = [float(np.mean([v.mean for v in vals])), float(np.mean([v.sd for v in vals]))]
+            spread[key + suffix] = float(np.std([v.mean for v in vals]))
+    fractions = runs[0].fractions
+    sf_curve = np.mean([r.sf_mae_curve for r in runs], axis=0)
+    ef_curve = np.mean([r.ef_mae_curve for r in runs], axis=0)
+    optimal = optimal_transition(fractions, sf_curve, ef_curve)
+    per_criterion = {}
+    for name in runs[0].transitions:
+        per_seed = [r.transitions[name] for r in runs]
+        done = [t for t in per_seed if t is not None]
+        at = float(np.mean(done)) if len(done) * 2 > len(per_seed) else None  # majority of seeds
+        d = decision(at, optimal)
+        d["per_seed"] = per_seed
+        d["criteria_met_at"] = {c: _mean_or_none([r.criteria_met_at[name][c] for r in runs]) for c in runs[0].criteria_met_at[name]}
+        per_criterion[name] = d
+    chosen = per_criterion[criterion]
+    out.update(
+        transition_at=chosen["transition_at"],
+        optimal_transition_at=optimal,
+        criteria_met_at=per_criterion["paper"]["criteria_met_at"] if "paper" in per_criterion else chosen["criteria_met_at"],
+        lag=chosen["lag"],
+        decision_right=chosen["decision_right"],
+        criterion=criterion,
+        criteria=per_criterion,
+        seed_spread=spread,
+        meets_required_accuracy={"sf": out["sf_mae"][0] < ACCURACY_REQUIRED_MM, "ef": out["ef_mae"][0] < ACCURACY_REQUIRED_MM},
+        paper=PAPER_TABLE2[runs[0].shape],
+    )
+    out["_curves"] = (fractions, sf_curve, ef_curve)
+    return out
+
+
+def _fmt(pair) -> str:
+    return f"{pair[0]:.3f} ({pair[1]:.3f})"
+
+
+def _pct(x) -> str:
+    return "none" if x is None else f"{100 * x:.1f} %"
+
+
+def table_markdown(results: dict, args) -> str:
+    """Table 2 as Markdown, ours (exact and sampled forms) beside the paper's."""
+    lines = [
+        f"# Table 2 (simulation): ours vs the paper\n",
+        f"Noise {args.noise_um:g} um, {args.seeds} seed(s), every {args.stride}. A-scan, eye pose {args.pose}, "
+        f"{args.grid} x {args.grid} sampling. mm, mean (SD). *exact*: each distance computed exactly; "
+        "*sampled*: the paper's nearest-sample distances between 500 x 500 clouds (adds discretisation error).\n",
+        "| shape | form | MMAE | SF FMAE | SF MAE | EF FMAE | EF MAE |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for shape, r in results.items():
+        p = r["paper"]
+        lines.append(f"| {shape} | ours, exact | " + " | ".join(_fmt(r[k]) for k in METRIC_KEYS) + " |")
+        lines.append(f"| | ours, sampled | " + " | ".join(_fmt(r[k + "_sampled"]) for k in METRIC_KEYS) + " |")
+        lines.append(f"| | paper | " + " | ".join(_fmt(p[k]) for k in METRIC_KEYS) + " |")
+    lines += [
+        "\n## Transition sphere -> ellipsoid (fractions of the spiral)\n",
+        f"Driving criterion: **{args.criterion}**. Lag = transition - optimal transition (paper: "
+        f"{100 * PAPER_LAG_RANGE[0]:.1f}-{100 * PAPER_LAG_RANGE[1]:.1f} %). Right = switches exactly when the "
+        "ellipsoid ends up more accurate than the sphere.\n",
+        "| shape | optimal | paper criteria: at / lag / right | predictive criteria: at / lag / right |",
+        "|---|---|---|---|",
+    ]
+    for shape, r in results.items():
+        cells = []
+        for name in ("paper", "predictive"):
+            d = r["criteria"].get(name)
+            cells.append("n/a" if d is None else f"{_pct(d['transition_at'])} / {_pct(d['lag'])} / {'yes' if d['decision_right'] else 'NO'}")
+        lines.append(f"| {shape} | {_pct(r['optimal_transition_at'])} | {cells[0]} | {cells[1]} |")
+    lines.append("\n## Accuracy against the paper's 0.5 mm requirement\n")
+    for shape, r in results.items():
+        ok = r["meets_required_accuracy"]
+        if not (ok["sf"] or ok["ef"]):
+            lines.append(
+                f"- **{shape}: neither model reaches the required 0.5 mm** (SF MAE {r['sf_mae'][0]:.3f} mm, "
+                f"EF MAE {r['ef_mae'][0]:.3f} mm): this shape needs a richer model than a sphere or an ellipsoid."
+            )
+        else:
+            best = "ellipsoid" if r["ef_mae"][0] < r["sf_mae"][0] else "sphere"
+            lines.append(f"- {shape}: the {best} reaches it (MAE {min(r['ef_mae'][0], r['sf_mae'][0]):.3f} mm).")
+    lines.append(
+        "\nMMAE (measured points vs truth) sits near the mean absolute noise projected on the surface normal: "
+        "20 um x sqrt(2/pi) = 16 um along the beam, a little less across oblique incidence; the paper's larger "
+        "MMAE comes from its sampled distances."
+    )
+    return "\n".join(lines) + "\n"
+
+
+def _task(job):
+    shape, seed, args_dict = job
+    pose = EyePose.anatomical() if args_dict["pose"] == "anatomical" else EyePose()
+    return run_shape(shape, seed, args_dict["noise_um"], pose, args_dict["stride"], grid=args_dict["grid"])
+
+
+def main(args) -> int:
+    _validate(args)
+    out = prepare_out_dir(args.out)
+    jobs = [(s, seed, vars(args) | {"func": None}) for s in args.shapes for seed in range(args.seeds)]
+    progress = Progress(len(jobs), "paper")
+    runs = {}
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        for (shape, seed, _), run in zip(jobs, pool.map(_task, jobs)):
+            runs.setdefault(shape, []).append(run)
+            progress.step(f"{shape} seed {seed}")
+    results = {shape: aggregate(rs, args.criterion) for shape, rs in runs.items()}
+    figures = {}
+    for shape, r in results.items():
+        fractions, sf_curve, ef_curve = r.pop("_curves")
+        figures[shape] = fig5(
+            shape, fractions, sf_curve, ef_curve, r["criteria_met_at"], r["transition_at"],
+            r["optimal_transition_at"], args.criterion, args.seeds,
+        )
+    write_json(out / "table2.json", results)
+    write_atomic(out / "table2.md", table_markdown(results, args))
+    for shape, fig in figures.items():
+        save_figure(fig, out / f"fig5_{shape}.png")
+    right = sum(r["decision_right"] for r in results.values())
+    print(f"wrote {out}/table2.json, table2.md and {len(figures)} fig5 plots; transition decided right on {right}/{len(results)} shapes")
+    for shape, r in results.items():
+        print(f"  {shape:10s} EF MAE {1e3 * r['ef_mae'][0]:7.1f} um  SF MAE {1e3 * r['sf_mae'][0]:7.1f} um  "
+              f"transition {_pct(r['transition_at'])}  optimal {_pct(r['optimal_transition_at'])}")
+    return 0
