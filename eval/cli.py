@@ -19,6 +19,7 @@ from eval.io import UsageError
 SUBCOMMAND_MODULES = (
     "eval.cmd_demo",
     "eval.cmd_paper",
+    "eval.cmd_eyes",
 )
 
 

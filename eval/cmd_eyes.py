@@ -1,0 +1,68 @@
+"""`vitreoguard eyes`: render the six ground-truth eye shapes (3-D view and cross-section)."""
+from __future__ import annotations
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from eval.io import prepare_out_dir, save_figure, write_json
+from models.eyes import EYE_SHAPES, make_eye
+from models.sampling import unit_sphere_grid
+
+# the plane of each cross-section: (in-plane horizontal axis in E, label)
+_SECTION = {"staphyloma": (np.array([1.0, 0.0, 0.0]), "x (temporal)"), "detached": (np.array([0.0, 1.0, 0.0]), "y (superior)")}
+
+
+def register(sub) -> None:
+    p = sub.add_parser("eyes", help="render the ground-truth eye shapes to eyes.png")
+    p.add_argument("--out", required=True, help="output directory")
+    p.set_defaults(func=main)
+
+
+def figure_eyes():
+    """2 x 6 figure: each shape as a surface coloured by its departure from its base
+    ellipsoid, and its cross-section through the visual axis (and the pathology)."""
+    fig = plt.figure(figsize=(18, 6.5))
+    stats = {}
+    for k, name in enumerate(EYE_SHAPES):
+        eye = make_eye(name)
+        n_t, n_p = 60, 90
+        U = unit_sphere_grid(n_t, n_p)
+        X = eye.surface_points(U)
+        base = 1 / np.sqrt((U * U) @ (1 / eye.radii**2))[:, None] * U
+        dev = np.linalg.norm(X, axis=1) - np.linalg.norm(base, axis=1)
+        ax = fig.add_subplot(2, 6, k + 1, projection="3d")
+        G = X.reshape(n_t, n_p, 3)
+        colors = plt.cm.coolwarm(0.5 + np.clip(dev.reshape(n_t, n_p), -2.5, 2.5) / 5.0)
+        ax.plot_surface(G[..., 0], G[..., 1], G[..., 2], facecolors=colors, rstride=1, cstride=1, linewidth=0, antialiased=False, shade=False)
+        ax.view_init(elev=-25, azim=-60)
+        ax.set_box_aspect((1, 1, 1))
+        ax.set_title(name)
+        ax.set_axis_off()
+        axis, label = _SECTION.get(name, (np.array([1.0, 0.0, 0.0]), "x (temporal)"))
+        t = np.linspace(0, 2 * np.pi, 2000)
+        D = np.outer(np.cos(t), axis) + np.outer(np.sin(t), [0.0, 0.0, 1.0])
+        S = eye.surface_points(D)
+        Sb = D / np.sqrt((D * D) @ (1 / eye.radii**2))[:, None]
+        ax2 = fig.add_subplot(2, 6, 7 + k)
+        ax2.plot(Sb @ axis, Sb[:, 2], "k--", lw=0.8, label="base ellipsoid")
+        ax2.plot(S @ axis, S[:, 2], color="tab:red", lw=1.5, label=name)
+        ax2.axhline(eye.anterior_z_mm - 5.0, color="gray", lw=0.6, ls=":", label="anterior crop")
+        ax2.set_aspect("equal")
+        ax2.set_xlabel(f"{label} mm")
+        ax2.set_ylabel("z (anterior) mm")
+        ax2.grid(alpha=0.3)
+        if k == 0:
+            ax2.legend(fontsize=7, loc="upper right")
+        stats[name] = {"radii_mm": eye.radii.tolist(), "max_inward_mm": float(-dev.min()), "max_outward_mm": float(dev.max())}
+    fig.suptitle("Ground-truth retinas in E (colour: radial departure from the base ellipsoid, red = outward)")
+    fig.tight_layout()
+    return fig, stats
+
+
+def main(args) -> int:
+    out = prepare_out_dir(args.out)
+    fig, stats = figure_eyes()
+    write_json(out / "eyes.json", stats)
+    save_figure(fig, out / "eyes.png")
+    print(f"wrote {out / 'eyes.png'} and {out / 'eyes.json'}")
+    return 0
