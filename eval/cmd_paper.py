@@ -104,7 +104,7 @@ def table_markdown(results: dict, args) -> str:
         f"# Table 2 (simulation): ours vs the paper\n",
         f"Noise {args.noise_um:g} um, {args.seeds} seed(s), every {args.stride}. A-scan, eye pose {args.pose}, "
         f"{args.grid} x {args.grid} sampling. mm, mean (SD). *exact*: each distance computed exactly; "
-        "*sampled*: the paper's nearest-sample distances between 500 x 500 clouds (adds discretisation error).\n",
+        f"*sampled*: the paper's nearest-sample distances between {args.grid} x {args.grid} clouds (adds discretisation error).\n",
         "| shape | form | MMAE | SF FMAE | SF MAE | EF FMAE | EF MAE |",
         "|---|---|---|---|---|---|---|",
     ]

@@ -134,12 +134,16 @@ class AdaptiveEyeModel:
         else:
             self._prev_radii = None
         snap = FitSnapshot(
-            self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, S, v_sf, fit.v if fit.ok else None
+            self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, S, v_sf,
+            fit.v if fit.ok else None, sf, (fit.center, fit.radii, fit.rotation) if fit.ok else None, self._ef.p0,
         )
         criteria, self._memory = self.criteria.evaluate(snap, self._memory)
         if self.kind == "sphere" and fit.ok and all(met for _, met in criteria.values()):
             self.kind = "ellipsoid"
             self.transition_index = len(self.history)
+        elif self.kind == "ellipsoid" and self.criteria.reversible and self.criteria.wants_sphere(self._memory):
+            self.kind = "sphere"
+            self.transition_index = None
         last = self._ef.last_ok
         return ModelUpdate(
             n_points=self.n_points,

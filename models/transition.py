@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models.ellipsoid_fit import LENGTH_SCALE_MM, taubin_residual
+from models.extrapolation import global_surface_points, sampson_distance
 
 
 @dataclass(frozen=True, eq=False)
@@ -20,7 +21,9 @@ class FitSnapshot:
     `axis_change`: largest relative change of the sorted ellipsoid semi-axes since the
     previous update (NaN without a previous fit). `S`: the cumulative 10x10 scatter
     matrix in the fits' scaled coordinates (read-only view); `v_sf`, `v_ef`: the
-    sphere's and ellipsoid's quadric coefficients in those coordinates (None if absent).
+    sphere's and ellipsoid's quadric coefficients in those coordinates (None if absent);
+    `sf` (center, radius) and `ef` (center, radii, rotation): the fits in mm (or None);
+    `p0`: the origin of the scaled coordinates (mm).
     """
 
     n_points: int
@@ -31,6 +34,9 @@ class FitSnapshot:
     S: np.ndarray
     v_sf: np.ndarray | None
     v_ef: np.ndarray | None
+    sf: tuple | None = None
+    ef: tuple | None = None
+    p0: np.ndarray | None = None
 
 
 def _check_positive(name: str, value: float, allow_zero: bool = False) -> None:
@@ -59,6 +65,7 @@ class PaperCriteria:
     min_stable_updates: int = 15
 
     names = ("scan_range", "residual", "temporal")
+    reversible = False  # the paper switches once
 
     def __post_init__(self):
         _check_positive("min_scan_range_mm", self.min_scan_range_mm, allow_zero=True)
@@ -91,45 +98,54 @@ class _PredictiveMemory:
         self.S: list[np.ndarray] = []
         self.v_sf: list[np.ndarray | None] = []
         self.v_ef: list[np.ndarray | None] = []
-        self.last = {"fit": (np.nan, False), "prediction": (np.nan, False)}
+        self.last = {name: (np.nan, False) for name in ("fit", "convergence", "prediction")}
         self.stable = 0
+        self.misfit = 0  # consecutive checkpoints at which the ellipsoid did not explain the data
 
 
 @dataclass(frozen=True)
 class PredictiveCriteria:
-    """Switch when the ellipsoid explains the data to the noise level and predicts new
-    retina better than the sphere (our criterion; the paper's stays available).
+    """Switch when the ellipsoid is known to be the better model of the whole retina,
+    not only of the patch scanned so far (our criterion; the paper's stays available).
 
-    The retina the model must answer for is mostly retina the fiber has not seen yet,
-    so the criterion judges each model by what it predicted: at every checkpoint
-    (each `check_every` points) the fits made when only `lag_fraction` of the current
-    points were in are scored on the newest `window_fraction` of the points, which
-    they never saw (prequential validation). All of these must hold for
-    `min_stable_checks` consecutive checkpoints:
+    The model must answer for retina the fibre has not seen, so every condition is
+    about extrapolation. At each checkpoint (every `check_every` points):
     - scan range > `min_scan_range_mm` (too small a patch says nothing about shape);
-    - fit: ellipsoid residual < `fit_factor` x `noise_sd_mm` (the ellipsoid explains
-      the data; a shape it cannot explain, such as a staphyloma, makes its
-      extrapolation unreliable, however well it predicts the next ring);
-    - prediction: the earlier ellipsoid's RMS error on the new points < the earlier
-      sphere's.
-    Errors are Taubin's first-order distances from windowed scatter matrices (S now
-    minus S at the window start): O(1) per checkpoint, whatever the number of points.
+    - fit: the ellipsoid's residual < `fit_factor` x `noise_sd_mm`, i.e. it explains
+      the data to the noise level (a staphyloma or a detachment does not look like an
+      ellipsoid once scanned across, and then its extrapolation cannot be trusted);
+    - convergence: over the retina (anterior `crop_mm` excluded), the ellipsoid has
+      moved since the fit of `lag_fraction` of the points by less than
+      `convergence_factor` x its mean distance from the sphere: the two models disagree
+      by more than the ellipsoid is still changing, so the sphere is the one that is
+      off (the ellipsoid fitted to a small patch is biased by the noise, and that bias
+      shows as drift long before it shows in any residual);
+    - prediction: the fits made when `lag_fraction` of the points were in predict the
+      newest `window_fraction` of the points, which they never saw, and the ellipsoid's
+      RMS error is the smaller (prequential validation, from windowed scatter matrices).
+    The model switches to the ellipsoid when all hold for `min_stable_checks`
+    consecutive checkpoints, and back to the sphere when the fit condition fails for as
+    many. Every check is O(1) in the number of points.
     """
 
     noise_sd_mm: float = 0.020
     fit_factor: float = 1.5
+    convergence_factor: float = 0.25
+    crop_mm: float = 5.0
     min_scan_range_mm: float = 10.0
     lag_fraction: float = 0.8
     window_fraction: float = 0.1
     check_every: int = 25
     min_stable_checks: int = 3
 
-    names = ("scan_range", "fit", "prediction", "stable")
+    names = ("scan_range", "fit", "convergence", "prediction", "stable")
+    reversible = True
 
     def __post_init__(self):
-        _check_positive("noise_sd_mm", self.noise_sd_mm)
-        _check_positive("fit_factor", self.fit_factor)
+        for name in ("noise_sd_mm", "fit_factor", "convergence_factor"):
+            _check_positive(name, getattr(self, name))
         _check_positive("min_scan_range_mm", self.min_scan_range_mm, allow_zero=True)
+        _check_positive("crop_mm", self.crop_mm, allow_zero=True)
         for name in ("lag_fraction", "window_fraction"):
             v = getattr(self, name)
             if not (np.isfinite(v) and 0.0 < v < 1.0):
@@ -148,14 +164,34 @@ class PredictiveCriteria:
         i = int(np.searchsorted(mem.n, n, side="right")) - 1
         return i if i >= 0 else None
 
+    def _convergence(self, snap: FitSnapshot, v_ef_old: np.ndarray):
+        """(ellipsoid drift / sphere-ellipsoid distance over the retina, met)."""
+        L = LENGTH_SCALE_MM
+        c_ef, r_ef, R_ef = snap.ef
+        c = (c_ef - snap.p0) / L
+        centroid = snap.S[6:9, 9] / (2.0 * snap.S[9, 9])
+        anterior = c - centroid  # the scanned retina lies opposite the front of the eye
+        anterior /= np.linalg.norm(anterior)
+        X = global_surface_points(c, r_ef / L, R_ef, anterior, self.crop_mm / L)
+        drift = float(sampson_distance(v_ef_old, X).mean())
+        c_sf = (snap.sf[0] - snap.p0) / L
+        gap = float(np.abs(np.linalg.norm(X - c_sf, axis=1) - snap.sf[1] / L).mean())
+        ratio = drift / gap if gap > 0 else np.inf
+        return ratio, bool(ratio < self.convergence_factor)
+
     def _checkpoint(self, snap: FitSnapshot, mem: _PredictiveMemory) -> None:
         mem.n.append(snap.n_points)
         mem.S.append(snap.S.copy())
         mem.v_sf.append(None if snap.v_sf is None else snap.v_sf.copy())
         mem.v_ef.append(None if snap.v_ef is None else snap.v_ef.copy())
+        if snap.v_ef is None or snap.sf is None:
+            mem.last = {name: (np.nan, False) for name in mem.last}
+            return
         fit_ratio = snap.ef_residual_mm / self.noise_sd_mm
         mem.last["fit"] = (fit_ratio, bool(fit_ratio < self.fit_factor))
         j = self._at_most(mem, self.lag_fraction * snap.n_points)
+        old_ef = None if j is None else mem.v_ef[j]
+        mem.last["convergence"] = (np.nan, False) if old_ef is None else self._convergence(snap, old_ef)
         w = self._at_most(mem, (1.0 - self.window_fraction) * snap.n_points)
         gain, better = np.nan, False
         if j is not None and w is not None and w < len(mem.n) - 1 and mem.v_sf[j] is not None and mem.v_ef[j] is not None:
@@ -172,14 +208,18 @@ class PredictiveCriteria:
             self._checkpoint(snap, mem)
         range_ok = snap.scan_range_mm > self.min_scan_range_mm
         if at_checkpoint:
-            all_ok = range_ok and mem.last["fit"][1] and mem.last["prediction"][1]
+            all_ok = range_ok and all(met for _, met in mem.last.values())
             mem.stable = mem.stable + 1 if all_ok else 0
+            mem.misfit = 0 if mem.last["fit"][1] else mem.misfit + 1
         return {
             "scan_range": (snap.scan_range_mm, range_ok),
-            "fit": mem.last["fit"],
-            "prediction": mem.last["prediction"],
+            **mem.last,
             "stable": (float(mem.stable), mem.stable >= self.min_stable_checks),
         }, mem
+
+    def wants_sphere(self, mem: _PredictiveMemory) -> bool:
+        """True when the ellipsoid has failed the fit condition long enough to drop it."""
+        return mem.misfit >= max(self.min_stable_checks, 1)
 
 
 CRITERIA = {"paper": PaperCriteria, "predictive": PredictiveCriteria}

@@ -1,0 +1,27 @@
+"""Where the fibre never looked: the retina an ellipsoid fit has to extrapolate to.
+
+Points and quadrics are in the fits' scaled coordinates (models.ellipsoid_fit).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from models.ellipsoid_fit import design_rows
+from models.sampling import unit_sphere_grid
+
+_DIRECTIONS = unit_sphere_grid(12, 24)  # 288 directions over the whole surface
+
+
+def global_surface_points(center, radii, rotation, anterior_dir, crop) -> np.ndarray:
+    """(K, 3) points on an ellipsoid, equal-area in direction, without the cap within
+    `crop` of its extreme point along `anterior_dir` (the part the metrics ignore)."""
+    X = center + (_DIRECTIONS * radii) @ rotation.T
+    h = (X - center) @ anterior_dir
+    return X[h <= h.max() - crop]
+
+
+def sampson_distance(v: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """(K,) first-order distance |Q(x)| / |grad Q(x)| of points X (K, 3) from quadric v (10,)."""
+    A = np.array([[v[0], v[5], v[4]], [v[5], v[1], v[3]], [v[4], v[3], v[2]]])
+    grad = 2.0 * (X @ A + v[6:9])
+    return np.abs(design_rows(X) @ v) / np.linalg.norm(grad, axis=1)
