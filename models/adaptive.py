@@ -1,7 +1,7 @@
 """The adaptive eye model: a sphere at first, an ellipsoid once the data supports it."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -14,12 +14,12 @@ from models.sphere_kalman import SphereKalmanFilter
 from models.transition import FitSnapshot, PaperCriteria
 
 
-@dataclass(frozen=True, eq=False, slots=True)
-class ModelUpdate:
+class ModelUpdate(NamedTuple):
     """One entry of the model history (mm, frame of the measured points).
 
     `criteria` maps each criterion name to (value, met); `ef_status` is "ok" or why the
-    ellipsoid fit failed at this update (the previous good fit is kept).
+    ellipsoid fit failed at this update (the previous good fit is kept). A NamedTuple:
+    one is made per A-scan, so it must be cheap.
     """
 
     n_points: int
@@ -124,14 +124,18 @@ class AdaptiveEyeModel:
         v_sf = None
         if sf is not None:
             v_sf = sphere_quadric((sf[0] - self._ef.p0) / LENGTH_SCALE_MM, sf[1] / LENGTH_SCALE_MM)
-            sf_res = LENGTH_SCALE_MM * taubin_residual(S, v_sf)
         if fit.ok:
-            ef_res = LENGTH_SCALE_MM * taubin_residual(S, fit.v)
-            radii = np.sort(fit.radii)
+            if v_sf is None:
+                ef_res = LENGTH_SCALE_MM * taubin_residual(S, fit.v)
+            else:
+                sf_res, ef_res = (LENGTH_SCALE_MM * taubin_residual(S, np.stack([v_sf, fit.v]))).tolist()
+            radii = sorted(fit.radii.tolist())
             if self._prev_radii is not None:
-                axis_change = float(np.max(np.abs(radii - self._prev_radii) / self._prev_radii))
+                axis_change = max(abs(a - b) / b for a, b in zip(radii, self._prev_radii))
             self._prev_radii = radii
         else:
+            if v_sf is not None:
+                sf_res = LENGTH_SCALE_MM * taubin_residual(S, v_sf)
             self._prev_radii = None
         snap = FitSnapshot(
             self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, S, v_sf,

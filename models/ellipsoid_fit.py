@@ -89,13 +89,13 @@ def solve_scatter(S: np.ndarray) -> np.ndarray | None:
     if info != 0:
         return None
     # M v = lambda C1 v, so v^T M v / v^T C1 v = lambda: among the real eigenvectors
-    # that satisfy the ellipsoid constraint (v^T C1 v > 0), the least-squares one has
-    # the smallest lambda (>= 0 as M is positive semi-definite).
-    c = (V * (_C1 @ V)).sum(axis=0)
-    ok = (c > 1e-12 * (V * V).sum(axis=0)) & (wi == 0.0)
-    if not ok.any():
+    # that satisfy the ellipsoid constraint (v^T C1 v > 0; dgeev's columns have unit
+    # norm), the least-squares one has the smallest lambda (>= 0: M is semi-definite).
+    c = (V * (_C1 @ V)).sum(axis=0).tolist()
+    candidates = [(w, k) for k, (w, im) in enumerate(zip(wr.tolist(), wi.tolist())) if im == 0.0 and c[k] > 1e-12]
+    if not candidates:
         return None
-    j = np.flatnonzero(ok)[np.argmin(wr[ok])]
+    j = min(candidates)[1]
     v1 = V[:, j] / np.sqrt(c[j])
     return np.concatenate([v1, -(X @ v1)])  # v2 = -S22^-1 S12^T v1
 
@@ -126,20 +126,25 @@ _GRAD_ROWS = np.array([[0, 5, 4, 6], [5, 1, 3, 7], [4, 3, 2, 8]])
 _MOMENT_SCALE = np.multiply.outer([0.5, 0.5, 0.5, 1.0], [0.5, 0.5, 0.5, 1.0])  # S[6:, 6:] is in [2x, 2y, 2z, 1]
 
 
-def taubin_residual(S: np.ndarray, v: np.ndarray) -> float:
-    """RMS point-to-surface distance (scaled units) of quadric v over the points of S, in
-    Taubin's first-order form sqrt(sum Q^2 / sum |grad Q|^2), from the moments alone:
-    sum Q^2 = v^T S v and sum |grad Q|^2 = 4 sum_i w_i^T M w_i with w_i = v[rows_i] and
-    M the second moments of [x, y, z, 1]. O(1) whatever the number of points."""
-    W = v[_GRAD_ROWS]
-    g2 = 4.0 * float(((W @ (S[6:, 6:] * _MOMENT_SCALE)) * W).sum())
-    q2 = float(v @ S @ v)
-    return float(np.sqrt(max(q2, 0.0) / g2)) if g2 > 0.0 else float("inf")
+def taubin_residual(S: np.ndarray, v: np.ndarray):
+    """RMS point-to-surface distance (scaled units) of quadric v (10,) -- or of each row
+    of v (k, 10) -- over the points of S, in Taubin's first-order form
+    sqrt(sum Q^2 / sum |grad Q|^2), from the moments alone: sum Q^2 = v^T S v and
+    sum |grad Q|^2 = 4 sum_i w_i^T M w_i with w_i = v[rows_i] and M the second moments
+    of [x, y, z, 1]. O(1) whatever the number of points."""
+    V = np.atleast_2d(v)
+    W = V[:, _GRAD_ROWS]  # (k, 3, 4)
+    g2 = 4.0 * ((W @ (S[6:, 6:] * _MOMENT_SCALE)) * W).sum(axis=(1, 2))
+    q2 = ((V @ S) * V).sum(axis=1)
+    r = [(max(q, 0.0) / g) ** 0.5 if g > 0.0 else float("inf") for q, g in zip(q2.tolist(), g2.tolist())]
+    return np.array(r) if np.ndim(v) == 2 else r[0]
 
 
-def fit_scatter(S: np.ndarray, p0: np.ndarray, scale: float = LENGTH_SCALE_MM) -> EllipsoidFit:
-    """Fit an ellipsoid to the points summarised by scatter matrix S (see module doc)."""
-    reason = degeneracy(S)
+def fit_scatter(S: np.ndarray, p0: np.ndarray, scale: float = LENGTH_SCALE_MM, check_spread: bool = True) -> EllipsoidFit:
+    """Fit an ellipsoid to the points summarised by scatter matrix S (see module doc).
+    `check_spread=False` skips the collinear/coplanar test (for a caller that knows the
+    cloud is already spread in 3-D); too few points are always refused."""
+    reason = degeneracy(S) if check_spread else ("too_few_points" if S[9, 9] < MIN_POINTS else None)
     if reason is not None:
         return EllipsoidFit(reason)
     try:
@@ -176,10 +181,13 @@ class IncrementalEllipsoidFit:
     still holds the previous good fit (graceful fall-back) and `fit().status` says why.
     """
 
+    SPREAD_RECHECK = 64  # points between re-checks of a cloud already found spread in 3-D
+
     def __init__(self):
         self.S = np.zeros((10, 10))
         self.p0: np.ndarray | None = None
         self.last_ok: EllipsoidFit | None = None
+        self._spread_checked_at = 0  # point count at the last passed spread test (0: none)
 
     @property
     def n_points(self) -> int:
@@ -207,7 +215,13 @@ class IncrementalEllipsoidFit:
         """Refit from all points so far; keeps `last_ok` on failure."""
         if self.p0 is None:
             return EllipsoidFit("too_few_points")
-        result = fit_scatter(self.S, self.p0)
+        # Adding points only widens a cloud's scatter about its mean, so once spread in
+        # 3-D it stays so; the ratio test is still repeated every SPREAD_RECHECK points.
+        n = self.n_points
+        check = not self._spread_checked_at or n - self._spread_checked_at >= self.SPREAD_RECHECK
+        result = fit_scatter(self.S, self.p0, check_spread=check)
+        if check:
+            self._spread_checked_at = n if result.status not in ("collinear", "coplanar", "too_few_points") else 0
         if result.ok:
             self.last_ok = result
         return result

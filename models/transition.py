@@ -7,6 +7,7 @@ switches once, at the first update where every criterion it reports is met.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -14,8 +15,7 @@ from models.ellipsoid_fit import LENGTH_SCALE_MM, taubin_residual
 from models.extrapolation import global_surface_points, sampson_distance
 
 
-@dataclass(frozen=True, eq=False)
-class FitSnapshot:
+class FitSnapshot(NamedTuple):
     """What the adaptive model knows after one update (mm; relative changes unitless).
 
     `axis_change`: largest relative change of the sorted ellipsoid semi-axes since the
