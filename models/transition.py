@@ -130,13 +130,13 @@ class PredictiveCriteria:
 
     noise_sd_mm: float = 0.020
     fit_factor: float = 1.5
-    convergence_factor: float = 0.25
+    convergence_factor: float = 0.45
     crop_mm: float = 5.0
     min_scan_range_mm: float = 10.0
     lag_fraction: float = 0.8
     window_fraction: float = 0.1
     check_every: int = 25
-    min_stable_checks: int = 3
+    min_stable_checks: int = 6
 
     names = ("scan_range", "fit", "convergence", "prediction", "stable")
     reversible = True
