@@ -115,11 +115,17 @@ def run_shape(
     return run
 
 
+MAX_LAG = 0.10  # target: switch within 10 % of the spiral after the optimal point
+
+
 def decision(transition_at: float | None, optimal_at: float | None) -> dict:
-    """{"transition_at", "lag" (transition - optimal, fraction), "decision_right"}: right
-    when the model switches exactly for shapes whose optimal transition exists."""
+    """{"transition_at", "lag" (transition - optimal, fraction), "decision_right", "timely"}:
+    right when the model switches exactly for the shapes whose optimal transition exists;
+    timely when, besides, it switches no earlier than the optimum and within MAX_LAG."""
     lag = None if transition_at is None or optimal_at is None else transition_at - optimal_at
-    return {"transition_at": transition_at, "lag": lag, "decision_right": (transition_at is None) == (optimal_at is None)}
+    right = (transition_at is None) == (optimal_at is None)
+    timely = right and (lag is None or 0.0 <= lag <= MAX_LAG)
+    return {"transition_at": transition_at, "lag": lag, "decision_right": right, "timely": timely}
 
 
 __all__ = ["PAPER_TABLE2", "PaperCriteria", "ShapeRun", "decision", "optimal_transition", "run_shape"]

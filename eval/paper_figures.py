@@ -37,5 +37,5 @@ def fig5(shape: str, fractions, sf_mae_mm, ef_mae_mm, paper_met_at: dict, transi
     seeds = f", mean of {n_seeds} noise seeds" if n_seeds > 1 else ""
     ax.set_title(f"{shape}: model accuracy along the spiral{seeds}")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, loc="upper right", ncol=2)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=3, frameon=False)
     return fig
