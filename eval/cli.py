@@ -20,6 +20,7 @@ SUBCOMMAND_MODULES = (
     "eval.cmd_demo",
     "eval.cmd_paper",
     "eval.cmd_eyes",
+    "eval.cmd_calibrate",
 )
 
 
