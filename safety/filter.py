@@ -1,0 +1,183 @@
+"""The virtual boundary: a QP safety filter on commanded velocities that fails safe.
+
+Each control step takes the commanded tip velocity and the robot's kinematics at the
+current joint angles and returns the joint velocities closest to the command that keep
+every monitored point (tip, cutter port, shaft points inside the eye) at least
+`d_safe_mm` (+ the model's uncertainty margin) inside the retina model, the shaft
+outside the lens keep-out, the RCM, and the joint limits. On any fault (stale model or
+sensor, NaN, absurd command, infeasible QP, solver failure) it commands zero velocity
+and says why: the robot stays put.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from safety import constraints
+from safety.qp import solve
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Filter parameters (mm, s, rad). `gain_per_s`: barrier rate (gain x dt must stay
+    well below 1 at the control rate); `damping`: (mm/rad)^2 weight on |qdot|^2."""
+
+    d_safe_mm: float = 0.5
+    gain_per_s: float = 20.0
+    lens_margin_mm: float = 0.3
+    joint_gain_per_s: float = 10.0
+    joint_margin_rad: float = np.radians(2.0)
+    max_tip_speed_mm_s: float = 20.0
+    max_command_speed_mm_s: float = 200.0
+    damping: float = 1e-3
+    max_model_age_s: float = 0.1
+    max_sensor_age_s: float = 0.05
+    cutter_clearance_mm: float = 1.0
+    solver: str = "clarabel"
+
+    def __post_init__(self):
+        for name in ("d_safe_mm", "gain_per_s", "joint_gain_per_s", "max_tip_speed_mm_s", "max_command_speed_mm_s",
+                     "max_model_age_s", "max_sensor_age_s", "cutter_clearance_mm"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"FilterConfig.{name} must be finite and > 0, got {v}")
+        for name in ("lens_margin_mm", "joint_margin_rad", "damping"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"FilterConfig.{name} must be finite and >= 0, got {v}")
+
+
+@dataclass(frozen=True, eq=False)
+class PointKinematics:
+    """A monitored point: name, position p_W (3,) mm, translational Jacobian J_W (3, n) mm/rad."""
+
+    name: str
+    p_W: np.ndarray
+    J_W: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class FilterInputs:
+    """One control step's inputs (mm, s, rad; W frame).
+
+    `boundary_points` must stay inside the retina model, `lens_points` outside the lens
+    keep-out; `rcm_A qdot = rcm_b` are the RCM rows; `model` answers signed_distance and
+    gradient (> 0 inside); `margin_mm` is added to d_safe (model uncertainty);
+    `model_time_s` / `sensor_time_s` are the times of the last model update and sensor
+    sample, checked against `t_s`.
+    """
+
+    t_s: float
+    q: np.ndarray
+    q_min: np.ndarray
+    q_max: np.ndarray
+    qdot_max: np.ndarray
+    v_cmd_W: np.ndarray
+    J_tip: np.ndarray
+    boundary_points: list
+    model: object
+    model_time_s: float
+    sensor_time_s: float
+    rcm_A: np.ndarray | None = None
+    rcm_b: np.ndarray | None = None
+    lens: object = None
+    lens_points: list = field(default_factory=list)
+    margin_mm: float = 0.0
+    J_roll: np.ndarray | None = None
+    roll_rate_cmd: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class FilterOutput:
+    """`qdot` (n,) rad/s to command (zeros on a fault); `ok` False on a fault, with
+    `reason`; `active`: names of the constraints at their bound; `min_clearance_mm`: the
+    smallest model clearance of the boundary points minus d_safe-free (mm);
+    `cutter_allowed`: the port's clearance exceeds the interlock threshold;
+    `intervened`: the output departs from the command (an active constraint, or a tip
+    velocity off the command by more than 1 %)."""
+
+    qdot: np.ndarray
+    ok: bool
+    reason: str
+    active: tuple = ()
+    min_clearance_mm: float = float("nan")
+    cutter_allowed: bool = False
+    intervened: bool = True
+    solve_us: float = 0.0
+
+
+class SafetyFilter:
+    """`filter(inputs) -> FilterOutput`; stateless apart from its configuration."""
+
+    def __init__(self, config: FilterConfig | None = None):
+        self.config = FilterConfig() if config is None else config
+
+    def _stop(self, n: int, reason: str, clearance=float("nan")) -> FilterOutput:
+        return FilterOutput(np.zeros(n), False, reason, min_clearance_mm=clearance)
+
+    def __call__(self, x: FilterInputs) -> FilterOutput:
+        cfg = self.config
+        n = len(np.atleast_1d(x.q))
+        fault = self._fault(x, n)
+        if fault:
+            return self._stop(n, fault)
+        P = np.array([p.p_W for p in x.boundary_points])
+        h = np.asarray(x.model.signed_distance(P), dtype=float)
+        grad = np.asarray(x.model.gradient(P), dtype=float)
+        if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
+            return self._stop(n, "model returned non-finite distance or gradient")
+        d_safe = cfg.d_safe_mm + x.margin_mm
+        clearance = float(h.min())
+        blocks = [
+            constraints.tracking(x.J_tip, x.v_cmd_W, cfg.damping, x.J_roll, x.roll_rate_cmd),
+            constraints.joint_limits(x.q, x.q_min, x.q_max, x.qdot_max, cfg.joint_gain_per_s, cfg.joint_margin_rad),
+            constraints.tip_speed(x.J_tip, cfg.max_tip_speed_mm_s),
+        ]
+        blocks += [constraints.barrier(f"boundary:{p.name}", hi, gi, p.J_W, d_safe, cfg.gain_per_s)
+                   for p, hi, gi in zip(x.boundary_points, h, grad)]
+        if x.lens is not None and x.lens_points:
+            L = np.array([p.p_W for p in x.lens_points])
+            h_lens = -np.asarray(x.lens.signed_distance(L))  # > 0 outside the lens
+            g_lens = -np.asarray(x.lens.gradient(L))
+            blocks += [constraints.barrier(f"lens:{p.name}", hi, gi, p.J_W, cfg.lens_margin_mm, cfg.gain_per_s)
+                       for p, hi, gi in zip(x.lens_points, h_lens, g_lens)]
+        if x.rcm_A is not None:
+            blocks.append(constraints.equality("rcm", x.rcm_A, x.rcm_b))
+        result = solve(blocks, n, cfg.solver)
+        if not result.ok:
+            return self._stop(n, f"QP: {result.reason}", clearance)
+        port = [hi for p, hi in zip(x.boundary_points, h) if p.name == "port"]
+        cutter = bool(port) and bool(port[0] > cfg.cutter_clearance_mm)
+        v_out = x.J_tip @ result.x
+        speed = np.linalg.norm(x.v_cmd_W)
+        off = np.linalg.norm(v_out - x.v_cmd_W) > 0.01 * max(speed, 1e-9)
+        intervened = bool(off or any(a.startswith(("boundary", "lens", "tip_speed")) for a in result.active))
+        return FilterOutput(result.x, True, "ok", result.active, clearance, cutter, intervened, result.solve_us)
+
+    def _fault(self, x: FilterInputs, n: int) -> str | None:
+        """Why this step must not move the robot, or None."""
+        cfg = self.config
+        arrays = {"q": x.q, "v_cmd_W": x.v_cmd_W, "J_tip": x.J_tip}
+        for name, a in arrays.items():
+            if not np.all(np.isfinite(a)):
+                return f"non-finite {name}"
+        if np.shape(x.J_tip) != (3, n):
+            return f"J_tip has shape {np.shape(x.J_tip)}, expected (3, {n})"
+        if not x.boundary_points:
+            return "no boundary points"
+        for p in x.boundary_points + list(x.lens_points):
+            if not (np.all(np.isfinite(p.p_W)) and np.all(np.isfinite(p.J_W))):
+                return f"non-finite kinematics of {p.name}"
+        speed = float(np.linalg.norm(x.v_cmd_W))
+        if speed > cfg.max_command_speed_mm_s:
+            return f"absurd command speed {speed:.1f} mm/s > {cfg.max_command_speed_mm_s:g} mm/s"
+        if x.model is None:
+            return "no eye model"
+        if not (x.t_s - x.model_time_s <= cfg.max_model_age_s):
+            return f"stale model: {x.t_s - x.model_time_s:.3f} s old > {cfg.max_model_age_s:g} s"
+        if not (x.t_s - x.sensor_time_s <= cfg.max_sensor_age_s):
+            return f"stale sensor: {x.t_s - x.sensor_time_s:.3f} s old > {cfg.max_sensor_age_s:g} s"
+        if not (np.isfinite(x.margin_mm) and x.margin_mm >= 0):
+            return f"invalid margin {x.margin_mm}"
+        return None

@@ -1,0 +1,102 @@
+"""The safety filter on a toy robot whose joints are the tip's Cartesian coordinates
+(J = I, mm/rad), inside a spherical retina of radius 12 mm: every number below follows
+from that geometry."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models import Sphere
+from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
+
+EYE = Sphere(np.zeros(3), 12.0)
+DT = 1e-3
+
+
+def inputs(p, v_cmd, t=0.0, model=EYE, model_time=0.0, sensor_time=0.0, **kw):
+    p = np.asarray(p, float)
+    return FilterInputs(
+        t_s=t, q=p, q_min=np.full(3, -50.0), q_max=np.full(3, 50.0), qdot_max=np.full(3, 100.0),
+        v_cmd_W=np.asarray(v_cmd, float), J_tip=np.eye(3),
+        boundary_points=[PointKinematics("tip", p, np.eye(3))],
+        model=model, model_time_s=model_time, sensor_time_s=sensor_time, **kw,
+    )
+
+
+def test_free_space_command_passes_unchanged():
+    out = SafetyFilter()(inputs([0, 0, 0], [3.0, -2.0, 1.0]))
+    assert out.ok and not out.intervened
+    np.testing.assert_allclose(out.qdot, [3.0, -2.0, 1.0], rtol=0.01)
+
+
+def test_push_into_the_retina_stops_at_the_margin():
+    f = SafetyFilter()
+    p = np.array([0.0, 0.0, -10.0])  # 2 mm clearance
+    clearances = []
+    for k in range(3000):  # 3 s of pushing straight down at 5 mm/s
+        out = f(inputs(p, [0.0, 0.0, -5.0], t=k * DT, model_time=k * DT, sensor_time=k * DT))
+        assert out.ok
+        p = p + DT * out.qdot
+        clearances.append(float(EYE.signed_distance(p)[0]))
+    assert min(clearances) >= 0.5 - 1e-6
+    assert clearances[-1] == pytest.approx(0.5, abs=0.01)  # it does get there
+
+
+def test_tangential_motion_near_the_boundary_is_kept():
+    p = np.array([0.0, 0.0, -11.45])  # clearance 0.55 mm: the barrier allows 20/s x 0.05 mm = 1 mm/s inward
+    out = SafetyFilter()(inputs(p, [2.0, 0.0, -2.0]))
+    assert out.ok and out.intervened and "boundary:tip" in out.active
+    assert out.qdot[0] == pytest.approx(2.0, rel=0.01)  # the sideways part survives
+    assert out.qdot[2] == pytest.approx(-1.0, rel=0.01)  # the inward part is cut to the barrier rate
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.floats(-1, 1), min_size=3, max_size=3),
+    st.lists(st.floats(-15, 15), min_size=3, max_size=3),
+    st.floats(0.5, 11.0),
+)
+def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
+    u = np.asarray(direction) + [0, 0, 1e-3]
+    u /= np.linalg.norm(u)
+    p = u * (12.0 - clearance)
+    out = SafetyFilter()(inputs(p, v_cmd))
+    assert out.ok
+    after = float(EYE.signed_distance(p + DT * out.qdot)[0])
+    # first order exact; the sphere's curvature costs at most (dt v)^2 / (2 R)
+    assert after >= min(clearance, 0.5) - (DT * 20.0) ** 2 / 24.0 - 1e-9
+
+
+@pytest.mark.parametrize(
+    "kw, reason",
+    [
+        (dict(v_cmd=[np.nan, 0, 0]), "non-finite v_cmd_W"),
+        (dict(v_cmd=[500.0, 0, 0]), "absurd command speed"),
+        (dict(t=1.0, model_time=0.0, sensor_time=1.0), "stale model"),
+        (dict(t=1.0, model_time=1.0, sensor_time=0.5), "stale sensor"),
+        (dict(model=None), "no eye model"),
+        (dict(rcm_A=np.array([[1.0, 0, 0], [1.0, 0, 0]]), rcm_b=np.array([1.0, -1.0])), "QP"),
+    ],
+)
+def test_faults_command_zero_velocity_and_say_why(kw, reason):
+    args = dict(p=[0, 0, -5.0], v_cmd=[1.0, 0, 0])
+    args.update(kw)
+    out = SafetyFilter()(inputs(**args))
+    assert not out.ok and reason in out.reason
+    np.testing.assert_array_equal(out.qdot, np.zeros(3))
+
+
+def test_cutter_interlock_follows_the_port_clearance():
+    cfg = FilterConfig(cutter_clearance_mm=1.0)
+    for clearance, allowed in ((2.0, True), (0.8, False)):
+        p = np.array([0.0, 0.0, -(12.0 - clearance)])
+        x = inputs(p, [0.0, 0.0, 0.0])
+        x = FilterInputs(**{**x.__dict__, "boundary_points": [PointKinematics("port", p, np.eye(3))]})
+        assert SafetyFilter(cfg)(x).cutter_allowed is allowed
+
+
+def test_bad_config_is_refused():
+    with pytest.raises(ValueError, match="d_safe_mm"):
+        FilterConfig(d_safe_mm=-0.5)
