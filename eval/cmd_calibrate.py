@@ -91,6 +91,8 @@ def run_calibration(args) -> dict:
         "recovered": _pose_dict(result.sensor, result.plane),
         "solve_time_s": result.solve_time_s,
         "n_starts": result.n_starts,
+        "n_starts_at_best": result.n_at_best,
+        "converged": result.converged,
         # the part of the position error that moves retinal points along the beam
         "axial_error_um": float(1e3 * (result.sensor.p_FS - truth.p_FS) @ truth.u_F),
         "targets": TARGETS,
@@ -156,5 +158,6 @@ def main(args) -> int:
     print(f"  position error {c['position_error_um']:.1f} um (target <= {TARGETS['position_error_um']:g}), "
           f"direction error {c['direction_error_deg']:.4f} deg (<= {TARGETS['direction_error_deg']:g}), "
           f"plane residual RMS {c['plane_residual_um']:.1f} um / max {c['plane_residual_max_um']:.1f} um "
-          f"(< {TARGETS['plane_residual_um']:g}), SLSQP {c['solve_time_s']:.2f} s over {c['n_starts']} starts")
+          f"(< {TARGETS['plane_residual_um']:g}), SLSQP {c['solve_time_s']:.2f} s over {c['n_starts']} starts "
+          f"({c['n_starts_at_best']} at the best residual)")
     return 0

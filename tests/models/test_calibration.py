@@ -57,7 +57,7 @@ def test_noisy_recovery_meets_the_targets(noisy):
     # the plate itself is recovered (normal facing the sensor)
     assert np.degrees(np.arccos(min(1.0, res.plane.normal_W @ PLATE.normal_W))) < 0.05
     assert abs(res.plane.signed_distance(np.array(CENTRE))[0]) < 0.02
-    assert res.n_starts == 18 and res.solve_time_s > 0
+    assert res.n_starts == 18 and res.converged and 1 <= res.n_at_best <= 18 and res.solve_time_s > 0
 
 
 def test_noise_free_recovery_is_exact():
@@ -157,6 +157,15 @@ def test_plate_distances_refuses_beams_that_miss():
 def test_bad_arguments_name_themselves(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_translations_alone_are_refused_as_unobservable():
+    rng = np.random.default_rng(2)
+    R = np.tile(Rotation.from_rotvec([0.0, np.pi / 2, 0.0]).as_matrix(), (40, 1, 1))  # beam (F x) down
+    t = np.column_stack([rng.uniform(-20, 20, (40, 2)), rng.uniform(115, 125, 40)])  # origin 3-13 mm above the plate
+    m = plate_distances(R, t, NOMINAL, PLATE)
+    with pytest.raises(ValueError, match="unobservable"):
+        calibrate_sensor(R, t, m)
 
 
 def test_calibrate_sensor_rejects_bad_data(noisy):

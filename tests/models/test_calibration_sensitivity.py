@@ -50,7 +50,7 @@ def test_radial_beams_grow_the_diameter_by_twice_the_offset(delta_um, seed):
     assert diameter_error_um(radial, 12.0, offset_mm=delta_um * 1e-3) == pytest.approx(2.0 * delta_um, abs=1e-6)
 
 
-def test_paper_geometry_offset_is_linear_and_tilt_is_minor(scan):
+def test_paper_geometry_offset_is_linear_and_tilt_is_minor():
     c = diameter_sensitivity([-200.0, -100.0, 0.0, 100.0, 200.0], [0.0, 0.5, 2.0], radius_mm=12.0, spacing_mm=0.3)
     e = c.offset_diameter_error_um
     slope = (e[-1] - e[0]) / 400.0
