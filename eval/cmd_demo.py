@@ -34,8 +34,8 @@ def main(args) -> int:
     print(f"Adaptive eye model on the {args.shape} eye, paper spiral ({n} A-scans, 20 um noise), predictive criteria")
     print(f"{'spiral':>7} {'points':>6} {'kind':>9} {'scan range':>10} {'sphere r':>8} {'ellipsoid radii (mm)':>24} {'SF MAE':>8} {'EF MAE':>8}")
     for k in np.linspace(0, len(run.fractions) - 1, args.rows).round().astype(int):
-        i = int(round(run.fractions[k] * n)) - 1
-        u = history[i]
+        received = int(round(run.fractions[k] * n))
+        u = next(h for h in reversed(history) if h.n_received <= received)
         radii = " ".join(f"{r:6.3f}" for r in sorted(u.ellipsoid_radii, reverse=True))
         print(f"{100 * run.fractions[k]:6.1f}% {u.n_points:6d} {u.kind:>9} {u.scan_range_mm:8.2f}mm {u.sphere_radius:8.3f} "
               f"{radii:>24} {1e3 * run.sf_mae_curve[k]:6.1f}um {1e3 * run.ef_mae_curve[k]:6.1f}um")

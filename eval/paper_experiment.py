@@ -13,6 +13,7 @@ import numpy as np
 from models import AdaptiveEyeModel
 from models.eyes import EyePose, make_eye
 from models.metrics import PaperMetrics, mae_exact, paper_metrics
+from models.outlier_gate import OutlierGate
 from models.paper_scan import paper_scan
 from models.transition import CRITERIA, PaperCriteria
 
@@ -82,17 +83,22 @@ def run_shape(
     eye = make_eye(shape, pose)
     points = paper_scan(eye, noise_um=noise_um, seed=seed).points[:: int(stride)]
     n = len(points)
-    models = {name: AdaptiveEyeModel(CRITERIA[name]()) for name in criteria}
+    # consecutive points of a thinned scan lie `stride` times further apart
+    gate = OutlierGate(max_jump_mm=OutlierGate().max_jump_mm * stride)
+    models = {name: AdaptiveEyeModel(CRITERIA[name](), gate) for name in criteria}
     for p in points:
         for m in models.values():
             m.update(p)
     history = next(iter(models.values())).history  # fits do not depend on the criterion
-    idx = np.unique(np.linspace(0, n - 1, n_curve).round().astype(int))
-    idx = idx[[history[i].ellipsoid_center is not None and history[i].sphere_center is not None for i in idx]]
+    received = np.array([u.n_received for u in history])
+    scans = np.unique(np.linspace(1, n, n_curve).round().astype(int))  # A-scans received
+    entry = np.searchsorted(received, scans, side="right") - 1  # the model after that A-scan
+    ok = (entry >= 0) & np.array([e >= 0 and history[e].ellipsoid_center is not None and history[e].sphere_center is not None for e in entry])
+    scans, entry = scans[ok], entry[ok]
     curve_truth = eye.reference_samples(60, 60)
-    sf_curve = np.array([mae_exact(history[i].sphere, curve_truth).mean for i in idx])
-    ef_curve = np.array([mae_exact(history[i].ellipsoid, curve_truth).mean for i in idx])
-    fractions = (idx + 1) / n
+    sf_curve = np.array([mae_exact(history[e].sphere, curve_truth).mean for e in entry])
+    ef_curve = np.array([mae_exact(history[e].ellipsoid, curve_truth).mean for e in entry])
+    fractions = scans / n
     truth = eye.reference_samples(grid, grid)
     final = history[-1]
     run = ShapeRun(
@@ -108,10 +114,9 @@ def run_shape(
         history=history if keep_history else None,
     )
     for name, m in models.items():
-        run.transitions[name] = None if m.transition_index is None else (m.transition_index + 1) / n
-        run.criteria_met_at[name] = {
-            c: (None if (i := first_met(m.history, c)) is None else (i + 1) / n) for c in m.criteria.names
-        }
+        at = lambda i: None if i is None else m.history[i].n_received / n  # noqa: E731
+        run.transitions[name] = at(m.transition_index)
+        run.criteria_met_at[name] = {c: at(first_met(m.history, c)) for c in m.criteria.names}
     return run
 
 

@@ -8,6 +8,8 @@ import numpy as np
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
 from models.ellipsoid_fit import LENGTH_SCALE_MM, IncrementalEllipsoidFit, taubin_residual
+from models.extrapolation import sampson_distance
+from models.outlier_gate import OutlierGate
 from models.scan_range import ScanRange
 from models.sphere import Sphere
 from models.sphere_kalman import SphereKalmanFilter
@@ -17,6 +19,8 @@ from models.transition import FitSnapshot, PaperCriteria
 class ModelUpdate(NamedTuple):
     """One entry of the model history (mm, frame of the measured points).
 
+    `n_points`: points in the model; `n_received`: points offered so far, including the
+    non-finite and gated ones (so entries can be matched to A-scans);
     `criteria` maps each criterion name to (value, met); `ef_status` is "ok" or why the
     ellipsoid fit failed at this update (the previous good fit is kept). A NamedTuple:
     one is made per A-scan, so it must be cheap.
@@ -35,6 +39,7 @@ class ModelUpdate(NamedTuple):
     ellipsoid_center: np.ndarray | None
     ellipsoid_radii: np.ndarray | None
     ellipsoid_rotation: np.ndarray | None
+    n_received: int = 0
 
     @property
     def sphere(self) -> Sphere | None:
@@ -57,18 +62,31 @@ class AdaptiveEyeModel:
     """Retina model from measured retinal points: sphere (Kalman filter) -> ellipsoid.
 
     `update(P)` absorbs a batch of points (N, 3) mm (any N, including one A-scan's
-    point); non-finite points are skipped and counted in `n_rejected_nonfinite`. Each
+    point); non-finite points are skipped and counted in `n_rejected_nonfinite`; points
+    the innovation gate (`gate`, an OutlierGate; None disables it) finds too far from
+    the current model are skipped and counted in `n_rejected_outliers`. Each
     call with at least one finite point is one update: the sphere filter and the
     ellipsoid scatter matrix absorb the points (O(1) each), the ellipsoid is refitted,
-    and the transition criteria are evaluated; the switch is made once, when all hold.
+    and the transition criteria are evaluated; the model switches to the ellipsoid when
+    they all hold (and back, for a reversible criterion that asks for it).
     `kind` is "sphere" or "ellipsoid"; `shape` the current Sphere or Ellipsoid (None
     before 4 points); `history` one ModelUpdate per update.
     """
 
-    def __init__(self, criteria=None):
+    def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate()):
         """`criteria`: PaperCriteria (default, the paper's) or PredictiveCriteria, or any
-        object with the same `initial_state`/`evaluate` interface (models.transition)."""
+        object with the same `initial_state`/`evaluate` interface (models.transition);
+        `gate`: the innovation gate against outliers (None: accept every finite point)."""
         self.criteria = PaperCriteria() if criteria is None else criteria
+        self.gate = gate
+        self._gate_run = 0
+        self._current = None  # quadric of the current model, in the fits' scaled coordinates
+        self._recent = np.empty(0 if gate is None else gate.window)  # |distance| of recent accepted points, mm
+        self._n_recent = 0
+        self._last_point: np.ndarray | None = None
+        self._residual = np.inf  # robust residual of the recent accepted points, mm
+        self.n_rejected_outliers = 0
+        self.n_received = 0
         self._sf = SphereKalmanFilter()
         self._ef = IncrementalEllipsoidFit()
         self._range = ScanRange()
@@ -101,21 +119,62 @@ class AdaptiveEyeModel:
         return self._range.diameter_mm
 
     def update(self, P) -> ModelUpdate | None:
-        """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None if
-        every point was non-finite)."""
+        """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
+        no entry, if no point was finite and passed the gate)."""
         P = as_points(P, "P", allow_nonfinite=True)
+        self.n_received += len(P)
         finite = np.isfinite(P).all(axis=1)
         if not finite.all():
             self.n_rejected_nonfinite += int((~finite).sum())
             P = P[finite]
+        if len(P) and self.gate is not None and self._last_point is not None:
+            P = self._gated(P)
         if len(P) == 0:
             return None
+        self._last_point = P[-1].copy()
         self._sf.absorb(P)
         self._ef.add(P)
         self._range.add(P)
         entry = self._evaluate(self._ef.fit())
         self.history.append(entry)
         return entry
+
+    def _gated(self, P: np.ndarray) -> np.ndarray:
+        """The points of P (N, 3) mm that pass the innovation gate; counts the others."""
+        if len(P) == 1:  # the per-A-scan path, in plain floats
+            d, jump = self._distance_and_jump_one(P[0])
+            d, jump = [d], [jump]
+        else:
+            d = np.zeros(len(P)) if self._current is None else LENGTH_SCALE_MM * sampson_distance(self._current, self._ef.scaled(P))
+            jump = np.linalg.norm(np.diff(np.vstack([self._last_point, P]), axis=0), axis=1)
+            d, jump = d.tolist(), jump.tolist()
+        if self._n_recent % 16 == 0:  # refreshed, not recomputed, per point
+            filled = self._recent[: min(self._n_recent, len(self._recent))]
+            self._residual = 1.4826 * float(np.median(filled)) if len(filled) else np.inf
+        keep, self._gate_run = self.gate.accept(d, jump, self._residual, self.n_points, self._gate_run)
+        for di, k in zip(d, keep):
+            if k:
+                self._recent[self._n_recent % len(self._recent)] = di
+                self._n_recent += 1
+        if all(keep):
+            return P
+        self.n_rejected_outliers += keep.count(False)
+        return P[np.array(keep)]
+
+    def _distance_and_jump_one(self, p: np.ndarray) -> tuple[float, float]:
+        """(first-order distance to the current model, distance to the last point), mm."""
+        px, py, pz = p.tolist()
+        lx, ly, lz = self._last_point.tolist()
+        jump = ((px - lx) ** 2 + (py - ly) ** 2 + (pz - lz) ** 2) ** 0.5
+        if self._current is None:
+            return 0.0, jump
+        ox, oy, oz = self._ef.p0.tolist()
+        x, y, z = (px - ox) / LENGTH_SCALE_MM, (py - oy) / LENGTH_SCALE_MM, (pz - oz) / LENGTH_SCALE_MM
+        a, b, c, f, g, h, p_, q, r, d = self._current_list
+        Q = a * x * x + b * y * y + c * z * z + 2 * (f * y * z + g * x * z + h * x * y + p_ * x + q * y + r * z) + d
+        gx, gy, gz = a * x + h * y + g * z + p_, h * x + b * y + f * z + q, g * x + f * y + c * z + r
+        grad = 2.0 * (gx * gx + gy * gy + gz * gz) ** 0.5
+        return (LENGTH_SCALE_MM * abs(Q) / grad if grad > 0 else float("inf")), jump
 
     def _evaluate(self, fit) -> ModelUpdate:
         sf = self._sf.center_radius
@@ -149,6 +208,8 @@ class AdaptiveEyeModel:
             self.kind = "sphere"
             self.transition_index = None
         last = self._ef.last_ok
+        self._current = last.v if self.kind == "ellipsoid" and last is not None else v_sf
+        self._current_list = None if self._current is None else self._current.tolist()
         return ModelUpdate(
             n_points=self.n_points,
             kind=self.kind,
@@ -163,4 +224,5 @@ class AdaptiveEyeModel:
             ellipsoid_center=None if last is None else last.center,
             ellipsoid_radii=None if last is None else last.radii,
             ellipsoid_rotation=None if last is None else last.rotation,
+            n_received=self.n_received,
         )
