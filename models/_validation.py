@@ -54,3 +54,20 @@ def as_rotation(R, name: str = "rotation", tol: float = 1e-9) -> np.ndarray:
     if np.linalg.det(A) < 0:
         raise ValueError(f"{name} is a reflection (det = -1); a proper rotation has det = +1")
     return A
+
+
+def check_positive(owner, *names: str, allow_zero: bool = False) -> None:
+    """Raise ValueError unless each attribute `name` of `owner` is finite and > 0 (>= 0)."""
+    for name in names:
+        v = getattr(owner, name)
+        ok = isinstance(v, (int, float, np.floating, np.integer)) and np.isfinite(v) and (v >= 0 if allow_zero else v > 0)
+        if not ok:
+            raise ValueError(f"{name} must be finite and {'>=' if allow_zero else '>'} 0, got {v!r}")
+
+
+def check_count(owner, *names: str, minimum: int = 0) -> None:
+    """Raise ValueError unless each attribute `name` of `owner` is an integer >= minimum."""
+    for name in names:
+        v = getattr(owner, name)
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < minimum:
+            raise ValueError(f"{name} must be an integer >= {minimum}, got {v!r}")

@@ -5,6 +5,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models._validation import check_count, check_positive
+
 
 @dataclass(frozen=True)
 class OutlierGate:
@@ -31,14 +33,9 @@ class OutlierGate:
     max_jump_mm: float = 1.0
 
     def __post_init__(self):
-        for name in ("k_residual", "min_gate_mm", "max_jump_mm"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be finite and > 0, got {v}")
-        for name in ("min_points", "max_consecutive", "window"):
-            v = getattr(self, name)
-            if int(v) != v or v < 0:
-                raise ValueError(f"{name} must be an integer >= 0, got {v}")
+        check_positive(self, "k_residual", "min_gate_mm", "max_jump_mm")
+        check_count(self, "min_points", "max_consecutive")
+        check_count(self, "window", minimum=1)
 
     def accept(self, distance_mm, jump_mm, residual_mm: float, n_model_points: int, run: int):
         """(keep flags, new count of consecutive rejections) for points at `distance_mm`

@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from models._validation import check_count, check_positive
 from models.ellipsoid_fit import LENGTH_SCALE_MM, taubin_residual
 from models.extrapolation import global_surface_points, sampson_distance
 
@@ -39,17 +40,6 @@ class FitSnapshot(NamedTuple):
     p0: np.ndarray | None = None
 
 
-def _check_positive(name: str, value: float, allow_zero: bool = False) -> None:
-    ok = np.isfinite(value) and (value >= 0 if allow_zero else value > 0)
-    if not ok:
-        raise ValueError(f"{name} must be finite and {'>=' if allow_zero else '>'} 0, got {value}")
-
-
-def _check_count(name: str, value) -> None:
-    if int(value) != value or value < 0:
-        raise ValueError(f"{name} must be an integer >= 0, got {value}")
-
-
 @dataclass(frozen=True)
 class PaperCriteria:
     """The paper's three criteria, all of which must hold to switch (defaults: the paper).
@@ -68,9 +58,9 @@ class PaperCriteria:
     reversible = False  # the paper switches once
 
     def __post_init__(self):
-        _check_positive("min_scan_range_mm", self.min_scan_range_mm, allow_zero=True)
-        _check_positive("max_axis_change", self.max_axis_change)
-        _check_count("min_stable_updates", self.min_stable_updates)
+        check_positive(self, "min_scan_range_mm", allow_zero=True)
+        check_positive(self, "max_axis_change")
+        check_count(self, "min_stable_updates")
 
     def initial_state(self) -> int:
         """Per-model memory: the count of consecutive stable updates."""
@@ -142,18 +132,14 @@ class PredictiveCriteria:
     reversible = True
 
     def __post_init__(self):
-        for name in ("noise_sd_mm", "fit_factor", "convergence_factor"):
-            _check_positive(name, getattr(self, name))
-        _check_positive("min_scan_range_mm", self.min_scan_range_mm, allow_zero=True)
-        _check_positive("crop_mm", self.crop_mm, allow_zero=True)
+        check_positive(self, "noise_sd_mm", "fit_factor", "convergence_factor")
+        check_positive(self, "min_scan_range_mm", "crop_mm", allow_zero=True)
         for name in ("lag_fraction", "window_fraction"):
             v = getattr(self, name)
             if not (np.isfinite(v) and 0.0 < v < 1.0):
                 raise ValueError(f"{name} must be in (0, 1), got {v}")
-        _check_count("check_every", self.check_every)
-        _check_count("min_stable_checks", self.min_stable_checks)
-        if self.check_every < 1:
-            raise ValueError(f"check_every must be >= 1, got {self.check_every}")
+        check_count(self, "check_every", minimum=1)
+        check_count(self, "min_stable_checks")
 
     def initial_state(self) -> _PredictiveMemory:
         return _PredictiveMemory()
