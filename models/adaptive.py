@@ -8,8 +8,7 @@ import numpy as np
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
 from models.ellipsoid_fit import LENGTH_SCALE_MM, IncrementalEllipsoidFit, taubin_residual
-from models.extrapolation import sampson_distance
-from models.outlier_gate import OutlierGate
+from models.outlier_gate import GateState, OutlierGate
 from models.scan_range import ScanRange
 from models.sphere import Sphere
 from models.sphere_kalman import SphereKalmanFilter
@@ -79,13 +78,8 @@ class AdaptiveEyeModel:
         `gate`: the innovation gate against outliers (None: accept every finite point)."""
         self.criteria = PaperCriteria() if criteria is None else criteria
         self.gate = gate
-        self._gate_run = 0
+        self._gate = None if gate is None else GateState(gate)
         self._current = None  # quadric of the current model, in the fits' scaled coordinates
-        self._recent = np.empty(0 if gate is None else gate.window)  # |distance| of recent accepted points, mm
-        self._n_recent = 0
-        self._last_point: np.ndarray | None = None
-        self._residual = np.inf  # robust residual of the recent accepted points, mm
-        self.n_rejected_outliers = 0
         self.n_received = 0
         self._sf = SphereKalmanFilter()
         self._ef = IncrementalEllipsoidFit()
@@ -115,6 +109,10 @@ class AdaptiveEyeModel:
         return self.ellipsoid if self.kind == "ellipsoid" else self.sphere
 
     @property
+    def n_rejected_outliers(self) -> int:
+        return 0 if self._gate is None else self._gate.n_rejected
+
+    @property
     def scan_range_mm(self) -> float:
         return self._range.diameter_mm
 
@@ -127,54 +125,16 @@ class AdaptiveEyeModel:
         if not finite.all():
             self.n_rejected_nonfinite += int((~finite).sum())
             P = P[finite]
-        if len(P) and self.gate is not None and self._last_point is not None:
-            P = self._gated(P)
+        if self._gate is not None:
+            P = self._gate.admit(P, self._current, self._ef.p0, self.n_points)
         if len(P) == 0:
             return None
-        self._last_point = P[-1].copy()
         self._sf.absorb(P)
         self._ef.add(P)
         self._range.add(P)
         entry = self._evaluate(self._ef.fit())
         self.history.append(entry)
         return entry
-
-    def _gated(self, P: np.ndarray) -> np.ndarray:
-        """The points of P (N, 3) mm that pass the innovation gate; counts the others."""
-        if len(P) == 1:  # the per-A-scan path, in plain floats
-            d, jump = self._distance_and_jump_one(P[0])
-            d, jump = [d], [jump]
-        else:
-            d = np.zeros(len(P)) if self._current is None else LENGTH_SCALE_MM * sampson_distance(self._current, self._ef.scaled(P))
-            jump = np.linalg.norm(np.diff(np.vstack([self._last_point, P]), axis=0), axis=1)
-            d, jump = d.tolist(), jump.tolist()
-        if self._n_recent % 16 == 0:  # refreshed, not recomputed, per point
-            filled = self._recent[: min(self._n_recent, len(self._recent))]
-            self._residual = 1.4826 * float(np.median(filled)) if len(filled) else np.inf
-        keep, self._gate_run = self.gate.accept(d, jump, self._residual, self.n_points, self._gate_run)
-        for di, k in zip(d, keep):
-            if k:
-                self._recent[self._n_recent % len(self._recent)] = di
-                self._n_recent += 1
-        if all(keep):
-            return P
-        self.n_rejected_outliers += keep.count(False)
-        return P[np.array(keep)]
-
-    def _distance_and_jump_one(self, p: np.ndarray) -> tuple[float, float]:
-        """(first-order distance to the current model, distance to the last point), mm."""
-        px, py, pz = p.tolist()
-        lx, ly, lz = self._last_point.tolist()
-        jump = ((px - lx) ** 2 + (py - ly) ** 2 + (pz - lz) ** 2) ** 0.5
-        if self._current is None:
-            return 0.0, jump
-        ox, oy, oz = self._ef.p0.tolist()
-        x, y, z = (px - ox) / LENGTH_SCALE_MM, (py - oy) / LENGTH_SCALE_MM, (pz - oz) / LENGTH_SCALE_MM
-        a, b, c, f, g, h, p_, q, r, d = self._current_list
-        Q = a * x * x + b * y * y + c * z * z + 2 * (f * y * z + g * x * z + h * x * y + p_ * x + q * y + r * z) + d
-        gx, gy, gz = a * x + h * y + g * z + p_, h * x + b * y + f * z + q, g * x + f * y + c * z + r
-        grad = 2.0 * (gx * gx + gy * gy + gz * gz) ** 0.5
-        return (LENGTH_SCALE_MM * abs(Q) / grad if grad > 0 else float("inf")), jump
 
     def _evaluate(self, fit) -> ModelUpdate:
         sf = self._sf.center_radius
@@ -209,7 +169,6 @@ class AdaptiveEyeModel:
             self.transition_index = None
         last = self._ef.last_ok
         self._current = last.v if self.kind == "ellipsoid" and last is not None else v_sf
-        self._current_list = None if self._current is None else self._current.tolist()
         return ModelUpdate(
             n_points=self.n_points,
             kind=self.kind,

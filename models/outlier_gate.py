@@ -1,4 +1,9 @@
-"""Innovation gate: keep floaters and mis-segmentations out of the eye model."""
+"""Innovation gate: keep floaters and mis-segmentations out of the eye model.
+
+`OutlierGate` is the configuration (and the decision rule); `GateState` is one model's
+running state: the last accepted point, the recent distances behind the robust
+residual, the run of consecutive rejections, and the counters.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -6,6 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from models._validation import check_count, check_positive
+from models.ellipsoid_fit import LENGTH_SCALE_MM
+from models.extrapolation import sampson_distance
 
 
 @dataclass(frozen=True)
@@ -50,3 +57,64 @@ class OutlierGate:
             run = 0 if near else run + 1
             keep.append(near or run > self.max_consecutive)
         return keep, run
+
+
+def _sampson_one(v: list, x: float, y: float, z: float) -> float:
+    """|Q| / |grad Q| of one point (scaled coordinates) for quadric coefficients v, in floats."""
+    a, b, c, f, g, h, p, q, r, d = v
+    Q = a * x * x + b * y * y + c * z * z + 2 * (f * y * z + g * x * z + h * x * y + p * x + q * y + r * z) + d
+    gx, gy, gz = a * x + h * y + g * z + p, h * x + b * y + f * z + q, g * x + f * y + c * z + r
+    grad = 2.0 * (gx * gx + gy * gy + gz * gz) ** 0.5
+    return abs(Q) / grad if grad > 0 else float("inf")
+
+
+class GateState:
+    """One model's gate: `admit(P, quadric, p0, n_model_points)` returns the points of P
+    (N, 3) mm to keep and counts the others in `n_rejected`. `quadric` (10,) is the current
+    model in the fits' scaled coordinates about `p0` (None before a model exists)."""
+
+    def __init__(self, gate: OutlierGate):
+        self.gate = gate
+        self.n_rejected = 0
+        self._run = 0
+        self._last: list | None = None
+        self._recent = np.empty(gate.window)  # |distance| of recently accepted points, mm
+        self._n_recent = 0
+        self._residual = np.inf
+
+    def _distances(self, P: np.ndarray, quadric, p0) -> tuple[list, list]:
+        """(distance to the model, jump from the previous point) per point, mm."""
+        if len(P) == 1:  # the per-A-scan path, in plain floats
+            px, py, pz = P[0].tolist()
+            lx, ly, lz = self._last
+            jump = ((px - lx) ** 2 + (py - ly) ** 2 + (pz - lz) ** 2) ** 0.5
+            if quadric is None:
+                return [0.0], [jump]
+            ox, oy, oz = p0.tolist()
+            L = LENGTH_SCALE_MM
+            return [L * _sampson_one(quadric.tolist(), (px - ox) / L, (py - oy) / L, (pz - oz) / L)], [jump]
+        d = np.zeros(len(P)) if quadric is None else LENGTH_SCALE_MM * sampson_distance(quadric, (P - p0) / LENGTH_SCALE_MM)
+        jump = np.linalg.norm(np.diff(np.vstack([self._last, P]), axis=0), axis=1)
+        return d.tolist(), jump.tolist()
+
+    def admit(self, P: np.ndarray, quadric, p0, n_model_points: int) -> np.ndarray:
+        if len(P) == 0:
+            return P
+        if self._last is None:  # nothing to compare the first point with
+            self._last = P[-1].tolist()
+            return P
+        d, jump = self._distances(P, quadric, p0)
+        if self._n_recent % 16 == 0:  # the median is refreshed, not recomputed per point
+            filled = self._recent[: min(self._n_recent, len(self._recent))]
+            self._residual = 1.4826 * float(np.median(filled)) if len(filled) else np.inf
+        keep, self._run = self.gate.accept(d, jump, self._residual, n_model_points, self._run)
+        for di, k in zip(d, keep):
+            if k:
+                self._recent[self._n_recent % len(self._recent)] = di
+                self._n_recent += 1
+        if any(keep):
+            self._last = P[len(keep) - 1 - keep[::-1].index(True)].tolist()
+        if all(keep):
+            return P
+        self.n_rejected += keep.count(False)
+        return P[np.array(keep)]
