@@ -100,3 +100,11 @@ def test_cutter_interlock_follows_the_port_clearance():
 def test_bad_config_is_refused():
     with pytest.raises(ValueError, match="d_safe_mm"):
         FilterConfig(d_safe_mm=-0.5)
+
+
+@pytest.mark.parametrize("solver", ["clarabel", "daqp"])
+def test_backends_agree_near_the_boundary(solver):
+    p = np.array([0.0, 0.0, -11.45])
+    out = SafetyFilter(FilterConfig(solver=solver))(inputs(p, [2.0, 0.0, -2.0]))
+    assert out.ok
+    np.testing.assert_allclose(out.qdot, [2.0, 0.0, -1.0], atol=0.02)
