@@ -28,10 +28,17 @@ from models.calibration import (
 from models.calibration_sensitivity import SPHERE_RADIUS_MM, diameter_error_um, diameter_sensitivity, sphere_eye
 from models.paper_scan import paper_scan
 
-# The instrument lies along the flange x axis (design.md, `surgery` scenario); the
-# fibre tip sits 62 mm out (a 30 mm mount and the 32 mm shaft) until `planning`
-# defines the instrument.
-NOMINAL_SENSOR = SensorPose([62.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+def nominal_sensor() -> SensorPose:
+    """The nominal iiOCT sensor pose in the flange frame, from the robot model
+    (planning/data/meca500.urdf: the fibre at the tip, the beam along the shaft)."""
+    from planning.robot import Robot
+
+    robot = Robot()
+    q0 = np.zeros(robot.nq)
+    R_WF, p_WF = robot.pose("F", q0)
+    R_WS, p_WS = robot.pose("S", q0)
+    return SensorPose(R_WF.T @ (p_WS - p_WF), R_WF.T @ R_WS[:, 2])
+
 # A level plate in front of the robot, 50 mm above its base (W: robot base, mm).
 PLATE = Plane([0.0, 0.0, 1.0], -50.0)
 PLATE_CENTRE_W = (250.0, 0.0, 50.0)
@@ -74,8 +81,9 @@ def _pose_dict(sensor: SensorPose, plane: Plane) -> dict:
 def run_calibration(args) -> dict:
     """The calibration experiment for validated `args`: the calibration.json content."""
     rng = np.random.default_rng(args.seed)
-    truth = offset_sensor_pose(NOMINAL_SENSOR, args.offset_um * 1e-3, math.radians(args.tilt_deg), rng)
-    R_WF, p_WF = sample_flange_poses(args.poses, NOMINAL_SENSOR, PLATE, rng, centre_W=PLATE_CENTRE_W)
+    nominal = nominal_sensor()
+    truth = offset_sensor_pose(nominal, args.offset_um * 1e-3, math.radians(args.tilt_deg), rng)
+    R_WF, p_WF = sample_flange_poses(args.poses, nominal, PLATE, rng, centre_W=PLATE_CENTRE_W)
     distances = plate_distances(R_WF, p_WF, truth, PLATE, args.noise_um, rng)
     result = calibrate_sensor(R_WF, p_WF, distances)
     out = {
@@ -86,7 +94,7 @@ def run_calibration(args) -> dict:
         "n_poses": args.poses,
         "noise_um": args.noise_um,
         "seed": args.seed,
-        "nominal": {"p_FS_mm": NOMINAL_SENSOR.p_FS.tolist(), "u_F": NOMINAL_SENSOR.u_F.tolist()},
+        "nominal": {"p_FS_mm": nominal.p_FS.tolist(), "u_F": nominal.u_F.tolist()},
         "true": _pose_dict(truth, PLATE),
         "recovered": _pose_dict(result.sensor, result.plane),
         "solve_time_s": result.solve_time_s,
