@@ -1,0 +1,210 @@
+"""AdaptiveEyeModel: robustness to bad points, bookkeeping, the paper's transition rule,
+and accuracy on the paper's simulated spiral.
+
+Accuracy bounds. The distance noise is N(0, sigma = 20 um) along the beam; a point's
+error normal to the retina is that noise times cos(incidence) <= 1, so the exact MMAE
+(measured points vs truth) is at most E|N(0, sigma)| = sigma sqrt(2 / pi) = 15.96 um plus
+the statistical error of a mean over ~5,090 points (SD sigma sqrt(1 - 2/pi) / sqrt(N) =
+0.17 um; 4 SD allowed). The beams (trocar at z = 8 mm through a spiral of radius
+<= 9 mm) meet the posterior retina within ~40 deg of its normal, so MMAE >= 12 um.
+Issue 2 / design.md: the exact ellipsoid MAE must be <= 10 um on the regular eyes.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.distance import pdist
+
+from models import AdaptiveEyeModel, PaperCriteria, Sphere
+from models.eyes import make_eye
+from models.metrics import mae_exact, mmae_exact
+from models.paper_scan import paper_scan
+
+SIGMA_UM = 20.0
+MEAN_ABS_NOISE_UM = SIGMA_UM * np.sqrt(2.0 / np.pi)
+
+_RUNS: dict = {}
+
+
+def paper_run(name: str, criteria=None, seed: int = 1):
+    """(eye, scan, model) after feeding the paper's spiral one A-scan at a time (cached)."""
+    key = (name, criteria, seed)
+    if key not in _RUNS:
+        eye = make_eye(name)
+        scan = paper_scan(eye, noise_um=SIGMA_UM, seed=seed)
+        model = AdaptiveEyeModel(criteria)
+        for p in scan.points:
+            model.update(p)
+        _RUNS[key] = eye, scan, model
+    return _RUNS[key]
+
+
+@pytest.mark.parametrize("name", ["emmetropic", "myopic", "hyperopic"])
+def test_paper_spiral_gives_an_ellipsoid_within_10_um(name):
+    eye, scan, model = paper_run(name)
+    assert model.kind == "ellipsoid" and model.shape is model.ellipsoid
+    assert model.n_points + model.n_rejected_outliers == len(scan)
+    mae = mae_exact(model.ellipsoid, eye.reference_samples(100, 100))
+    assert mae.mean <= 0.010
+    mmae_um = 1e3 * mmae_exact(scan.points, eye).mean
+    margin = 4.0 * SIGMA_UM * np.sqrt(1.0 - 2.0 / np.pi) / np.sqrt(len(scan))
+    assert 12.0 <= mmae_um <= MEAN_ABS_NOISE_UM + margin
+
+
+def _stable_counts(history, max_axis_change):
+    """The temporal criterion recomputed from the recorded axis changes."""
+    counts, k = [], 0
+    for h in history:
+        k = k + 1 if h.axis_change < max_axis_change else 0  # NaN (no previous fit) resets
+        counts.append(k)
+    return counts
+
+
+def test_history_records_every_update_with_its_criteria():
+    _, scan, model = paper_run("emmetropic")
+    c = PaperCriteria()
+    assert len(model.history) == model.n_points  # one A-scan per update, none rejected here
+    stable = _stable_counts(model.history, c.max_axis_change)
+    for k, h in enumerate(model.history):
+        assert set(h.criteria) == {"scan_range", "residual", "temporal"}
+        assert h.n_points == k + 1
+        value, met = h.criteria["scan_range"]
+        assert value == h.scan_range_mm and met == (value > c.min_scan_range_mm)
+        value, met = h.criteria["residual"]
+        if np.isfinite(value):
+            assert value == pytest.approx(h.ef_residual_mm - h.sf_residual_mm, abs=1e-15)
+            assert met == (h.ef_residual_mm < h.sf_residual_mm)
+        value, met = h.criteria["temporal"]
+        assert value == stable[k] and met == (stable[k] > c.min_stable_updates)
+
+
+def test_transition_happens_at_the_first_update_where_all_three_criteria_hold():
+    _, _, model = paper_run("emmetropic")
+    all_met = [all(m for _, m in h.criteria.values()) for h in model.history]
+    first = all_met.index(True)
+    assert model.transition_index == first
+    assert [h.kind for h in model.history] == ["sphere"] * first + ["ellipsoid"] * (len(model.history) - first)
+    # two of the three held earlier without a switch: the rule needs all of them
+    assert any(sum(m for _, m in h.criteria.values()) == 2 for h in model.history[:first])
+
+
+@pytest.mark.parametrize(
+    "criteria, check",
+    [
+        (PaperCriteria(min_scan_range_mm=22.0), lambda h: h.scan_range_mm > 22.0),
+        (PaperCriteria(min_stable_updates=100), lambda h: h.criteria["temporal"][0] > 100),
+        (PaperCriteria(max_axis_change=1e-3), lambda h: h.axis_change < 1e-3),
+    ],
+    ids=["scan range 22 mm", "100 stable updates", "0.1 % axis change"],
+)
+def test_criteria_thresholds_are_configurable(criteria, check):
+    _, _, model = paper_run("emmetropic", criteria)
+    assert model.kind == "ellipsoid"
+    h = model.history[model.transition_index]
+    assert check(h) and all(m for _, m in h.criteria.values())
+    assert not any(all(m for _, m in e.criteria.values()) for e in model.history[: model.transition_index])
+
+
+def test_unreachable_threshold_keeps_the_sphere():
+    eye = make_eye("emmetropic")
+    P = paper_scan(eye, noise_um=SIGMA_UM, seed=2, spacing_mm=0.5).points
+    model = AdaptiveEyeModel(PaperCriteria(min_scan_range_mm=30.0))  # the spiral spans < 30 mm
+    model.update(P)
+    assert model.kind == "sphere" and model.shape is not None and model.transition_index is None
+    assert model.scan_range_mm < 30.0
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"min_scan_range_mm": -1.0}, "min_scan_range_mm"),
+        ({"min_scan_range_mm": np.nan}, "min_scan_range_mm"),
+        ({"min_scan_range_mm": "20"}, "min_scan_range_mm"),
+        ({"max_axis_change": 0.0}, "max_axis_change"),
+        ({"max_axis_change": -3e-4}, "max_axis_change"),
+        ({"max_axis_change": np.inf}, "max_axis_change"),
+        ({"min_stable_updates": -1}, "min_stable_updates"),
+        ({"min_stable_updates": 1.5}, "min_stable_updates"),
+        ({"min_stable_updates": True}, "min_stable_updates"),
+    ],
+)
+def test_bad_criteria_are_refused_naming_the_parameter(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        PaperCriteria(**kwargs)
+
+
+# ---- robustness and bookkeeping ---------------------------------------------------------------
+
+def _scan_prefix(n=700, seed=4):
+    return paper_scan(make_eye("myopic"), noise_um=SIGMA_UM, seed=seed).points[:n]
+
+
+def test_non_finite_points_are_skipped_counted_and_harmless():
+    P = _scan_prefix()
+    rng = np.random.default_rng(0)
+    cuts = np.sort(rng.choice(np.arange(1, len(P)), 60, replace=False))
+    clean, dirty = AdaptiveEyeModel(), AdaptiveEyeModel()
+    n_bad = 0
+    for chunk in np.split(P, cuts):
+        clean.update(chunk)
+        bad = np.full((rng.integers(0, 3), 3), 1.0)
+        bad[:, rng.integers(0, 3)] = rng.choice([np.nan, np.inf, -np.inf])
+        n_bad += len(bad)
+        mixed = np.insert(chunk, rng.integers(0, len(chunk) + 1, len(bad)), bad, axis=0)
+        dirty.update(mixed)
+    assert dirty.update(np.full((2, 3), np.nan)) is None  # nothing finite: no update at all
+    n_bad += 2
+    assert dirty.n_rejected_nonfinite == n_bad and clean.n_rejected_nonfinite == 0
+    assert dirty.n_points == clean.n_points == len(P) - clean.n_rejected_outliers
+    assert len(dirty.history) == len(clean.history)
+    for a, b in zip(clean.history, dirty.history):  # identical but for the count of offered points
+        np.testing.assert_equal(a._replace(n_received=0)._asdict(), b._replace(n_received=0)._asdict())
+    np.testing.assert_array_equal(dirty.sphere.center, clean.sphere.center)
+    np.testing.assert_array_equal(dirty.ellipsoid.radii, clean.ellipsoid.radii)
+    np.testing.assert_array_equal(dirty.ellipsoid.center, clean.ellipsoid.center)
+
+
+@pytest.mark.parametrize("P", [np.zeros((5, 2)), np.zeros((2, 3, 3)), np.zeros(4), np.zeros((3, 4))])
+def test_wrong_shaped_arrays_are_refused(P):
+    model = AdaptiveEyeModel()
+    with pytest.raises(ValueError, match="P"):
+        model.update(P)
+    assert model.n_points == 0 and model.history == []
+
+
+def test_one_point_and_batches_give_the_same_model():
+    P = _scan_prefix(400)
+    one, batched = AdaptiveEyeModel(gate=None), AdaptiveEyeModel(gate=None)
+    for p in P:
+        one.update(p)
+    for chunk in np.array_split(P, 7):
+        batched.update(chunk)
+    assert len(one.history) == len(P) and len(batched.history) == 7
+    assert one.history[-1].n_points == batched.history[-1].n_points == len(P)
+    np.testing.assert_allclose(one.sphere.center, batched.sphere.center, atol=1e-9)
+    np.testing.assert_allclose(one.ellipsoid.radii, batched.ellipsoid.radii, atol=1e-9)
+    np.testing.assert_allclose(one.ellipsoid.center, batched.ellipsoid.center, atol=1e-9)
+    assert one.scan_range_mm == pytest.approx(pdist(P).max(), abs=1e-9)
+
+
+def test_no_shape_before_four_points_then_a_sphere():
+    model = AdaptiveEyeModel()
+    P = _scan_prefix(10)
+    model.update(P[:3])
+    assert model.shape is None and model.kind == "sphere"
+    model.update(P[3:])
+    assert isinstance(model.shape, Sphere) and model.shape.radius == model.sphere.radius
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(2, 150), st.floats(0.5, 20.0), st.integers(0, 2**32 - 1), st.data())
+def test_scan_range_is_the_largest_pairwise_distance(n, spread, seed, data):
+    P = np.random.default_rng(seed).normal(0.0, spread, (n, 3)) + [0.0, 0.0, -10.0]
+    cuts = sorted(data.draw(st.lists(st.integers(1, n - 1), max_size=8, unique=True)))
+    model = AdaptiveEyeModel(gate=None)
+    for chunk in np.split(P, cuts):
+        entry = model.update(chunk)
+    np.testing.assert_allclose(model.scan_range_mm, pdist(P).max(), rtol=0, atol=1e-9)
+    assert entry.scan_range_mm == model.scan_range_mm
