@@ -39,6 +39,10 @@ class LogReadError(ValueError):
     """The file is not a readable run log; the message says why and where."""
 
 
+class TruncatedLogError(LogReadError):
+    """The file ends before its footer: a killed run's log (readable with allow_truncated)."""
+
+
 def time_ns(t_s) -> int:
     """Log time in ns of a simulation time t_s (s, finite, >= 0)."""
     t = float(t_s)
@@ -328,8 +332,8 @@ def read_log(path, topics=None, allow_truncated: bool = False) -> RunLog:
             if not header:
                 raise LogReadError(f"{path}: truncated before its MCAP header ({path.stat().st_size} bytes)") from None
             if not allow_truncated:
-                raise LogReadError(f"{path}: truncated: the file ends before its footer (a killed run?) after "
-                                   f"{sum(map(len, log.messages.values()))} readable messages") from None
+                raise TruncatedLogError(f"{path}: truncated: the file ends before its footer (a killed run?) "
+                                        f"after {sum(map(len, log.messages.values()))} readable messages") from None
             log.truncated = True
         except LogReadError:
             raise

@@ -1,0 +1,49 @@
+"""`vitreoguard replay FILE.mcap`: re-run the safety filter on a run log and check that it
+commands the same joint rates (the regression harness).
+
+Writes replay.json ({steps, mismatches, max_abs_diff, ok, truncated, examples}) next to
+the log or into --out. Exit code 0 when every step matches, 1 when one does not, 2 when
+the log is missing, unreadable, corrupt or (without --allow-truncated) truncated; then
+nothing is written. Replay never commands a robot.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from eval.io import UsageError, prepare_out_dir, write_json
+from eval.mcap_log import LogReadError, TruncatedLogError
+from eval.mcap_replay import replay
+
+
+def register(sub) -> None:
+    p = sub.add_parser("replay", help="re-run the safety filter on a run log (MCAP) and compare: replay.json")
+    p.add_argument("file", help="run log written by eval.mcap_log.RunLogger (.mcap)")
+    p.add_argument("--tol", type=float, default=1e-9, help="largest accepted |qdot difference|, rad/s (>= 0)")
+    p.add_argument("--out", default=None, help="output directory (default: the log's directory)")
+    p.add_argument("--allow-truncated", action="store_true",
+                   help="replay a killed run's log up to its last complete step instead of refusing it")
+    p.set_defaults(func=main)
+
+
+def main(args) -> int:
+    if not (math.isfinite(args.tol) and args.tol >= 0):
+        raise UsageError(f"--tol must be a finite number >= 0 rad/s, got {args.tol}")
+    path = Path(args.file)
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file")
+    try:
+        result = replay(path, args.tol, args.allow_truncated)
+    except TruncatedLogError as exc:
+        raise UsageError(f"cannot replay: {exc}; --allow-truncated replays its complete steps") from None
+    except LogReadError as exc:
+        raise UsageError(f"cannot replay: {exc}") from None
+    out = prepare_out_dir(args.out if args.out is not None else path.resolve().parent)
+    write_json(out / "replay.json", result.as_json())
+    verdict = "all match" if result.ok else f"{result.mismatches} MISMATCH(ES)"
+    print(f"replay {path}: {result.steps} steps{' (truncated log)' if result.truncated else ''}, {verdict}; "
+          f"max |qdot diff| {result.max_abs_diff:.3g} rad/s (tol {args.tol:g})")
+    for ex in result.examples[:5]:
+        print(f"  step {ex['step']} (t = {ex['t']} s): {'; '.join(ex['differences'])}")
+    print(f"wrote {out / 'replay.json'}")
+    return 0 if result.ok else 1

@@ -1,0 +1,120 @@
+"""The regression harness: re-run the safety filter on a run log's inputs and compare.
+
+Each logged step ("/filter/inputs", "/filter/outputs", "/filter/status", paired by their
+`step` number) is rebuilt into FilterInputs and filtered again with the logged
+configuration ("/filter/config"); a step matches when the joint rates agree within
+`tol` (rad/s, max abs difference) and ok, reason and the cutter interlock are equal.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from eval import mcap_codec as codec
+from eval.mcap_log import LogReadError, read_log
+from safety import SafetyFilter
+
+TOPICS = ("/filter/config", "/filter/inputs", "/filter/outputs", "/filter/status")
+MAX_REPORTED_MISMATCHES = 20
+
+
+@dataclass
+class ReplayResult:
+    """`steps` replayed, `mismatches` among them, `max_abs_diff` (rad/s) of qdot over the
+    steps whose rates could be compared, `truncated` (a killed run's log, replayed up to its
+    last complete step), `examples` the first few mismatches."""
+
+    steps: int
+    mismatches: int
+    max_abs_diff: float
+    truncated: bool
+    examples: list = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.mismatches == 0
+
+    def as_json(self) -> dict:
+        return {"steps": self.steps, "mismatches": self.mismatches, "max_abs_diff": self.max_abs_diff,
+                "ok": self.ok, "truncated": self.truncated, "examples": self.examples}
+
+
+def _by_step(messages, topic: str) -> dict:
+    out = {}
+    for log_time, m in messages:
+        step = m.get("step") if isinstance(m, dict) else None
+        if isinstance(step, bool) or not isinstance(step, int):
+            raise LogReadError(f"{topic}: message at {log_time} ns has no integer 'step'")
+        if step in out:
+            raise LogReadError(f"{topic}: step {step} appears twice")
+        out[step] = m
+    return out
+
+
+def _logged_steps(log) -> list[tuple[int, dict, dict, dict]]:
+    """(step, inputs, outputs, status) for every complete step; LogReadError when a complete
+    log misses part of a step (a truncated log may lose its last step's tail)."""
+    inputs, outputs, status = (_by_step(log.messages.get(t, ()), t) for t in TOPICS[1:])
+    if not inputs:
+        raise LogReadError("the log holds no /filter/inputs messages: nothing to replay")
+    steps = []
+    for s in sorted(inputs):
+        if s in outputs and s in status:
+            steps.append((s, inputs[s], outputs[s], status[s]))
+        elif not (log.truncated and s == max(inputs)):
+            raise LogReadError(f"step {s} has /filter/inputs but lacks its /filter/outputs or /filter/status")
+    return steps
+
+
+def _compare(step: int, logged_out: dict, logged_status: dict, out) -> tuple[float, list[str]]:
+    """(max |qdot difference| or NaN if incomparable, what differs)."""
+    diffs = []
+    try:
+        q_logged = codec.array_from_json(logged_out.get("qdot"), f"step {step} qdot")
+    except ValueError as exc:
+        raise LogReadError(str(exc)) from None
+    if q_logged.shape != out.qdot.shape:
+        diffs.append(f"qdot shape {q_logged.shape} != replayed {out.qdot.shape}")
+        d = math.nan
+    else:
+        d = float(np.max(np.abs(q_logged - out.qdot))) if out.qdot.size else 0.0
+    for key, replayed in (("ok", out.ok), ("reason", out.reason), ("cutter_allowed", out.cutter_allowed)):
+        if logged_status.get(key) != replayed:
+            diffs.append(f"{key}: logged {logged_status.get(key)!r}, replayed {replayed!r}")
+    return d, diffs
+
+
+def replay(path, tol: float = 1e-9, allow_truncated: bool = False) -> ReplayResult:
+    """Replay the run log at `path`; LogReadError when it cannot be read or is incomplete
+    (a truncated log only with `allow_truncated`). `tol`: rad/s, finite, >= 0."""
+    if not (math.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol must be finite and >= 0 rad/s, got {tol}")
+    log = read_log(path, topics=TOPICS, allow_truncated=allow_truncated)
+    configs = log.messages.get("/filter/config", [])
+    if len(configs) != 1:
+        raise LogReadError(f"{path}: expected one /filter/config message, found {len(configs)}")
+    try:
+        filt = SafetyFilter(codec.config_from_json(configs[0][1]))
+    except ValueError as exc:
+        raise LogReadError(f"{path}: /filter/config: {exc}") from None
+    steps = _logged_steps(log)
+    rebuilt = []
+    for s, logged_in, logged_out, logged_status in steps:  # decode all before running any
+        try:
+            rebuilt.append(codec.inputs_from_json(logged_in))
+        except ValueError as exc:
+            raise LogReadError(f"{path}: /filter/inputs step {s}: {exc}") from None
+    max_diff, mismatches, examples = 0.0, 0, []
+    for (s, _, logged_out, logged_status), x in zip(steps, rebuilt):
+        d, diffs = _compare(s, logged_out, logged_status, filt(x))
+        if math.isfinite(d):
+            max_diff = max(max_diff, d)
+        if not d <= tol:
+            diffs.append(f"qdot differs by {d:.3g} rad/s > tol {tol:g}")
+        if diffs:
+            mismatches += 1
+            if len(examples) < MAX_REPORTED_MISMATCHES:
+                examples.append({"step": s, "t": logged_in.get("t"), "differences": diffs})
+    return ReplayResult(len(steps), mismatches, max_diff, log.truncated, examples)
