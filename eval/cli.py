@@ -21,6 +21,7 @@ SUBCOMMAND_MODULES = (
     "eval.cmd_paper",
     "eval.cmd_eyes",
     "eval.cmd_calibrate",
+    "eval.cmd_replay",
 )
 
 
