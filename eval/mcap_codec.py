@@ -40,7 +40,7 @@ def json_array(a) -> list:
     A = np.asarray(a, dtype=float)
     if np.isfinite(A).all():
         return A.tolist()
-    return np.vectorize(json_number, otypes=[object])(A).tolist()
+    return np.array([json_number(v) for v in A.ravel()], dtype=object).reshape(A.shape).tolist()
 
 
 def number_from_json(x, name: str) -> float:
