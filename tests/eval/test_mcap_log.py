@@ -57,10 +57,10 @@ def toy_step(log: RunLogger, filt: SafetyFilter, k: int, p: np.ndarray) -> np.nd
     return p + DT * out.qdot
 
 
-def write_toy_run(path, steps: int, config: FilterConfig | None = None) -> Path:
+def write_toy_run(path, steps: int, config: FilterConfig | None = None, flush_every_s: float = 1.0) -> Path:
     filt = SafetyFilter(config)
     p = np.array([0.0, 0.0, -10.0])
-    with RunLogger(path, filt.config) as log:
+    with RunLogger(path, filt.config, flush_every_s=flush_every_s) as log:
         for k in range(steps):
             p = toy_step(log, filt, k, p)
     return Path(path)
