@@ -33,6 +33,7 @@ from safety import FilterConfig, FilterInputs, FilterOutput
 M_PER_MM = 1e-3  # Foxglove's 3D panel works in metres
 MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first and last 8 bytes of every MCAP file
 _KIND_INDEX = {"prior": 0, "sphere": 1, "ellipsoid": 2}
+_JSON = json.JSONEncoder(allow_nan=False, separators=(",", ":"))  # one encoder: json.dumps with options builds one per call
 
 
 class LogReadError(ValueError):
@@ -146,7 +147,7 @@ class RunLogger:
     def _write(self, topic: str, ns: int, msg: dict) -> None:
         if self._file.closed:
             raise ValueError(f"the run log {self.path} is closed")
-        data = json.dumps(msg, allow_nan=False, separators=(",", ":")).encode()
+        data = _JSON.encode(msg).encode()
         self._writer.add_message(self._channels[topic], ns, data, ns)
 
     def _log(self, topic: str, ns: int, msg: dict) -> None:

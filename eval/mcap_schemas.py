@@ -6,6 +6,10 @@ exactly so, which is how Foxglove recognises them), in metres as Foxglove expect
 """
 from __future__ import annotations
 
+import dataclasses
+
+from safety import FilterConfig
+
 NUM = {"type": "number"}
 INT = {"type": "integer"}
 BOOL = {"type": "boolean"}
@@ -63,7 +67,9 @@ FOXGLOVE = {
 
 # --- our channels: topic -> (schema name, schema) ---
 CHANNELS = {
-    "/filter/config": ("vitreoguard.FilterConfig", obj("safety.FilterConfig fields (mm, s, rad)")),
+    "/filter/config": ("vitreoguard.FilterConfig", obj(
+        "safety.FilterConfig fields (mm, s, rad)",
+        **{f.name: STR if isinstance(f.default, str) else EXACT for f in dataclasses.fields(FilterConfig)})),
     "/robot/joint_states": ("vitreoguard.JointStates", obj(
         "joint angles and rates", ("t", "names", "q", "qdot"), t=NUM, names=arr(STR), q=arr(NUM, "rad"),
         qdot=arr(NUM, "rad/s"))),

@@ -93,6 +93,40 @@ def test_the_log_has_every_channel_with_its_schema(toy_log):
                 assert message.log_time == round(m["t"] * 1e9) == message.publish_time
 
 
+_JSON_TYPES = {"object": dict, "array": list, "string": str, "boolean": bool, "null": type(None),
+               "number": (int, float), "integer": int}
+
+
+def schema_violations(value, schema, where="") -> list[str]:
+    """What in `value` breaks the JSON `schema` (types, required and undeclared fields,
+    recursively): the subset of JSON Schema our schemas use."""
+    types = schema.get("type")
+    if types is not None:
+        types = [types] if isinstance(types, str) else types
+        ok = any(isinstance(value, _JSON_TYPES[t]) and not (t in ("number", "integer") and isinstance(value, bool))
+                 for t in types)
+        if not ok:
+            return [f"{where}: {type(value).__name__} is not {types}"]
+    out = []
+    if isinstance(value, dict) and "properties" in schema:
+        out += [f"{where}.{k}: required" for k in schema.get("required", ()) if k not in value]
+        out += [f"{where}.{k}: undeclared" for k in value if k not in schema["properties"]]
+        for k, v in value.items():
+            out += schema_violations(v, schema["properties"].get(k, {}), f"{where}.{k}")
+    if isinstance(value, list) and "items" in schema:
+        for i, v in enumerate(value):
+            out += schema_violations(v, schema["items"], f"{where}[{i}]")
+    return out
+
+
+def test_every_message_matches_its_schema(toy_log):
+    """Every field a message carries is declared with its type in the channel's schema (what
+    Foxglove's panels offer for plotting), and the required ones are present."""
+    with open(toy_log, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            assert schema_violations(json.loads(message.data), json.loads(schema.data), channel.topic) == []
+
+
 def test_filter_messages_hold_the_step(toy_log):
     log = read_log(toy_log)
     (_, inputs), (_, out), (_, status), (_, clearance) = (log.messages[t][150] for t in
