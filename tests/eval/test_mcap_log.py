@@ -20,7 +20,7 @@ from mcap.reader import make_reader
 
 from eval import mcap_codec as codec
 from eval.mcap_log import M_PER_MM, RunLogger, quaternion_xyzw, read_log
-from models import Ellipsoid, Sphere
+from models import AdaptiveEyeModel, Ellipsoid, Sphere
 from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
 
 EYE = Sphere(np.zeros(3), 12.0)
@@ -218,6 +218,22 @@ def test_inputs_round_trip_bit_for_bit(v, J, margin, roll, ellipsoid):
         assert type(a) is type(b) and a.center.tobytes() == b.center.tobytes()
     if ellipsoid:
         assert y.model.rotation.tobytes() == R.tobytes() and y.model.radii.tobytes() == x.model.radii.tobytes()
+
+
+def test_model_updates_and_run_metadata_are_logged(tmp_path):
+    """An adaptive model's history entry (sphere phase, 200 points on the 12 mm retina)
+    lands on /model with its fit and criteria; run metadata in the file's metadata."""
+    model = AdaptiveEyeModel()
+    update = model.update(EYE.sample_surface(10, 20, z_max=0.0))
+    with RunLogger(tmp_path / "m.mcap", metadata={"scenario": "toy", "seed": 3}) as log:
+        log.log_model_update(0.5, update)
+    (_, m), = read_log(tmp_path / "m.mcap").messages["/model"]
+    assert (m["kind"], m["kind_index"], m["n_points"]) == ("sphere", 1, 200)
+    assert m["sphere"]["radius"] == pytest.approx(12.0, abs=1e-9)
+    assert set(m["criteria"]) == set(update.criteria) and all(set(c) == {"value", "met"} for c in m["criteria"].values())
+    with open(tmp_path / "m.mcap", "rb") as f:
+        (meta,) = make_reader(f).iter_metadata()
+    assert meta.name == "run" and meta.metadata == {"scenario": "toy", "seed": "3"}
 
 
 def test_bad_arguments_are_refused_by_name(tmp_path):
