@@ -24,7 +24,7 @@ from models.ascan import RETINA_DEPTH_UM, OctEngine, axial_sigma_mm, retina_laye
 
 # Validity reasons (stable strings; "" when valid).
 REASONS = ("not_numeric", "wrong_length", "nan_samples", "negative_samples", "all_zero", "saturated",
-           "no_tip_reflection", "no_peak", "low_confidence")
+           "no_tip_reflection", "no_peak", "low_confidence", "shape_mismatch")
 _FINE = 8  # sub-sample bank: shifts of 1/8 sample over [-1, 1] sample
 _RAYLEIGH_MEDIAN = np.sqrt(np.log(2.0))  # median |noise| for E|noise|^2 = 1
 _SUPPORT_SIGMAS = 4.0  # a template extends this many axial sigmas beyond the layers
@@ -79,6 +79,10 @@ class TemplateBank:
             self.fine[t, :, self.lo[t]:self.hi[t]] = T
         self.integer = np.ascontiguousarray(self.fine[:, _FINE, :])
         self.support = (self.hi - self.lo).astype(float)
+
+    def sigma_of(self, t: int) -> float:
+        """Axial sigma (mm of optical path) of template t."""
+        return float(self.sigmas_mm[t % len(self.sigmas_mm)])
 
     def for_distance(self, engine: OctEngine, distance_mm: float) -> np.ndarray:
         """Template indices (one per angle) whose sigma is nearest (in log) to the axial
@@ -181,8 +185,7 @@ class DistanceExtractor:
             return _invalid("no_peak")
         c1 = np.concatenate([[0.0], np.cumsum(x)])
         c2 = np.concatenate([[0.0], np.cumsum(x * x)])
-        best = max(self._match(x, c1, c2, tip, a, b) for a, b in clusters)
-        ncc, ilm, t = best
+        ncc, ilm, t, first, last = max(self._match(x, c1, c2, tip, a, b) + (a, b) for a, b in clusters)
         if t < 0:
             return _invalid("no_peak")
         ilm_sub, ncc = self._refine(x, c1, c2, ilm, t)
@@ -191,6 +194,16 @@ class DistanceExtractor:
         snr_db = 20.0 * np.log10(peak / noise)
         if ncc < self.min_confidence:
             return _invalid("low_confidence", ncc, snr_db)
+        # The matched retina must explain the whole interface: its response rises above
+        # the threshold at most sqrt(2 ln(peak / threshold)) sigmas before the ILM and
+        # after the last layer. Signal further ahead means the match slid onto a deeper
+        # layer (the distance would be overestimated, the unsafe direction); signal
+        # further behind, or a best match at the bank's steepest angle, means a retina
+        # more oblique than the bank covers.
+        edge = (np.sqrt(2.0 * np.log(max(peak / threshold, 1.0))) + 1.0) * self._bank.sigma_of(t) / self._dz + 1.0
+        steepest = t // len(self._bank.sigmas_mm) == len(self._bank.angles_rad) - 1  # may be steeper still
+        if steepest or first < ilm_sub - edge or last > ilm_sub + self._bank.reach[t] + edge:
+            return _invalid("shape_mismatch", ncc, snr_db)
         return Measurement((ilm_sub - tip) * self._dz / self.group_index, True, ncc, "", snr_db)
 
     def _tip_position(self, x: np.ndarray, threshold: float) -> float | None:
