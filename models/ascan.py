@@ -173,14 +173,18 @@ def _check_geometry(distance_mm, incidence_rad) -> tuple[float, float]:
     return d, th
 
 
-def axial_sigma_mm(engine: OctEngine, distance_mm: float, incidence_rad: float) -> float:
+def axial_sigma_mm(engine: OctEngine, distance_mm: float, incidence_rad):
     """Sigma (mm of optical path) of the retina's axial response: the PSF broadened by the
     depth range the beam footprint (radius w at `distance_mm`) spans on a retina tilted by
     `incidence_rad`. A scatterer at lateral offset x is weighted exp(-2 x^2 / w^2) in
-    amplitude (illumination x collection), i.e. sigma_x = w / 2, at depth x tan(theta)."""
-    d, th = _check_geometry(distance_mm, incidence_rad)
+    amplitude (illumination x collection), i.e. sigma_x = w / 2, at depth x tan(theta).
+    `incidence_rad` may be an array (then so is the result)."""
+    th = np.asarray(incidence_rad, dtype=float)
+    d, _ = _check_geometry(distance_mm, th.max() if th.size else 0.0)
+    if th.size and th.min() < 0.0:
+        raise ValueError(f"incidence_rad must be in [0, pi/2), got {incidence_rad!r}")
     spread = 0.5 * float(engine.beam_radius_mm(d)) * np.tan(th) * engine.group_index
-    return float(np.hypot(engine.psf_sigma_mm, spread))
+    return np.hypot(engine.psf_sigma_mm, spread) if th.ndim else float(np.hypot(engine.psf_sigma_mm, spread))
 
 
 def _rician_mean(nu: np.ndarray, power: np.ndarray) -> np.ndarray:

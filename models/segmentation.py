@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
+from numpy.lib.stride_tricks import as_strided
 
 from models._validation import check_count, check_positive
 from models.ascan import RETINA_DEPTH_UM, OctEngine, axial_sigma_mm, retina_layers
@@ -28,6 +28,7 @@ REASONS = ("not_numeric", "wrong_length", "nan_samples", "negative_samples", "al
 _FINE = 8  # sub-sample bank: shifts of 1/8 sample over [-1, 1] sample
 _RAYLEIGH_MEDIAN = np.sqrt(np.log(2.0))  # median |noise| for E|noise|^2 = 1
 _SUPPORT_SIGMAS = 4.0  # a template extends this many axial sigmas beyond the layers
+_TABLE_STEP_MM = 0.05  # distance grid of the template choice
 
 
 @dataclass(frozen=True)
@@ -79,20 +80,25 @@ class TemplateBank:
             self.fine[t, :, self.lo[t]:self.hi[t]] = T
         self.integer = np.ascontiguousarray(self.fine[:, _FINE, :])
         self.support = (self.hi - self.lo).astype(float)
+        # per distance (every _TABLE_STEP_MM): the template of each angle whose sigma is
+        # nearest (in log) to the axial sigma there, and their joint extent
+        dist = np.arange(1, int(np.ceil(engine.depth_mm / engine.group_index / _TABLE_STEP_MM)) + 1) * _TABLE_STEP_MM
+        rows = [np.argmin(np.abs(np.log(sigmas_mm)[None, :] - np.log(axial_sigma_mm(engine, d, angles_rad))[:, None]), axis=1)
+                for d in dist]
+        self._tids = np.arange(len(angles_rad)) * len(sigmas_mm) + np.array(rows)
+        self._span = np.column_stack([self.lo[self._tids].min(1), self.hi[self._tids].max(1), self.reach[self._tids].max(1)])
+        self._sigma_max = sigmas_mm[np.array(rows)].max(axis=1)
 
     def sigma_of(self, t: int) -> float:
         """Axial sigma (mm of optical path) of template t."""
         return float(self.sigmas_mm[t % len(self.sigmas_mm)])
 
-    def for_distance(self, engine: OctEngine, distance_mm: float) -> np.ndarray:
-        """Template indices (one per angle) whose sigma is nearest (in log) to the axial
-        sigma of a retina `distance_mm` away at that angle."""
-        log_s = np.log(self.sigmas_mm)
-        out = []
-        for a, th in enumerate(self.angles_rad):
-            j = int(np.argmin(np.abs(log_s - np.log(axial_sigma_mm(engine, distance_mm, th)))))
-            out.append(a * len(self.sigmas_mm) + j)
-        return np.array(out)
+    def for_distance(self, distance_mm: float) -> tuple[np.ndarray, int, int, int, float]:
+        """(template per angle, joint lo, joint hi, largest reach, largest sigma mm) for a
+        retina about `distance_mm` away."""
+        i = min(max(int(distance_mm / _TABLE_STEP_MM + 0.5) - 1, 0), len(self._tids) - 1)
+        lo, hi, reach = self._span[i]
+        return self._tids[i], int(lo), int(hi), int(reach), float(self._sigma_max[i])
 
 
 @lru_cache(maxsize=4)
@@ -155,6 +161,8 @@ class DistanceExtractor:
         self._tip_half = max(int(np.ceil(tip_window_mm / self._dz)), 2)
         self._gap = max(int(round(merge_gap_mm / self._dz)), 1)
         self._threshold = 10.0 ** (min_peak_snr_db / 20.0)
+        # the most sigmas a full-scale ILM rises above the threshold before its centre
+        self._max_rise = np.sqrt(2.0 * np.log(max(engine.full_scale / self._threshold, 1.0))) + 1.0
 
     def __call__(self, ascan) -> Measurement:
         """Extract the tip-retina distance (mm) from one A-scan (n_samples,); never raises."""
@@ -175,7 +183,7 @@ class DistanceExtractor:
         if hi >= e.full_scale:
             return _invalid("saturated")
 
-        noise = max(float(np.median(x[::4])) / _RAYLEIGH_MEDIAN, 1e-12)
+        noise = max(float(np.median(x[::8])) / _RAYLEIGH_MEDIAN, 1e-12)
         threshold = noise * self._threshold
         tip = self._tip_position(x, threshold)
         if tip is None:
@@ -183,12 +191,10 @@ class DistanceExtractor:
         clusters = self._clusters(x, tip, threshold)
         if not clusters:
             return _invalid("no_peak")
-        c1 = np.concatenate([[0.0], np.cumsum(x)])
-        c2 = np.concatenate([[0.0], np.cumsum(x * x)])
-        ncc, ilm, t, first, last = max(self._match(x, c1, c2, tip, a, b) + (a, b) for a, b in clusters)
+        ncc, ilm, t, first, last = max(self._match(x, tip, a, b) + (a, b) for a, b in clusters)
         if t < 0:
             return _invalid("no_peak")
-        ilm_sub, ncc = self._refine(x, c1, c2, ilm, t)
+        ilm_sub, ncc = self._refine(x, ilm, t)
         o = ilm - self._bank.origin
         peak = float(x[o + self._bank.lo[t]: o + self._bank.hi[t]].max())
         snr_db = 20.0 * np.log10(peak / noise)
@@ -232,23 +238,30 @@ class DistanceExtractor:
             starts, ends = starts[keep], ends[keep]
         return [(int(idx[a]), int(idx[b])) for a, b in zip(starts, ends)]
 
-    def _match(self, x, c1, c2, tip: float, first: int, last: int) -> tuple[float, int, int]:
+    def _match(self, x, tip: float, first: int, last: int) -> tuple[float, int, int]:
         """(NCC, ILM sample, template) of the best match of the templates for this
         cluster's distance, over ILM positions from `reach` before its first sample to just
         after its last; (-inf, 0, -1) when no template fits inside the scan there."""
         bank = self._bank
         d0 = max((first - tip) * self._dz / self.group_index, self.min_distance_mm)
-        tids = bank.for_distance(self.engine, d0)
-        lo, hi = int(bank.lo[tids].min()), int(bank.hi[tids].max())
+        tids, lo, hi, reach, sigma_max = bank.for_distance(d0)
         o = bank.origin
         min_ilm = int(np.ceil(tip + self.min_distance_mm * self.group_index / self._dz))
-        ilm = np.arange(max(first - int(bank.reach[tids].max()), min_ilm, o - lo), min(last + 3, len(x) - hi + o + 1))
+        # ILM candidates: up to a whole retina before the first sample, and no further
+        # behind it than the ILM's own rise allows (else __call__ rejects the shape)
+        rise = int(self._max_rise * sigma_max / self._dz) + 2
+        ilm = np.arange(max(first - reach, min_ilm, o - lo),
+                        min(first + rise, last + 2, len(x) - hi + o) + 1)
         if len(ilm) == 0:
             return (-np.inf, 0, -1)
-        G = sliding_window_view(x, hi - lo)[ilm - o + lo]
+        w0 = ilm[0] - o + lo
+        xs = x[w0:ilm[-1] - o + hi]
+        G = as_strided(xs, (len(ilm), hi - lo), (xs.strides[0], xs.strides[0]), writeable=False)
         num = G @ bank.integer[tids, lo:hi].T  # (L, A)
-        a = ilm[:, None] - o + bank.lo[tids][None, :]
-        b = ilm[:, None] - o + bank.hi[tids][None, :]
+        c1 = np.concatenate([[0.0], np.cumsum(xs)])  # window sums of x and x^2 per template support
+        c2 = np.concatenate([[0.0], np.cumsum(xs * xs)])
+        a = ilm[:, None] - o - w0 + bank.lo[tids][None, :]
+        b = ilm[:, None] - o - w0 + bank.hi[tids][None, :]
         s1, s2 = c1[b] - c1[a], c2[b] - c2[a]
         ncc = num / np.sqrt(np.maximum(s2 - s1 * s1 / bank.support[tids], 1e-300))
         per_angle = ncc.max(axis=0)
@@ -256,14 +269,14 @@ class DistanceExtractor:
         i = int(np.argmax(ncc[:, j]))
         return (float(ncc[i, j]), int(ilm[i]), int(tids[j]))
 
-    def _refine(self, x, c1, c2, ilm: int, t: int) -> tuple[float, float]:
+    def _refine(self, x, ilm: int, t: int) -> tuple[float, float]:
         """(sub-sample ILM index, NCC there): the 1/8-sample bank of template t around
         `ilm`, then a parabola through the best shift and its neighbours."""
         bank = self._bank
         a, b = ilm - bank.origin + bank.lo[t], ilm - bank.origin + bank.hi[t]
-        s1, s2 = c1[b] - c1[a], c2[b] - c2[a]
-        norm = np.sqrt(max(s2 - s1 * s1 / bank.support[t], 1e-300))
-        c = bank.fine[t, :, bank.lo[t]:bank.hi[t]] @ x[a:b] / norm
+        w = x[a:b]
+        norm = np.sqrt(max(float(w @ w) - float(w.sum()) ** 2 / bank.support[t], 1e-300))
+        c = bank.fine[t, :, bank.lo[t]:bank.hi[t]] @ w / norm
         k = int(np.clip(np.argmax(c), 1, len(c) - 2))
         den = c[k - 1] - 2.0 * c[k] + c[k + 1]
         delta = float(np.clip(0.5 * (c[k - 1] - c[k + 1]) / den, -1.0, 1.0)) if den < 0.0 else 0.0
