@@ -1,75 +1,117 @@
-"""Inverse kinematics through the trocar (Drake InverseKinematics, RCM as a point-to-line
-distance constraint), millimetres and radians at the interface."""
+"""Inverse kinematics through the trocar: Drake `InverseKinematics` at the mm/rad interface.
+
+The RCM is the point-to-line condition "the trocar C lies on the shaft axis". Drake's
+`AddPointToLineDistanceConstraint` states it through the squared distance, whose gradient
+vanishes exactly at the solution (distance 0): SNOPT then stalls or reports success
+hundreds of micrometres off the line (bench_robot measures it). So the same condition is
+written in the shaft's own frame I, where it is well conditioned: the trocar point,
+expressed in I, has |y|, |z| <= tolerance (a `PositionConstraint` on a world-fixed point
+measured in I). A few exact Gauss-Newton steps then take the tip and RCM errors to
+numerical zero, and the result is checked against the joint limits.
+"""
 from __future__ import annotations
 
 import numpy as np
 from pydrake.multibody.inverse_kinematics import InverseKinematics
-from pydrake.solvers import Solve
+from pydrake.solvers import SnoptSolver
 
 from planning.robot import MM_PER_M, Robot
 
-
-_SEED_OFFSETS = [np.zeros(6)] + [np.array(v) for v in (
+_SOLVER_TOL_MM = 1e-2  # box tolerance given to SNOPT; the polish then reaches ~1e-9 mm
+# Seeds tried after the caller's (SNOPT is local): small base/elbow changes and the
+# spherical wrist's flipped twin (J4 + pi, -J5, J6 + pi), which reaches the same flange pose.
+_SEED_OFFSETS = [np.array(v, dtype=float) for v in (
     [0, 0.2, -0.2, 0, 0.3, 0], [0.2, 0, 0, 0.3, 0, -0.3], [-0.2, 0, 0, -0.3, 0, 0.3], [0, -0.2, 0.3, 0, -0.3, 0])]
-_SOLVER_TOL_MM = 0.01  # tolerance given to SNOPT; the Gauss-Newton polish then reaches ~1e-9 mm
 
 
 class IKFailure(ValueError):
-    """The target cannot be reached through the trocar within the joint limits."""
+    """The tip target cannot be reached through the trocar within the joint limits."""
 
 
-def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, rcm_tol_mm: float = 1e-4, tip_tol_mm: float = 1e-4,
-           roll_rad: float | None = None) -> np.ndarray:
-    """Joint angles (6,) rad putting the tip T at p_WT_mm with the shaft through the trocar
-    p_WC_mm (distance <= rcm_tol_mm), within the joint limits, starting from q_seed (for
-    continuity). `roll_rad`, if given, fixes the instrument roll: the angle about the shaft
-    of its y axis from the horizontal. Raises IKFailure naming the target otherwise."""
-    p_T = np.asarray(p_WT_mm, dtype=float)
-    p_C = np.asarray(p_WC_mm, dtype=float)
-    q_seed = np.asarray(q_seed, dtype=float)
-    for name, v in (("p_WT_mm", p_T), ("p_WC_mm", p_C)):
-        if v.shape != (3,) or not np.all(np.isfinite(v)):
-            raise ValueError(f"{name} must be a finite (3,) point in mm, got {v}")
-    if q_seed.shape != (6,) or not np.all(np.isfinite(q_seed)):
-        raise ValueError(f"q_seed must be a finite (6,) joint vector in rad, got {q_seed}")
+def _finite(v, name: str, shape: tuple[int, ...], unit: str) -> np.ndarray:
+    a = np.asarray(v, dtype=float)
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} must be a finite {shape} array in {unit}, got {np.asarray(v)!r}")
+    return a
+
+
+def roll_direction_W(p_WT_mm, p_WC_mm, roll_rad: float) -> np.ndarray:
+    """Unit direction (3,) in W of the instrument's y axis for a shaft from the trocar C
+    to the tip T rolled by `roll_rad` about the shaft: roll 0 is horizontal (along
+    z_W x u), positive roll turns it about u (right-handed). Raises ValueError when the
+    shaft is within 1 deg of vertical (roll from the horizontal is undefined there)."""
+    u = np.asarray(p_WT_mm, dtype=float) - np.asarray(p_WC_mm, dtype=float)
+    u /= np.linalg.norm(u)
+    h = np.cross([0.0, 0.0, 1.0], u)
+    if np.linalg.norm(h) < np.sin(np.radians(1.0)):
+        raise ValueError("roll_rad is undefined for a vertical shaft (within 1 deg of z_W); give roll_rad=None")
+    h /= np.linalg.norm(h)
+    return np.cos(roll_rad) * h + np.sin(roll_rad) * np.cross(u, h)
+
+
+def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = None,
+           rcm_tol_mm: float = 1e-4, tip_tol_mm: float = 1e-4) -> np.ndarray:
+    """Joint angles (6,) rad putting the tip T at p_WT_mm (3,) mm with the shaft through
+    the trocar p_WC_mm (3,) mm, within the joint limits, as close as possible to q_seed
+    (6,) rad (continuity along a path). `roll_rad` (optional) fixes the instrument's roll
+    about the shaft (see `roll_direction_W`); otherwise the closest roll to the seed wins.
+
+    Raises ValueError for non-finite input, IKFailure (a ValueError) naming the target
+    when no solution within the limits and tolerances (mm) exists from the seeds tried.
+    """
+    p_T = _finite(p_WT_mm, "p_WT_mm", (3,), "mm")
+    p_C = _finite(p_WC_mm, "p_WC_mm", (3,), "mm")
+    q_seed = _finite(q_seed, "q_seed", (6,), "rad")
+    if np.linalg.norm(p_T - p_C) < 1.0:
+        raise ValueError(f"p_WT_mm must be at least 1 mm from the trocar p_WC_mm, got {np.linalg.norm(p_T - p_C):.3g} mm")
+    y_W = None if roll_rad is None else roll_direction_W(p_T, p_C, float(_finite(roll_rad, "roll_rad", (), "rad")))
+    prog, q = _program(robot, p_T, p_C, q_seed, y_W)
+    solver = SnoptSolver()
+    last = None
+    for dq in [np.zeros(6)] + _SEED_OFFSETS + [_wrist_flip(q_seed) - q_seed]:
+        prog.SetInitialGuess(q, np.clip(q_seed + dq, robot.q_lower, robot.q_upper))
+        result = solver.Solve(prog)
+        if result.is_success():
+            q_sol = polish(robot, result.GetSolution(q), p_T, p_C)
+            tip_err = float(np.linalg.norm(robot.point("T", np.zeros(3), q_sol) - p_T))
+            rcm_err = robot.rcm_error_mm(q_sol, p_C)
+            if np.all(robot.joint_margin_rad(q_sol) >= 0) and rcm_err <= rcm_tol_mm and tip_err <= tip_tol_mm:
+                return q_sol
+            last = f"polished solution off by tip {tip_err:.2g} mm, RCM {rcm_err:.2g} mm or beyond a joint limit"
+        else:
+            last = f"{result.get_solver_id().name()}: {result.get_solution_result().name}"
+    raise IKFailure(f"tip target p_WT_mm = {np.round(p_T, 3)} is not reachable through the trocar "
+                    f"p_WC_mm = {np.round(p_C, 3)} within the joint limits ({last})")
+
+
+def _wrist_flip(q: np.ndarray) -> np.ndarray:
+    """The other spherical-wrist solution with the same flange pose, wrapped into (-pi, pi]."""
+    f = q + np.array([0.0, 0.0, 0.0, np.pi, 0.0, np.pi])
+    f[4] = -q[4]
+    return (f + np.pi) % (2 * np.pi) - np.pi
+
+
+def _program(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.ndarray, y_W):
+    """The IK program (metres inside): tip box, RCM in the shaft frame, optional roll,
+    joint limits, and the quadratic distance to the seed as cost."""
     plant = robot.plant
-    ik = InverseKinematics(plant, with_joint_limits=True)
-    tip = plant.GetFrameByName("tip")
     world = plant.world_frame()
-    tol_T = _SOLVER_TOL_MM / MM_PER_M  # loose for the solver; polish() makes it exact
-    ik.AddPositionConstraint(tip, np.zeros(3), world, p_T / MM_PER_M - tol_T, p_T / MM_PER_M + tol_T)
-    ik.AddPointToLineDistanceConstraint(
-        world, p_C / MM_PER_M, plant.GetFrameByName("instrument"), np.zeros(3), np.array([1.0, 0.0, 0.0]),
-        0.0, _SOLVER_TOL_MM / MM_PER_M,
-    )
-    if roll_rad is not None:
-        # the instrument's y axis makes angle roll with the horizontal plane: y . z_W = sin(roll)
-        ik.AddAngleBetweenVectorsConstraint(plant.GetFrameByName("instrument"), np.array([0.0, 1.0, 0.0]), world,
-                                            np.array([0.0, 0.0, 1.0]), np.pi / 2 - roll_rad - 1e-6, np.pi / 2 - roll_rad + 1e-6)
+    shaft = plant.GetFrameByName("instrument")
+    tol = _SOLVER_TOL_MM / MM_PER_M
+    ik = InverseKinematics(plant, with_joint_limits=True)
+    ik.AddPositionConstraint(plant.GetFrameByName("tip"), np.zeros(3), world, p_T / MM_PER_M - tol, p_T / MM_PER_M + tol)
+    ik.AddPositionConstraint(world, p_C / MM_PER_M, shaft, [-np.inf, -tol, -tol], [np.inf, tol, tol])
+    if y_W is not None:
+        ik.AddAngleBetweenVectorsConstraint(shaft, np.array([0.0, 1.0, 0.0]), world, y_W, 0.0, 1e-4)
     q = ik.q()
     prog = ik.get_mutable_prog()
-    prog.AddQuadraticErrorCost(np.eye(6), q_seed, q)  # stay near the seed: continuity
-    result = None
-    # The seed first (continuity); SNOPT is local, so a few nearby wrist/base variants after.
-    for dq in _SEED_OFFSETS:
-        prog.SetInitialGuess(q, np.clip(q_seed + dq, robot.q_lower, robot.q_upper))
-        result = Solve(prog)
-        if result.is_success():
-            break
-    if not result.is_success():
-        raise IKFailure(f"tip target {np.round(p_T, 3)} mm is not reachable through the trocar "
-                        f"{np.round(p_C, 3)} mm within the joint limits ({result.get_solver_id().name()})")
-    q_sol = polish(robot, result.GetSolution(q), p_T, p_C)
-    tip_err = np.linalg.norm(robot.point("T", np.zeros(3), q_sol) - p_T)
-    if np.any(robot.joint_margin_rad(q_sol) < 0) or robot.rcm_error_mm(q_sol, p_C) > rcm_tol_mm or tip_err > tip_tol_mm:
-        raise IKFailure(f"tip target {np.round(p_T, 3)} mm: no solution within the joint limits and RCM tolerance")
-    return q_sol
+    prog.AddQuadraticErrorCost(np.eye(6), q_seed, q)
+    return prog, q
 
 
-def polish(robot: Robot, q, p_WT_mm, p_WC_mm, iterations: int = 4) -> np.ndarray:
-    """Gauss-Newton (minimum-norm) steps on the tip position and the two lateral RCM
-    errors, in mm: Drake's point-to-line constraint bounds the squared distance in m^2,
-    which leaves micrometre errors at the solver's tolerance; a few exact steps remove them."""
+def polish(robot: Robot, q, p_WT_mm, p_WC_mm, iterations: int = 3) -> np.ndarray:
+    """q (6,) rad after minimum-norm Gauss-Newton steps on the tip position error and the
+    two lateral RCM errors (mm): removes the solver's tolerance-level residuals."""
     q = np.asarray(q, dtype=float).copy()
     for _ in range(iterations):
         A, b = robot.rcm_rows(q, p_WC_mm, gain_per_s=1.0)  # b = -(lateral RCM error), mm
