@@ -3,42 +3,83 @@
 Drake works in metres; this wrapper is the one place that converts: every argument and
 result is in millimetres (positions), radians (joints) and mm/rad (Jacobians). Frames
 (design.md): W robot base, F flange, I instrument (origin at F, x along the shaft), T
-tip, S sensor (z along the beam), P cutter port.
+tip, S nominal sensor (z along the beam), P cutter port; with a scenario also E eye
+(planning/data/eye.sdf welded at X_WE), C trocar (on the eye) and S_true, the true
+sensor (S with the scenario's calibration error).
+
+Per-step queries reuse one plant Context and skip the kinematics update when q repeats,
+so the 1 kHz loop pays only for what changed.
 """
 from __future__ import annotations
 
 from importlib.resources import files
 
 import numpy as np
+from pydrake.geometry import Sphere
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
-from pydrake.multibody.tree import JacobianWrtVariable
+from pydrake.multibody.tree import FixedOffsetFrame, JacobianWrtVariable
 from pydrake.systems.framework import DiagramBuilder
 
 URDF = files("planning") / "data" / "meca500.urdf"
+EYE_SDF = files("planning") / "data" / "eye.sdf"
 FRAMES = {"F": "flange", "I": "instrument", "T": "tip", "S": "sensor", "P": "port"}
 MM_PER_M = 1000.0
+TROCAR_VISUAL_RADIUS_MM = 0.4
 
 
 class Robot:
     """Meca500 + instrument. `q` is always (6,) in rad; positions in mm; Jacobians mm/rad.
 
     `builder`, `plant` and `scene_graph` are exposed for diagrams that add more (the
-    closed loop, Meshcat); `finalize()` has been called on the plant.
+    closed loop, Meshcat); the plant is finalized. With a `scenario`
+    (planning.scenario.SurgeryScenario) the eye, the trocar C and the true sensor frame
+    S_true are added and `p_WC` is the scenario's trocar.
     """
 
-    def __init__(self, builder: DiagramBuilder | None = None):
+    def __init__(self, scenario=None, builder: DiagramBuilder | None = None):
         self.builder = DiagramBuilder() if builder is None else builder
         self.plant, self.scene_graph = AddMultibodyPlantSceneGraph(self.builder, 0.0)
+        self.scenario = scenario
         Parser(self.plant).AddModels(str(URDF))
         self.plant.WeldFrames(self.plant.world_frame(), self.plant.GetFrameByName("base"))
+        frames = dict(FRAMES)
+        if scenario is not None:
+            self._add_scenario(scenario)
+            frames.update({"E": "eye", "C": "trocar", "S_true": "sensor_true"})
         self.plant.Finalize()
         self._context = self.plant.CreateDefaultContext()
-        self._frames = {k: self.plant.GetFrameByName(v) for k, v in FRAMES.items()}
+        self._frames = {k: self.plant.GetFrameByName(v) for k, v in frames.items()}
         self.q_lower = self.plant.GetPositionLowerLimits().copy()
         self.q_upper = self.plant.GetPositionUpperLimits().copy()
         self.qdot_max = self.plant.GetVelocityUpperLimits().copy()
         self._q = np.full(6, np.nan)
+        R_WF, p_WF = self.pose("F", np.zeros(6))
+        self.tip_offset_mm = float(np.linalg.norm(self.pose("T", np.zeros(6))[1] - p_WF))  # along the flange x axis
+
+    def _add_scenario(self, scenario) -> None:
+        """Weld the eye at X_WE, add the trocar frame C (with a small marker) on it and the
+        true sensor frame on the instrument."""
+        plant = self.plant
+        (eye_model,) = Parser(plant).AddModels(str(EYE_SDF))
+        eye = plant.GetFrameByName("eye", eye_model)
+        X_WE = RigidTransform(RotationMatrix(scenario.eye_pose.R_WE), scenario.eye_pose.p_WE / MM_PER_M)
+        plant.WeldFrames(plant.world_frame(), eye, X_WE)
+        X_EC = RigidTransform(scenario.p_EC / MM_PER_M)
+        plant.AddFrame(FixedOffsetFrame("trocar", eye, X_EC))
+        plant.RegisterVisualGeometry(eye.body(), X_EC, Sphere(TROCAR_VISUAL_RADIUS_MM / MM_PER_M), "trocar",
+                                     np.array([0.2, 0.8, 0.2, 1.0]))
+        R, p = scenario.X_S_Strue
+        plant.AddFrame(FixedOffsetFrame("sensor_true", plant.GetFrameByName("sensor"),
+                                        RigidTransform(RotationMatrix(R), p / MM_PER_M)))
+
+    @property
+    def p_WC(self) -> np.ndarray:
+        """The scenario's trocar in W, mm (ValueError without a scenario)."""
+        if self.scenario is None:
+            raise ValueError("p_WC needs a Robot built with a scenario")
+        return self.scenario.p_WC
 
     @property
     def nq(self) -> int:
@@ -55,7 +96,8 @@ class Robot:
             self._q = q.copy()
 
     def pose(self, frame: str, q) -> tuple[np.ndarray, np.ndarray]:
-        """(R_W<frame> (3, 3), p_W<frame> (3,) mm) of frame F, I, T, S or P at q."""
+        """(R_W<frame> (3, 3), p_W<frame> (3,) mm) of frame F, I, T, S, P (and E, C,
+        S_true with a scenario) at q."""
         self._set(q)
         X = self._frames[frame].CalcPoseInWorld(self._context)
         return X.rotation().matrix(), MM_PER_M * X.translation()
@@ -79,26 +121,36 @@ class Robot:
         R, p = self.pose("I", q)
         return p, R[:, 0]
 
+    def beam(self, q, true: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(origin (3,) mm, unit direction (3,)) in W of the iiOCT beam: the nominal sensor
+        S, or with `true` the scenario's true sensor S_true (calibration error applied)."""
+        R, p = self.pose("S_true" if true else "S", q)
+        return p, R[:, 2]
+
+    def shaft_point_at_trocar(self, q, p_WC) -> tuple[np.ndarray, float]:
+        """(p_WQ (3,) mm, lambda mm): the shaft-axis point Q nearest the trocar p_WC and its
+        distance along the shaft from the flange; its Jacobian is jacobian("I", [lambda, 0, 0], q)."""
+        p, u = self.shaft(q)
+        lam = float(u @ (np.asarray(p_WC, dtype=float) - p))
+        return p + lam * u, lam
+
     def rcm_error_mm(self, q, p_WC) -> float:
         """Distance (mm) of the trocar point p_WC from the shaft line at q."""
-        p, u = self.shaft(q)
-        d = np.asarray(p_WC, dtype=float) - p
-        return float(np.linalg.norm(d - (d @ u) * u))
+        R, p = self.pose("I", q)
+        e = R[:, 1:].T @ (np.asarray(p_WC, dtype=float) - p)  # lateral coordinates in I
+        return float(np.sqrt(e @ e))
 
     def rcm_rows(self, q, p_WC, gain_per_s: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
-        """RCM equality rows (A (2, 6), b (2,)) for qdot in rad/s: the material shaft point at
-        the trocar may move only along the shaft, and its lateral error e (mm) decays as
-        de/dt = -gain e (drift correction)."""
-        p, u = self.shaft(q)
-        lam = float(u @ (np.asarray(p_WC, dtype=float) - p))  # shaft coordinate of the trocar, mm
-        p_WQ = p + lam * u
+        """RCM equality rows (A (2, 6), b (2,) mm/s) with A qdot = b for qdot in rad/s: the
+        material shaft point at the trocar moves only along the shaft (its velocity along
+        the shaft's y and z axes is zero), and its lateral error e (mm) decays as
+        de/dt = -gain_per_s e (drift correction; 50/s is stable at 1 kHz)."""
+        R, p = self.pose("I", q)
+        d = np.asarray(p_WC, dtype=float) - p
+        lam = float(R[:, 0] @ d)  # shaft coordinate of the trocar, mm
+        N = R[:, 1:].T  # the two lateral directions of the shaft, rows
         J = self.jacobian("I", [lam, 0.0, 0.0], q)
-        helper = np.array([0.0, 0.0, 1.0]) if abs(u[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        n1 = np.cross(u, helper)
-        n1 /= np.linalg.norm(n1)
-        n2 = np.cross(u, n1)
-        N = np.vstack([n1, n2])
-        return N @ J, -gain_per_s * (N @ (p_WQ - np.asarray(p_WC, dtype=float)))
+        return N @ J, gain_per_s * (N @ d)
 
     def joint_margin_rad(self, q) -> np.ndarray:
         """(6,) distance of each joint to its nearer limit, rad (negative: beyond it)."""

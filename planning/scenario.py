@@ -1,0 +1,165 @@
+"""The `surgery` scenario: a phakic eye in front of the Meca500, entered through a trocar.
+
+All positions in mm, in W (robot base) or E (eye frame, design.md) as their names say.
+
+Eye placement X_WE (the choice and why). The instrument is straight and 92 mm long from
+the flange, and the flange is 70 mm past the wrist centre, so the wrist centre sits
+162 mm behind the tip along the shaft: pivoting the shaft about the trocar through the
+cone of directions the work needs (about 40 deg about its mean for the spiral, about
+70 deg for the peripheral band) swings the wrist centre over a cap of that radius. The
+arm reaches the wrist centre between about 95 mm (J3 at 5 deg from its +70 deg limit) and
+261 mm (stretched, elbow singular) from the shoulder (J2 axis, 135 mm above the base).
+The distance shoulder -> wrist changes least over the cap when the trocar lies on the
+line from the shoulder along the mean shaft direction; the spherical wrist (J4..J6 axes
+meet at J5) stays clear of its J5 = 0 singularity when the forearm is well outside the
+cone of shaft directions. `SURGERY_EYE_POSE` below is the placement found by a search over
+these parameters that maximises the smallest joint margin over the whole spiral and the
+share of the peripheral band reachable with margin; its comment gives the figures.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from models import Ellipsoid
+from models._validation import as_vector3
+from models.eyes import EyePose, make_eye
+from models.spiral import archimedean_spiral
+
+# Trocar on the pars plana, about 3.5-4 mm behind the limbus, 8 mm off the visual axis.
+TROCAR_P_EC_MM = (8.0, 0.0, 7.2)
+# Crystalline lens keep-out: on the axis, z in [5.8, 9.8] mm, radius 4.5 mm (eye.sdf).
+LENS_CENTER_E_MM = (0.0, 0.0, 7.8)
+LENS_RADII_MM = (4.5, 4.5, 2.0)
+# The trocar must sit in the eye wall: within this distance of the retina (sclera,
+# choroid and retina together are about 1 mm thick).
+EYE_WALL_MM = 1.0
+# Peripheral band: retina between the equator (z_E = 0) and the ora serrata, about 6 mm
+# behind the limbus, i.e. about 2.2 mm behind the trocar's 3.5-4 mm: z_E = 5.0 mm.
+ORA_SERRATA_Z_E_MM = 5.0
+# Spiral plane: the coronal plane z_E = 0 (the paper's). Every beam from the trocar
+# (z_E = 7.2) through a point of this plane descends, so it meets the retina behind the
+# equator (posterior retina), and the spiral's 9 mm outer radius leaves >= 2.4 mm to the
+# retina there.
+SPIRAL_DEPTH_Z_E_MM = 0.0
+# Tip targets must stay this far inside the retina, and the shaft this far from the lens.
+TIP_CLEARANCE_MM = 0.5
+LENS_CLEARANCE_MM = 0.5
+# Default sensor calibration error (true vs nominal sensor pose, in S): the accuracy the
+# plate calibration reaches (issue 3: 20 um position, 0.1 deg beam direction).
+SENSOR_OFFSET_S_MM = (0.02, 0.0, 0.0)
+SENSOR_ROTVEC_S_RAD = (0.0, np.radians(0.1), 0.0)
+
+# X_WE: eye centre 132 mm in front of the base and 56 mm above it; visual axis z_E tilted
+# 23 deg from vertical towards the robot, z_E = (-0.378, -0.098, 0.921) in W (the head
+# below and in front of a robot mounted at the level of the face). The trocar is then
+# 153 mm from the shoulder, 27 deg below its horizontal; the spiral start posture is about
+# (-12, 39, -1, 11, 81, 0) deg (elbow up, J5 > 0). Closed-form reach study
+# (planning.closed_form, 0.2 mm spiral steps, 24 x 3 band targets): smallest joint margin
+# along the spiral 6 deg (J3), the wrist 20 deg or more from its J5 = 0 singularity; 82 %
+# of the lens-clearing peripheral band targets reachable with >= 5 deg margin (the rest,
+# near the trocar's side, need a second port). Found by differential evolution over the
+# trocar's distance/elevation from the shoulder, the mean shaft direction and the eye's roll.
+SURGERY_EYE_POSE = EyePose(Rotation.from_rotvec([0.1554, -0.3715, -0.2814]).as_matrix(), np.array([132.0, 3.1, 55.9]))
+
+
+@dataclass(frozen=True, eq=False)
+class SurgeryScenario:
+    """Eye pose X_WE, trocar p_EC (mm, E), eye shape name, lens keep-out (E) and the
+    true sensor pose's calibration error (offset mm and rotation vector rad, both in S).
+
+    Raises ValueError when the trocar is not in the eye wall (within EYE_WALL_MM of the
+    retina) or the shaft at the trocar would start inside the lens keep-out.
+    """
+
+    eye_pose: EyePose = SURGERY_EYE_POSE
+    p_EC: np.ndarray = field(default_factory=lambda: np.array(TROCAR_P_EC_MM))
+    eye_name: str = "emmetropic"
+    sensor_offset_S_mm: np.ndarray = field(default_factory=lambda: np.array(SENSOR_OFFSET_S_MM))
+    sensor_rotvec_S_rad: np.ndarray = field(default_factory=lambda: np.array(SENSOR_ROTVEC_S_RAD))
+
+    def __post_init__(self):
+        if not isinstance(self.eye_pose, EyePose):
+            raise ValueError(f"eye_pose must be a models.eyes.EyePose (X_WE), got {type(self.eye_pose).__name__}")
+        for name in ("p_EC", "sensor_offset_S_mm", "sensor_rotvec_S_rad"):
+            object.__setattr__(self, name, as_vector3(getattr(self, name), name))
+        object.__setattr__(self, "_eye", make_eye(self.eye_name, self.eye_pose))
+        object.__setattr__(self, "_lens_E", Ellipsoid(np.array(LENS_CENTER_E_MM), np.array(LENS_RADII_MM)))
+        sd = float(self._eye.signed_distance(self.p_WC)[0])
+        if abs(sd) > EYE_WALL_MM:
+            where = "outside the eye wall" if sd < 0 else "inside the vitreous, not in the wall"
+            raise ValueError(f"p_EC {self.p_EC} mm is {where}: its distance to the retina is {-sd:+.3f} mm; "
+                             f"a trocar must lie within {EYE_WALL_MM} mm of the retina")
+        if float(self._lens_E.signed_distance(self.p_EC)[0]) > -LENS_CLEARANCE_MM:
+            raise ValueError(f"p_EC {self.p_EC} mm is within {LENS_CLEARANCE_MM} mm of the lens keep-out")
+
+    @property
+    def eye(self):
+        """The ground-truth retina (models.eyes.Eye) placed in W."""
+        return self._eye
+
+    @property
+    def p_WC(self) -> np.ndarray:
+        """The trocar (RCM point) in W, mm."""
+        return self.eye_pose.to_W(self.p_EC[None])[0]
+
+    @property
+    def lens_W(self) -> Ellipsoid:
+        """The lens keep-out ellipsoid in W (signed distance > 0 inside the lens)."""
+        return Ellipsoid(self.eye_pose.to_W(self._lens_E.center[None])[0], self._lens_E.radii, self.eye_pose.R_WE)
+
+    @property
+    def X_S_Strue(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, p mm) of the true sensor frame in the nominal sensor frame S."""
+        return Rotation.from_rotvec(self.sensor_rotvec_S_rad).as_matrix(), self.sensor_offset_S_mm.copy()
+
+    def tip_targets_W(self, P_ET) -> np.ndarray:
+        """(N, 3) W positions (mm) of tip targets P_ET (N, 3) given in E, after checking
+        that each lies at least TIP_CLEARANCE_MM inside the retina and that the straight
+        shaft from the trocar to it keeps LENS_CLEARANCE_MM from the lens keep-out."""
+        P_E = np.asarray(P_ET, dtype=float)
+        if P_E.ndim != 2 or P_E.shape[1] != 3 or not np.all(np.isfinite(P_E)):
+            raise ValueError(f"P_ET must be a finite (N, 3) array of tip targets in E, mm; got shape {P_E.shape}")
+        P_W = self.eye_pose.to_W(P_E)
+        depth = self._eye.signed_distance(P_W)
+        bad = np.flatnonzero(depth < TIP_CLEARANCE_MM)
+        if bad.size:
+            i = bad[0]
+            raise ValueError(f"tip target {i} at p_ET = {np.round(P_E[i], 3)} mm is outside the eye or within "
+                             f"{TIP_CLEARANCE_MM} mm of the retina (depth {depth[i]:+.3f} mm; need >= {TIP_CLEARANCE_MM})")
+        clear = self.lens_clearance_mm(P_E)
+        bad = np.flatnonzero(clear < LENS_CLEARANCE_MM)
+        if bad.size:
+            i = bad[0]
+            raise ValueError(f"tip target {i} at p_ET = {np.round(P_E[i], 3)} mm: the shaft from the trocar passes "
+                             f"{clear[i]:.3f} mm from the lens keep-out (need >= {LENS_CLEARANCE_MM} mm)")
+        return P_W
+
+    def lens_clearance_mm(self, P_ET, samples: int = 64) -> np.ndarray:
+        """(N,) smallest distance (mm) from the lens keep-out of the straight shaft segment
+        from the trocar to each tip target P_ET (N, 3) in E (sampled; < 0: crosses it)."""
+        s = np.linspace(0.0, 1.0, samples)[None, :, None]
+        P_E = np.asarray(P_ET, dtype=float)
+        seg = self.p_EC + s * (P_E[:, None, :] - self.p_EC)
+        return -self._lens_E.signed_distance(seg.reshape(-1, 3)).reshape(len(P_E), samples).max(axis=1)
+
+    def spiral_E(self, pitch_mm: float = 0.5, revolutions: float = 18.0, spacing_mm: float = 0.1) -> np.ndarray:
+        """(N, 3) the paper's Archimedean spiral in E, centred on the visual axis in the
+        coronal plane z_E = SPIRAL_DEPTH_Z_E_MM (mm)."""
+        xy = archimedean_spiral(pitch_mm, revolutions, spacing_mm)
+        return np.column_stack([xy, np.full(len(xy), SPIRAL_DEPTH_Z_E_MM)])
+
+    def peripheral_band_E(self, n_azimuth: int = 24, n_rings: int = 3, inset_mm: float = 1.0) -> np.ndarray:
+        """(M, 3) tip targets in E over the peripheral band (equator to ora serrata) of the
+        scenario's retinal ellipsoid, `inset_mm` inside it along the radius, that the shaft can reach
+        from the trocar without crossing the lens keep-out (the rest needs the second port)."""
+        z = np.linspace(0.0, ORA_SERRATA_Z_E_MM, n_rings)
+        az = np.linspace(0.0, 2.0 * np.pi, n_azimuth, endpoint=False)
+        Z, A = np.meshgrid(z, az, indexing="ij")
+        a, b, c = self._eye.radii
+        s = np.sqrt(1.0 - (Z / c) ** 2)
+        P = np.column_stack([(a * s * np.cos(A)).ravel(), (b * s * np.sin(A)).ravel(), Z.ravel()])
+        P *= (1.0 - inset_mm / np.linalg.norm(P, axis=1))[:, None]
+        return P[self.lens_clearance_mm(P) >= LENS_CLEARANCE_MM]
