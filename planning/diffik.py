@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from planning.robot import Robot
+from planning.robot import RCM_GAIN_PER_S, Robot
 
 
-def rcm_joint_velocity(robot: Robot, q, v_WT_mm_s, p_WC_mm, rcm_gain_per_s: float = 50.0,
+def rcm_joint_velocity(robot: Robot, q, v_WT_mm_s, p_WC_mm, rcm_gain_per_s: float = RCM_GAIN_PER_S,
                        damping: float = 1e-6) -> np.ndarray:
     """qdot (6,) rad/s minimising |J_T qdot - v|^2 + damping |qdot|^2 subject to the RCM rows
     A qdot = b (robot.rcm_rows, with drift correction): an equality-constrained least

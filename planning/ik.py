@@ -15,6 +15,7 @@ import numpy as np
 from pydrake.multibody.inverse_kinematics import InverseKinematics
 from pydrake.solvers import SnoptSolver
 
+from planning.closed_form import shaft_ik
 from planning.robot import MM_PER_M, Robot
 
 _SOLVER_TOL_MM = 1e-2  # box tolerance given to SNOPT; the polish then reaches ~1e-9 mm
@@ -68,8 +69,8 @@ def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = N
     prog, q = _program(robot, p_T, p_C, q_seed, y_W)
     solver = SnoptSolver()
     last = None
-    for dq in [np.zeros(6)] + _SEED_OFFSETS + [_wrist_flip(q_seed) - q_seed]:
-        prog.SetInitialGuess(q, np.clip(q_seed + dq, robot.q_lower, robot.q_upper))
+    for guess in _initial_guesses(robot, p_T, p_C, q_seed):
+        prog.SetInitialGuess(q, np.clip(guess, robot.q_lower, robot.q_upper))
         result = solver.Solve(prog)
         if result.is_success():
             q_sol = polish(robot, result.GetSolution(q), p_T, p_C)
@@ -82,6 +83,14 @@ def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = N
             last = f"{result.get_solver_id().name()}: {result.get_solution_result().name}"
     raise IKFailure(f"tip target p_WT_mm = {np.round(p_T, 3)} is not reachable through the trocar "
                     f"p_WC_mm = {np.round(p_C, 3)} within the joint limits ({last})")
+
+
+def _initial_guesses(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.ndarray) -> list[np.ndarray]:
+    """The seed, the exact closed-form solution of the same branch (nearest to the seed,
+    J6 kept), then perturbed seeds and the wrist-flipped seed."""
+    exact = shaft_ik(p_T, (p_T - p_C) / np.linalg.norm(p_T - p_C), robot.tip_offset_mm, q_seed[5])
+    near = [exact[np.argmin(np.abs((exact - q_seed + np.pi) % (2 * np.pi) - np.pi).sum(axis=1))]] if len(exact) else []
+    return [q_seed] + near + [q_seed + dq for dq in _SEED_OFFSETS] + [_wrist_flip(q_seed)]
 
 
 def _wrist_flip(q: np.ndarray) -> np.ndarray:

@@ -52,17 +52,19 @@ LENS_CLEARANCE_MM = 0.5
 SENSOR_OFFSET_S_MM = (0.02, 0.0, 0.0)
 SENSOR_ROTVEC_S_RAD = (0.0, np.radians(0.1), 0.0)
 
-# X_WE: eye centre 132 mm in front of the base and 56 mm above it; visual axis z_E tilted
+# X_WE: eye centre 123 mm in front of the base and 80 mm above it; visual axis z_E tilted
 # 23 deg from vertical towards the robot, z_E = (-0.378, -0.098, 0.921) in W (the head
-# below and in front of a robot mounted at the level of the face). The trocar is then
-# 153 mm from the shoulder, 27 deg below its horizontal; the spiral start posture is about
-# (-12, 39, -1, 11, 81, 0) deg (elbow up, J5 > 0). Closed-form reach study
-# (planning.closed_form, 0.2 mm spiral steps, 24 x 3 band targets): smallest joint margin
-# along the spiral 6 deg (J3), the wrist 20 deg or more from its J5 = 0 singularity; 82 %
-# of the lens-clearing peripheral band targets reachable with >= 5 deg margin (the rest,
-# near the trocar's side, need a second port). Found by differential evolution over the
-# trocar's distance/elevation from the shoulder, the mean shaft direction and the eye's roll.
-SURGERY_EYE_POSE = EyePose(Rotation.from_rotvec([0.1554, -0.3715, -0.2814]).as_matrix(), np.array([132.0, 3.1, 55.9]))
+# below and in front of a robot mounted at the level of the face). The spiral starts at
+# about (-2, 38, 9, 6, 76, 0) deg (shoulder forward, elbow up, J5 > 0). Closed-form reach
+# study (planning.closed_form, every 0.2 mm of the spiral; 24 x 3 band targets): smallest
+# joint margin along the spiral 8.5 deg (J3; J5 10 deg), the wrist 32 deg or more from its
+# J5 = 0 singularity; 79 % of the lens-clearing peripheral band targets reachable with
+# >= 5 deg margin (the others, mostly near the trocar's side, need the second port).
+# Found by differential evolution over the trocar's distance and elevation from the
+# shoulder, the mean shaft direction and the eye's roll, then a local trade of J3 against
+# J5 margin by moving the eye (it cannot be better than about 9 deg on both: the shaft's
+# 80 deg cone over the spiral swings the wrist centre across ~200 mm).
+SURGERY_EYE_POSE = EyePose(Rotation.from_rotvec([0.1554, -0.3715, -0.2814]).as_matrix(), np.array([123.1, 3.1, 80.5]))
 
 
 @dataclass(frozen=True, eq=False)

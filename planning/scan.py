@@ -1,0 +1,181 @@
+"""Spiral scan execution through the trocar: IK waypoints + time parameterisation, and
+RCM differential kinematics at 1 kHz as a second executor.
+
+Units: mm, s, rad; tip speed mm/s; errors reported in um and margins in deg where named.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.trajectories import PiecewisePolynomial
+
+from models._validation import as_positive
+from planning.closed_form import shaft_ik
+from planning.diffik import rcm_joint_velocity
+from planning.ik import IKFailure, rcm_ik
+from planning.robot import RCM_GAIN_PER_S, Robot
+
+SPEED_HEADROOM = 0.9  # time parameterisation keeps every joint below this fraction of its limit
+TRACKING_GAIN_PER_S = 20.0  # tip position feedback of the differential-kinematics executor
+
+
+@dataclass(frozen=True)
+class ScanRun:
+    """One executed scan sampled at `rate_hz`: times t (M,) s, joint angles q (M, 6) rad,
+    joint velocities qdot (M, 6) rad/s, RCM error (M,) um and tip error to the reference
+    (M,) um. `solve_ms` is the mean planning time per waypoint (IK) or per step."""
+
+    t: np.ndarray
+    q: np.ndarray
+    qdot: np.ndarray
+    rcm_error_um: np.ndarray
+    tip_error_um: np.ndarray
+    solve_ms: float
+
+    def figures(self, robot: Robot) -> dict:
+        """The scan.json figures: RCM error, joint margins, speed fraction, duration."""
+        margin_deg = np.degrees(np.minimum(self.q - robot.q_lower, robot.q_upper - self.q))
+        speed = np.abs(self.qdot) / robot.qdot_max
+        return {
+            "max_rcm_error_um": float(self.rcm_error_um.max()),
+            "mean_rcm_error_um": float(self.rcm_error_um.mean()),
+            "min_joint_margin_deg": float(margin_deg.min()),
+            "max_joint_speed_fraction": float(speed.max()),
+            "duration_s": float(self.t[-1] - self.t[0]),
+            "min_joint_margin_deg_per_joint": [float(v) for v in margin_deg.min(axis=0)],
+            "max_joint_speed_fraction_per_joint": [float(v) for v in speed.max(axis=0)],
+            "max_tip_error_um": float(self.tip_error_um.max()),
+            "solve_ms_mean": float(self.solve_ms),
+        }
+
+
+def start_posture(robot: Robot, p_WT, p_WC) -> np.ndarray:
+    """(6,) rad: the RCM posture at the first target on the closed-form branch with the
+    largest smallest joint margin (J6 = 0), refined by the Drake IK."""
+    p_T, p_C = np.asarray(p_WT, dtype=float), np.asarray(p_WC, dtype=float)
+    cands = shaft_ik(p_T, (p_T - p_C) / np.linalg.norm(p_T - p_C), robot.tip_offset_mm)
+    if not len(cands):
+        raise IKFailure(f"tip target p_WT_mm = {np.round(p_T, 3)} is out of the arm's reach through p_WC_mm = {np.round(p_C, 3)}")
+    margins = np.minimum(cands - robot.q_lower, robot.q_upper - cands).min(axis=1)
+    return rcm_ik(robot, p_T, p_C, cands[np.argmax(margins)])
+
+
+def ik_waypoints(robot: Robot, P_WT, p_WC, q_start=None) -> tuple[np.ndarray, float]:
+    """((N, 6) rad joint waypoints for the tip targets P_WT (N, 3) mm through the trocar,
+    each IK seeded from the previous solution; mean solve time in ms). Raises IKFailure
+    naming the first unreachable target before anything is returned."""
+    P = np.asarray(P_WT, dtype=float)
+    q = start_posture(robot, P[0], p_WC) if q_start is None else rcm_ik(robot, P[0], p_WC, q_start)
+    Q = np.empty((len(P), 6))
+    Q[0] = q
+    t0 = time.perf_counter()
+    for i in range(1, len(P)):
+        Q[i] = q = rcm_ik(robot, P[i], p_WC, q)
+    return Q, (time.perf_counter() - t0) * 1e3 / max(len(P) - 1, 1)
+
+
+def waypoint_times(robot: Robot, Q, P_WT, tip_speed_mm_s: float) -> np.ndarray:
+    """(N,) s: times at which the tip passes the waypoints at `tip_speed_mm_s` along the
+    path, each segment stretched where a joint would exceed SPEED_HEADROOM of its limit."""
+    v = as_positive(tip_speed_mm_s, "tip_speed_mm_s")
+    dt_tip = np.linalg.norm(np.diff(np.asarray(P_WT, dtype=float), axis=0), axis=1) / v
+    dt_joint = (np.abs(np.diff(Q, axis=0)) / (SPEED_HEADROOM * robot.qdot_max)).max(axis=1)
+    return np.concatenate([[0.0], np.cumsum(np.maximum(dt_tip, dt_joint))])
+
+
+def joint_trajectory(robot: Robot, Q, P_WT, tip_speed_mm_s: float) -> PiecewisePolynomial:
+    """q(t) rad: a C2 cubic spline through the waypoints Q (N, 6), starting and ending at
+    rest, timed by `waypoint_times`; globally slowed until the spline's own joint speeds
+    (sampled at the waypoints and mid-segments) stay below SPEED_HEADROOM of the limits."""
+    t = waypoint_times(robot, Q, P_WT, tip_speed_mm_s)
+    for _ in range(20):
+        traj = PiecewisePolynomial.CubicWithContinuousSecondDerivatives(t, Q.T, np.zeros(6), np.zeros(6))
+        ts = np.sort(np.concatenate([t, 0.5 * (t[1:] + t[:-1])]))
+        peak = (np.abs(traj.derivative(1).vector_values(ts)).T / robot.qdot_max).max()
+        if peak <= SPEED_HEADROOM:
+            return traj
+        t = t * (peak / SPEED_HEADROOM) * 1.01
+    raise ValueError(f"tip_speed_mm_s = {tip_speed_mm_s}: no timing keeps the joints within their speed limits")
+
+
+def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
+                 rcm_tol_um: float = 0.5) -> tuple[PiecewisePolynomial, np.ndarray, float]:
+    """(q(t), the tip targets used (K, 3) mm, mean IK time per waypoint in ms) for the
+    targets P_WT (N, 3) mm: IK waypoints, then wherever the spline between two waypoints
+    leaves the RCM by more than `rcm_tol_um` (checked at quarter points) the midpoint
+    target is added by IK too (at most 4 rounds: fast joint swings need denser waypoints)."""
+    P = np.asarray(P_WT, dtype=float)
+    Q, solve_ms = ik_waypoints(robot, P, p_WC, q_start)
+    for _ in range(4):
+        traj = joint_trajectory(robot, Q, P, tip_speed_mm_s)
+        t = np.asarray(traj.get_segment_times())
+        ts = (t[:-1, None] + np.array([0.25, 0.5, 0.75]) * np.diff(t)[:, None]).ravel()
+        err = np.array([robot.rcm_error_mm(qi, p_WC) for qi in traj.vector_values(ts).T]).reshape(-1, 3).max(axis=1)
+        bad = np.flatnonzero(err * 1e3 > rcm_tol_um)
+        if not bad.size:
+            break
+        mids = 0.5 * (P[bad] + P[bad + 1])
+        Q_mid = np.array([rcm_ik(robot, m, p_WC, 0.5 * (Q[i] + Q[i + 1])) for m, i in zip(mids, bad)])
+        P, Q = np.insert(P, bad + 1, mids, axis=0), np.insert(Q, bad + 1, Q_mid, axis=0)
+    return joint_trajectory(robot, Q, P, tip_speed_mm_s), P, solve_ms
+
+
+def sample_ik_run(robot: Robot, traj: PiecewisePolynomial, P_WT, p_WC, tip_speed_mm_s: float,
+                  rate_hz: float = 1000.0, solve_ms: float = float("nan")) -> ScanRun:
+    """The IK executor's scan sampled at `rate_hz`: the trajectory, its RCM error and the
+    tip's distance from the polyline of targets (um)."""
+    t = np.arange(traj.start_time(), traj.end_time(), 1.0 / rate_hz)
+    t = np.append(t, traj.end_time())
+    q = traj.vector_values(t).T
+    qdot = traj.derivative(1).vector_values(t).T
+    rcm = np.array([robot.rcm_error_mm(qi, p_WC) for qi in q]) * 1e3
+    tips = np.array([robot.point("T", np.zeros(3), qi) for qi in q])
+    return ScanRun(t, q, qdot, rcm, _distance_to_polyline(tips, np.asarray(P_WT, dtype=float)) * 1e3, solve_ms)
+
+
+def run_diffik(robot: Robot, P_WT, p_WC, q_start, tip_speed_mm_s: float, rate_hz: float = 1000.0,
+               rcm_gain_per_s: float = RCM_GAIN_PER_S) -> ScanRun:
+    """The differential-kinematics executor: the tip reference moves along the targets
+    P_WT (N, 3) mm at `tip_speed_mm_s`; each step commands its velocity plus position
+    feedback, solves the RCM-constrained differential kinematics, scales the joint
+    velocity uniformly to the speed limits and integrates with explicit Euler at `rate_hz`."""
+    v = as_positive(tip_speed_mm_s, "tip_speed_mm_s")
+    dt = 1.0 / as_positive(rate_hz, "rate_hz")
+    P = np.asarray(P_WT, dtype=float)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    n = int(np.ceil(s[-1] / v / dt)) + 1
+    t = np.arange(n) * dt
+    ref = np.column_stack([np.interp(np.minimum(t * v, s[-1]), s, P[:, k]) for k in range(3)])
+    v_ff = np.vstack([np.diff(ref, axis=0) / dt, np.zeros((1, 3))])
+    q = np.asarray(q_start, dtype=float).copy()
+    Q, QD, rcm, tip = np.empty((n, 6)), np.empty((n, 6)), np.empty(n), np.empty(n)
+    t0 = time.perf_counter()
+    for k in range(n):
+        p_T = robot.point("T", np.zeros(3), q)
+        tip[k] = np.linalg.norm(p_T - ref[k])
+        rcm[k] = robot.rcm_error_mm(q, p_WC)
+        qd = rcm_joint_velocity(robot, q, v_ff[k] + TRACKING_GAIN_PER_S * (ref[k] - p_T), p_WC, rcm_gain_per_s)
+        qd /= max(1.0, (np.abs(qd) / robot.qdot_max).max())
+        Q[k], QD[k] = q, qd
+        q = q + dt * qd
+    solve_ms = (time.perf_counter() - t0) * 1e3 / n
+    return ScanRun(t, Q, QD, rcm * 1e3, tip * 1e3, solve_ms)
+
+
+def _distance_to_polyline(X, P) -> np.ndarray:
+    """(M,) distance (mm) of each point X (M, 3) from the polyline through P (N, 3),
+    searched near the point's place along the path (both advance monotonically)."""
+    A, B = P[:-1], P[1:]
+    AB = B - A
+    L2 = np.maximum((AB * AB).sum(axis=1), 1e-18)
+    out = np.empty(len(X))
+    j = 0
+    for i, x in enumerate(X):
+        lo, hi = max(j - 5, 0), min(j + 200, len(A))
+        u = np.clip(((x - A[lo:hi]) * AB[lo:hi]).sum(axis=1) / L2[lo:hi], 0.0, 1.0)
+        d = np.linalg.norm(A[lo:hi] + u[:, None] * AB[lo:hi] - x, axis=1)
+        k = int(np.argmin(d))
+        out[i], j = d[k], lo + k
+    return out
