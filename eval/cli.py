@@ -22,6 +22,7 @@ SUBCOMMAND_MODULES = (
     "eval.cmd_eyes",
     "eval.cmd_calibrate",
     "eval.cmd_replay",
+    "eval.cmd_scan",
 )
 
 
