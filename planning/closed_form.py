@@ -47,7 +47,7 @@ def shaft_ik(p_WT, u_W, tip_offset_mm: float, q6: float = 0.0) -> np.ndarray:
         # shaft direction in the forearm frame: (Rz(q1) Ry(q2 + q3))^T u
         ux, uy = c1 * u[0] + s1 * u[1], -s1 * u[0] + c1 * u[1]
         d = np.array([c23 * ux - s23 * u[2], uy, s23 * ux + c23 * u[2]])
-        q5 = np.arccos(np.clip(d[0], -1.0, 1.0))  # x_F = Rx(q4) Ry(q5) x = (c5, s4 s5, -c4 s5)
+        q5 = np.arctan2(np.hypot(d[1], d[2]), d[0])  # x_F = Rx(q4) Ry(q5) x = (c5, s4 s5, -c4 s5)
         q4 = np.arctan2(d[1], -d[2])
         out.append([q1, q2, q3, q4, q5, q6])
         out.append([q1, q2, q3, q4 - np.pi if q4 > 0 else q4 + np.pi, -q5, q6])

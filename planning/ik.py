@@ -74,6 +74,8 @@ def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = N
         result = solver.Solve(prog)
         if result.is_success():
             q_sol = polish(robot, result.GetSolution(q), p_T, p_C)
+            if y_W is not None:  # J6 turns about the shaft: restore the roll the polish disturbed
+                q_sol[5] += _signed_angle(robot.pose("I", q_sol)[0][:, 1], y_W, (p_T - p_C) / np.linalg.norm(p_T - p_C))
             tip_err = float(np.linalg.norm(robot.point("T", np.zeros(3), q_sol) - p_T))
             rcm_err = robot.rcm_error_mm(q_sol, p_C)
             if np.all(robot.joint_margin_rad(q_sol) >= 0) and rcm_err <= rcm_tol_mm and tip_err <= tip_tol_mm:
@@ -91,6 +93,11 @@ def _initial_guesses(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.
     exact = shaft_ik(p_T, (p_T - p_C) / np.linalg.norm(p_T - p_C), robot.tip_offset_mm, q_seed[5])
     near = [exact[np.argmin(np.abs((exact - q_seed + np.pi) % (2 * np.pi) - np.pi).sum(axis=1))]] if len(exact) else []
     return [q_seed] + near + [q_seed + dq for dq in _SEED_OFFSETS] + [_wrist_flip(q_seed)]
+
+
+def _signed_angle(a: np.ndarray, b: np.ndarray, axis: np.ndarray) -> float:
+    """Angle (rad) turning a onto b about the unit axis (both perpendicular to it)."""
+    return float(np.arctan2(np.cross(a, b) @ axis, a @ b))
 
 
 def _wrist_flip(q: np.ndarray) -> np.ndarray:

@@ -101,19 +101,26 @@ def joint_trajectory(robot: Robot, Q, P_WT, tip_speed_mm_s: float) -> PiecewiseP
 
 
 def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
-                 rcm_tol_um: float = 0.5) -> tuple[PiecewisePolynomial, np.ndarray, float]:
+                 tol_um: float = 0.5) -> tuple[PiecewisePolynomial, np.ndarray, float]:
     """(q(t), the tip targets used (K, 3) mm, mean IK time per waypoint in ms) for the
     targets P_WT (N, 3) mm: IK waypoints, then wherever the spline between two waypoints
-    leaves the RCM by more than `rcm_tol_um` (checked at quarter points) the midpoint
-    target is added by IK too (at most 4 rounds: fast joint swings need denser waypoints)."""
+    leaves the RCM or the straight tip segment by more than `tol_um` (checked at
+    quarter points) the midpoint target is added by IK too (at most 4 rounds: fast joint
+    swings need denser waypoints)."""
     P = np.asarray(P_WT, dtype=float)
     Q, solve_ms = ik_waypoints(robot, P, p_WC, q_start)
     for _ in range(4):
         traj = joint_trajectory(robot, Q, P, tip_speed_mm_s)
         t = np.asarray(traj.get_segment_times())
         ts = (t[:-1, None] + np.array([0.25, 0.5, 0.75]) * np.diff(t)[:, None]).ravel()
-        err = np.array([robot.rcm_error_mm(qi, p_WC) for qi in traj.vector_values(ts).T]).reshape(-1, 3).max(axis=1)
-        bad = np.flatnonzero(err * 1e3 > rcm_tol_um)
+        qs = traj.vector_values(ts).T
+        rcm = np.array([robot.rcm_error_mm(qi, p_WC) for qi in qs])
+        tip = np.array([robot.point("T", np.zeros(3), qi) for qi in qs])
+        A, AB = np.repeat(P[:-1], 3, axis=0), np.repeat(np.diff(P, axis=0), 3, axis=0)
+        u = np.clip(((tip - A) * AB).sum(axis=1) / np.maximum((AB * AB).sum(axis=1), 1e-18), 0.0, 1.0)
+        off = np.linalg.norm(A + u[:, None] * AB - tip, axis=1)
+        err = np.maximum(rcm, off).reshape(-1, 3).max(axis=1)
+        bad = np.flatnonzero(err * 1e3 > tol_um)
         if not bad.size:
             break
         mids = 0.5 * (P[bad] + P[bad + 1])

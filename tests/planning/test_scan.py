@@ -1,0 +1,84 @@
+"""Spiral scan through the trocar (first revolutions of the paper's spiral, to stay fast)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from eval.cli import main
+from planning.ik import IKFailure, rcm_ik
+from planning.robot import Robot
+from planning.scan import plan_ik_scan, run_diffik, sample_ik_run, start_posture
+from planning.scenario import SurgeryScenario
+
+SPEED = 5.0  # mm/s
+
+
+@pytest.fixture(scope="module")
+def setup():
+    scenario = SurgeryScenario()
+    robot = Robot(scenario)
+    P = scenario.tip_targets_W(scenario.spiral_E(revolutions=3.0))
+    traj, P_used, _ = plan_ik_scan(robot, P, scenario.p_WC, SPEED)
+    return scenario, robot, P, sample_ik_run(robot, traj, P, scenario.p_WC, SPEED)
+
+
+def test_ik_scan_meets_the_targets(setup):
+    scenario, robot, P, run = setup
+    f = run.figures(robot)
+    assert f["max_rcm_error_um"] <= 1.0
+    assert f["min_joint_margin_deg"] >= 5.0
+    assert f["max_joint_speed_fraction"] <= 1.0
+    assert f["max_tip_error_um"] <= 1.0  # the spline passes within 1 um of the 0.1 mm polyline
+    length = np.linalg.norm(np.diff(P, axis=0), axis=1).sum()
+    assert f["duration_s"] >= length / SPEED - 1e-9  # never faster than the commanded tip speed
+
+
+def test_differential_kinematics_at_1_khz_keeps_the_rcm_within_5_um(setup):
+    scenario, robot, P, run = setup
+    dk = run_diffik(robot, P, scenario.p_WC, run.q[0], SPEED)
+    f = dk.figures(robot)
+    assert f["max_rcm_error_um"] <= 5.0
+    assert f["min_joint_margin_deg"] >= 5.0
+    assert f["max_joint_speed_fraction"] <= 1.0 + 1e-12
+    assert f["max_tip_error_um"] <= 50.0  # lag of the 20/s feedback at 5 mm/s, plus the start from rest
+
+
+def test_ik_keeps_continuity_and_roll(setup):
+    scenario, robot, P, run = setup
+    q0 = run.q[0]
+    q1 = rcm_ik(robot, P[1], scenario.p_WC, q0)
+    assert np.abs(q1 - q0).max() < np.radians(5.0)  # 0.1 mm away: a nearby posture, same branch
+    q_roll = rcm_ik(robot, P[1], scenario.p_WC, q0, roll_rad=0.3)
+    y = robot.pose("I", q_roll)[0][:, 1]
+    u = robot.shaft(q_roll)[1]
+    h = np.cross([0.0, 0.0, 1.0], u)
+    h /= np.linalg.norm(h)
+    assert np.arctan2(y @ np.cross(u, h), y @ h) == pytest.approx(0.3, abs=1e-3)
+
+
+def test_unreachable_targets_and_nan_are_refused(setup):
+    scenario, robot, P, run = setup
+    with pytest.raises(IKFailure, match="p_WT_mm"):
+        start_posture(robot, [700.0, 0.0, 135.0], [690.0, 0.0, 140.0])
+    with pytest.raises(ValueError, match="q_seed"):
+        rcm_ik(robot, P[0], scenario.p_WC, [np.nan, 0, 0, 0, 0, 0])
+    with pytest.raises(ValueError, match="tip_speed_mm_s"):
+        plan_ik_scan(robot, P[:10], scenario.p_WC, 0.0)
+
+
+def test_cli_writes_the_figures(tmp_path):
+    assert main(["scan", "--out", str(tmp_path), "--revolutions", "1"]) == 0
+    result = json.loads((tmp_path / "scan.json").read_text())
+    for key in ("max_rcm_error_um", "mean_rcm_error_um", "min_joint_margin_deg", "max_joint_speed_fraction", "duration_s"):
+        assert np.isfinite(result[key])
+    assert result["max_rcm_error_um"] <= 1.0 and result["diffik"]["max_rcm_error_um"] <= 5.0
+    assert (tmp_path / "scan.png").stat().st_size > 0
+
+
+def test_cli_refuses_bad_input_before_writing(tmp_path):
+    out = tmp_path / "out"
+    assert main(["scan", "--out", str(out), "--tip-speed-mm-s", "nan"]) == 2
+    assert main(["scan", "--out", str(out), "--revolutions", "40"]) == 2
+    assert not out.exists()
