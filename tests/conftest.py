@@ -1,9 +1,18 @@
-"""Shared test fixtures: a brute-force distance reference for ellipsoids (and spheres)."""
+"""Hypothesis profiles and shared test fixtures: a brute-force distance reference for ellipsoids (and spheres)."""
 from __future__ import annotations
+
+import os
 
 import numpy as np
 import pytest
+from hypothesis import settings
 from scipy.spatial import cKDTree
+
+# The suite is deterministic by default (CI must not flake on a lucky draw); run
+# HYPOTHESIS_PROFILE=explore make test to search new random examples.
+settings.register_profile("deterministic", derandomize=True, print_blob=True)
+settings.register_profile("explore", max_examples=500, print_blob=True)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
 
 def _surface_grid(center, radii, rotation, n_theta: int, n_phi: int) -> np.ndarray:

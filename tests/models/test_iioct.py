@@ -169,9 +169,15 @@ def test_a_floater_alone_is_not_taken_for_the_retina(extractor):
 
 @settings(max_examples=40, deadline=None)
 @given(st.floats(*WORKING_RANGE_MM), st.integers(0, 2 ** 31))
-def test_any_distance_in_the_working_range_is_extracted_within_tolerance(distance_mm, seed):
+def test_any_distance_in_the_working_range_is_extracted_within_tolerance_or_flagged(distance_mm, seed):
+    """Every scan at normal incidence gives either a distance within 3x the SD target or an
+    honest low-confidence flag (about 1 % of scans: speckle can pull the NCC under 0.7; the
+    rate is bounded in test_bias_and_sd_at_normal_incidence_meet_the_target)."""
     m = extract_distance(synthesize_ascan(distance_mm, 0.0, seed))
-    assert m.valid and m.reason == ""
+    if not m.valid:
+        assert m.reason == "low_confidence" and np.isnan(m.distance_mm) and m.confidence < 0.7
+        return
+    assert m.reason == ""
     assert abs(m.distance_mm - distance_mm) <= 0.06  # 3x the SD target
     assert 0.7 <= m.confidence <= 1.0 and m.snr_db > 13.0
 
