@@ -4,15 +4,11 @@ plant (time, tip tracking, RCM), and Drake's AddPointToLineDistanceConstraint as
 from __future__ import annotations
 
 import numpy as np
-from pydrake.multibody.inverse_kinematics import (
-    DifferentialInverseKinematicsParameters,
-    DoDifferentialInverseKinematics,
-    InverseKinematics,
-)
+from pydrake.multibody.inverse_kinematics import InverseKinematics
 from pydrake.solvers import SnoptSolver
 
 from bench.timing import summary_us, time_calls_us
-from planning.diffik import rcm_joint_velocity
+from planning.diffik import DrakeDiffIK, rcm_joint_velocity
 from planning.ik import rcm_ik
 from planning.robot import MM_PER_M, Robot
 from planning.scan import start_posture
@@ -54,18 +50,7 @@ def run() -> None:
     print(f"Robot.rcm_rows per call:                            {summary_us(time_calls_us(lambda i: robot.rcm_rows(qs[i], p_WC), 2000))}")
     print(f"rcm_joint_velocity (ours, KKT) per step:            {summary_us(time_calls_us(lambda i: rcm_joint_velocity(robot, qs[i], v, p_WC), 2000))}")
 
-    context = robot.plant.CreateDefaultContext()
-    params = DifferentialInverseKinematicsParameters(6, 6)
-    params.set_time_step(1.0 / RATE_HZ)
-    params.set_joint_position_limits((robot.q_lower, robot.q_upper))
-    params.set_joint_velocity_limits((-robot.qdot_max, robot.qdot_max))
-    params.set_end_effector_velocity_flag([False, False, False, True, True, True])  # tip translation only
-    tip = robot.plant.GetFrameByName("tip")
-
-    def drake_step(q, v_mm_s):
-        robot.plant.SetPositions(context, q)
-        V = np.concatenate([np.zeros(3), v_mm_s / MM_PER_M])
-        return DoDifferentialInverseKinematics(robot.plant, context, V, tip, params).joint_velocities
+    drake_step = DrakeDiffIK(robot, RATE_HZ)
 
     print(f"Drake DoDifferentialInverseKinematics per step:     {summary_us(time_calls_us(lambda i: drake_step(qs[i], v), 2000))}")
 
@@ -89,7 +74,7 @@ def run() -> None:
     errs, fails = [], 0
     for p_T in band:
         ikp = InverseKinematics(robot.plant, with_joint_limits=True)
-        ikp.AddPositionConstraint(tip, np.zeros(3), robot.plant.world_frame(), (p_T - 0.01) / MM_PER_M, (p_T + 0.01) / MM_PER_M)
+        ikp.AddPositionConstraint(robot.plant.GetFrameByName("tip"), np.zeros(3), robot.plant.world_frame(), (p_T - 0.01) / MM_PER_M, (p_T + 0.01) / MM_PER_M)
         ikp.AddPointToLineDistanceConstraint(robot.plant.world_frame(), p_WC / MM_PER_M, robot.plant.GetFrameByName("instrument"),
                                              np.zeros(3), np.array([1.0, 0.0, 0.0]), 0.0, 1e-6)
         prog = ikp.get_mutable_prog()

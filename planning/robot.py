@@ -119,6 +119,17 @@ class Robot:
         )
         return MM_PER_M * J
 
+    def spatial_jacobian(self, frame: str, q) -> np.ndarray:
+        """(6, 6) spatial Jacobian of `frame`'s origin in W at q: rows 0-2 angular (rad/rad),
+        rows 3-5 translational (mm/rad). A point r_W (mm, from the origin) fixed in the frame
+        moves with J_v - [r_W]x J_w: one call gives every point of a rigid body."""
+        self._set(q)
+        J = self.plant.CalcJacobianSpatialVelocity(
+            self._context, JacobianWrtVariable.kQDot, self._frames[frame], np.zeros(3),
+            self.plant.world_frame(), self.plant.world_frame())
+        J[3:] *= MM_PER_M
+        return J
+
     def shaft(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(p_WI (3,) mm: a point on the shaft axis, u_W (3,): unit direction towards the tip)."""
         R, p = self.pose("I", q)
