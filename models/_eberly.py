@@ -1,4 +1,4 @@
-"""Closest points on an axis-aligned ellipsoid (Eberly's robust bisection), vectorised.
+"""Closest points on an axis-aligned ellipsoid (Eberly's construction, root by safeguarded Newton), vectorised.
 
 Reference: D. Eberly, "Distance from a point to an ellipse, an ellipsoid, or a
 hyperellipsoid". For semi-axes e0 >= e1 >= e2 and a query y in the first octant
@@ -12,29 +12,49 @@ from __future__ import annotations
 
 import numpy as np
 
-_BISECTION_STEPS = 100  # float64 interval halving: exhausts the mantissa long before
+_MAX_STEPS = 200  # safeguarded Newton: quadratic near the root, never slower than bisection
 
 
 def _bisect_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
-    """Root t of sum_i (e_i y_i / (t + e_i^2))^2 = 1 on (-em2, inf), per row.
+    """Root t of F(t) = sum_i (e_i y_i / (t + e_i^2))^2 - 1 on (-em2, inf), per row.
 
     E2: (3,) squared semi-axes; Y: (M, 3) non-negative, zero where a coordinate is
-    inactive; em2: (M,) squared smallest active semi-axis. Bisection in t.
+    inactive; em2: (M,) squared smallest active semi-axis. F is convex and decreasing:
+    Newton steps from left of the root stay left of it and converge monotonically
+    (a step from the right lands left of it); a step that would leave the bracket (rounding) is replaced by
+    bisection. Rows stop when the bracket or the step reaches rounding level.
     """
     ey = np.sqrt(E2) * Y
     em = np.sqrt(em2)
     y_m = np.max(np.where(E2 == em2[:, None], Y, 0.0), axis=1)
     lo = -em2 + em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
     hi = -em2 + np.linalg.norm(ey, axis=1)  # F(hi) <= 0
-    for _ in range(_BISECTION_STEPS):
-        mid = 0.5 * (lo + hi)
-        den = mid[:, None] + E2
-        ratio = np.divide(ey, den, out=np.zeros_like(ey), where=ey != 0.0)
-        F = np.einsum("ij,ij->i", ratio, ratio) - 1.0
-        pos = F > 0.0
-        lo = np.where(pos, mid, lo)
-        hi = np.where(pos, hi, mid)
-    return 0.5 * (lo + hi)
+    # start: the root for a sphere of the mean radius (exact when the radii are equal),
+    # kept inside the bracket; from either side of the root the next step lands left of it
+    e_bar2 = np.mean(E2)
+    t = np.clip(np.sqrt(e_bar2) * np.linalg.norm(Y, axis=1) - e_bar2, lo, hi)
+    zero = ey == 0.0  # inactive terms (their denominator may vanish)
+    eps4 = 4.0 * np.finfo(float).eps
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for _ in range(_MAX_STEPS):
+            den = t[:, None] + E2
+            ratio = ey / den
+            ratio[zero] = 0.0
+            r2 = ratio * ratio
+            F = r2.sum(axis=1) - 1.0
+            dF = -2.0 * (r2 / np.where(zero, 1.0, den)).sum(axis=1)  # < 0
+            pos = F > 0.0
+            lo = np.where(pos, t, lo)
+            hi = np.where(pos, hi, t)
+            step = t - F / dF
+            new = np.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
+            new = np.where(F == 0.0, t, new)
+            tol = eps4 * (np.abs(new) + em2)
+            converged = (np.abs(new - t) <= tol) | (hi - lo <= tol)
+            t = new
+            if converged.all():
+                break
+    return t
 
 
 def closest_point_first_octant(e: np.ndarray, Y: np.ndarray) -> np.ndarray:

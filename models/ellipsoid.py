@@ -63,16 +63,28 @@ class Ellipsoid:
 
     def signed_distance(self, Q) -> np.ndarray:
         """(M,) exact signed distance (mm) of Q (M, 3) mm; > 0 inside."""
-        Q = as_points(Q, "Q")
-        d = np.linalg.norm(Q - self.closest_point(Q), axis=1)
-        return np.where(self._inside_value(Q) < 0.0, d, -d)
+        return self.signed_distance_and_gradient(Q)[0]
 
     def gradient(self, Q) -> np.ndarray:
         """(M, 3) unit gradient of the signed distance: the inward normal at the closest point."""
+        return self.signed_distance_and_gradient(Q)[1]
+
+    def signed_distance_bound(self, Q) -> np.ndarray:
+        """(M,) a cheap bound b on the signed distance (mm) of Q (M, 3) mm: same sign, and
+        |b| <= |signed distance|. b = r_min (1 - k), k the point's scaled radius
+        |diag(1/r) R^T (q - c)|: a path of length d in space is at most d / r_min long in
+        the scaled coordinates, where the surface is the unit sphere."""
+        Q = as_points(Q, "Q")
+        return float(self.radii.min()) * (1.0 - np.sqrt(self._inside_value(Q) + 1.0))
+
+    def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) signed distance mm, (M, 3) unit gradient) from one closest-point search."""
+        Q = as_points(Q, "Q")
         X = self.closest_point(Q)
+        d = np.linalg.norm(Q - X, axis=1)
         L = (X - self.center) @ self.rotation / self.radii**2
         n = -(L @ self.rotation.T)
-        return n / np.linalg.norm(n, axis=1, keepdims=True)
+        return np.where(self._inside_value(Q) < 0.0, d, -d), n / np.linalg.norm(n, axis=1, keepdims=True)
 
     def sample_surface(self, n_theta: int, n_phi: int, z_max: float | None = None) -> np.ndarray:
         """(n_theta * n_phi, 3) surface points, equal-area in direction (u_z and azimuth

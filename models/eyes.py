@@ -169,6 +169,17 @@ class Eye:
         g = self._ellipsoid_E.gradient(Q_E) if self._star is None else self._star.signed_distance_and_gradient(Q_E)[1]
         return g @ self.pose.R_WE.T
 
+    def surface_normal(self, P_W) -> np.ndarray:
+        """(M, 3) unit inward normals in W at retina points P_W (M, 3) (points on the
+        surface, e.g. ray hits; off the surface: the normal of the radial projection)."""
+        P_E = self.pose.to_E(as_points(P_W, "P_W"))
+        if self._star is None:
+            n = -P_E / self.radii**2
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+        else:
+            n = self._star.normals_inward(P_E / np.linalg.norm(P_E, axis=1, keepdims=True))
+        return n @ self.pose.R_WE.T
+
     def surface_points(self, U_E: np.ndarray) -> np.ndarray:
         """(M, 3) retina points in W in the E-frame unit directions U_E (M, 3) from the centre."""
         rho = _ellipsoid_rho(self.radii) if self._star is None else self._star.rho

@@ -46,6 +46,14 @@ class Sphere:
         out[ok] = v[ok] / n[ok, None]
         return out
 
+
+    def signed_distance_bound(self, Q) -> np.ndarray:
+        """(M,) the signed distance itself (exact, so a valid bound; see Ellipsoid)."""
+        return self.signed_distance(Q)
+
+    def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) signed distance mm, (M, 3) unit gradient): both queries in one call."""
+        return self.signed_distance(Q), self.gradient(Q)
     def closest_point(self, Q) -> np.ndarray:
         """(M, 3) closest surface points (mm) to Q (M, 3); at the centre: the +z pole."""
         Q = as_points(Q, "Q")

@@ -31,9 +31,13 @@ def tracking(J_tip: np.ndarray, v_cmd: np.ndarray, damping: float, J_roll=None, 
     return Block("tracking", H=2.0 * H, c=2.0 * c)
 
 
-def barrier(name: str, h: float, grad_W: np.ndarray, J_W: np.ndarray, h_min: float, gain: float) -> Block:
-    """Row -(grad . J) qdot <= gain (h - h_min): h (mm) may not fall faster than the barrier allows."""
-    return Block(name, G=-(grad_W @ J_W)[None, :], h=np.array([gain * (h - h_min)]))
+def barrier(name: str, h: float, grad_W: np.ndarray, J_W: np.ndarray, h_min: float, gain: float,
+            max_recovery: float = np.inf) -> Block:
+    """Row -(grad . J) qdot <= gain (h - h_min): h (mm) may not fall faster than the barrier
+    allows; below h_min it must rise at gain (h_min - h), capped at `max_recovery` mm/s
+    (so that a point pushed inside the margin, e.g. by a model update, asks for a
+    recovery the speed limits can give instead of making the QP infeasible)."""
+    return Block(name, G=-(grad_W @ J_W)[None, :], h=np.array([max(gain * (h - h_min), -max_recovery)]))
 
 
 def equality(name: str, A: np.ndarray, b: np.ndarray) -> Block:

@@ -34,11 +34,12 @@ class FilterConfig:
     max_model_age_s: float = 0.1
     max_sensor_age_s: float = 0.05
     cutter_clearance_mm: float = 1.0
+    max_recovery_mm_s: float = 5.0
     solver: str = "daqp"  # fastest on this QP (bench_safety); "clarabel" also works
 
     def __post_init__(self):
         for name in ("d_safe_mm", "gain_per_s", "joint_gain_per_s", "max_tip_speed_mm_s", "max_command_speed_mm_s",
-                     "max_model_age_s", "max_sensor_age_s", "cutter_clearance_mm"):
+                     "max_model_age_s", "max_sensor_age_s", "cutter_clearance_mm", "max_recovery_mm_s"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"FilterConfig.{name} must be finite and > 0, got {v}")
@@ -107,6 +108,26 @@ class FilterOutput:
     solve_us: float = 0.0
 
 
+def _distance_and_gradient(shape, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(signed distance (M,) mm, gradient (M, 3)) of `shape` at P, in one query when the
+    shape offers it."""
+    if hasattr(shape, "signed_distance_and_gradient"):
+        h, g = shape.signed_distance_and_gradient(P)
+    else:
+        h, g = shape.signed_distance(P), shape.gradient(P)
+    return np.asarray(h, dtype=float), np.asarray(g, dtype=float)
+
+
+def _maybe_near(shape, points: list, within_mm: float, side: float) -> set:
+    """Indices of `points` whose clearance side x (signed distance to `shape`) may be
+    below `within_mm`, judged by the shape's cheap signed_distance_bound when it has one
+    (every index otherwise). side = 1: clearance inside the shape; -1: outside."""
+    if not hasattr(shape, "signed_distance_bound"):
+        return set(range(len(points)))
+    b = side * np.asarray(shape.signed_distance_bound(np.array([p.p_W for p in points])), dtype=float)
+    return {k for k, v in enumerate(b) if not (v > within_mm)}
+
+
 class SafetyFilter:
     """`filter(inputs) -> FilterOutput`; stateless apart from its configuration."""
 
@@ -122,26 +143,32 @@ class SafetyFilter:
         fault = self._fault(x, n)
         if fault:
             return self._stop(n, fault)
-        P = np.array([p.p_W for p in x.boundary_points])
-        h = np.asarray(x.model.signed_distance(P), dtype=float)
-        grad = np.asarray(x.model.gradient(P), dtype=float)
+        d_safe = cfg.d_safe_mm + x.margin_mm
+        # rows a point cannot reach within the speed limits are left out (exactly: they
+        # cannot be active); tip and port are always evaluated (clearance, cutter interlock)
+        reach = cfg.max_tip_speed_mm_s / cfg.gain_per_s
+        pts = [p for k, p in enumerate(x.boundary_points)
+               if p.name in ("tip", "port") or k in _maybe_near(x.model, x.boundary_points, d_safe + reach, 1.0)]
+        h, grad = _distance_and_gradient(x.model, np.array([p.p_W for p in pts]))
         if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
             return self._stop(n, "model returned non-finite distance or gradient")
-        d_safe = cfg.d_safe_mm + x.margin_mm
         clearance = float(h.min())
         blocks = [
             constraints.tracking(x.J_tip, x.v_cmd_W, cfg.damping, x.J_roll, x.roll_rate_cmd),
             constraints.joint_limits(x.q, x.q_min, x.q_max, x.qdot_max, cfg.joint_gain_per_s, cfg.joint_margin_rad),
             constraints.tip_speed(x.J_tip, cfg.max_tip_speed_mm_s),
         ]
-        blocks += [constraints.barrier(f"boundary:{p.name}", hi, gi, p.J_W, d_safe, cfg.gain_per_s)
-                   for p, hi, gi in zip(x.boundary_points, h, grad)]
+        blocks += [constraints.barrier(f"boundary:{p.name}", hi, gi, p.J_W, d_safe, cfg.gain_per_s, cfg.max_recovery_mm_s)
+                   for p, hi, gi in zip(pts, h, grad)]
         if x.lens is not None and x.lens_points:
-            L = np.array([p.p_W for p in x.lens_points])
-            h_lens = -np.asarray(x.lens.signed_distance(L))  # > 0 outside the lens
-            g_lens = -np.asarray(x.lens.gradient(L))
-            blocks += [constraints.barrier(f"lens:{p.name}", hi, gi, p.J_W, cfg.lens_margin_mm, cfg.gain_per_s)
-                       for p, hi, gi in zip(x.lens_points, h_lens, g_lens)]
+            near = _maybe_near(x.lens, x.lens_points, cfg.lens_margin_mm + reach, -1.0)
+            lens_pts = [p for k, p in enumerate(x.lens_points) if k in near]
+            if lens_pts:
+                h_lens, g_lens = _distance_and_gradient(x.lens, np.array([p.p_W for p in lens_pts]))
+                h_lens, g_lens = -h_lens, -g_lens  # > 0 outside the lens
+                blocks += [constraints.barrier(f"lens:{p.name}", hi, gi, p.J_W, cfg.lens_margin_mm, cfg.gain_per_s,
+                                               cfg.max_recovery_mm_s)
+                           for p, hi, gi in zip(lens_pts, h_lens, g_lens)]
         if x.rcm_A is not None:
             blocks.append(constraints.equality("rcm", x.rcm_A, x.rcm_b))
         result = solve(blocks, n, cfg.solver)

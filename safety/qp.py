@@ -90,9 +90,43 @@ def stack(blocks: list[Block], n: int, as_sparse: bool = False) -> tuple[qpsolve
     return problem, tuple(names)
 
 
+def _equality_optimum(problem: qpsolvers.Problem, tol: float) -> np.ndarray | None:
+    """The minimiser of the cost under the equalities alone (its KKT system), when it also
+    satisfies every inequality and bound: then it is the QP's solution (convex problem,
+    no inequality active). None otherwise, or when H is not dense or the system singular."""
+    H, c, A, b = problem.P, problem.q, problem.A, problem.b
+    if sparse.issparse(H) or (A is not None and sparse.issparse(A)):
+        return None
+    n = len(c)
+    if A is None:
+        K, rhs = H, -c
+    else:
+        m = len(b)
+        K = np.empty((n + m, n + m))
+        K[:n, :n], K[:n, n:], K[n:, :n], K[n:, n:] = H, A.T, A, 0.0
+        rhs = np.concatenate([-c, b])
+    try:
+        x = np.linalg.solve(K, rhs)[:n]
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(x)):
+        return None
+    if problem.G is not None and np.any(problem.G @ x > problem.h + tol * (1.0 + np.abs(problem.h))):
+        return None
+    if problem.lb is not None and np.any(x < problem.lb - tol * (1.0 + np.abs(problem.lb))):
+        return None
+    if problem.ub is not None and np.any(x > problem.ub + tol * (1.0 + np.abs(problem.ub))):
+        return None
+    return x
+
+
 def solve(blocks: list[Block], n: int, solver: str = "clarabel", active_tol: float = 1e-6) -> QPResult:
     """Stack and solve; any failure (inconsistent bounds, infeasible, solver error, NaN
-    in the data or the answer) comes back as a QPResult with x None and the reason."""
+    in the data or the answer) comes back as a QPResult with x None and the reason.
+
+    When the equality-constrained optimum already satisfies every inequality (nothing
+    near its bound: most control steps), it is returned without calling the solver;
+    it is the solver's answer up to the solver's tolerance."""
     t0 = time.perf_counter()
     try:
         problem, names = stack(blocks, n, as_sparse=solver in SPARSE_SOLVERS)
@@ -100,6 +134,9 @@ def solve(blocks: list[Block], n: int, solver: str = "clarabel", active_tol: flo
         return QPResult(None, str(exc), (), (), 1e6 * (time.perf_counter() - t0))
     if problem.lb is not None and problem.ub is not None and np.any(problem.lb > problem.ub):
         return QPResult(None, "infeasible: bounds cross", names, (), 1e6 * (time.perf_counter() - t0))
+    x = _equality_optimum(problem, active_tol)
+    if x is not None:
+        return QPResult(x, "ok", names, (), 1e6 * (time.perf_counter() - t0))
     try:
         with warnings.catch_warnings():  # the reason is reported in the result instead
             warnings.simplefilter("ignore")

@@ -1,0 +1,393 @@
+"""The closed loop as a Drake diagram: command -> safety filter -> integrator -> sensor -> model.
+
+    CommandSystem (1 kHz) --v_cmd, roll--> FilterSystem (1 kHz, zero-order hold of qdot)
+        --qdot--> DiscreteTimeIntegrator (q_{k+1} = q_k + dt qdot_k) --q--> everything
+    q --> IioctSensorSystem (2 kHz: beam from the TRUE sensor pose on the TRUE eye; point
+          from the reported angles and the CALIBRATED sensor pose)
+      --sample--> AdaptiveModelSystem (buffers the valid points, updates the
+          AdaptiveEyeModel in batches) --snapshot--> FilterSystem
+
+Before the model has a shape the conservative prior eye (safety.margins) bounds the
+motion; the filter adds the model phase's margin (UncertaintyMargins). The filter's
+inputs and outputs of every step go to the run's MCAP log (RunLogger) so that
+`vitreoguard replay` re-runs them bit for bit, and every step's monitored points are
+kept so that their TRUE clearance is evaluated afterwards, vectorised (LoopRun).
+
+The systems hold Python objects that change during a simulation (the model, the
+command source, the records): one simulation at a time per ClosedLoop, reset by `run`.
+Units: mm, s, rad; frame W.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import DiscreteTimeIntegrator
+
+from models import AdaptiveEyeModel
+from planning.diffik import DrakeDiffIK
+from planning.instrument_points import MonitoredPointsConfig, instrument_points
+from planning.iioct_sensor import IioctSensor, IioctSensorSystem
+from planning.robot import Robot
+from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
+from safety.margins import UncertaintyMargins, conservative_prior
+
+JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Rates (Hz), the sensor's packet (samples per delivery = per model update), the sensor mode
+    ("distance": the extractor's error model, fast; "ascan": full A-scans), the filter,
+    margins and monitored points, and how often Drake's DoDifferentialInverseKinematics
+    is timed on the same state for comparison (every n-th control step; 0: never).
+    The filter trusts the fitted model only once it holds `model_min_points` points over
+    a scan range of `model_min_scan_range_mm` (a sphere through a few points of a small
+    patch can be millimetres off); until then the conservative prior bounds the motion."""
+
+    control_rate_hz: float = 1000.0
+    sensor_rate_hz: float = 2000.0
+    sensor_packet: int = 10
+    sensor_mode: str = "distance"
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    margins: UncertaintyMargins = field(default_factory=UncertaintyMargins)
+    points: MonitoredPointsConfig = field(default_factory=MonitoredPointsConfig)
+    drake_diffik_every: int = 10
+    model_min_points: int = 200
+    model_min_scan_range_mm: float = 5.0
+
+    def __post_init__(self):
+        for name in ("control_rate_hz", "sensor_rate_hz"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"LoopConfig.{name} must be > 0 Hz, got {v}")
+        if not (isinstance(self.sensor_packet, int) and self.sensor_packet >= 1):
+            raise ValueError(f"LoopConfig.sensor_packet must be an int >= 1, got {self.sensor_packet}")
+        if self.sensor_mode not in ("distance", "ascan"):
+            raise ValueError(f"LoopConfig.sensor_mode must be 'distance' or 'ascan', got {self.sensor_mode!r}")
+        if not (isinstance(self.drake_diffik_every, int) and self.drake_diffik_every >= 0):
+            raise ValueError(f"LoopConfig.drake_diffik_every must be an int >= 0, got {self.drake_diffik_every}")
+
+
+class ModelSnapshot(NamedTuple):
+    """What the filter reads of the model: `kind` "prior" | "sphere" | "ellipsoid", its
+    `shape` in W (None for the prior), `t_s` of the last processed sensor sample, the
+    model's RMS residual (mm) and point count."""
+
+    kind: str
+    shape: object
+    t_s: float
+    residual_mm: float
+    n_points: int
+
+    def __deepcopy__(self, memo) -> ModelSnapshot:
+        return self  # immutable (the shapes are frozen): Drake copies abstract state values often
+
+
+def snapshot_of(model: AdaptiveEyeModel, t_s: float, min_points: int = 0, min_scan_range_mm: float = 0.0) -> ModelSnapshot:
+    """The snapshot of `model` at t_s ("prior" until it has a shape from at least
+    `min_points` points over `min_scan_range_mm`)."""
+    shape = model.shape
+    if shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
+        return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points)
+    last = model.history[-1]
+    res = last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm
+    return ModelSnapshot(model.kind, shape, t_s, float(res), model.n_points)
+
+
+class CommandSystem(LeafSystem):
+    """Calls the command source once per control step: state [v_W (3) mm/s, roll rad/s]."""
+
+    def __init__(self, robot: Robot, rate_hz: float):
+        super().__init__()
+        self.robot, self.source = robot, None
+        self._q = self.DeclareVectorInputPort("q", 6)
+        state = self.DeclareDiscreteState(4)
+        self.DeclarePeriodicDiscreteUpdateEvent(1.0 / rate_hz, 0.0, self._update)
+        self.DeclareStateOutputPort("command", state)
+
+    def _update(self, context, discrete_state) -> None:
+        q = self._q.Eval(context)
+        p_WT = self.robot.pose("T", q)[1] if np.all(np.isfinite(q)) else np.full(3, np.nan)
+        v, roll = self.source(context.get_time(), p_WT, q)
+        discrete_state.set_value(np.concatenate([np.asarray(v, dtype=float).reshape(3), [float(roll)]]))
+
+
+class AdaptiveModelSystem(LeafSystem):
+    """Feeds each packet of sensor samples (input "samples") to an AdaptiveEyeModel: one
+    update per packet with its valid points; state and output "snapshot"
+    (ModelSnapshot). Runs at the packet rate, just after each packet is complete. Logs
+    the distances and model updates when a logger is set."""
+
+    def __init__(self, packet_rate_hz: float, offset_s: float, min_points: int, min_scan_range_mm: float):
+        super().__init__()
+        self._trust = (min_points, min_scan_range_mm)
+        self._samples = self.DeclareAbstractInputPort("samples", AbstractValue.Make(()))
+        self._snap = self.DeclareAbstractState(AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
+        self.DeclareStateOutputPort("snapshot", self._snap)
+        self.reset(AdaptiveEyeModel())
+
+    def reset(self, model: AdaptiveEyeModel, logger=None) -> None:
+        self.model, self.logger = model, logger
+        self._last_t = -np.inf
+        self.update_us: list[float] = []
+
+    def initial_snapshot(self) -> ModelSnapshot:
+        return snapshot_of(self.model, 0.0, *self._trust)
+
+    def _update(self, context, state) -> None:
+        packet = [s for s in self._samples.Eval(context) if s.t_s > self._last_t]
+        if not packet:
+            return
+        self._last_t = packet[-1].t_s
+        if self.logger is not None:
+            for s in packet:
+                self.logger.log_distance(s.t_s, s.distance_mm, s.valid, s.confidence)
+        points = [s.p_W for s in packet if s.valid]
+        entry = None
+        if points:
+            t0 = time.perf_counter()
+            entry = self.model.update(np.array(points))
+            self.update_us.append(1e6 * (time.perf_counter() - t0) / len(points))
+            if entry is not None and self.logger is not None:
+                self.logger.log_model_update(self._last_t, entry)
+        snap = state.get_abstract_state(0).get_value()
+        new = snapshot_of(self.model, self._last_t, *self._trust) if entry is not None or snap.shape is None else snap._replace(t_s=self._last_t)
+        state.get_mutable_abstract_state(0).set_value(new)
+
+
+@dataclass
+class StepRecord:
+    """Per control step: time, joints, command and result, what the filter saw."""
+
+    t: list = field(default_factory=list)
+    q: list = field(default_factory=list)
+    qdot: list = field(default_factory=list)
+    v_cmd: list = field(default_factory=list)
+    v_tip: list = field(default_factory=list)
+    ok: list = field(default_factory=list)
+    reason: list = field(default_factory=list)
+    intervened: list = field(default_factory=list)
+    solve_us: list = field(default_factory=list)
+    step_us: list = field(default_factory=list)
+    model_clearance: list = field(default_factory=list)
+    kind: list = field(default_factory=list)
+    rcm_error_mm: list = field(default_factory=list)
+    points_W: list = field(default_factory=list)
+    lens_W: list = field(default_factory=list)
+    drake_diffik_us: list = field(default_factory=list)
+
+
+class FilterSystem(LeafSystem):
+    """The safety filter at the control rate: inputs "q", "command", "snapshot" (the
+    model), "measurement" (the sensor's [distance, valid, confidence, t_s]); state and
+    output "qdot" (zero-order hold)."""
+
+    def __init__(self, robot: Robot, config: LoopConfig, prior):
+        super().__init__()
+        self.robot, self.config, self.prior = robot, config, prior
+        self.filter = SafetyFilter(config.filter)
+        self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
+        self.lens = robot.scenario.lens_W
+        self._q = self.DeclareVectorInputPort("q", 6)
+        self._cmd = self.DeclareVectorInputPort("command", 4)
+        self._snap = self.DeclareAbstractInputPort("snapshot", AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
+        self._meas = self.DeclareVectorInputPort("measurement", 4)
+        state = self.DeclareDiscreteState(6)
+        dt = 1.0 / config.control_rate_hz
+        # the first step waits for the sensor's first packet (the robot holds still until then)
+        first_s = dt * np.ceil(config.sensor_packet / config.sensor_rate_hz / dt + 0.5)
+        self.DeclarePeriodicDiscreteUpdateEvent(dt, first_s, self._update)
+        self.DeclareStateOutputPort("qdot", state)
+        self.reset()
+
+    def reset(self, logger=None) -> None:
+        self.logger, self.record = logger, StepRecord()
+
+    def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
+        """(FilterInputs, InstrumentPoints) of one step; ValueError on bad joint angles."""
+        robot = self.robot
+        ip = instrument_points(robot, q, robot.p_WC, self.config.points)
+        model, kind = (self.prior, None) if snap.shape is None else (snap.shape, snap.kind)
+        # the prior lies inside every retina, so the shaft behind the tip (which crosses the
+        # eye wall at the trocar) is outside it: against the prior only tip and port count
+        k = 2 if kind is None else len(ip.names)
+        x = FilterInputs(
+            t_s=t_s, q=np.array(q), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,
+            v_cmd_W=np.array(command[:3]), J_tip=ip.J_tip,
+            boundary_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.names[:k], ip.P_W[:k], ip.J_W[:k])],
+            model=model, model_time_s=t_s if kind is None else snap.t_s, sensor_time_s=sensor_t_s,
+            rcm_A=ip.rcm_A, rcm_b=ip.rcm_b, lens=self.lens,
+            lens_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.lens_names, ip.L_W, ip.J_L)],
+            margin_mm=self.config.margins.margin_mm(kind, snap.residual_mm), J_roll=ip.J_roll,
+            roll_rate_cmd=float(command[3]),
+        )
+        return x, ip
+
+    def _update(self, context, discrete_state) -> None:
+        t0 = time.perf_counter()
+        t = context.get_time()
+        q = np.array(self._q.Eval(context))
+        command = np.array(self._cmd.Eval(context))
+        snap = self._snap.Eval(context)
+        sensor_t = float(self._meas.Eval(context)[3])
+        rec = self.record
+        try:
+            x, ip = self.inputs(t, q, command, snap, sensor_t)
+        except ValueError as exc:  # non-finite joint angles: nothing to filter, stay put
+            rec.t.append(t), rec.q.append(q), rec.qdot.append(np.zeros(6)), rec.v_cmd.append(command[:3])
+            rec.v_tip.append(np.zeros(3)), rec.ok.append(False), rec.reason.append(f"bad joint state: {exc}")
+            rec.intervened.append(True), rec.solve_us.append(0.0), rec.step_us.append(0.0)
+            rec.model_clearance.append(np.nan), rec.kind.append(snap.kind), rec.rcm_error_mm.append(np.nan)
+            rec.points_W.append(np.full((1, 3), np.nan)), rec.lens_W.append(np.zeros((0, 3)))
+            discrete_state.set_value(np.zeros(6))
+            return
+        out = self.filter(x)
+        discrete_state.set_value(out.qdot)
+        rec.step_us.append(1e6 * (time.perf_counter() - t0))
+        if self.config.drake_diffik_every and len(rec.t) % self.config.drake_diffik_every == 0 and out.ok:
+            t1 = time.perf_counter()
+            self.drake_diffik(q, x.v_cmd_W)
+            rec.drake_diffik_us.append(1e6 * (time.perf_counter() - t1))
+        rec.t.append(t), rec.q.append(q), rec.qdot.append(out.qdot), rec.v_cmd.append(x.v_cmd_W)
+        rec.v_tip.append(ip.J_tip @ out.qdot), rec.ok.append(out.ok), rec.reason.append(out.reason)
+        rec.intervened.append(out.intervened), rec.solve_us.append(out.solve_us)
+        rec.model_clearance.append(out.min_clearance_mm), rec.kind.append(snap.kind)
+        rec.rcm_error_mm.append(ip.rcm_error_mm), rec.points_W.append(ip.P_W), rec.lens_W.append(ip.L_W)
+        if self.logger is not None:
+            self.logger.log_filter_step(x, out)
+            if len(rec.t) % 10 == 1:
+                self.logger.log_joint_states(t, q, out.qdot, JOINT_NAMES)
+
+
+@dataclass(frozen=True, eq=False)
+class LoopRun:
+    """One closed-loop run (arrays over control steps; mm, s, rad).
+
+    `true_clearance_mm` (M,): the smallest TRUE clearance of the monitored points per
+    step (ground-truth eye); `lens_clearance_mm` (M,): the shaft's lens points' smallest
+    distance outside the lens keep-out; `wall_s` the run's wall time."""
+
+    t: np.ndarray
+    q: np.ndarray
+    qdot: np.ndarray
+    v_cmd: np.ndarray
+    v_tip: np.ndarray
+    ok: np.ndarray
+    reasons: list
+    intervened: np.ndarray
+    solve_us: np.ndarray
+    step_us: np.ndarray
+    model_clearance_mm: np.ndarray
+    true_clearance_mm: np.ndarray
+    lens_clearance_mm: np.ndarray
+    kind: list
+    rcm_error_mm: np.ndarray
+    drake_diffik_us: np.ndarray
+    model_update_us: np.ndarray
+    wall_s: float
+
+    @property
+    def duration_s(self) -> float:
+        return float(len(self.t)) * float(self.t[1] - self.t[0]) if len(self.t) > 1 else 0.0
+
+    @property
+    def realtime_factor(self) -> float:
+        return self.duration_s / self.wall_s if self.wall_s > 0 else float("inf")
+
+    @property
+    def failsafe_stops(self) -> int:
+        """Steps the filter refused to move (a fault), counted as runs of consecutive steps."""
+        bad = ~self.ok
+        return int(np.sum(bad[1:] & ~bad[:-1]) + (bad[0] if len(bad) else 0))
+
+    def free_tracking_error(self) -> np.ndarray:
+        """|v_tip - v_cmd| / |v_cmd| on the steps where the filter did not intervene."""
+        free = self.ok & ~self.intervened
+        speed = np.linalg.norm(self.v_cmd[free], axis=1)
+        err = np.linalg.norm(self.v_tip[free] - self.v_cmd[free], axis=1)
+        return err[speed > 0] / speed[speed > 0]
+
+
+def true_clearances(points_W: list, true_eye) -> np.ndarray:
+    """(M,) the smallest true clearance (mm, > 0 inside) of each step's points (k_i, 3)."""
+    counts = np.array([len(p) for p in points_W])
+    d = np.asarray(true_eye.signed_distance(np.vstack(points_W)), dtype=float)
+    return np.minimum.reduceat(d, np.concatenate([[0], np.cumsum(counts)[:-1]]))
+
+
+class ClosedLoop:
+    """The diagram on one scenario (planning.SurgeryScenario); `run` simulates it."""
+
+    def __init__(self, scenario, config: LoopConfig = LoopConfig(), sensor_seed: int = 0):
+        self.scenario, self.config = scenario, config
+        self.robot = Robot(scenario)
+        self.prior = conservative_prior(scenario.eye_pose.p_WE)
+        builder = DiagramBuilder()
+        self.command = builder.AddSystem(CommandSystem(self.robot, config.control_rate_hz))
+        self.filter = builder.AddSystem(FilterSystem(self.robot, config, self.prior))
+        self.integrator = builder.AddSystem(DiscreteTimeIntegrator(6, 1.0 / config.control_rate_hz))
+        self.sensor = IioctSensor(Robot(scenario), mode=config.sensor_mode, seed=sensor_seed)
+        sensor_sys = builder.AddSystem(IioctSensorSystem(self.sensor, config.sensor_rate_hz, packet=config.sensor_packet))
+        packet_s = config.sensor_packet / config.sensor_rate_hz
+        self.model = builder.AddSystem(AdaptiveModelSystem(1.0 / packet_s, packet_s - 0.5 / config.sensor_rate_hz,
+                                                           config.model_min_points, config.model_min_scan_range_mm))
+        q = self.integrator.get_output_port()
+        for port in (self.command.GetInputPort("q"), self.filter.GetInputPort("q"), sensor_sys.GetInputPort("q")):
+            builder.Connect(q, port)
+        builder.Connect(self.command.GetOutputPort("command"), self.filter.GetInputPort("command"))
+        builder.Connect(self.filter.GetOutputPort("qdot"), self.integrator.get_input_port())
+        builder.Connect(sensor_sys.GetOutputPort("samples"), self.model.GetInputPort("samples"))
+        builder.Connect(sensor_sys.GetOutputPort("measurement"), self.filter.GetInputPort("measurement"))
+        builder.Connect(self.model.GetOutputPort("snapshot"), self.filter.GetInputPort("snapshot"))
+        self.diagram = builder.Build()
+        self.simulator = Simulator(self.diagram)
+
+    def run(self, source, q0, duration_s: float, model: AdaptiveEyeModel | None = None, logger=None) -> LoopRun:
+        """Simulate `duration_s` s from joint angles q0 (6,) rad under the command `source`
+        (eval.commands), continuing `model` (a fresh AdaptiveEyeModel if None; updated in
+        place). Logs to `logger` (eval.mcap_log.RunLogger) when given."""
+        q0 = np.asarray(q0, dtype=float)
+        if q0.shape != (6,) or not np.all(np.isfinite(q0)):
+            raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")
+        if not (np.isfinite(duration_s) and duration_s > 0):
+            raise ValueError(f"duration_s must be > 0 s, got {duration_s}")
+        self.command.source = source
+        self.filter.reset(logger)
+        self.model.reset(AdaptiveEyeModel() if model is None else model, logger)
+        context = self.diagram.CreateDefaultContext()
+        self.integrator.set_integral_value(self.integrator.GetMyMutableContextFromRoot(context), q0)
+        self.model.GetMyMutableContextFromRoot(context).get_mutable_abstract_state(0).set_value(
+            self.model.initial_snapshot())
+        self.simulator.reset_context(context)
+        self.simulator.Initialize()
+        t0 = time.perf_counter()
+        self.simulator.AdvanceTo(duration_s)
+        wall = time.perf_counter() - t0
+        return self._collect(wall)
+
+    def _collect(self, wall_s: float) -> LoopRun:
+        r = self.filter.record
+        eye, lens = self.scenario.eye, self.scenario.lens_W
+        lens_pts = [p for p in r.lens_W if len(p)]
+        lens_counts = np.array([len(p) for p in r.lens_W])
+        lens_clear = np.full(len(r.t), np.inf)
+        if lens_pts:
+            d = -np.asarray(lens.signed_distance(np.vstack(lens_pts)))
+            starts = np.concatenate([[0], np.cumsum(lens_counts[lens_counts > 0])[:-1]])
+            lens_clear[lens_counts > 0] = np.minimum.reduceat(d, starts)
+        a = lambda x, shape=None: np.array(x, dtype=float) if len(x) else np.zeros(shape or (0,))  # noqa: E731
+        return LoopRun(
+            t=a(r.t), q=a(r.q, (0, 6)), qdot=a(r.qdot, (0, 6)), v_cmd=a(r.v_cmd, (0, 3)), v_tip=a(r.v_tip, (0, 3)),
+            ok=np.array(r.ok, dtype=bool), reasons=list(r.reason), intervened=np.array(r.intervened, dtype=bool),
+            solve_us=a(r.solve_us), step_us=a(r.step_us), model_clearance_mm=a(r.model_clearance),
+            true_clearance_mm=true_clearances(r.points_W, eye) if r.points_W else np.zeros(0),
+            lens_clearance_mm=lens_clear, kind=list(r.kind), rcm_error_mm=a(r.rcm_error_mm),
+            drake_diffik_us=a(r.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
+        )

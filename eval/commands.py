@@ -1,0 +1,144 @@
+"""Command sources for the closed loop: what the surgeon (or a planner) asks of the tip.
+
+A command source is called once per control step, in time order, as
+`source(t_s, p_WT, q) -> (v_W (3,) mm/s, roll_rate rad/s)` with the current tip position
+p_WT (mm, W) and joint angles q (rad). The safety filter decides what is actually done.
+
+- `TipPathCommand`: a time-parameterised tip path (the spiral scan, planned paths):
+  feed-forward velocity plus position feedback.
+- `VelocityReplayCommand`: recorded tip velocities (and roll rates), zero-order hold.
+- `AdversarialCommand`: a seeded adversary that pushes toward and along the retina at up
+  to the speed limit, moves laterally with roll so the cutter port faces the retina, and
+  pushes toward the lens.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from models._validation import as_points, as_positive, as_vector3
+
+ADVERSARY_MODES = ("push", "along", "port_side", "lens", "random")
+
+
+class TipPathCommand:
+    """Follow tip positions P_WT (M, 3) mm at times_s (M,) s (strictly increasing):
+    v = (P[k+1] - P[k]) / (t[k+1] - t[k]) on the current segment plus
+    gain_per_s x (p_des(t) - p_WT); holds the last point after the end. `roll_rad` (M,)
+    optional roll angles about the shaft, commanded as their rate (feed-forward only)."""
+
+    def __init__(self, times_s, P_WT, roll_rad=None, gain_per_s: float = 20.0):
+        t = np.asarray(times_s, dtype=float)
+        P = as_points(P_WT, "P_WT")
+        if t.ndim != 1 or len(t) != len(P) or len(t) < 2:
+            raise ValueError(f"times_s must be (M,) with M = len(P_WT) >= 2, got {t.shape} for {len(P)} points")
+        if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
+            raise ValueError("times_s must be finite and strictly increasing (s)")
+        self.times_s, self.P_WT = t, P
+        self.gain_per_s = as_positive(gain_per_s, "gain_per_s")
+        self._V = np.diff(P, axis=0) / np.diff(t)[:, None]
+        if roll_rad is None:
+            self._roll_rate = np.zeros(len(t) - 1)
+        else:
+            roll = np.asarray(roll_rad, dtype=float)
+            if roll.shape != t.shape or not np.all(np.isfinite(roll)):
+                raise ValueError(f"roll_rad must be finite with the shape of times_s {t.shape}, got {roll.shape}")
+            self._roll_rate = np.diff(roll) / np.diff(t)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.times_s[-1] - self.times_s[0])
+
+    def reference(self, t_s: float) -> np.ndarray:
+        """p_des (3,) mm at t_s (clamped to the path's ends)."""
+        return np.array([np.interp(t_s, self.times_s, self.P_WT[:, i]) for i in range(3)])
+
+    def __call__(self, t_s: float, p_WT, q) -> tuple[np.ndarray, float]:
+        k = int(np.searchsorted(self.times_s, t_s, side="right")) - 1
+        if 0 <= k < len(self._V):
+            v_ff, roll = self._V[k], float(self._roll_rate[k])
+        else:
+            v_ff, roll = np.zeros(3), 0.0
+        return v_ff + self.gain_per_s * (self.reference(t_s) - np.asarray(p_WT, dtype=float)), roll
+
+
+class VelocityReplayCommand:
+    """Recorded tip velocities V_W (M, 3) mm/s (and roll rates (M,) rad/s) from times_s
+    (M,) s on, held until the next sample; zero after the last sample + its period."""
+
+    def __init__(self, times_s, V_W, roll_rate=None):
+        t = np.asarray(times_s, dtype=float)
+        V = np.asarray(V_W, dtype=float)
+        if t.ndim != 1 or len(t) < 1 or V.shape != (len(t), 3):
+            raise ValueError(f"times_s (M,) and V_W (M, 3) mm/s must match, got {t.shape} and {V.shape}")
+        if not np.all(np.diff(t) > 0):
+            raise ValueError("times_s must be strictly increasing (s)")
+        self.times_s, self.V_W = t, V  # non-finite velocities are passed on: the filter stops on them
+        self.roll_rate = np.zeros(len(t)) if roll_rate is None else np.asarray(roll_rate, dtype=float).reshape(len(t))
+        self._end = t[-1] + (np.median(np.diff(t)) if len(t) > 1 else 0.0)
+
+    def __call__(self, t_s: float, p_WT, q) -> tuple[np.ndarray, float]:
+        k = int(np.searchsorted(self.times_s, t_s, side="right")) - 1
+        if k < 0 or t_s >= self._end:
+            return np.zeros(3), 0.0
+        return self.V_W[k].copy(), float(self.roll_rate[k])
+
+
+class AdversarialCommand:
+    """A seeded adversary: segments of `segment_s` (uniform in the range, s), each of one
+    mode drawn from `modes` with a speed uniform in [0.5, 1] x `max_speed_mm_s`:
+
+    - "push": straight toward the retina (away from the eye centre p_WE_center), +-15 deg;
+    - "along": tangential to the retina, with a 20 % push outward;
+    - "port_side": a lateral push plus a roll of up to `max_roll_rate` rad/s (turns the
+      cutter port, 0.25 mm off the axis, toward the retina);
+    - "lens": toward the lens centre p_W_lens;
+    - "random": any direction.
+    Directions are drawn at the start of a segment from the tip's position then, and held.
+    """
+
+    def __init__(self, seed: int, p_WE_center, p_W_lens, max_speed_mm_s: float = 20.0,
+                 segment_s=(0.05, 0.2), modes=ADVERSARY_MODES, max_roll_rate: float = 3.0):
+        self._rng = np.random.default_rng(seed)
+        self.p_WE_center = as_vector3(p_WE_center, "p_WE_center")
+        self.p_W_lens = as_vector3(p_W_lens, "p_W_lens")
+        self.max_speed_mm_s = as_positive(max_speed_mm_s, "max_speed_mm_s")
+        self.max_roll_rate = float(max_roll_rate)
+        if not (np.isfinite(self.max_roll_rate) and self.max_roll_rate >= 0):
+            raise ValueError(f"max_roll_rate must be >= 0 rad/s, got {max_roll_rate}")
+        lo, hi = segment_s
+        if not (0 < lo <= hi):
+            raise ValueError(f"segment_s must be (lo, hi) s with 0 < lo <= hi, got {segment_s}")
+        bad = [m for m in modes if m not in ADVERSARY_MODES]
+        if bad or not modes:
+            raise ValueError(f"modes must be a non-empty subset of {ADVERSARY_MODES}, got {modes}")
+        self.segment_s, self.modes = (float(lo), float(hi)), tuple(modes)
+        self._until = -np.inf
+        self._v, self._roll = np.zeros(3), 0.0
+        self.mode_log: list[tuple[float, str]] = []
+
+    def _unit(self, v: np.ndarray) -> np.ndarray:
+        n = np.linalg.norm(v)
+        return v / n if n > 1e-9 else self._rng.standard_normal(3) / np.sqrt(3.0)
+
+    def _tilted(self, u: np.ndarray, max_deg: float) -> np.ndarray:
+        return self._unit(u + np.tan(np.radians(max_deg)) * self._rng.uniform(-1, 1, 3))
+
+    def _segment(self, t_s: float, p_WT: np.ndarray) -> None:
+        rng = self._rng
+        mode = self.modes[rng.integers(len(self.modes))]
+        out = self._unit(p_WT - self.p_WE_center)
+        tangent = self._unit(np.cross(out, rng.standard_normal(3)))
+        u = {"push": lambda: self._tilted(out, 15.0),
+             "along": lambda: self._unit(tangent + 0.2 * out),
+             "port_side": lambda: self._unit(tangent + 0.5 * out),
+             "lens": lambda: self._tilted(self.p_W_lens - p_WT, 10.0),
+             "random": lambda: self._unit(rng.standard_normal(3))}[mode]()
+        self._v = rng.uniform(0.5, 1.0) * self.max_speed_mm_s * u
+        self._roll = rng.uniform(-1.0, 1.0) * self.max_roll_rate if mode == "port_side" else 0.0
+        self._until = t_s + rng.uniform(*self.segment_s)
+        self.mode_log.append((float(t_s), mode))
+
+    def __call__(self, t_s: float, p_WT, q) -> tuple[np.ndarray, float]:
+        if t_s >= self._until:
+            self._segment(t_s, np.asarray(p_WT, dtype=float))
+        return self._v.copy(), self._roll
