@@ -23,6 +23,7 @@ SUBCOMMAND_MODULES = (
     "eval.cmd_calibrate",
     "eval.cmd_replay",
     "eval.cmd_scan",
+    "eval.cmd_boundary",
 )
 
 

@@ -236,7 +236,8 @@ class FilterSystem(LeafSystem):
         q = np.array(self._q.Eval(context))
         command = np.array(self._cmd.Eval(context))
         snap = self._snap.Eval(context)
-        sensor_t = float(self._meas.Eval(context)[3])
+        meas = self._meas.Eval(context)
+        sensor_t = float(meas[3])
         rec = self.record
         try:
             x, ip = self.inputs(t, q, command, snap, sensor_t)
@@ -261,9 +262,26 @@ class FilterSystem(LeafSystem):
         rec.model_clearance.append(out.min_clearance_mm), rec.kind.append(snap.kind)
         rec.rcm_error_mm.append(ip.rcm_error_mm), rec.points_W.append(ip.P_W), rec.lens_W.append(ip.L_W)
         if self.logger is not None:
-            self.logger.log_filter_step(x, out)
-            if len(rec.t) % 10 == 1:
-                self.logger.log_joint_states(t, q, out.qdot, JOINT_NAMES)
+            self._log(t, q, x, out, float(meas[0]) if meas[1] > 0 else float("nan"))
+
+    def _log(self, t: float, q, x, out, distance_mm: float) -> None:
+        """Every step's filter inputs and outputs; joint states at 100 Hz; frames and the
+        3D scene (model, lens, trocar, the beam to the last measured distance) at 20 Hz."""
+        log, k = self.logger, len(self.record.t)
+        log.log_filter_step(x, out)
+        if k % 10 == 1:
+            log.log_joint_states(t, q, out.qdot, JOINT_NAMES)
+        if k % 50 == 1:
+            frames = {}
+            for name in ("F", "T", "S", "P"):
+                R, p = self.robot.pose(name, q)
+                X = np.eye(4)
+                X[:3, :3], X[:3, 3] = R, p
+                frames[name] = X
+            log.log_frames(t, frames)
+            o, u = self.robot.beam(q)
+            beam = None if not np.isfinite(distance_mm) else (o, o + distance_mm * u)
+            log.log_scene(t, eye=x.model, beam=beam, p_W_trocar=self.robot.p_WC, lens=self.lens)
 
 
 @dataclass(frozen=True, eq=False)

@@ -47,6 +47,20 @@ class Sphere:
         return out
 
 
+    def ray_cast(self, origins, dirs) -> np.ndarray:
+        """(M,) distance (mm) along unit rays to the sphere: first hit from inside, first
+        entry from outside; NaN where a ray misses."""
+        O, D = as_points(origins, "origins"), as_points(dirs, "dirs")
+        if O.shape != D.shape:
+            raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
+        V = O - self.center
+        b = np.einsum("ij,ij->i", V, D)
+        c = np.einsum("ij,ij->i", V, V) - self.radius**2
+        with np.errstate(invalid="ignore"):
+            sq = np.sqrt(b * b - c)
+        t = np.where(c < 0.0, -b + sq, np.where(-b - sq >= 0.0, -b - sq, np.nan))
+        return np.where(b * b - c >= 0.0, t, np.nan)
+
     def signed_distance_bound(self, Q) -> np.ndarray:
         """(M,) the signed distance itself (exact, so a valid bound; see Ellipsoid)."""
         return self.signed_distance(Q)

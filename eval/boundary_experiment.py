@@ -1,0 +1,171 @@
+"""The virtual-boundary experiment: build the eye model with the spiral scan through the
+closed loop, then run seeded adversarial scenarios against it and measure, on the TRUE
+eye, how close the instrument came.
+
+Units: mm, s, rad (times in us where named); frame W.
+"""
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from eval.closed_loop import ClosedLoop, LoopConfig, LoopRun
+from eval.commands import AdversarialCommand, TipPathCommand
+from models import AdaptiveEyeModel
+from models.metrics import mae_exact
+from models.transition import PredictiveCriteria
+from planning import IKFailure, SurgeryScenario, start_posture
+
+VIOLATION_MM = 0.45  # true clearance below this is a violation (0.5 mm boundary, 50 um tolerance)
+SCENARIO_S = 0.5
+START_DEPTH_MM = (1.5, 6.0)  # adversarial start: tip this far inside the model
+
+
+@dataclass(frozen=True)
+class SpiralBuild:
+    """The model built by the spiral through the loop and how the scan went."""
+
+    model: object  # models.AdaptiveEyeModel, in W
+    run: LoopRun
+    q_end: np.ndarray
+    kind_final: str
+    transition_at: float | None  # fraction of the spiral's duration, or None
+    ef_mae_um: float
+    sf_mae_um: float
+
+
+def spiral_path_W(scenario: SurgeryScenario, pitch_mm: float, revolutions: float, spacing_mm: float = 0.1) -> np.ndarray:
+    """(N, 3) mm: the scenario's spiral (planning.scenario) in W."""
+    return scenario.eye_pose.to_W(scenario.spiral_E(pitch_mm, revolutions, spacing_mm))
+
+
+def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: float = 1.5,
+                          revolutions: float = 6.0, logger=None, truth_grid: int = 100) -> SpiralBuild:
+    """Scan the spiral (pitch, revolutions) at `speed_mm_s` through `loop` from the IK
+    posture at its start, building a fresh AdaptiveEyeModel from the sensor's points;
+    MAEs in the exact form against a truth_grid^2 sampling of the true retina."""
+    scenario = loop.scenario
+    P = spiral_path_W(scenario, pitch_mm, revolutions)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+    lead_s = 0.2  # hold the first point while the sensor starts and the prior bounds the motion
+    times = np.concatenate([[0.0], lead_s + s / speed_mm_s])
+    path = TipPathCommand(times, np.vstack([P[:1], P]))
+    q0 = start_posture(loop.robot, P[0], scenario.p_WC)
+    model = AdaptiveEyeModel(criteria=PredictiveCriteria())
+    run = loop.run(path, q0, float(times[-1]) + 0.05, model=model, logger=logger)
+    truth = scenario.eye.reference_samples(truth_grid, truth_grid)
+    trans = _transition_fraction(run, times[-1])
+    return SpiralBuild(model, run, run.q[-1].copy(), model.kind,
+                       trans, 1e3 * mae_exact(model.ellipsoid, truth).mean if model.ellipsoid is not None else float("nan"),
+                       1e3 * mae_exact(model.sphere, truth).mean)
+
+
+def _transition_fraction(run: LoopRun, duration_s: float) -> float | None:
+    """Fraction of the scan's duration at which the model switched (from the filter's
+    record of the model kind)."""
+    k = next((i for i, kind in enumerate(run.kind) if kind == "ellipsoid"), None)
+    return None if k is None else float(run.t[k] / duration_s)
+
+
+def adversarial_starts(loop: ClosedLoop, model_shape, n: int, rng: np.random.Generator) -> list:
+    """n start postures (6,) rad: tip at a random point START_DEPTH_MM inside the model
+    (uniform direction from the eye centre, posterior of the trocar plane), reachable
+    through the trocar with the shaft clear of the lens."""
+    scenario, robot = loop.scenario, loop.robot
+    c = scenario.eye_pose.p_WE
+    out = []
+    tries = 0
+    while len(out) < n:
+        tries += 1
+        if tries > 50 * n + 100:
+            raise RuntimeError(f"found only {len(out)} of {n} reachable adversarial starts")
+        u_E = rng.standard_normal(3)
+        u_E /= np.linalg.norm(u_E)
+        if u_E[2] > 0.3:  # in front of the trocar plane: the shaft would run along the lens
+            continue
+        u = scenario.eye_pose.R_WE @ u_E
+        wall = float(model_shape.ray_cast(c[None], u[None])[0])
+        depth = rng.uniform(*START_DEPTH_MM)
+        p = c + max(wall - depth, 0.0) * u
+        try:
+            scenario.tip_targets_W(scenario.eye_pose.to_E(p[None]))
+            q = start_posture(robot, p, scenario.p_WC)
+        except (ValueError, IKFailure):
+            continue
+        if np.min(robot.joint_margin_rad(q)) < np.radians(3.0):
+            continue
+        out.append(q)
+    return out
+
+
+@dataclass
+class Campaign:
+    """Adversarial runs against one model (a phase), summarised by `summary()`."""
+
+    runs: list = field(default_factory=list)
+    min_clearance_per_run: list = field(default_factory=list)
+
+    def add(self, run: LoopRun) -> None:
+        self.runs.append(run)
+        self.min_clearance_per_run.append(float(np.min(run.true_clearance_mm)) if len(run.t) else np.inf)
+
+    def summary(self) -> dict:
+        runs = self.runs
+        mins = np.array(self.min_clearance_per_run)
+        steps = sum(len(r.t) for r in runs)
+        intervened = sum(int(r.intervened.sum()) for r in runs)
+        free = np.concatenate([_free_errors(r) for r in runs]) if runs else np.zeros(0)
+        solve = np.concatenate([r.solve_us[r.ok] for r in runs]) if runs else np.zeros(0)
+        drake = np.concatenate([r.drake_diffik_us for r in runs]) if runs else np.zeros(0)
+        sim = sum(r.duration_s for r in runs)
+        wall = sum(r.wall_s for r in runs)
+        free_rel = np.concatenate([r.free_tracking_error() for r in runs]) if runs else np.zeros(0)
+        return {
+            "scenarios": len(runs),
+            "violations": int(np.sum(mins < VIOLATION_MM)),
+            "contacts": int(np.sum(mins <= 0.0)),
+            "min_true_clearance_mm": float(mins.min()) if len(mins) else None,
+            "intervention_fraction": intervened / steps if steps else 0.0,
+            "tracking_rmse_mm_s": float(np.sqrt(np.mean(free**2))) if len(free) else 0.0,
+            "failsafe_stops": int(sum(r.failsafe_stops for r in runs)),
+            "solve_us": _quantiles(solve),
+            "drake_diffik_us": _quantiles(drake),
+            "realtime_factor": sim / wall if wall > 0 else None,
+            "free_tracking_error_p99": float(np.percentile(free_rel, 99)) if len(free_rel) else 0.0,
+            "lens_violations": int(sum(np.min(r.lens_clearance_mm) < 0.0 for r in runs)),
+            "max_rcm_error_um": float(1e3 * max(np.nanmax(r.rcm_error_mm) for r in runs)) if runs else None,
+        }
+
+
+def _free_errors(run: LoopRun) -> np.ndarray:
+    """|v_tip - v_cmd| (mm/s) on the steps where the filter did not intervene."""
+    free = run.ok & ~run.intervened
+    return np.linalg.norm(run.v_tip[free] - run.v_cmd[free], axis=1)
+
+
+def _quantiles(x: np.ndarray) -> dict:
+    if not len(x):
+        return {"median": None, "p99": None}
+    return {"median": float(np.median(x)), "p99": float(np.percentile(x, 99))}
+
+
+def run_campaign(loop: ClosedLoop, model, n: int, seed: int, duration_s: float = SCENARIO_S,
+                 logger=None, log_runs: int = 1, progress=None) -> Campaign:
+    """n adversarial scenarios of `duration_s` against copies of `model` (each starts from
+    the same model state), seeded; the first `log_runs` go to `logger`."""
+    rng = np.random.default_rng(seed)
+    starts = adversarial_starts(loop, model.shape, n, rng)
+    scenario = loop.scenario
+    campaign = Campaign()
+    for i, q0 in enumerate(starts):
+        adversary = AdversarialCommand(seed * 100003 + i, scenario.eye_pose.p_WE, scenario.lens_W.center,
+                                       loop.config.filter.max_tip_speed_mm_s)
+        campaign.add(loop.run(adversary, q0, duration_s, model=copy.deepcopy(model),
+                              logger=logger if i < log_runs else None))
+        if progress is not None:
+            progress(i + 1, n)
+    return campaign
+

@@ -1,0 +1,156 @@
+"""`vitreoguard boundary`: the virtual boundary under attack.
+
+Builds the eye model with a spiral scan through the closed loop (robot, iiOCT sensor,
+adaptive model, safety filter), then runs N seeded adversarial scenarios against it and
+writes boundary.json (the keys of issue 6, plus the sphere phase and the spiral), the
+plots boundary_clearance.png and boundary_activity.png, and the MCAP logs spiral.mcap
+(the model-building scan) and boundary.mcap (the first adversarial scenario);
+`vitreoguard replay` re-runs their filter steps.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from eval.io import UsageError, prepare_out_dir, save_figure, write_json
+from models.eyes import EYE_SHAPES
+
+LIMITS = {"scenarios": (1, 100000), "duration_s": (0.05, 10.0), "spiral_speed_mm_s": (1.0, 17.0),
+          "sphere_scenarios": (0, 100000)}
+
+
+def register(sub) -> None:
+    p = sub.add_parser("boundary", help="spiral-built model + N adversarial scenarios: boundary.json, plots, MCAP")
+    p.add_argument("--shape", default="emmetropic", help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    p.add_argument("--scenarios", type=int, default=100, help="adversarial scenarios once the model is built")
+    p.add_argument("--sphere-scenarios", type=int, default=None,
+                   help="scenarios in the sphere phase (model from 1.5 spiral turns); default min(N, 50)")
+    p.add_argument("--seed", type=int, default=0, help="seed of starts, adversaries and sensor noise")
+    p.add_argument("--duration-s", type=float, default=0.5, help="length of one scenario, s")
+    p.add_argument("--spiral-speed-mm-s", type=float, default=15.0, help="tip speed of the model-building spiral, mm/s")
+    p.add_argument("--sensor-mode", choices=("distance", "ascan"), default="distance",
+                   help="iiOCT in the loop: extractor error model (fast) or full A-scans")
+    p.add_argument("--out", default="out/boundary", help="output directory")
+    p.set_defaults(func=main)
+
+
+def validate(args) -> None:
+    if args.shape not in EYE_SHAPES:
+        raise UsageError(f"unknown shape {args.shape!r}; choose from {', '.join(EYE_SHAPES)}")
+    if args.sphere_scenarios is None:
+        args.sphere_scenarios = min(args.scenarios, 50) if isinstance(args.scenarios, int) else 0
+    for name, (lo, hi) in LIMITS.items():
+        v = getattr(args, name)
+        if not (np.isfinite(v) and lo <= v <= hi):
+            raise UsageError(f"--{name.replace('_', '-')} must be in [{lo}, {hi}], got {v}")
+
+
+def run_boundary(args, out, progress=print) -> dict:
+    """The experiment of `args` (validated); writes the log into `out`; returns boundary.json."""
+    from eval.boundary_experiment import build_model_by_spiral, run_campaign
+    from eval.closed_loop import ClosedLoop, LoopConfig
+    from eval.mcap_log import RunLogger
+    from planning import SurgeryScenario
+
+    scenario = SurgeryScenario(eye_name=args.shape)
+    config = LoopConfig(sensor_mode=args.sensor_mode)
+    loop = ClosedLoop(scenario, config, sensor_seed=args.seed)
+    meta = {"shape": args.shape, "seed": args.seed}
+    with RunLogger(out / "spiral.mcap", config.filter, metadata={**meta, "run": "spiral"}) as log:
+        progress(f"building the model: spiral at {args.spiral_speed_mm_s:g} mm/s on the {args.shape} eye ...")
+        build = build_model_by_spiral(loop, args.spiral_speed_mm_s, logger=log)
+    progress(f"  {build.kind_final}, EF MAE {build.ef_mae_um:.1f} um, SF MAE {build.sf_mae_um:.1f} um; "
+             f"{args.scenarios} adversarial scenarios of {args.duration_s:g} s ...")
+    step = max(args.scenarios // 10, 1)
+    with RunLogger(out / "boundary.mcap", config.filter, metadata={**meta, "run": "adversarial scenario 0"}) as log:
+        campaign = run_campaign(loop, build.model, args.scenarios, args.seed, args.duration_s, logger=log,
+                                progress=lambda i, n: progress(f"  {i}/{n}") if i % step == 0 else None)
+    sphere = None
+    if args.sphere_scenarios:
+        progress(f"sphere phase: model from 1.5 spiral turns, {args.sphere_scenarios} scenarios ...")
+        partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, revolutions=1.5)
+        sphere_campaign = run_campaign(loop, partial.model, args.sphere_scenarios, args.seed + 1, args.duration_s)
+        sphere = {"model_kind": partial.kind_final, "sf_mae_um": partial.sf_mae_um, **sphere_campaign.summary()}
+    s = campaign.summary()
+    spiral = build.run
+    result = {
+        **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction",
+                             "tracking_rmse_mm_s", "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor")},
+        "shape": args.shape, "seed": args.seed, "sensor_mode": args.sensor_mode, "scenario_s": args.duration_s,
+        "violation_threshold_mm": 0.45,
+        "lens_violations": s["lens_violations"], "max_rcm_error_um": s["max_rcm_error_um"],
+        "free_tracking_error_p99": s["free_tracking_error_p99"],
+        "model": {"kind": build.kind_final, "transition_at": build.transition_at, "ef_mae_um": build.ef_mae_um,
+                  "sf_mae_um": build.sf_mae_um, "n_points": build.model.n_points,
+                  "outliers_rejected": build.model.n_rejected_outliers},
+        "spiral": {"duration_s": spiral.duration_s, "min_true_clearance_mm": float(spiral.true_clearance_mm.min()),
+                   "intervention_fraction": float(spiral.intervened.mean()),
+                   "max_rcm_error_um": float(1e3 * np.nanmax(spiral.rcm_error_mm)),
+                   "realtime_factor": spiral.realtime_factor, "failsafe_stops": spiral.failsafe_stops},
+        "sphere_phase": sphere,
+        "logs": {"spiral": str(out / "spiral.mcap"), "scenario_0": str(out / "boundary.mcap")},
+    }
+    save_figure(_clearance_figure(campaign, args.shape), out / "boundary_clearance.png")
+    save_figure(_activity_figure(campaign, s), out / "boundary_activity.png")
+    return result
+
+
+def main(args) -> int:
+    validate(args)
+    out = prepare_out_dir(args.out)
+    result = run_boundary(args, out)
+    write_json(out / "boundary.json", result)
+    print(f"\n{'scenarios':24s} {result['scenarios']}")
+    for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
+                "failsafe_stops", "realtime_factor"):
+        v = result[key]
+        print(f"{key:24s} {v:.4g}" if isinstance(v, float) else f"{key:24s} {v}")
+    print(f"{'solve_us':24s} median {result['solve_us']['median']:.0f}  p99 {result['solve_us']['p99']:.0f}   "
+          f"(Drake DoDifferentialInverseKinematics: median {result['drake_diffik_us']['median']:.0f}  "
+          f"p99 {result['drake_diffik_us']['p99']:.0f})")
+    print(f"wrote {out / 'boundary.json'}, boundary_clearance.png, boundary_activity.png, spiral.mcap and boundary.mcap (scenario 0)")
+    return 0
+
+
+def _clearance_figure(campaign, shape: str):
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    mins = np.array(campaign.min_clearance_per_run)
+    a.hist(mins, bins=40, color="tab:blue")
+    a.axvline(0.45, color="r", ls="--", lw=1, label="violation (0.45 mm)")
+    a.axvline(0.5, color="k", ls=":", lw=1, label="boundary (0.5 mm)")
+    a.set_xlabel("smallest TRUE clearance per scenario (mm)")
+    a.set_ylabel("scenarios")
+    a.set_title(f"{shape}: {len(mins)} adversarial scenarios")
+    a.legend()
+    for run in campaign.runs[:8]:
+        b.plot(run.t - run.t[0], run.true_clearance_mm, lw=0.8)
+    b.axhline(0.5, color="k", ls=":", lw=1)
+    b.set_xlabel("time in scenario (s)")
+    b.set_ylabel("smallest true clearance of the monitored points (mm)")
+    b.set_title("first scenarios")
+    fig.tight_layout()
+    return fig
+
+
+def _activity_figure(campaign, summary: dict):
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    frac = [float(r.intervened.mean()) for r in campaign.runs]
+    a.hist(frac, bins=30, color="tab:orange")
+    a.set_xlabel("fraction of control steps the filter changed the command")
+    a.set_ylabel("scenarios")
+    a.set_title(f"filter activity (overall {summary['intervention_fraction']:.1%})")
+    solve = np.concatenate([r.solve_us[r.ok] for r in campaign.runs])
+    drake = np.concatenate([r.drake_diffik_us for r in campaign.runs])
+    bins = np.logspace(np.log10(max(min(solve.min(), drake.min() if len(drake) else solve.min()), 1.0)),
+                       np.log10(max(solve.max(), drake.max() if len(drake) else solve.max())), 40)
+    b.hist(solve, bins=bins, alpha=0.6, label="safety filter QP (all constraints)")
+    if len(drake):
+        b.hist(drake, bins=bins, alpha=0.6, label="Drake DoDifferentialInverseKinematics")
+    b.set_xscale("log")
+    b.set_xlabel("solve time per control step (us)")
+    b.legend()
+    fig.tight_layout()
+    return fig
