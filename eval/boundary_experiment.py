@@ -21,7 +21,7 @@ from planning import IKFailure, SurgeryScenario, start_posture
 
 VIOLATION_MM = 0.45  # true clearance below this is a violation (0.5 mm boundary, 50 um tolerance)
 SCENARIO_S = 0.5
-START_DEPTH_MM = (1.5, 6.0)  # adversarial start: tip this far inside the model
+START_DEPTH_MM = (1.5, 4.0)  # adversarial start: tip this far inside the model
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from eval.io import UsageError, prepare_out_dir, save_figure, write_json
 from models.eyes import EYE_SHAPES
 
 LIMITS = {"scenarios": (1, 100000), "duration_s": (0.05, 10.0), "spiral_speed_mm_s": (1.0, 17.0),
-          "sphere_scenarios": (0, 100000)}
+          "spiral_revolutions": (1.0, 18.0), "sphere_scenarios": (0, 100000)}
 
 
 def register(sub) -> None:
@@ -27,6 +27,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of starts, adversaries and sensor noise")
     p.add_argument("--duration-s", type=float, default=0.5, help="length of one scenario, s")
     p.add_argument("--spiral-speed-mm-s", type=float, default=15.0, help="tip speed of the model-building spiral, mm/s")
+    p.add_argument("--spiral-revolutions", type=float, default=6.0,
+                   help="revolutions of the model-building spiral (pitch 9 mm / revolutions; 1-18)")
     p.add_argument("--sensor-mode", choices=("distance", "ascan"), default="distance",
                    help="iiOCT in the loop: extractor error model (fast) or full A-scans")
     p.add_argument("--out", default="out/boundary", help="output directory")
@@ -57,7 +59,8 @@ def run_boundary(args, out, progress=print) -> dict:
     meta = {"shape": args.shape, "seed": args.seed}
     with RunLogger(out / "spiral.mcap", config.filter, metadata={**meta, "run": "spiral"}) as log:
         progress(f"building the model: spiral at {args.spiral_speed_mm_s:g} mm/s on the {args.shape} eye ...")
-        build = build_model_by_spiral(loop, args.spiral_speed_mm_s, logger=log)
+        build = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=9.0 / args.spiral_revolutions,
+                                      revolutions=args.spiral_revolutions, logger=log)
     progress(f"  {build.kind_final}, EF MAE {build.ef_mae_um:.1f} um, SF MAE {build.sf_mae_um:.1f} um; "
              f"{args.scenarios} adversarial scenarios of {args.duration_s:g} s ...")
     step = max(args.scenarios // 10, 1)
@@ -67,7 +70,8 @@ def run_boundary(args, out, progress=print) -> dict:
     sphere = None
     if args.sphere_scenarios:
         progress(f"sphere phase: model from 1.5 spiral turns, {args.sphere_scenarios} scenarios ...")
-        partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, revolutions=1.5)
+        partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=9.0 / args.spiral_revolutions,
+                                        revolutions=1.5)
         sphere_campaign = run_campaign(loop, partial.model, args.sphere_scenarios, args.seed + 1, args.duration_s)
         sphere = {"model_kind": partial.kind_final, "sf_mae_um": partial.sf_mae_um, **sphere_campaign.summary()}
     s = campaign.summary()

@@ -18,6 +18,8 @@ import numpy as np
 from models._validation import as_points, as_positive, as_vector3
 
 ADVERSARY_MODES = ("push", "along", "port_side", "lens", "random")
+# how often each mode is drawn: mostly attacks on the retina, some on the lens
+ADVERSARY_WEIGHTS = {"push": 0.4, "along": 0.15, "port_side": 0.2, "lens": 0.1, "random": 0.15}
 
 
 class TipPathCommand:
@@ -63,7 +65,8 @@ class TipPathCommand:
 
 class VelocityReplayCommand:
     """Recorded tip velocities V_W (M, 3) mm/s (and roll rates (M,) rad/s) from times_s
-    (M,) s on, held until the next sample; zero after the last sample + its period."""
+    (M,) s on, held until the next sample; zero after the last sample + its period (a
+    single sample is held to the end of the run)."""
 
     def __init__(self, times_s, V_W, roll_rate=None):
         t = np.asarray(times_s, dtype=float)
@@ -74,7 +77,7 @@ class VelocityReplayCommand:
             raise ValueError("times_s must be strictly increasing (s)")
         self.times_s, self.V_W = t, V  # non-finite velocities are passed on: the filter stops on them
         self.roll_rate = np.zeros(len(t)) if roll_rate is None else np.asarray(roll_rate, dtype=float).reshape(len(t))
-        self._end = t[-1] + (np.median(np.diff(t)) if len(t) > 1 else 0.0)
+        self._end = t[-1] + np.median(np.diff(t)) if len(t) > 1 else np.inf  # one sample: held to the end
 
     def __call__(self, t_s: float, p_WT, q) -> tuple[np.ndarray, float]:
         k = int(np.searchsorted(self.times_s, t_s, side="right")) - 1
@@ -85,7 +88,8 @@ class VelocityReplayCommand:
 
 class AdversarialCommand:
     """A seeded adversary: segments of `segment_s` (uniform in the range, s), each of one
-    mode drawn from `modes` with a speed uniform in [0.5, 1] x `max_speed_mm_s`:
+    mode drawn from `modes` (weights ADVERSARY_WEIGHTS; the first segment always pushes
+    toward the retina) with a speed uniform in [0.5, 1] x `max_speed_mm_s`:
 
     - "push": straight toward the retina (away from the eye centre p_WE_center), +-15 deg;
     - "along": tangential to the retina, with a 20 % push outward;
@@ -125,7 +129,8 @@ class AdversarialCommand:
 
     def _segment(self, t_s: float, p_WT: np.ndarray) -> None:
         rng = self._rng
-        mode = self.modes[rng.integers(len(self.modes))]
+        w = np.array([ADVERSARY_WEIGHTS[m] for m in self.modes])
+        mode = "push" if not self.mode_log and "push" in self.modes else self.modes[rng.choice(len(w), p=w / w.sum())]
         out = self._unit(p_WT - self.p_WE_center)
         tangent = self._unit(np.cross(out, rng.standard_normal(3)))
         u = {"push": lambda: self._tilted(out, 15.0),

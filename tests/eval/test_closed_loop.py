@@ -1,0 +1,146 @@
+"""The closed loop in Drake: the filter keeps the instrument off the TRUE retina while the
+RCM holds, tracks the command in free space, fails safe inside the loop, and its log
+replays bit for bit."""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from eval.boundary_experiment import VIOLATION_MM, adversarial_starts, run_campaign
+from eval.closed_loop import ClosedLoop, LoopConfig
+from eval.commands import TipPathCommand, VelocityReplayCommand
+from eval.mcap_log import RunLogger
+from eval.mcap_replay import replay
+from models import AdaptiveEyeModel
+from models.transition import PredictiveCriteria
+from planning import SurgeryScenario, start_posture
+from safety import FilterConfig
+
+RCM_TOL_MM = 0.020  # RCM drift at 1 kHz with a one-step command latency, up to 20 mm/s
+
+
+def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0) -> AdaptiveEyeModel:
+    """The adaptive model from the retina points the fiber would see along the spiral
+    (beams from the trocar through the spiral points, 20 um noise), without the robot."""
+    P_E = scenario.spiral_E(pitch_mm=1.5, revolutions=6.0, spacing_mm=0.05)
+    P = scenario.eye_pose.to_W(P_E)
+    U = P - scenario.p_WC
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    d = scenario.eye.ray_cast(P, U)
+    X = P + (d + np.random.default_rng(seed).normal(0.0, 0.02, len(d)))[:, None] * U
+    model = AdaptiveEyeModel(criteria=PredictiveCriteria())
+    for k in range(0, len(X), 10):
+        model.update(X[k:k + 10])
+    return model
+
+
+@pytest.fixture(scope="module")
+def emmetropic():
+    scenario = SurgeryScenario()
+    model = model_from_spiral_beams(scenario)
+    assert model.kind == "ellipsoid"
+    return ClosedLoop(scenario), model
+
+
+def deep_start(loop):
+    """A posture with the tip 5 mm behind the eye centre, far from the retina."""
+    p = loop.scenario.eye_pose.to_W(np.array([[1.0, 1.0, -5.0]]))[0]
+    return start_posture(loop.robot, p, loop.scenario.p_WC)
+
+
+def test_adversarial_scenarios_keep_the_true_clearance_on_a_regular_eye(emmetropic):
+    loop, model = emmetropic
+    campaign = run_campaign(loop, model, 4, seed=3, duration_s=0.5)
+    s = campaign.summary()
+    assert s["violations"] == 0 and s["contacts"] == 0 and s["lens_violations"] == 0
+    assert s["min_true_clearance_mm"] >= VIOLATION_MM
+    assert s["failsafe_stops"] == 0
+    assert s["max_rcm_error_um"] <= 1e3 * RCM_TOL_MM
+    # the adversary really attacks: the boundary is reached (within 0.3 mm of the 0.5 mm boundary)
+    assert s["min_true_clearance_mm"] <= 0.8 and s["intervention_fraction"] > 0.05
+
+
+def test_free_space_command_is_tracked_within_1_percent(emmetropic):
+    loop, model = emmetropic
+    v = np.array([2.0, -1.0, 1.5])  # mm/s, 0.3 s: the tip moves 0.8 mm from a point 5 mm deep
+    run = loop.run(VelocityReplayCommand([0.0], [v]), deep_start(loop), 0.3, model=copy.deepcopy(model))
+    moving = np.linalg.norm(run.v_cmd, axis=1) > 0
+    assert moving.sum() > 250 and run.ok.all()
+    assert not run.intervened[moving].any()
+    err = np.linalg.norm(run.v_tip[moving] - run.v_cmd[moving], axis=1) / np.linalg.norm(v)
+    assert err.max() < 0.01
+    assert np.nanmax(run.rcm_error_mm) <= RCM_TOL_MM
+
+
+def test_a_tip_path_is_followed(emmetropic):
+    loop, model = emmetropic
+    q0 = deep_start(loop)
+    p0 = loop.robot.pose("T", q0)[1]
+    t = np.array([0.0, 0.3])
+    path = TipPathCommand(t, np.vstack([p0, p0 + [1.5, 0.0, 0.0]]))
+    run = loop.run(path, q0, 0.4, model=copy.deepcopy(model))
+    p_end = loop.robot.pose("T", run.q[-1])[1]
+    assert np.linalg.norm(p_end - (p0 + [1.5, 0.0, 0.0])) < 0.05  # position feedback closes the 1-step latency
+
+
+def test_nan_commands_stop_the_robot_where_it_is(emmetropic):
+    loop, model = emmetropic
+    V = np.array([[2.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    run = loop.run(VelocityReplayCommand([0.0, 0.05, 0.15], V), deep_start(loop), 0.2, model=copy.deepcopy(model))
+    bad = ~run.ok
+    assert 90 <= bad.sum() <= 101
+    assert all("non-finite v_cmd_W" in r for r, b in zip(run.reasons, bad) if b)
+    assert np.all(run.qdot[bad] == 0.0)
+    k = np.flatnonzero(bad)
+    # zero-order hold + integrator: the joints stop one step after the fault is seen
+    assert np.abs(np.diff(run.q[k[1]:k[-1] + 1], axis=0)).max() == 0.0
+    assert run.failsafe_stops == 1
+
+
+def test_a_stale_sensor_keeps_the_robot_still():
+    """A packet's newest sample is at least 0.5 ms old at a control step; with a 0.3 ms age
+    limit every step is a fault."""
+    scenario = SurgeryScenario()
+    loop = ClosedLoop(scenario, LoopConfig(filter=FilterConfig(max_sensor_age_s=3e-4)))
+    q0 = deep_start(loop)
+    run = loop.run(VelocityReplayCommand([0.0], [[3.0, 0.0, 0.0]]), q0, 0.05)
+    assert not run.ok.any() and all(r.startswith("stale sensor") for r in run.reasons)
+    assert np.array_equal(run.q[-1], q0)
+
+
+def test_the_prior_bounds_the_motion_until_the_model_is_trusted():
+    scenario = SurgeryScenario()
+    loop = ClosedLoop(scenario)
+    run = loop.run(VelocityReplayCommand([0.0], [[0.0, 0.0, 0.0]]), deep_start(loop), 0.05)
+    assert set(run.kind) == {"prior"}  # a still beam gives a scan range of 0: never trusted
+
+
+def test_adversarial_starts_are_inside_and_reachable(emmetropic):
+    loop, model = emmetropic
+    starts = adversarial_starts(loop, model.shape, 5, np.random.default_rng(0))
+    for q in starts:
+        p = loop.robot.pose("T", q)[1]
+        assert 1.5 - 0.3 <= loop.scenario.eye.signed_distance(p[None])[0] <= 4.0 + 0.5
+        assert loop.robot.rcm_error_mm(q, loop.scenario.p_WC) < 1e-3
+
+
+def test_a_closed_loop_log_replays_bit_for_bit(emmetropic, tmp_path):
+    loop, model = emmetropic
+    q0 = deep_start(loop)
+    with RunLogger(tmp_path / "loop.mcap", loop.config.filter) as log:
+        loop.run(VelocityReplayCommand([0.0], [[5.0, 0.0, -3.0]]), q0, 0.1, model=copy.deepcopy(model), logger=log)
+    result = replay(tmp_path / "loop.mcap")
+    assert result.ok and result.steps >= 90 and result.max_abs_diff == 0.0
+
+
+def test_bad_loop_arguments_are_refused(emmetropic):
+    loop, model = emmetropic
+    cmd = VelocityReplayCommand([0.0], [[0.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="q0"):
+        loop.run(cmd, np.full(6, np.nan), 0.1)
+    with pytest.raises(ValueError, match="duration_s"):
+        loop.run(cmd, deep_start(loop), -1.0)
+    with pytest.raises(ValueError, match="sensor_mode"):
+        LoopConfig(sensor_mode="camera")
