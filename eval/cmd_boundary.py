@@ -46,8 +46,9 @@ def validate(args) -> None:
             raise UsageError(f"--{name.replace('_', '-')} must be in [{lo}, {hi}], got {v}")
 
 
-def run_boundary(args, out, progress=print) -> dict:
-    """The experiment of `args` (validated); writes the log into `out`; returns boundary.json."""
+def run_boundary(args, out, progress=print, keep_build: bool = False):
+    """The experiment of `args` (validated); writes logs and plots into `out`; returns
+    boundary.json's content (and the SpiralBuild with `keep_build`)."""
     from eval.boundary_experiment import build_model_by_spiral, run_campaign
     from eval.closed_loop import ClosedLoop, LoopConfig
     from eval.mcap_log import RunLogger
@@ -95,7 +96,7 @@ def run_boundary(args, out, progress=print) -> dict:
     }
     save_figure(_clearance_figure(campaign, args.shape), out / "boundary_clearance.png")
     save_figure(_activity_figure(campaign, s), out / "boundary_activity.png")
-    return result
+    return (result, build) if keep_build else result
 
 
 def main(args) -> int:

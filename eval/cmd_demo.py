@@ -1,25 +1,46 @@
-"""`vitreoguard demo`: the adaptive model along the paper's spiral on the default eye.
+"""`vitreoguard demo`: the closed loop on the default eye, end to end.
 
-Prints the model's history (kind, radii, accuracy) as a table and writes demo.json
-and a Fig. 5-style plot. (When the closed loop lands, the demo becomes it.)
+The Meca500 scans a spiral through the trocar while the simulated iiOCT feeds the
+adaptive model (prior -> sphere -> ellipsoid), then an adversarial "surgeon" attacks the
+retina, the port side and the lens while the safety filter holds the 0.5 mm boundary.
+Prints the model's history and the boundary's summary; writes demo.json (boundary.json's
+keys + the history), the plots and the MCAP logs (open them in Foxglove).
 """
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 
-from eval.io import UsageError, prepare_out_dir, save_figure, write_json
-from eval.paper_figures import fig5
-from eval.paper_experiment import run_shape
+from eval.io import UsageError, prepare_out_dir, write_json
 from models.eyes import EYE_SHAPES
 
 
 def register(sub) -> None:
-    p = sub.add_parser("demo", help="fit the adaptive eye model along the paper's spiral and print its history")
-    p.add_argument("--out", default="out/demo", help="output directory (demo.json, demo_mae.png)")
+    p = sub.add_parser("demo", help="closed loop on the default eye: spiral scan, transition, adversarial teleoperation")
+    p.add_argument("--out", default="out/demo", help="output directory")
     p.add_argument("--shape", default="emmetropic", help=f"one of: {' '.join(EYE_SHAPES)}")
-    p.add_argument("--seed", type=int, default=0, help="noise seed")
-    p.add_argument("--rows", type=int, default=12, help="rows of the history table")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sensor noise, starts and adversary")
+    p.add_argument("--scenarios", type=int, default=20, help="adversarial scenarios of 0.5 s after the scan")
+    p.add_argument("--rows", type=int, default=10, help="rows of the model history table")
     p.set_defaults(func=main)
+
+
+def _history_rows(build, rows: int) -> list[dict]:
+    """The model at `rows` instants of the scan: time, kind the filter used, points, radii."""
+    run, history = build.run, build.model.history
+    out = []
+    for k in np.linspace(0, len(run.t) - 1, rows).round().astype(int):
+        t = float(run.t[k])
+        n = int(round(len(history) * t / run.t[-1]))
+        u = history[min(max(n - 1, 0), len(history) - 1)] if history else None
+        out.append({"t_s": t, "kind": run.kind[k], "n_points": 0 if u is None else u.n_points,
+                    "scan_range_mm": 0.0 if u is None else float(u.scan_range_mm),
+                    "sphere_radius_mm": None if u is None or not np.isfinite(u.sphere_radius) else float(u.sphere_radius),
+                    "ellipsoid_radii_mm": None if u is None or u.ellipsoid_radii is None
+                    else sorted(map(float, u.ellipsoid_radii), reverse=True),
+                    "min_true_clearance_mm": float(run.true_clearance_mm[k])})
+    return out
 
 
 def main(args) -> int:
@@ -27,38 +48,36 @@ def main(args) -> int:
         raise UsageError(f"unknown shape {args.shape!r}; choose from {', '.join(EYE_SHAPES)}")
     if args.rows < 2:
         raise UsageError(f"--rows must be >= 2, got {args.rows}")
+    if not 1 <= args.scenarios <= 1000:
+        raise UsageError(f"--scenarios must be in [1, 1000], got {args.scenarios}")
     out = prepare_out_dir(args.out)
-    run = run_shape(args.shape, args.seed, grid=200, criteria=("predictive", "paper"), keep_history=True)
-    history = run.history
-    n = run.n_points
-    print(f"Adaptive eye model on the {args.shape} eye, paper spiral ({n} A-scans, 20 um noise), predictive criteria")
-    print(f"{'spiral':>7} {'points':>6} {'kind':>9} {'scan range':>10} {'sphere r':>8} {'ellipsoid radii (mm)':>24} {'SF MAE':>8} {'EF MAE':>8}")
-    for k in np.linspace(0, len(run.fractions) - 1, args.rows).round().astype(int):
-        received = int(round(run.fractions[k] * n))
-        u = next(h for h in reversed(history) if h.n_received <= received)
-        radii = " ".join(f"{r:6.3f}" for r in sorted(u.ellipsoid_radii, reverse=True))
-        print(f"{100 * run.fractions[k]:6.1f}% {u.n_points:6d} {u.kind:>9} {u.scan_range_mm:8.2f}mm {u.sphere_radius:8.3f} "
-              f"{radii:>24} {1e3 * run.sf_mae_curve[k]:6.1f}um {1e3 * run.ef_mae_curve[k]:6.1f}um")
-    t = run.transitions["predictive"]
-    summary = {
-        "shape": args.shape,
-        "n_points": n,
-        "kind_final": history[-1].kind,
-        "transition_at": t,
-        "optimal_transition_at": run.optimal_transition_at,
-        "paper_criteria_transition_at": run.transitions["paper"],
-        "ef_mae_mm": [run.ef.mae.mean, run.ef.mae.sd],
-        "sf_mae_mm": [run.sf.mae.mean, run.sf.mae.sd],
-        "mmae_mm": [run.ef.mmae.mean, run.ef.mmae.sd],
-        "ellipsoid_radii_mm": sorted(map(float, history[-1].ellipsoid_radii), reverse=True),
-    }
-    write_json(out / "demo.json", summary)
-    save_figure(
-        fig5(args.shape, run.fractions, run.sf_mae_curve, run.ef_mae_curve, run.criteria_met_at["paper"], t,
-             run.optimal_transition_at, "predictive", 1),
-        out / "demo_mae.png",
-    )
-    print(f"\nswitched to the ellipsoid at {100 * t:.1f} % of the spiral (optimal {100 * (run.optimal_transition_at or 0):.1f} %); "
-          f"final EF MAE {1e3 * run.ef.mae.mean:.1f} um (exact, 200 x 200 truth sampling)" if t is not None else "\nstayed a sphere")
-    print(f"wrote {out / 'demo.json'} and {out / 'demo_mae.png'}")
+    from eval.cmd_boundary import run_boundary
+
+    boundary_args = argparse.Namespace(shape=args.shape, scenarios=args.scenarios, sphere_scenarios=0, seed=args.seed,
+                                       duration_s=0.5, spiral_speed_mm_s=15.0, spiral_revolutions=6.0,
+                                       sensor_mode="distance")
+    print(f"VitreoGuard demo: closed loop on the {args.shape} eye (Meca500 through the trocar, iiOCT at 2 kHz, "
+          "filter at 1 kHz)")
+    result, build = run_boundary(boundary_args, out, keep_build=True)
+    rows = _history_rows(build, args.rows)
+    print(f"\nModel during the spiral scan ({build.run.duration_s:.1f} s, {build.model.n_points} points):")
+    print(f"{'t (s)':>6} {'filter uses':>11} {'points':>7} {'range':>8} {'sphere r':>8} {'ellipsoid radii (mm)':>22} {'true clr':>8}")
+    for r in rows:
+        radii = " ".join(f"{v:6.3f}" for v in r["ellipsoid_radii_mm"]) if r["ellipsoid_radii_mm"] else "-"
+        sphere = f"{r['sphere_radius_mm']:8.3f}" if r["sphere_radius_mm"] else f"{'-':>8}"
+        print(f"{r['t_s']:6.2f} {r['kind']:>11} {r['n_points']:7d} {r['scan_range_mm']:6.2f}mm {sphere} {radii:>22} "
+              f"{r['min_true_clearance_mm']:6.2f}mm")
+    m = result["model"]
+    print(f"final: {m['kind']}, EF MAE {m['ef_mae_um']:.1f} um, SF MAE {m['sf_mae_um']:.1f} um (exact, vs the true retina)")
+    print(f"\nAdversarial teleoperation: {result['scenarios']} scenarios of 0.5 s")
+    for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "failsafe_stops",
+                "realtime_factor"):
+        v = result[key]
+        print(f"  {key:24s} {v:.4g}" if isinstance(v, float) else f"  {key:24s} {v}")
+    print(f"  {'filter solve (us)':24s} median {result['solve_us']['median']:.0f}, p99 {result['solve_us']['p99']:.0f} "
+          f"(Drake DoDifferentialInverseKinematics p99 {result['drake_diffik_us']['p99']:.0f})")
+    write_json(out / "demo.json", {**result, "history": rows})
+    print(f"\nwrote {out / 'demo.json'}, plots boundary_clearance.png and boundary_activity.png, "
+          f"MCAP logs {out / 'spiral.mcap'} and {out / 'boundary.mcap'} (open in Foxglove; "
+          f"`vitreoguard replay {out / 'boundary.mcap'}` re-runs the filter)")
     return 0

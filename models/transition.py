@@ -159,6 +159,8 @@ class PredictiveCriteria:
         anterior = c - centroid  # the scanned retina lies opposite the front of the eye
         anterior /= np.linalg.norm(anterior)
         X = global_surface_points(c, r_ef / L, R_ef, anterior, self.crop_mm / L)
+        if not len(X):  # an early, tiny ellipsoid lies wholly in the cropped front: not converged
+            return np.inf, False
         drift = float(sampson_distance(v_ef_old, X).mean())
         c_sf = (snap.sf[0] - snap.p0) / L
         gap = float(np.abs(np.linalg.norm(X - c_sf, axis=1) - snap.sf[1] / L).mean())
