@@ -1,0 +1,61 @@
+"""`vitreoguard boundary` and `vitreoguard demo`: the JSON contract, plots and logs of a
+reduced run, and bad arguments refused before anything is written."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from eval.cli import main
+from eval.mcap_replay import replay
+
+KEYS = {"scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
+        "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor"}
+
+
+@pytest.fixture(scope="module")
+def boundary_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("boundary")
+    code = main(["boundary", "--scenarios", "3", "--sphere-scenarios", "2", "--duration-s", "0.3",
+                 "--spiral-revolutions", "2", "--out", str(out)])
+    return code, out
+
+
+def test_boundary_writes_the_contract(boundary_run):
+    code, out = boundary_run
+    assert code == 0
+    r = json.loads((out / "boundary.json").read_text())
+    assert KEYS <= set(r)
+    assert r["scenarios"] == 3 and r["violations"] == 0 and r["contacts"] == 0
+    assert r["min_true_clearance_mm"] >= 0.45
+    assert set(r["solve_us"]) == {"median", "p99"} and set(r["drake_diffik_us"]) == {"median", "p99"}
+    assert r["realtime_factor"] > 0 and 0.0 <= r["intervention_fraction"] <= 1.0
+    assert r["sphere_phase"]["scenarios"] == 2 and r["sphere_phase"]["violations"] == 0
+    for name in ("boundary_clearance.png", "boundary_activity.png", "spiral.mcap", "boundary.mcap"):
+        assert (out / name).stat().st_size > 1000
+
+
+def test_the_first_scenario_log_replays(boundary_run):
+    _, out = boundary_run
+    result = replay(out / "boundary.mcap")
+    assert result.ok and result.steps >= 290
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--shape", "square"], "unknown shape"),
+    (["--scenarios", "0"], "--scenarios"),
+    (["--duration-s", "nan"], "--duration-s"),
+    (["--spiral-speed-mm-s", "100"], "--spiral-speed-mm-s"),
+])
+def test_bad_boundary_arguments_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
+    out = tmp_path / "never"
+    assert main(["boundary", *argv, "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("argv, message", [(["--shape", "round"], "unknown shape"), (["--scenarios", "0"], "--scenarios")])
+def test_bad_demo_arguments_exit_2(argv, message, tmp_path, capsys):
+    assert main(["demo", *argv, "--out", str(tmp_path / "never")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "never").exists()

@@ -1,0 +1,54 @@
+"""Command sources: tip paths, velocity replay and the seeded adversary."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from eval.commands import ADVERSARY_MODES, AdversarialCommand, TipPathCommand, VelocityReplayCommand
+
+C = np.array([100.0, 0.0, 80.0])
+LENS = C + [0.0, 0.0, 7.8]
+
+
+def test_a_tip_path_commands_its_velocity_plus_position_feedback():
+    P = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 2.0, 0.0]])
+    cmd = TipPathCommand([0.0, 0.5, 1.5], P, gain_per_s=10.0)
+    v, roll = cmd(0.25, [0.5, 0.0, 0.0], None)
+    np.testing.assert_allclose(v, [2.0, 0.0, 0.0])  # on the path: feed-forward only
+    v, _ = cmd(0.25, [0.5, 0.1, 0.0], None)
+    np.testing.assert_allclose(v, [2.0, -1.0, 0.0])  # 0.1 mm off: 10/s x 0.1 mm back
+    v, _ = cmd(3.0, [1.0, 2.0, 0.0], None)
+    np.testing.assert_allclose(v, 0.0)  # after the end: hold the last point
+    with pytest.raises(ValueError, match="increasing"):
+        TipPathCommand([0.0, 0.0], P[:2])
+
+
+def test_velocity_replay_holds_each_sample():
+    cmd = VelocityReplayCommand([0.0, 0.1], [[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    np.testing.assert_allclose(cmd(0.05, None, None)[0], [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(cmd(0.15, None, None)[0], [0.0, 2.0, 0.0])
+    np.testing.assert_allclose(cmd(0.25, None, None)[0], 0.0)  # past the last sample + its period
+
+
+@given(st.integers(0, 10_000))
+def test_the_adversary_is_seeded_bounded_and_starts_with_a_push(seed):
+    a, b = (AdversarialCommand(seed, C, LENS, max_speed_mm_s=20.0) for _ in range(2))
+    p = C + [0.0, 0.0, -8.0]
+    for t in np.arange(0.0, 0.6, 0.001):
+        va, ra = a(t, p, None)
+        vb, rb = b(t, p, None)
+        assert np.array_equal(va, vb) and ra == rb
+        assert 10.0 - 1e-9 <= np.linalg.norm(va) <= 20.0 + 1e-9
+    assert a.mode_log[0][1] == "push"
+    v0 = AdversarialCommand(seed, C, LENS)(0.0, p, None)[0]
+    assert v0 @ (p - C) / (np.linalg.norm(v0) * 8.0) > np.cos(np.radians(45.0))  # toward the retina
+
+
+def test_adversary_bad_arguments():
+    with pytest.raises(ValueError, match="modes"):
+        AdversarialCommand(0, C, LENS, modes=("dance",))
+    with pytest.raises(ValueError, match="segment_s"):
+        AdversarialCommand(0, C, LENS, segment_s=(0.2, 0.1))
+    assert set(ADVERSARY_MODES) == {"push", "along", "port_side", "lens", "random"}

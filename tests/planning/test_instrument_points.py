@@ -1,0 +1,47 @@
+"""Monitored points from one pose + one spatial Jacobian agree with Drake's per-point queries."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from planning import Robot, SurgeryScenario, start_posture
+from planning.instrument_points import PORT_I_MM, MonitoredPointsConfig, instrument_points
+
+
+@pytest.fixture(scope="module")
+def setup():
+    scenario = SurgeryScenario()
+    robot = Robot(scenario)
+    p = scenario.eye_pose.to_W(np.array([[1.0, 2.0, -3.0]]))[0]
+    return scenario, robot, start_posture(robot, p, scenario.p_WC)
+
+
+def test_points_jacobians_and_rcm_rows_match_drake(setup):
+    scenario, robot, q0 = setup
+    rng = np.random.default_rng(0)
+    for q in q0 + 0.02 * rng.standard_normal((5, 6)):
+        ip = instrument_points(robot, q, scenario.p_WC)
+        np.testing.assert_allclose(ip.P_W[0], robot.pose("T", q)[1], atol=1e-9)
+        np.testing.assert_allclose(ip.J_tip, robot.jacobian("T", np.zeros(3), q), atol=1e-9)
+        np.testing.assert_allclose(ip.J_W[1], robot.jacobian("I", PORT_I_MM, q), atol=1e-9)
+        for name, p, J in zip(ip.names[2:], ip.P_W[2:], ip.J_W[2:]):
+            x = robot.pose("I", q)[0].T @ (p - robot.pose("I", q)[1])
+            np.testing.assert_allclose(J, robot.jacobian("I", x, q), atol=1e-9)
+        A, b = robot.rcm_rows(q, scenario.p_WC)
+        np.testing.assert_allclose(ip.rcm_A, A, atol=1e-9)
+        np.testing.assert_allclose(ip.rcm_b, b, atol=1e-9)
+        assert ip.rcm_error_mm == pytest.approx(robot.rcm_error_mm(q, scenario.p_WC), abs=1e-12)
+
+
+def test_shaft_points_stay_inside_the_eye_and_lens_points_start_at_the_trocar(setup):
+    scenario, robot, q = setup
+    cfg = MonitoredPointsConfig()
+    ip = instrument_points(robot, q, scenario.p_WC, cfg)
+    lam = np.linalg.norm(ip.P_W[0] - scenario.p_WC)  # tip's distance past the trocar
+    expected = sum(1 for k in range(1, cfg.n_shaft + 1) if lam - k * cfg.shaft_spacing_mm >= cfg.min_depth_past_trocar_mm)
+    assert len(ip.names) == 2 + expected
+    assert (scenario.eye.signed_distance(ip.P_W) > 0).all()
+    d = np.linalg.norm(ip.L_W - scenario.p_WC, axis=1)
+    np.testing.assert_allclose(d, [o for o in cfg.lens_offsets_mm if o <= lam], atol=1e-6)
+    with pytest.raises(ValueError, match="n_shaft"):
+        MonitoredPointsConfig(n_shaft=-1)
