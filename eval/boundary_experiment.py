@@ -29,6 +29,7 @@ class SpiralBuild:
     """The model built by the spiral through the loop and how the scan went."""
 
     model: object  # models.AdaptiveEyeModel, in W
+    coverage: object  # models.coverage.DirectionCoverage of its points
     run: LoopRun
     q_end: np.ndarray
     kind_final: str
@@ -54,11 +55,11 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: 
     times = np.concatenate([[0.0], lead_s + s / speed_mm_s])
     path = TipPathCommand(times, np.vstack([P[:1], P]))
     q0 = start_posture(loop.robot, P[0], scenario.p_WC)
-    model = AdaptiveEyeModel(criteria=PredictiveCriteria())
-    run = loop.run(path, q0, float(times[-1]) + 0.05, model=model, logger=logger)
+    model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), loop.new_coverage()
+    run = loop.run(path, q0, float(times[-1]) + 0.05, model=model, coverage=coverage, logger=logger)
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)
     trans = _transition_fraction(run, times[-1])
-    return SpiralBuild(model, run, run.q[-1].copy(), model.kind,
+    return SpiralBuild(model, coverage, run, run.q[-1].copy(), model.kind,
                        trans, 1e3 * mae_exact(model.ellipsoid, truth).mean if model.ellipsoid is not None else float("nan"),
                        1e3 * mae_exact(model.sphere, truth).mean)
 
@@ -152,10 +153,10 @@ def _quantiles(x: np.ndarray) -> dict:
     return {"median": float(np.median(x)), "p99": float(np.percentile(x, 99))}
 
 
-def run_campaign(loop: ClosedLoop, model, n: int, seed: int, duration_s: float = SCENARIO_S,
+def run_campaign(loop: ClosedLoop, model, coverage, n: int, seed: int, duration_s: float = SCENARIO_S,
                  logger=None, log_runs: int = 1, progress=None) -> Campaign:
-    """n adversarial scenarios of `duration_s` against copies of `model` (each starts from
-    the same model state), seeded; the first `log_runs` go to `logger`."""
+    """n adversarial scenarios of `duration_s` against copies of `model` and its
+    `coverage` (each starts from the same state), seeded; the first `log_runs` go to `logger`."""
     rng = np.random.default_rng(seed)
     starts = adversarial_starts(loop, model.shape, n, rng)
     scenario = loop.scenario
@@ -163,7 +164,7 @@ def run_campaign(loop: ClosedLoop, model, n: int, seed: int, duration_s: float =
     for i, q0 in enumerate(starts):
         adversary = AdversarialCommand(seed * 100003 + i, scenario.eye_pose.p_WE, scenario.lens_W.center,
                                        loop.config.filter.max_tip_speed_mm_s)
-        campaign.add(loop.run(adversary, q0, duration_s, model=copy.deepcopy(model),
+        campaign.add(loop.run(adversary, q0, duration_s, model=copy.deepcopy(model), coverage=copy.deepcopy(coverage),
                               logger=logger if i < log_runs else None))
         if progress is not None:
             progress(i + 1, n)

@@ -30,6 +30,7 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import DiscreteTimeIntegrator
 
 from models import AdaptiveEyeModel
+from models.coverage import DirectionCoverage
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 from planning.iioct_sensor import IioctSensor, IioctSensorSystem
@@ -48,7 +49,10 @@ class LoopConfig:
     is timed on the same state for comparison (every n-th control step; 0: never).
     The filter trusts the fitted model only once it holds `model_min_points` points over
     a scan range of `model_min_scan_range_mm` (a sphere through a few points of a small
-    patch can be millimetres off); until then the conservative prior bounds the motion."""
+    patch can be millimetres off); until then the conservative prior bounds the motion.
+    Afterwards a monitored point further than `trust_angle_deg` (seen from the eye
+    centre) from every measured direction keeps the prior's clearance too: the fit's
+    extrapolation is only as good as the eye is regular (models.coverage)."""
 
     control_rate_hz: float = 1000.0
     sensor_rate_hz: float = 2000.0
@@ -60,6 +64,7 @@ class LoopConfig:
     drake_diffik_every: int = 10
     model_min_points: int = 200
     model_min_scan_range_mm: float = 5.0
+    trust_angle_deg: float = 10.0
 
     def __post_init__(self):
         for name in ("control_rate_hz", "sensor_rate_hz"):
@@ -84,20 +89,22 @@ class ModelSnapshot(NamedTuple):
     t_s: float
     residual_mm: float
     n_points: int
+    coverage: object = None  # models.coverage.CoverageView of the measured directions
 
     def __deepcopy__(self, memo) -> ModelSnapshot:
         return self  # immutable (the shapes are frozen): Drake copies abstract state values often
 
 
-def snapshot_of(model: AdaptiveEyeModel, t_s: float, min_points: int = 0, min_scan_range_mm: float = 0.0) -> ModelSnapshot:
+def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float, min_points: int = 0,
+                min_scan_range_mm: float = 0.0) -> ModelSnapshot:
     """The snapshot of `model` at t_s ("prior" until it has a shape from at least
     `min_points` points over `min_scan_range_mm`)."""
     shape = model.shape
     if shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
-        return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points)
+        return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
     last = model.history[-1]
     res = last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm
-    return ModelSnapshot(model.kind, shape, t_s, float(res), model.n_points)
+    return ModelSnapshot(model.kind, shape, t_s, float(res), model.n_points, coverage.view())
 
 
 class CommandSystem(LeafSystem):
@@ -131,15 +138,15 @@ class AdaptiveModelSystem(LeafSystem):
         self._snap = self.DeclareAbstractState(AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
         self.DeclareStateOutputPort("snapshot", self._snap)
-        self.reset(AdaptiveEyeModel())
+        self.reset(AdaptiveEyeModel(), DirectionCoverage(np.zeros(3)))
 
-    def reset(self, model: AdaptiveEyeModel, logger=None) -> None:
-        self.model, self.logger = model, logger
+    def reset(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, logger=None) -> None:
+        self.model, self.coverage, self.logger = model, coverage, logger
         self._last_t = -np.inf
         self.update_us: list[float] = []
 
     def initial_snapshot(self) -> ModelSnapshot:
-        return snapshot_of(self.model, 0.0, *self._trust)
+        return snapshot_of(self.model, self.coverage, 0.0, *self._trust)
 
     def _update(self, context, state) -> None:
         packet = [s for s in self._samples.Eval(context) if s.t_s > self._last_t]
@@ -154,11 +161,12 @@ class AdaptiveModelSystem(LeafSystem):
         if points:
             t0 = time.perf_counter()
             entry = self.model.update(np.array(points))
+            self.coverage.add(np.array(points))
             self.update_us.append(1e6 * (time.perf_counter() - t0) / len(points))
             if entry is not None and self.logger is not None:
                 self.logger.log_model_update(self._last_t, entry)
         snap = state.get_abstract_state(0).get_value()
-        new = snapshot_of(self.model, self._last_t, *self._trust) if entry is not None or snap.shape is None else snap._replace(t_s=self._last_t)
+        new = snapshot_of(self.model, self.coverage, self._last_t, *self._trust) if entry is not None or snap.shape is None else snap._replace(t_s=self._last_t)
         state.get_mutable_abstract_state(0).set_value(new)
 
 
@@ -218,15 +226,20 @@ class FilterSystem(LeafSystem):
         # the prior lies inside every retina, so the shaft behind the tip (which crosses the
         # eye wall at the trocar) is outside it: against the prior only tip and port count
         k = 2 if kind is None else len(ip.names)
+        if kind is None or snap.coverage is None:
+            trusted = np.ones(k, dtype=bool)
+        else:
+            trusted = snap.coverage.angle_from_data_rad(ip.P_W[:k]) <= np.radians(self.config.trust_angle_deg)
         x = FilterInputs(
             t_s=t_s, q=np.array(q), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,
             v_cmd_W=np.array(command[:3]), J_tip=ip.J_tip,
-            boundary_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.names[:k], ip.P_W[:k], ip.J_W[:k])],
+            boundary_points=[PointKinematics(n, p, J, bool(tr))
+                             for n, p, J, tr in zip(ip.names[:k], ip.P_W[:k], ip.J_W[:k], trusted)],
             model=model, model_time_s=t_s if kind is None else snap.t_s, sensor_time_s=sensor_t_s,
             rcm_A=ip.rcm_A, rcm_b=ip.rcm_b, lens=self.lens,
             lens_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.lens_names, ip.L_W, ip.J_L)],
             margin_mm=self.config.margins.margin_mm(kind, snap.residual_mm), J_roll=ip.J_roll,
-            roll_rate_cmd=float(command[3]),
+            roll_rate_cmd=float(command[3]), fallback=None if kind is None else self.prior,
         )
         return x, ip
 
@@ -367,10 +380,11 @@ class ClosedLoop:
         self.diagram = builder.Build()
         self.simulator = Simulator(self.diagram)
 
-    def run(self, source, q0, duration_s: float, model: AdaptiveEyeModel | None = None, logger=None) -> LoopRun:
+    def run(self, source, q0, duration_s: float, model: AdaptiveEyeModel | None = None,
+            coverage: DirectionCoverage | None = None, logger=None) -> LoopRun:
         """Simulate `duration_s` s from joint angles q0 (6,) rad under the command `source`
-        (eval.commands), continuing `model` (a fresh AdaptiveEyeModel if None; updated in
-        place). Logs to `logger` (eval.mcap_log.RunLogger) when given."""
+        (eval.commands), continuing `model` and its `coverage` (fresh ones if None; both
+        updated in place). Logs to `logger` (eval.mcap_log.RunLogger) when given."""
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (6,) or not np.all(np.isfinite(q0)):
             raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")
@@ -378,7 +392,8 @@ class ClosedLoop:
             raise ValueError(f"duration_s must be > 0 s, got {duration_s}")
         self.command.source = source
         self.filter.reset(logger)
-        self.model.reset(AdaptiveEyeModel() if model is None else model, logger)
+        self.model.reset(AdaptiveEyeModel() if model is None else model,
+                         self.new_coverage() if coverage is None else coverage, logger)
         context = self.diagram.CreateDefaultContext()
         self.integrator.set_integral_value(self.integrator.GetMyMutableContextFromRoot(context), q0)
         self.model.GetMyMutableContextFromRoot(context).get_mutable_abstract_state(0).set_value(
@@ -389,6 +404,10 @@ class ClosedLoop:
         self.simulator.AdvanceTo(duration_s)
         wall = time.perf_counter() - t0
         return self._collect(wall)
+
+    def new_coverage(self) -> DirectionCoverage:
+        """An empty record of measured directions, seen from the nominal eye centre."""
+        return DirectionCoverage(self.scenario.eye_pose.p_WE)
 
     def _collect(self, wall_s: float) -> LoopRun:
         r = self.filter.record

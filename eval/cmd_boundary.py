@@ -66,14 +66,14 @@ def run_boundary(args, out, progress=print, keep_build: bool = False):
              f"{args.scenarios} adversarial scenarios of {args.duration_s:g} s ...")
     step = max(args.scenarios // 10, 1)
     with RunLogger(out / "boundary.mcap", config.filter, metadata={**meta, "run": "adversarial scenario 0"}) as log:
-        campaign = run_campaign(loop, build.model, args.scenarios, args.seed, args.duration_s, logger=log,
+        campaign = run_campaign(loop, build.model, build.coverage, args.scenarios, args.seed, args.duration_s, logger=log,
                                 progress=lambda i, n: progress(f"  {i}/{n}") if i % step == 0 else None)
     sphere = None
     if args.sphere_scenarios:
         progress(f"sphere phase: model from 1.5 spiral turns, {args.sphere_scenarios} scenarios ...")
         partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=9.0 / args.spiral_revolutions,
                                         revolutions=1.5)
-        sphere_campaign = run_campaign(loop, partial.model, args.sphere_scenarios, args.seed + 1, args.duration_s)
+        sphere_campaign = run_campaign(loop, partial.model, partial.coverage, args.sphere_scenarios, args.seed + 1, args.duration_s)
         sphere = {"model_kind": partial.kind_final, "sf_mae_um": partial.sf_mae_um, **sphere_campaign.summary()}
     s = campaign.summary()
     spiral = build.run

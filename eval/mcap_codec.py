@@ -19,7 +19,8 @@ _SCALARS = ("t_s", "model_time_s", "sensor_time_s", "margin_mm", "roll_rate_cmd"
 _ARRAYS = ("q", "q_min", "q_max", "qdot_max", "v_cmd_W", "J_tip")
 _OPTIONAL_ARRAYS = ("rcm_A", "rcm_b", "J_roll")
 _POINT_LISTS = ("boundary_points", "lens_points")
-_SHAPES = ("model", "lens")
+_SHAPES = ("model", "lens", "fallback")
+_OPTIONAL_ON_READ = ("fallback",)  # absent in logs written before it existed
 _NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
 
 
@@ -99,7 +100,8 @@ def inputs_to_json(x: FilterInputs) -> dict:
     d.update({name: json_array(getattr(x, name)) for name in _ARRAYS})
     d.update({name: None if getattr(x, name) is None else json_array(getattr(x, name)) for name in _OPTIONAL_ARRAYS})
     for name in _POINT_LISTS:
-        d[name] = [{"name": p.name, "p_W": json_array(p.p_W), "J_W": json_array(p.J_W)} for p in getattr(x, name)]
+        d[name] = [{"name": p.name, "p_W": json_array(p.p_W), "J_W": json_array(p.J_W), "trusted": bool(p.trusted)}
+                   for p in getattr(x, name)]
     for name in _SHAPES:
         try:
             d[name] = shape_to_json(getattr(x, name))
@@ -112,7 +114,8 @@ def inputs_from_json(d) -> FilterInputs:
     """The FilterInputs of an inputs_to_json dict; ValueError naming the bad field."""
     if not isinstance(d, dict):
         raise ValueError(f"filter inputs must be a JSON object, got {type(d).__name__}")
-    missing = [n for n in _SCALARS + _ARRAYS + _OPTIONAL_ARRAYS + _POINT_LISTS + _SHAPES if n not in d]
+    missing = [n for n in _SCALARS + _ARRAYS + _OPTIONAL_ARRAYS + _POINT_LISTS + _SHAPES
+               if n not in d and n not in _OPTIONAL_ON_READ]
     if missing:
         raise ValueError(f"filter inputs lack the fields {missing}")
     kw = {name: number_from_json(d[name], name) for name in _SCALARS}
@@ -122,9 +125,10 @@ def inputs_from_json(d) -> FilterInputs:
         if not isinstance(d[name], list) or not all(isinstance(p, dict) and {"name", "p_W", "J_W"} <= p.keys() for p in d[name]):
             raise ValueError(f"{name} must be a list of {{name, p_W, J_W}} records")
         kw[name] = [PointKinematics(str(p["name"]), array_from_json(p["p_W"], f"{name}.p_W"),
-                                    array_from_json(p["J_W"], f"{name}.J_W")) for p in d[name]]
+                                    array_from_json(p["J_W"], f"{name}.J_W"), bool(p.get("trusted", True)))
+                    for p in d[name]]
     for name in _SHAPES:
-        kw[name] = shape_from_json(d[name], name)
+        kw[name] = shape_from_json(d.get(name), name)
     return FilterInputs(**kw)
 
 

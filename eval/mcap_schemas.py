@@ -38,7 +38,8 @@ def arr(items=NUM, description: str = "") -> dict:
 MATRIX = arr(arr(EXACT), "rows of floats")
 SHAPE = {"type": ["object", "null"], "description": "{kind: sphere, center, radius} or "
          "{kind: ellipsoid, center, radii, rotation (columns = semi-axis directions)}, mm"}
-POINTS = arr(obj(name=STR, p_W=arr(EXACT), J_W=MATRIX), "monitored points: position mm, Jacobian mm/rad (W)")
+POINTS = arr(obj(name=STR, p_W=arr(EXACT), J_W=MATRIX, trusted=BOOL),
+             "monitored points: position mm, Jacobian mm/rad (W); trusted: the model has data near it")
 
 # --- Foxglove well-known types (field names and layout from the Foxglove schema docs) ---
 TIME = obj(required=("sec", "nsec"), sec={"type": "integer", "minimum": 0},
@@ -90,7 +91,7 @@ CHANNELS = {
         t_s=EXACT, q=arr(EXACT), q_min=arr(EXACT), q_max=arr(EXACT), qdot_max=arr(EXACT), v_cmd_W=arr(EXACT),
         J_tip=MATRIX, boundary_points=POINTS, model=SHAPE, model_time_s=EXACT, sensor_time_s=EXACT,
         rcm_A={"type": ["array", "null"]}, rcm_b={"type": ["array", "null"]}, lens=SHAPE, lens_points=POINTS,
-        margin_mm=EXACT, J_roll={"type": ["array", "null"]}, roll_rate_cmd=EXACT)),
+        margin_mm=EXACT, J_roll={"type": ["array", "null"]}, roll_rate_cmd=EXACT, fallback=SHAPE)),
     "/filter/outputs": ("vitreoguard.FilterOutputs", obj(
         "commanded joint rates", ("t", "step", "qdot"), t=NUM, step=INT, qdot=arr(EXACT, "rad/s"))),
     "/filter/status": ("vitreoguard.FilterStatus", obj(

@@ -51,11 +51,14 @@ class FilterConfig:
 
 @dataclass(frozen=True, eq=False)
 class PointKinematics:
-    """A monitored point: name, position p_W (3,) mm, translational Jacobian J_W (3, n) mm/rad."""
+    """A monitored point: name, position p_W (3,) mm, translational Jacobian J_W (3, n)
+    mm/rad; `trusted` False where the model has no data near the point (then the
+    inputs' `fallback` shape bounds it too)."""
 
     name: str
     p_W: np.ndarray
     J_W: np.ndarray
+    trusted: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,7 +69,9 @@ class FilterInputs:
     keep-out; `rcm_A qdot = rcm_b` are the RCM rows; `model` answers signed_distance and
     gradient (> 0 inside); `margin_mm` is added to d_safe (model uncertainty);
     `model_time_s` / `sensor_time_s` are the times of the last model update and sensor
-    sample, checked against `t_s`.
+    sample, checked against `t_s`. `fallback` (a shape inside every plausible retina,
+    e.g. the conservative prior) bounds the boundary points marked untrusted: their
+    clearance is the smaller of the model's and the fallback's.
     """
 
     t_s: float
@@ -87,6 +92,7 @@ class FilterInputs:
     margin_mm: float = 0.0
     J_roll: np.ndarray | None = None
     roll_rate_cmd: float = 0.0
+    fallback: object = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,6 +156,12 @@ class SafetyFilter:
         pts = [p for k, p in enumerate(x.boundary_points)
                if p.name in ("tip", "port") or k in _maybe_near(x.model, x.boundary_points, d_safe + reach, 1.0)]
         h, grad = _distance_and_gradient(x.model, np.array([p.p_W for p in pts]))
+        untrusted = [k for k, p in enumerate(pts) if not p.trusted]
+        if untrusted and x.fallback is not None:  # the tighter of the model and the fallback
+            h_f, g_f = _distance_and_gradient(x.fallback, np.array([pts[k].p_W for k in untrusted]))
+            tighter = h_f < h[untrusted]
+            idx = np.array(untrusted)[tighter]
+            h[idx], grad[idx] = h_f[tighter], g_f[tighter]
         if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
             return self._stop(n, "model returned non-finite distance or gradient")
         clearance = float(h.min())

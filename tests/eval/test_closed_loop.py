@@ -14,6 +14,7 @@ from eval.commands import TipPathCommand, VelocityReplayCommand
 from eval.mcap_log import RunLogger
 from eval.mcap_replay import replay
 from models import AdaptiveEyeModel
+from models.coverage import DirectionCoverage
 from models.transition import PredictiveCriteria
 from planning import SurgeryScenario, start_posture
 from safety import FilterConfig
@@ -21,9 +22,10 @@ from safety import FilterConfig
 RCM_TOL_MM = 0.020  # RCM drift at 1 kHz with a one-step command latency, up to 20 mm/s
 
 
-def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0) -> AdaptiveEyeModel:
-    """The adaptive model from the retina points the fiber would see along the spiral
-    (beams from the trocar through the spiral points, 20 um noise), without the robot."""
+def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0):
+    """(AdaptiveEyeModel, DirectionCoverage) from the retina points the fiber would see
+    along the spiral (beams from the trocar through the spiral points, 20 um noise),
+    without the robot."""
     P_E = scenario.spiral_E(pitch_mm=1.5, revolutions=6.0, spacing_mm=0.05)
     P = scenario.eye_pose.to_W(P_E)
     U = P - scenario.p_WC
@@ -31,17 +33,29 @@ def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0) -> Adaptiv
     d = scenario.eye.ray_cast(P, U)
     X = P + (d + np.random.default_rng(seed).normal(0.0, 0.02, len(d)))[:, None] * U
     model = AdaptiveEyeModel(criteria=PredictiveCriteria())
+    coverage = DirectionCoverage(scenario.eye_pose.p_WE)
     for k in range(0, len(X), 10):
         model.update(X[k:k + 10])
-    return model
+    coverage.add(X)
+    return model, coverage
 
 
 @pytest.fixture(scope="module")
 def emmetropic():
     scenario = SurgeryScenario()
-    model = model_from_spiral_beams(scenario)
+    model, coverage = model_from_spiral_beams(scenario)
     assert model.kind == "ellipsoid"
-    return ClosedLoop(scenario), model
+    return ClosedLoop(scenario), State(model, coverage)
+
+
+class State:
+    """The model and its coverage; `kw()` fresh copies for one run."""
+
+    def __init__(self, model, coverage):
+        self.model, self.coverage = model, coverage
+
+    def kw(self) -> dict:
+        return {"model": copy.deepcopy(self.model), "coverage": copy.deepcopy(self.coverage)}
 
 
 def deep_start(loop):
@@ -52,7 +66,7 @@ def deep_start(loop):
 
 def test_adversarial_scenarios_keep_the_true_clearance_on_a_regular_eye(emmetropic):
     loop, model = emmetropic
-    campaign = run_campaign(loop, model, 4, seed=3, duration_s=0.5)
+    campaign = run_campaign(loop, model.model, model.coverage, 4, seed=3, duration_s=0.5)
     s = campaign.summary()
     assert s["violations"] == 0 and s["contacts"] == 0 and s["lens_violations"] == 0
     assert s["min_true_clearance_mm"] >= VIOLATION_MM
@@ -65,7 +79,7 @@ def test_adversarial_scenarios_keep_the_true_clearance_on_a_regular_eye(emmetrop
 def test_free_space_command_is_tracked_within_1_percent(emmetropic):
     loop, model = emmetropic
     v = np.array([2.0, -1.0, 1.5])  # mm/s, 0.3 s: the tip moves 0.8 mm from a point 5 mm deep
-    run = loop.run(VelocityReplayCommand([0.0], [v]), deep_start(loop), 0.3, model=copy.deepcopy(model))
+    run = loop.run(VelocityReplayCommand([0.0], [v]), deep_start(loop), 0.3, **model.kw())
     moving = np.linalg.norm(run.v_cmd, axis=1) > 0
     assert moving.sum() > 250 and run.ok.all()
     assert not run.intervened[moving].any()
@@ -80,7 +94,7 @@ def test_a_tip_path_is_followed(emmetropic):
     p0 = loop.robot.pose("T", q0)[1]
     t = np.array([0.0, 0.3])
     path = TipPathCommand(t, np.vstack([p0, p0 + [1.5, 0.0, 0.0]]))
-    run = loop.run(path, q0, 0.4, model=copy.deepcopy(model))
+    run = loop.run(path, q0, 0.4, **model.kw())
     p_end = loop.robot.pose("T", run.q[-1])[1]
     assert np.linalg.norm(p_end - (p0 + [1.5, 0.0, 0.0])) < 0.05  # position feedback closes the 1-step latency
 
@@ -88,7 +102,7 @@ def test_a_tip_path_is_followed(emmetropic):
 def test_nan_commands_stop_the_robot_where_it_is(emmetropic):
     loop, model = emmetropic
     V = np.array([[2.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [2.0, 0.0, 0.0]])
-    run = loop.run(VelocityReplayCommand([0.0, 0.05, 0.15], V), deep_start(loop), 0.2, model=copy.deepcopy(model))
+    run = loop.run(VelocityReplayCommand([0.0, 0.05, 0.15], V), deep_start(loop), 0.2, **model.kw())
     bad = ~run.ok
     assert 90 <= bad.sum() <= 101
     assert all("non-finite v_cmd_W" in r for r, b in zip(run.reasons, bad) if b)
@@ -119,7 +133,7 @@ def test_the_prior_bounds_the_motion_until_the_model_is_trusted():
 
 def test_adversarial_starts_are_inside_and_reachable(emmetropic):
     loop, model = emmetropic
-    starts = adversarial_starts(loop, model.shape, 5, np.random.default_rng(0))
+    starts = adversarial_starts(loop, model.model.shape, 5, np.random.default_rng(0))
     for q in starts:
         p = loop.robot.pose("T", q)[1]
         assert 1.5 - 0.3 <= loop.scenario.eye.signed_distance(p[None])[0] <= 4.0 + 0.5
@@ -130,7 +144,7 @@ def test_a_closed_loop_log_replays_bit_for_bit(emmetropic, tmp_path):
     loop, model = emmetropic
     q0 = deep_start(loop)
     with RunLogger(tmp_path / "loop.mcap", loop.config.filter) as log:
-        loop.run(VelocityReplayCommand([0.0], [[5.0, 0.0, -3.0]]), q0, 0.1, model=copy.deepcopy(model), logger=log)
+        loop.run(VelocityReplayCommand([0.0], [[5.0, 0.0, -3.0]]), q0, 0.1, **model.kw(), logger=log)
     result = replay(tmp_path / "loop.mcap")
     assert result.ok and result.steps >= 90 and result.max_abs_diff == 0.0
 
