@@ -108,3 +108,41 @@ def test_backends_agree_near_the_boundary(solver):
     out = SafetyFilter(FilterConfig(solver=solver))(inputs(p, [2.0, 0.0, -2.0]))
     assert out.ok
     np.testing.assert_allclose(out.qdot, [2.0, 0.0, -1.0], atol=0.02)
+
+
+def test_an_untrusted_point_keeps_the_fallback_clearance_too():
+    """The model allows 2 mm more; the point is marked untrusted: the fallback (a sphere of
+    10 mm) decides, so the push stops 0.5 mm inside the fallback, not the model."""
+    fallback = Sphere(np.zeros(3), 10.0)
+    f = SafetyFilter()
+    p = np.array([0.0, 0.0, -8.0])
+    for k in range(2000):
+        x = inputs(p, [0.0, 0.0, -5.0], t=k * DT, model_time=k * DT, sensor_time=k * DT, fallback=fallback)
+        x = FilterInputs(**{**x.__dict__, "boundary_points": [PointKinematics("tip", p, np.eye(3), trusted=False)]})
+        out = f(x)
+        assert out.ok
+        p = p + DT * out.qdot
+    assert 10.0 - np.linalg.norm(p) == pytest.approx(0.5, abs=0.01)
+    trusted = f(inputs(p, [0.0, 0.0, -5.0], fallback=fallback))  # trusted: the model's 12 mm counts
+    assert trusted.qdot[2] == pytest.approx(-5.0, rel=0.01)
+
+
+def test_pruned_rows_do_not_change_the_answer():
+    """Shaft points far from every bound are left out of the QP: same qdot as with the
+    rows forced in (a model without the cheap bound)."""
+
+    class NoBound:
+        def __init__(self, s):
+            self.s = s
+
+        def signed_distance_and_gradient(self, P):
+            return self.s.signed_distance(P), self.s.gradient(P)
+
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        p = rng.uniform(-6, 6, 3)
+        extra = [PointKinematics(f"shaft{k}", p * (1 - 0.1 * k), np.eye(3) * (1 - 0.1 * k)) for k in range(1, 4)]
+        a = inputs(p, rng.uniform(-15, 15, 3))
+        a = FilterInputs(**{**a.__dict__, "boundary_points": a.boundary_points + extra})
+        b = FilterInputs(**{**a.__dict__, "model": NoBound(EYE)})
+        np.testing.assert_allclose(SafetyFilter()(a).qdot, SafetyFilter()(b).qdot, atol=1e-9)
