@@ -219,6 +219,19 @@ class IioctSensor:
         return float(np.arccos(min(1.0, abs(g @ u) / np.linalg.norm(g))))
 
 
+@dataclass(frozen=True, eq=False)
+class _SensorState:
+    """The block's state: the latest packet of samples, the (t, q) recorded since, and the
+    history kept for the time offset. Immutable: Drake copies state values often."""
+
+    packet: tuple
+    pending: tuple = ()
+    history: tuple = ()
+
+    def __deepcopy__(self, memo) -> _SensorState:
+        return self
+
+
 class IioctSensorSystem(LeafSystem):
     """The sensor as a Drake block, sampling at `rate_hz` (default 2 kHz).
 
@@ -247,7 +260,7 @@ class IioctSensorSystem(LeafSystem):
         nan3 = np.full(3, np.nan)
         first = SensorSample(-np.inf, np.nan, False, 0.0, "no_sample_yet", nan3, nan3, nan3)
         # state: (latest packet of samples, recorded (t, q) not yet processed, history kept for the offset)
-        self._state = self.DeclareAbstractState(AbstractValue.Make(((first,), (), ())))
+        self._state = self.DeclareAbstractState(AbstractValue.Make(_SensorState((first,))))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / rate_hz, 0.0, self._update)
         self.DeclareAbstractOutputPort("samples", lambda: AbstractValue.Make((first,)), self._calc_samples)
         self.DeclareAbstractOutputPort("sample", lambda: AbstractValue.Make(first), self._calc_sample)
@@ -263,21 +276,22 @@ class IioctSensorSystem(LeafSystem):
         return np.column_stack([np.interp(T - self.time_offset_s, ts, Qs[:, i]) for i in range(6)])
 
     def _update(self, context, state) -> None:
-        packet, pending, history = context.get_abstract_state(0).get_value()
-        pending = pending + ((context.get_time(), np.array(self._q.Eval(context))),)
+        st = context.get_abstract_state(0).get_value()
+        packet, history = st.packet, st.history
+        pending = st.pending + ((context.get_time(), np.array(self._q.Eval(context))),)
         if len(pending) >= self.packet:
             T = np.array([p[0] for p in pending])
             Q = np.array([p[1] for p in pending])
             packet = tuple(self.sensor.samples(Q, self._reported(T, Q, history), T))
             history = (history + pending)[-self._keep:] if self.time_offset_s > 0 else ()
             pending = ()
-        state.get_mutable_abstract_state(0).set_value((packet, pending, history))
+        state.get_mutable_abstract_state(0).set_value(_SensorState(packet, pending, history))
 
     def _latest(self, context) -> SensorSample:
-        return context.get_abstract_state(0).get_value()[0][-1]
+        return context.get_abstract_state(0).get_value().packet[-1]
 
     def _calc_samples(self, context, value) -> None:
-        value.set_value(context.get_abstract_state(0).get_value()[0])
+        value.set_value(context.get_abstract_state(0).get_value().packet)
 
     def _calc_sample(self, context, value) -> None:
         value.set_value(self._latest(context))

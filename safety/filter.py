@@ -205,9 +205,10 @@ class SafetyFilter:
             return f"J_tip has shape {np.shape(x.J_tip)}, expected (3, {n})"
         if not x.boundary_points:
             return "no boundary points"
-        for p in x.boundary_points + list(x.lens_points):
-            if not (np.all(np.isfinite(p.p_W)) and np.all(np.isfinite(p.J_W))):
-                return f"non-finite kinematics of {p.name}"
+        points = x.boundary_points + list(x.lens_points)
+        if not np.isfinite(sum(float(p.p_W.sum()) + float(p.J_W.sum()) for p in points)):  # one pass; names on failure
+            bad = next(p for p in points if not (np.all(np.isfinite(p.p_W)) and np.all(np.isfinite(p.J_W))))
+            return f"non-finite kinematics of {bad.name}"
         speed = float(np.linalg.norm(x.v_cmd_W))
         if speed > cfg.max_command_speed_mm_s:
             return f"absurd command speed {speed:.1f} mm/s > {cfg.max_command_speed_mm_s:g} mm/s"
