@@ -24,6 +24,7 @@ SUBCOMMAND_MODULES = (
     "eval.cmd_replay",
     "eval.cmd_scan",
     "eval.cmd_boundary",
+    "eval.cmd_sensor",
 )
 
 

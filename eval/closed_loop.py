@@ -52,7 +52,9 @@ class LoopConfig:
     patch can be millimetres off); until then the conservative prior bounds the motion.
     Afterwards a monitored point further than `trust_angle_deg` (seen from the eye
     centre) from every measured direction keeps the prior's clearance too: the fit's
-    extrapolation is only as good as the eye is regular (models.coverage)."""
+    extrapolation is only as good as the eye is regular (models.coverage); nearer, its
+    margin grows by the model's measured misfit there (how far inside the model the
+    retina was measured within that angle: a detachment the sphere averages away)."""
 
     control_rate_hz: float = 1000.0
     sensor_rate_hz: float = 2000.0
@@ -104,7 +106,7 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
         return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
     last = model.history[-1]
     res = last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm
-    return ModelSnapshot(model.kind, shape, t_s, float(res), model.n_points, coverage.view())
+    return ModelSnapshot(model.kind, shape, t_s, float(res), model.n_points, coverage.view(shape))
 
 
 class CommandSystem(LeafSystem):
@@ -144,6 +146,9 @@ class AdaptiveModelSystem(LeafSystem):
         self.model, self.coverage, self.logger = model, coverage, logger
         self._last_t = -np.inf
         self.update_us: list[float] = []
+        self.errors_mm: list[float] = []  # extracted - true distance of the valid samples (evaluation)
+        self.n_samples = 0
+        self.n_invalid = 0
 
     def initial_snapshot(self) -> ModelSnapshot:
         return snapshot_of(self.model, self.coverage, 0.0, *self._trust)
@@ -153,6 +158,9 @@ class AdaptiveModelSystem(LeafSystem):
         if not packet:
             return
         self._last_t = packet[-1].t_s
+        self.n_samples += len(packet)
+        self.n_invalid += sum(not s.valid for s in packet)
+        self.errors_mm.extend(s.distance_mm - s.true_distance_mm for s in packet if s.valid)
         if self.logger is not None:
             for s in packet:
                 self.logger.log_distance(s.t_s, s.distance_mm, s.valid, s.confidence)
@@ -227,14 +235,16 @@ class FilterSystem(LeafSystem):
         # eye wall at the trocar) is outside it: against the prior only tip and port count
         k = 2 if kind is None else len(ip.names)
         if kind is None or snap.coverage is None:
-            trusted = np.ones(k, dtype=bool)
+            trusted, misfit = np.ones(k, dtype=bool), np.zeros(k)
         else:
-            trusted = snap.coverage.angle_from_data_rad(ip.P_W[:k]) <= np.radians(self.config.trust_angle_deg)
+            trust = np.radians(self.config.trust_angle_deg)
+            trusted = snap.coverage.angle_from_data_rad(ip.P_W[:k]) <= trust
+            misfit = snap.coverage.local_misfit_mm(ip.P_W[:k], trust)
         x = FilterInputs(
             t_s=t_s, q=np.array(q), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,
             v_cmd_W=np.array(command[:3]), J_tip=ip.J_tip,
-            boundary_points=[PointKinematics(n, p, J, bool(tr))
-                             for n, p, J, tr in zip(ip.names[:k], ip.P_W[:k], ip.J_W[:k], trusted)],
+            boundary_points=[PointKinematics(n, p, J, bool(tr), float(m))
+                             for n, p, J, tr, m in zip(ip.names[:k], ip.P_W[:k], ip.J_W[:k], trusted, misfit)],
             model=model, model_time_s=t_s if kind is None else snap.t_s, sensor_time_s=sensor_t_s,
             rcm_A=ip.rcm_A, rcm_b=ip.rcm_b, lens=self.lens,
             lens_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.lens_names, ip.L_W, ip.J_L)],
@@ -354,9 +364,10 @@ def true_clearances(points_W: list, true_eye) -> np.ndarray:
 
 
 class ClosedLoop:
-    """The diagram on one scenario (planning.SurgeryScenario); `run` simulates it."""
+    """The diagram on one scenario (planning.SurgeryScenario); `run` simulates it.
+    `floater_rate`: fraction of iiOCT samples with a vitreous floater (IioctSensor)."""
 
-    def __init__(self, scenario, config: LoopConfig = LoopConfig(), sensor_seed: int = 0):
+    def __init__(self, scenario, config: LoopConfig = LoopConfig(), sensor_seed: int = 0, floater_rate: float = 0.0):
         self.scenario, self.config = scenario, config
         self.robot = Robot(scenario)
         self.prior = conservative_prior(scenario.eye_pose.p_WE)
@@ -364,7 +375,7 @@ class ClosedLoop:
         self.command = builder.AddSystem(CommandSystem(self.robot, config.control_rate_hz))
         self.filter = builder.AddSystem(FilterSystem(self.robot, config, self.prior))
         self.integrator = builder.AddSystem(DiscreteTimeIntegrator(6, 1.0 / config.control_rate_hz))
-        self.sensor = IioctSensor(Robot(scenario), mode=config.sensor_mode, seed=sensor_seed)
+        self.sensor = IioctSensor(Robot(scenario), mode=config.sensor_mode, floater_rate=floater_rate, seed=sensor_seed)
         sensor_sys = builder.AddSystem(IioctSensorSystem(self.sensor, config.sensor_rate_hz, packet=config.sensor_packet))
         packet_s = config.sensor_packet / config.sensor_rate_hz
         self.model = builder.AddSystem(AdaptiveModelSystem(1.0 / packet_s, packet_s - 0.5 / config.sensor_rate_hz,

@@ -100,8 +100,8 @@ def inputs_to_json(x: FilterInputs) -> dict:
     d.update({name: json_array(getattr(x, name)) for name in _ARRAYS})
     d.update({name: None if getattr(x, name) is None else json_array(getattr(x, name)) for name in _OPTIONAL_ARRAYS})
     for name in _POINT_LISTS:
-        d[name] = [{"name": p.name, "p_W": json_array(p.p_W), "J_W": json_array(p.J_W), "trusted": bool(p.trusted)}
-                   for p in getattr(x, name)]
+        d[name] = [{"name": p.name, "p_W": json_array(p.p_W), "J_W": json_array(p.J_W), "trusted": bool(p.trusted),
+                    "margin_mm": json_number(p.margin_mm)} for p in getattr(x, name)]
     for name in _SHAPES:
         try:
             d[name] = shape_to_json(getattr(x, name))
@@ -125,7 +125,8 @@ def inputs_from_json(d) -> FilterInputs:
         if not isinstance(d[name], list) or not all(isinstance(p, dict) and {"name", "p_W", "J_W"} <= p.keys() for p in d[name]):
             raise ValueError(f"{name} must be a list of {{name, p_W, J_W}} records")
         kw[name] = [PointKinematics(str(p["name"]), array_from_json(p["p_W"], f"{name}.p_W"),
-                                    array_from_json(p["J_W"], f"{name}.J_W"), bool(p.get("trusted", True)))
+                                    array_from_json(p["J_W"], f"{name}.J_W"), bool(p.get("trusted", True)),
+                                    number_from_json(p.get("margin_mm", 0.0), f"{name}.margin_mm"))
                     for p in d[name]]
     for name in _SHAPES:
         kw[name] = shape_from_json(d.get(name), name)

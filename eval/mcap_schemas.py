@@ -38,8 +38,9 @@ def arr(items=NUM, description: str = "") -> dict:
 MATRIX = arr(arr(EXACT), "rows of floats")
 SHAPE = {"type": ["object", "null"], "description": "{kind: sphere, center, radius} or "
          "{kind: ellipsoid, center, radii, rotation (columns = semi-axis directions)}, mm"}
-POINTS = arr(obj(name=STR, p_W=arr(EXACT), J_W=MATRIX, trusted=BOOL),
-             "monitored points: position mm, Jacobian mm/rad (W); trusted: the model has data near it")
+POINTS = arr(obj(name=STR, p_W=arr(EXACT), J_W=MATRIX, trusted=BOOL, margin_mm=EXACT),
+             "monitored points: position mm, Jacobian mm/rad (W); trusted: the model has data near it; "
+             "margin_mm: the point's extra clearance (measured local misfit)")
 
 # --- Foxglove well-known types (field names and layout from the Foxglove schema docs) ---
 TIME = obj(required=("sec", "nsec"), sec={"type": "integer", "minimum": 0},

@@ -25,13 +25,26 @@ def fibonacci_directions(n: int) -> np.ndarray:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
-class CoverageView:
-    """An immutable snapshot of the covered directions: `angle_from_data_rad(Q)`."""
+def inside_depth_upper_mm(shape, P: np.ndarray) -> np.ndarray:
+    """(M,) an upper bound (mm) of how deep the points P (M, 3) lie inside `shape` (a
+    models.Sphere or Ellipsoid; 0 for points outside): r_max (1 - k), k the scaled radius
+    (a path of length d moves the scaled point by at least d / r_max)."""
+    if hasattr(shape, "radius"):
+        return np.maximum(shape.radius - np.linalg.norm(P - shape.center, axis=1), 0.0)
+    L = (P - shape.center) @ shape.rotation / shape.radii
+    return np.maximum(float(shape.radii.max()) * (1.0 - np.linalg.norm(L, axis=1)), 0.0)
 
-    def __init__(self, center_W: np.ndarray, covered_dirs: np.ndarray):
+
+class CoverageView:
+    """An immutable snapshot of the covered directions: `angle_from_data_rad(Q)`, and,
+    when made for a model shape, `local_misfit_mm(Q, angle)`: how far inside that shape
+    the retina was measured near each direction (what the model gets wrong there)."""
+
+    def __init__(self, center_W: np.ndarray, covered_dirs: np.ndarray, misfit_mm: np.ndarray | None = None):
         self.center_W = center_W
         self.n_covered = len(covered_dirs)
         self._tree = cKDTree(covered_dirs) if len(covered_dirs) else None
+        self._misfit = misfit_mm
 
     def __deepcopy__(self, memo) -> CoverageView:
         return self  # immutable
@@ -45,6 +58,17 @@ class CoverageView:
             return np.full(len(V), np.pi)
         chord, _ = self._tree.query(V)
         return 2.0 * np.arcsin(np.minimum(chord / 2.0, 1.0))
+
+    def local_misfit_mm(self, Q, angle_rad: float) -> np.ndarray:
+        """(M,) the largest measured misfit (mm) over the covered directions within
+        `angle_rad` of each point's direction (0 where none, or without a model)."""
+        if self._tree is None or self._misfit is None:
+            return np.zeros(len(Q))
+        V = as_points(Q, "Q") - self.center_W
+        V = V / np.maximum(np.linalg.norm(V, axis=1, keepdims=True), 1e-12)
+        chord = 2.0 * np.sin(0.5 * angle_rad)
+        return np.array([max((self._misfit[j] for j in idx), default=0.0)
+                         for idx in self._tree.query_ball_point(V, chord)])
 
 
 class DirectionCoverage:
@@ -60,9 +84,11 @@ class DirectionCoverage:
         self._dirs = fibonacci_directions(n)
         self._bins = cKDTree(self._dirs)
         self._covered = np.zeros(n, dtype=bool)
-        self._n_covered = 0
+        self._inner = np.full((n, 3), np.nan)  # per bin: the measured point nearest the centre
+        self._inner_r = np.full(n, np.inf)
         self._growth = float(rebuild_growth)
         self._view = CoverageView(self.center_W, np.zeros((0, 3)))
+        self._view_shape = None
 
     def add(self, P) -> None:
         """Mark the bins of the measured points P (N, 3) mm (non-finite rows ignored)."""
@@ -72,11 +98,22 @@ class DirectionCoverage:
             return
         V = P - self.center_W
         V /= np.maximum(np.linalg.norm(V, axis=1, keepdims=True), 1e-12)
+        r = np.linalg.norm(P - self.center_W, axis=1)
         _, idx = self._bins.query(V)
         self._covered[idx] = True
+        np.minimum.at(self._inner_r, idx, r)
+        hit = r == self._inner_r[idx]
+        self._inner[idx[hit]] = P[hit]
 
-    def view(self) -> CoverageView:
+    def view(self, shape=None) -> CoverageView:
+        """The current CoverageView; with a model `shape` (Sphere or Ellipsoid) it also
+        holds each covered bin's misfit: how deep inside `shape` the innermost measured
+        point of the bin lies (an upper bound, mm). Rebuilt when the covered set grew by
+        `rebuild_growth` or the shape's kind changed (the misfit is of the shape then)."""
         n = int(self._covered.sum())
-        if n > self._view.n_covered * (1.0 + self._growth):
-            self._view = CoverageView(self.center_W, self._dirs[self._covered])
+        kind = None if shape is None else type(shape).__name__
+        if n > self._view.n_covered * (1.0 + self._growth) or kind != self._view_shape:
+            misfit = None if shape is None else inside_depth_upper_mm(shape, self._inner[self._covered])
+            self._view = CoverageView(self.center_W, self._dirs[self._covered], misfit)
+            self._view_shape = kind
         return self._view

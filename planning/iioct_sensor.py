@@ -27,7 +27,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
-from models.iioct import DistanceExtractor, OctEngine, synthesize_ascan
+from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
 from planning.robot import Robot
 
 DEFAULT_MAX_INCIDENCE_RAD = np.radians(55.0)
@@ -39,7 +39,9 @@ class SensorSample:
     invalid); `valid`, `confidence`, `reason` ("" when valid, else a models.iioct
     REASONS entry, "incidence", "no_retina" or "bad_joint_state"); the reconstructed
     retinal point `p_W` (NaN when invalid); the reported (calibrated) beam
-    `beam_origin_W`, `beam_dir_W`; the raw `ascan` (None in "distance" mode)."""
+    `beam_origin_W`, `beam_dir_W`; the raw `ascan` (None in "distance" mode); the true
+    distance along the true beam (what evaluation compares with; nothing in the loop
+    reads it)."""
 
     t_s: float
     distance_mm: float
@@ -50,6 +52,7 @@ class SensorSample:
     beam_origin_W: np.ndarray
     beam_dir_W: np.ndarray
     ascan: np.ndarray | None = None
+    true_distance_mm: float = float("nan")  # simulation ground truth, for evaluation only
 
     def __deepcopy__(self, memo) -> SensorSample:
         return self  # immutable by contract: Drake copies abstract state values often
@@ -116,18 +119,24 @@ class IioctSensor:
     `encoder_noise_rad`: SD of the noise on the reported joint angles; `max_incidence_rad`:
     samples whose beam meets the CURRENT MODEL (if `sample` gets one) more obliquely are
     rejected ("incidence": the extractor gives wrong-but-confident distances there);
-    `engine`/`extractor`: models.iioct objects; `seed`: speckle, noise and error draws.
+    `engine`/`extractor`: models.iioct objects; `floater_rate`: fraction of samples with
+    a vitreous floater on the beam (in "ascan" mode a Floater of 25-40 dB at a random
+    depth, which the extractor mostly rejects; in "distance" mode the worst case: a
+    confident wrong distance, uniform between 0.5 mm and the retina); `seed`: speckle,
+    noise and error draws.
     """
 
     def __init__(self, robot: Robot, *, mode: str = "ascan", X_S_Scal=None, engine: OctEngine | None = None,
                  extractor: DistanceExtractor | None = None, encoder_noise_rad: float = 0.0,
-                 max_incidence_rad: float = DEFAULT_MAX_INCIDENCE_RAD, seed: int = 0):
+                 max_incidence_rad: float = DEFAULT_MAX_INCIDENCE_RAD, floater_rate: float = 0.0, seed: int = 0):
         if robot.scenario is None:
             raise ValueError("IioctSensor needs a Robot built with a scenario (the ground-truth eye)")
         if mode not in ("ascan", "distance"):
             raise ValueError(f"mode must be 'ascan' or 'distance', got {mode!r}")
         if not (np.isfinite(encoder_noise_rad) and encoder_noise_rad >= 0):
             raise ValueError(f"encoder_noise_rad must be >= 0 rad, got {encoder_noise_rad}")
+        if not (np.isfinite(floater_rate) and 0.0 <= floater_rate <= 0.5):
+            raise ValueError(f"floater_rate must be in [0, 0.5], got {floater_rate}")
         if not (0 < max_incidence_rad <= np.pi / 2):
             raise ValueError(f"max_incidence_rad must be in (0, pi/2] rad, got {max_incidence_rad}")
         self.robot, self.mode = robot, mode
@@ -139,6 +148,7 @@ class IioctSensor:
         self._R_S_Scal, self._p_S_Scal = np.asarray(R, dtype=float), np.asarray(p, dtype=float)
         self.encoder_noise_rad = float(encoder_noise_rad)
         self.max_incidence_rad = float(max_incidence_rad)
+        self.floater_rate = float(floater_rate)
         self._rng = np.random.default_rng(seed)
         self.max_distance_mm = self.engine.depth_mm / self.engine.group_index - self.engine.tip_offset_mm
 
@@ -194,21 +204,27 @@ class IioctSensor:
 
     def _sample_one(self, t_s: float, origin, u, d_true: float, incidence: float, model) -> SensorSample:
         nan3 = np.full(3, np.nan)
-        invalid = lambda reason, c=0.0, a=None: SensorSample(t_s, float("nan"), False, c, reason, nan3, origin, u, a)  # noqa: E731
+        invalid = lambda reason, c=0.0, a=None: SensorSample(t_s, float("nan"), False, c, reason, nan3, origin, u, a,  # noqa: E731
+                                                             d_true)
         if not np.isfinite(d_true) or d_true > self.max_distance_mm:
             return invalid("no_retina")
         if model is not None and self._model_incidence(model, origin, u) > self.max_incidence_rad:
             return invalid("incidence")
+        floater = self.floater_rate > 0 and d_true > 1.0 and self._rng.random() < self.floater_rate
         if self.mode == "distance":
-            d, ok = self.error_model.draw(d_true, incidence, self._rng)
+            if floater:
+                d, ok = float(self._rng.uniform(0.5, d_true - 0.5)), True
+            else:
+                d, ok = self.error_model.draw(d_true, incidence, self._rng)
             ascan, confidence, reason = None, (0.9 if ok else 0.0), ("" if ok else "low_confidence")
         else:
-            ascan = synthesize_ascan(d_true, incidence, self._rng, engine=self.engine)
+            floaters = (Floater(float(self._rng.uniform(0.5, d_true - 0.5)), float(self._rng.uniform(25.0, 40.0))),) if floater else ()
+            ascan = synthesize_ascan(d_true, incidence, self._rng, engine=self.engine, floaters=floaters)
             m = self.extractor(ascan)
             d, ok, confidence, reason = m.distance_mm, m.valid, m.confidence, m.reason
         if not ok:
             return invalid(reason, confidence, ascan)
-        return SensorSample(t_s, float(d), True, float(confidence), "", origin + d * u, origin, u, ascan)
+        return SensorSample(t_s, float(d), True, float(confidence), "", origin + d * u, origin, u, ascan, d_true)
 
     @staticmethod
     def _model_incidence(model, origin, u) -> float:

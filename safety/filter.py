@@ -53,12 +53,14 @@ class FilterConfig:
 class PointKinematics:
     """A monitored point: name, position p_W (3,) mm, translational Jacobian J_W (3, n)
     mm/rad; `trusted` False where the model has no data near the point (then the
-    inputs' `fallback` shape bounds it too)."""
+    inputs' `fallback` shape bounds it too); `margin_mm` extra clearance for this point
+    (e.g. the model's measured local misfit near it)."""
 
     name: str
     p_W: np.ndarray
     J_W: np.ndarray
     trusted: bool = True
+    margin_mm: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,8 +155,9 @@ class SafetyFilter:
         # rows a point cannot reach within the speed limits are left out (exactly: they
         # cannot be active); tip and port are always evaluated (clearance, cutter interlock)
         reach = cfg.max_tip_speed_mm_s / cfg.gain_per_s
+        extra = max((p.margin_mm for p in x.boundary_points), default=0.0)
         pts = [p for k, p in enumerate(x.boundary_points)
-               if p.name in ("tip", "port") or k in _maybe_near(x.model, x.boundary_points, d_safe + reach, 1.0)]
+               if p.name in ("tip", "port") or k in _maybe_near(x.model, x.boundary_points, d_safe + extra + reach, 1.0)]
         h, grad = _distance_and_gradient(x.model, np.array([p.p_W for p in pts]))
         untrusted = [k for k, p in enumerate(pts) if not p.trusted]
         if untrusted and x.fallback is not None:  # the tighter of the model and the fallback
@@ -170,7 +173,8 @@ class SafetyFilter:
             constraints.joint_limits(x.q, x.q_min, x.q_max, x.qdot_max, cfg.joint_gain_per_s, cfg.joint_margin_rad),
             constraints.tip_speed(x.J_tip, cfg.max_tip_speed_mm_s),
         ]
-        blocks += [constraints.barrier(f"boundary:{p.name}", hi, gi, p.J_W, d_safe, cfg.gain_per_s, cfg.max_recovery_mm_s)
+        blocks += [constraints.barrier(f"boundary:{p.name}", hi, gi, p.J_W, d_safe + p.margin_mm, cfg.gain_per_s,
+                                       cfg.max_recovery_mm_s)
                    for p, hi, gi in zip(pts, h, grad)]
         if x.lens is not None and x.lens_points:
             near = _maybe_near(x.lens, x.lens_points, cfg.lens_margin_mm + reach, -1.0)
@@ -220,4 +224,7 @@ class SafetyFilter:
             return f"stale sensor: {x.t_s - x.sensor_time_s:.3f} s old > {cfg.max_sensor_age_s:g} s"
         if not (np.isfinite(x.margin_mm) and x.margin_mm >= 0):
             return f"invalid margin {x.margin_mm}"
+        bad = next((p for p in x.boundary_points if not (np.isfinite(p.margin_mm) and p.margin_mm >= 0)), None)
+        if bad is not None:
+            return f"invalid margin {bad.margin_mm} of {bad.name}"
         return None
