@@ -51,9 +51,10 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: 
     scenario = loop.scenario
     P = spiral_path_W(scenario, pitch_mm, revolutions)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
-    lead_s = 0.2  # hold the first point while the sensor starts and the prior bounds the motion
-    times = np.concatenate([[0.0], lead_s + s / speed_mm_s])
-    path = TipPathCommand(times, np.vstack([P[:1], P]))
+    # no hold at the start: a still beam adds nothing but lets the floaters that land within
+    # the gate's jump limit of the retina pile up on one line before the model can judge them
+    times = s / speed_mm_s
+    path = TipPathCommand(times, P)
     q0 = start_posture(loop.robot, P[0], scenario.p_WC)
     model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), loop.new_coverage()
     run = loop.run(path, q0, float(times[-1]) + 0.05, model=model, coverage=coverage, logger=logger)

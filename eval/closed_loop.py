@@ -49,7 +49,9 @@ class LoopConfig:
     is timed on the same state for comparison (every n-th control step; 0: never).
     The filter trusts the fitted model only once it holds `model_min_points` points over
     a scan range of `model_min_scan_range_mm` (a sphere through a few points of a small
-    patch can be millimetres off); until then the conservative prior bounds the motion.
+    patch can be millimetres off) and its radii lie in `model_radius_range_mm` (human
+    retinas: 9.5-12.5 mm; anything else is not an eye but a bad fit); until then the
+    conservative prior bounds the motion.
     Afterwards a monitored point further than `trust_angle_deg` (seen from the eye
     centre) from every measured direction keeps the prior's clearance too: the fit's
     extrapolation is only as good as the eye is regular (models.coverage); nearer, its
@@ -67,6 +69,7 @@ class LoopConfig:
     model_min_points: int = 200
     model_min_scan_range_mm: float = 5.0
     trust_angle_deg: float = 10.0
+    model_radius_range_mm: tuple = (8.0, 16.0)
 
     def __post_init__(self):
         for name in ("control_rate_hz", "sensor_rate_hz"):
@@ -98,11 +101,13 @@ class ModelSnapshot(NamedTuple):
 
 
 def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float, min_points: int = 0,
-                min_scan_range_mm: float = 0.0) -> ModelSnapshot:
+                min_scan_range_mm: float = 0.0, radius_range_mm: tuple = (0.0, np.inf)) -> ModelSnapshot:
     """The snapshot of `model` at t_s ("prior" until it has a shape from at least
-    `min_points` points over `min_scan_range_mm`)."""
+    `min_points` points over `min_scan_range_mm` with radii within `radius_range_mm`)."""
     shape = model.shape
-    if shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
+    radii = None if shape is None else np.atleast_1d(getattr(shape, "radii", getattr(shape, "radius", np.nan)))
+    if (shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm
+            or not (radius_range_mm[0] <= radii.min() and radii.max() <= radius_range_mm[1])):
         return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
     last = model.history[-1]
     res = last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm
@@ -133,9 +138,10 @@ class AdaptiveModelSystem(LeafSystem):
     (ModelSnapshot). Runs at the packet rate, just after each packet is complete. Logs
     the distances and model updates when a logger is set."""
 
-    def __init__(self, packet_rate_hz: float, offset_s: float, min_points: int, min_scan_range_mm: float):
+    def __init__(self, packet_rate_hz: float, offset_s: float, min_points: int, min_scan_range_mm: float,
+                 radius_range_mm: tuple):
         super().__init__()
-        self._trust = (min_points, min_scan_range_mm)
+        self._trust = (min_points, min_scan_range_mm, radius_range_mm)
         self._samples = self.DeclareAbstractInputPort("samples", AbstractValue.Make(()))
         self._snap = self.DeclareAbstractState(AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
@@ -379,7 +385,8 @@ class ClosedLoop:
         sensor_sys = builder.AddSystem(IioctSensorSystem(self.sensor, config.sensor_rate_hz, packet=config.sensor_packet))
         packet_s = config.sensor_packet / config.sensor_rate_hz
         self.model = builder.AddSystem(AdaptiveModelSystem(1.0 / packet_s, packet_s - 0.5 / config.sensor_rate_hz,
-                                                           config.model_min_points, config.model_min_scan_range_mm))
+                                                           config.model_min_points, config.model_min_scan_range_mm,
+                                                           config.model_radius_range_mm))
         q = self.integrator.get_output_port()
         for port in (self.command.GetInputPort("q"), self.filter.GetInputPort("q"), sensor_sys.GetInputPort("q")):
             builder.Connect(q, port)

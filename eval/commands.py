@@ -25,10 +25,12 @@ ADVERSARY_WEIGHTS = {"push": 0.4, "along": 0.15, "port_side": 0.2, "lens": 0.1, 
 class TipPathCommand:
     """Follow tip positions P_WT (M, 3) mm at times_s (M,) s (strictly increasing):
     v = (P[k+1] - P[k]) / (t[k+1] - t[k]) on the current segment plus
-    gain_per_s x (p_des(t) - p_WT); holds the last point after the end. `roll_rad` (M,)
-    optional roll angles about the shaft, commanded as their rate (feed-forward only)."""
+    gain_per_s x (p_des(t) - p_WT), the feedback capped at `max_feedback_mm_s` (a tip held
+    back by the boundary catches up at a bounded speed, never with an absurd command);
+    holds the last point after the end. `roll_rad` (M,) optional roll angles about the
+    shaft, commanded as their rate (feed-forward only)."""
 
-    def __init__(self, times_s, P_WT, roll_rad=None, gain_per_s: float = 20.0):
+    def __init__(self, times_s, P_WT, roll_rad=None, gain_per_s: float = 20.0, max_feedback_mm_s: float = 10.0):
         t = np.asarray(times_s, dtype=float)
         P = as_points(P_WT, "P_WT")
         if t.ndim != 1 or len(t) != len(P) or len(t) < 2:
@@ -37,6 +39,7 @@ class TipPathCommand:
             raise ValueError("times_s must be finite and strictly increasing (s)")
         self.times_s, self.P_WT = t, P
         self.gain_per_s = as_positive(gain_per_s, "gain_per_s")
+        self.max_feedback_mm_s = as_positive(max_feedback_mm_s, "max_feedback_mm_s")
         self._V = np.diff(P, axis=0) / np.diff(t)[:, None]
         if roll_rad is None:
             self._roll_rate = np.zeros(len(t) - 1)
@@ -60,7 +63,11 @@ class TipPathCommand:
             v_ff, roll = self._V[k], float(self._roll_rate[k])
         else:
             v_ff, roll = np.zeros(3), 0.0
-        return v_ff + self.gain_per_s * (self.reference(t_s) - np.asarray(p_WT, dtype=float)), roll
+        fb = self.gain_per_s * (self.reference(t_s) - np.asarray(p_WT, dtype=float))
+        n = float(np.linalg.norm(fb))
+        if n > self.max_feedback_mm_s:
+            fb *= self.max_feedback_mm_s / n
+        return v_ff + fb, roll
 
 
 class VelocityReplayCommand:

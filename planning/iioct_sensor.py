@@ -120,7 +120,7 @@ class IioctSensor:
     samples whose beam meets the CURRENT MODEL (if `sample` gets one) more obliquely are
     rejected ("incidence": the extractor gives wrong-but-confident distances there);
     `engine`/`extractor`: models.iioct objects; `floater_rate`: fraction of samples with
-    a vitreous floater on the beam (in "ascan" mode a Floater of 25-40 dB at a random
+    a vitreous floater on the beam (in "ascan" mode a Floater of 35-55 dB (the retina: 45 dB) at a random
     depth, which the extractor mostly rejects; in "distance" mode the worst case: a
     confident wrong distance, uniform between 0.5 mm and the retina); `seed`: speckle,
     noise and error draws.
@@ -218,7 +218,7 @@ class IioctSensor:
                 d, ok = self.error_model.draw(d_true, incidence, self._rng)
             ascan, confidence, reason = None, (0.9 if ok else 0.0), ("" if ok else "low_confidence")
         else:
-            floaters = (Floater(float(self._rng.uniform(0.5, d_true - 0.5)), float(self._rng.uniform(25.0, 40.0))),) if floater else ()
+            floaters = (Floater(float(self._rng.uniform(0.5, d_true - 0.5)), float(self._rng.uniform(35.0, 55.0))),) if floater else ()
             ascan = synthesize_ascan(d_true, incidence, self._rng, engine=self.engine, floaters=floaters)
             m = self.extractor(ascan)
             d, ok, confidence, reason = m.distance_mm, m.valid, m.confidence, m.reason
