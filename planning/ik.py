@@ -1,13 +1,14 @@
 """Inverse kinematics through the trocar: Drake `InverseKinematics` at the mm/rad interface.
 
-The RCM is the point-to-line condition "the trocar C lies on the shaft axis". Drake's
-`AddPointToLineDistanceConstraint` states it through the squared distance, whose gradient
-vanishes exactly at the solution (distance 0): SNOPT then stalls or reports success
-hundreds of micrometres off the line (bench_robot measures it). So the same condition is
-written in the shaft's own frame I, where it is well conditioned: the trocar point,
-expressed in I, has |y|, |z| <= tolerance (a `PositionConstraint` on a world-fixed point
-measured in I). A few exact Gauss-Newton steps then take the tip and RCM errors to
-numerical zero, and the result is checked against the joint limits.
+The RCM is the point-to-line condition "the trocar C lies on the shaft axis": Drake's
+`AddPointToLineDistanceConstraint` (trocar point, shaft line of frame I). It states the
+condition through the squared distance, whose gradient vanishes exactly at the solution
+(distance 0), so from a distant seed SNOPT stalls or reports success hundreds of
+micrometres off the line (bench_robot measures it). Hence the first initial guess is the
+exact closed-form solution (planning.closed_form) of the seed's branch, where SNOPT only
+has to confirm it (with the roll and seed-distance cost); a few exact Gauss-Newton steps
+then take the tip and RCM errors to numerical zero, and the result is checked against
+the joint limits.
 """
 from __future__ import annotations
 
@@ -88,11 +89,11 @@ def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = N
 
 
 def _initial_guesses(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.ndarray) -> list[np.ndarray]:
-    """The seed, the exact closed-form solution of the same branch (nearest to the seed,
-    J6 kept), then perturbed seeds and the wrist-flipped seed."""
+    """The exact closed-form solution of the seed's branch (nearest to the seed, J6 kept),
+    then the seed, perturbed seeds and the wrist-flipped seed."""
     exact = shaft_ik(p_T, (p_T - p_C) / np.linalg.norm(p_T - p_C), robot.tip_offset_mm, q_seed[5])
     near = [exact[np.argmin(np.abs((exact - q_seed + np.pi) % (2 * np.pi) - np.pi).sum(axis=1))]] if len(exact) else []
-    return [q_seed] + near + [q_seed + dq for dq in _SEED_OFFSETS] + [_wrist_flip(q_seed)]
+    return near + [q_seed] + [q_seed + dq for dq in _SEED_OFFSETS] + [_wrist_flip(q_seed)]
 
 
 def _signed_angle(a: np.ndarray, b: np.ndarray, axis: np.ndarray) -> float:
@@ -116,7 +117,7 @@ def _program(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.ndarray,
     tol = _SOLVER_TOL_MM / MM_PER_M
     ik = InverseKinematics(plant, with_joint_limits=True)
     ik.AddPositionConstraint(plant.GetFrameByName("tip"), np.zeros(3), world, p_T / MM_PER_M - tol, p_T / MM_PER_M + tol)
-    ik.AddPositionConstraint(world, p_C / MM_PER_M, shaft, [-np.inf, -tol, -tol], [np.inf, tol, tol])
+    ik.AddPointToLineDistanceConstraint(world, p_C / MM_PER_M, shaft, np.zeros(3), np.array([1.0, 0.0, 0.0]), 0.0, tol)
     if y_W is not None:
         ik.AddAngleBetweenVectorsConstraint(shaft, np.array([0.0, 1.0, 0.0]), world, y_W, 0.0, 1e-4)
     q = ik.q()

@@ -1,0 +1,40 @@
+"""Closed-loop figures: realtime factor of adversarial scenarios on the emmetropic eye and
+where a control step's time goes (monitored-point kinematics, filter, sensor packet,
+model update), with Drake's DoDifferentialInverseKinematics on the same states."""
+from __future__ import annotations
+
+import numpy as np
+
+from bench.timing import summary_us, time_calls_us
+from eval.boundary_experiment import build_model_by_spiral, run_campaign
+from eval.closed_loop import ClosedLoop, ModelSnapshot
+from planning import SurgeryScenario
+from planning.instrument_points import instrument_points
+
+
+def run() -> None:
+    scenario = SurgeryScenario()
+    loop = ClosedLoop(scenario)
+    build = build_model_by_spiral(loop, 17.0, pitch_mm=3.0, revolutions=3.0)
+    print(f"spiral (3 turns, 17 mm/s): {build.run.duration_s:.2f} s simulated in {build.run.wall_s:.2f} s "
+          f"(realtime factor {build.run.realtime_factor:.2f}); model {build.kind_final}, EF MAE {build.ef_mae_um:.1f} um")
+    c = run_campaign(loop, build.model, build.coverage, 10, seed=0, duration_s=0.5)
+    s = c.summary()
+    print(f"10 adversarial scenarios x 0.5 s: realtime factor {s['realtime_factor']:.2f}, "
+          f"filter solve median {s['solve_us']['median']:.0f} us p99 {s['solve_us']['p99']:.0f} us, "
+          f"Drake DoDifferentialInverseKinematics median {s['drake_diffik_us']['median']:.0f} us "
+          f"p99 {s['drake_diffik_us']['p99']:.0f} us")
+    steps = np.concatenate([r.step_us for r in c.runs])
+    print(f"whole filter step (inputs + filter):     {summary_us(steps)}")
+    qs = np.concatenate([r.q for r in c.runs])[:2000]
+    print(f"instrument_points per step:              {summary_us(time_calls_us(lambda i: instrument_points(loop.robot, qs[i], scenario.p_WC), len(qs)))}")
+    f = loop.filter
+    snap = ModelSnapshot(build.model.kind, build.model.shape, 0.0, 0.01, build.model.n_points, build.coverage.view(build.model.shape))
+    cmd = np.array([5.0, 0.0, -3.0, 0.0])
+    print(f"filter inputs (points, trust, margins):  {summary_us(time_calls_us(lambda i: f.inputs(0.0, qs[i], cmd, snap, 0.0), len(qs)))}")
+    xs = [f.inputs(0.0, q, cmd, snap, 0.0)[0] for q in qs[:500]]
+    print(f"SafetyFilter call:                       {summary_us(time_calls_us(lambda i: f.filter(xs[i]), len(xs)))}")
+    q = qs[0]
+    print(f"sensor packet of 10 (distance mode):     {summary_us(time_calls_us(lambda i: loop.sensor.samples([q] * 10, [q] * 10, np.arange(10) * 5e-4), 200))}")
+    upd = np.concatenate([r.model_update_us for r in c.runs])
+    print(f"model update per A-scan (packets of 10): {summary_us(upd)}")
