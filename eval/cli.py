@@ -25,6 +25,7 @@ SUBCOMMAND_MODULES = (
     "eval.cmd_scan",
     "eval.cmd_boundary",
     "eval.cmd_sensor",
+    "eval.cmd_plan",
 )
 
 

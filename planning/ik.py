@@ -70,7 +70,7 @@ def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = N
     prog, q = _program(robot, p_T, p_C, q_seed, y_W)
     solver = SnoptSolver()
     last = None
-    for guess in _initial_guesses(robot, p_T, p_C, q_seed):
+    for guess in _initial_guesses(robot, p_T, p_C, q_seed, y_W):
         prog.SetInitialGuess(q, np.clip(guess, robot.q_lower, robot.q_upper))
         result = solver.Solve(prog)
         if result.is_success():
@@ -88,11 +88,18 @@ def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = N
                     f"p_WC_mm = {np.round(p_C, 3)} within the joint limits ({last})")
 
 
-def _initial_guesses(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.ndarray) -> list[np.ndarray]:
-    """The exact closed-form solution of the seed's branch (nearest to the seed, J6 kept),
-    then the seed, perturbed seeds and the wrist-flipped seed."""
-    exact = shaft_ik(p_T, (p_T - p_C) / np.linalg.norm(p_T - p_C), robot.tip_offset_mm, q_seed[5])
+def _initial_guesses(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.ndarray, y_W=None) -> list[np.ndarray]:
+    """The exact closed-form solution of the seed's branch (nearest to the seed; J6 kept,
+    or turned to the roll y_W when given), then the seed, perturbed seeds and the
+    wrist-flipped seed."""
+    u = (p_T - p_C) / np.linalg.norm(p_T - p_C)
+    exact = shaft_ik(p_T, u, robot.tip_offset_mm, q_seed[5])
     near = [exact[np.argmin(np.abs((exact - q_seed + np.pi) % (2 * np.pi) - np.pi).sum(axis=1))]] if len(exact) else []
+    if near and y_W is not None:  # J6 turns about the shaft: the exact roll in closed form
+        q = near[0].copy()
+        q[5] += _signed_angle(robot.pose("I", q)[0][:, 1], y_W, u)
+        q[5] = q_seed[5] + (q[5] - q_seed[5] + np.pi) % (2 * np.pi) - np.pi  # the turn nearest the seed
+        near = [q]
     return near + [q_seed] + [q_seed + dq for dq in _SEED_OFFSETS] + [_wrist_flip(q_seed)]
 
 

@@ -62,17 +62,20 @@ def start_posture(robot: Robot, p_WT, p_WC) -> np.ndarray:
     return rcm_ik(robot, p_T, p_C, cands[np.argmax(margins)])
 
 
-def ik_waypoints(robot: Robot, P_WT, p_WC, q_start=None) -> tuple[np.ndarray, float]:
+def ik_waypoints(robot: Robot, P_WT, p_WC, q_start=None, roll_rad=None) -> tuple[np.ndarray, float]:
     """((N, 6) rad joint waypoints for the tip targets P_WT (N, 3) mm through the trocar,
-    each IK seeded from the previous solution; mean solve time in ms). Raises IKFailure
-    naming the first unreachable target before anything is returned."""
+    each IK seeded from the previous solution, with the roll about the shaft `roll_rad`
+    (N,) when given (planning.ik.roll_direction_W); mean solve time in ms). Raises
+    IKFailure naming the first unreachable target before anything is returned."""
     P = np.asarray(P_WT, dtype=float)
-    q = start_posture(robot, P[0], p_WC) if q_start is None else rcm_ik(robot, P[0], p_WC, q_start)
+    roll = [None] * len(P) if roll_rad is None else list(np.asarray(roll_rad, dtype=float))
+    q = start_posture(robot, P[0], p_WC) if q_start is None else q_start
+    q = rcm_ik(robot, P[0], p_WC, q, roll_rad=roll[0]) if (q_start is not None or roll[0] is not None) else q
     Q = np.empty((len(P), 6))
     Q[0] = q
     t0 = time.perf_counter()
     for i in range(1, len(P)):
-        Q[i] = q = rcm_ik(robot, P[i], p_WC, q)
+        Q[i] = q = rcm_ik(robot, P[i], p_WC, q, roll_rad=roll[i])
     return Q, (time.perf_counter() - t0) * 1e3 / max(len(P) - 1, 1)
 
 
@@ -101,14 +104,21 @@ def joint_trajectory(robot: Robot, Q, P_WT, tip_speed_mm_s: float) -> PiecewiseP
 
 
 def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
-                 tol_um: float = 0.5) -> tuple[PiecewisePolynomial, np.ndarray, float]:
+                 tol_um: float = 0.5, roll_rad=None, Q_waypoints=None) -> tuple[PiecewisePolynomial, np.ndarray, float]:
     """(q(t), the tip targets used (K, 3) mm, mean IK time per waypoint in ms) for the
-    targets P_WT (N, 3) mm: IK waypoints, then wherever the spline between two waypoints
-    leaves the RCM or the straight tip segment by more than `tol_um` (checked at
-    quarter points) the midpoint target is added by IK too (at most 4 rounds: fast joint
-    swings need denser waypoints)."""
+    targets P_WT (N, 3) mm (optional rolls `roll_rad` (N,)): IK waypoints, then wherever
+    the spline between two waypoints leaves the RCM or the straight tip segment by more
+    than `tol_um` (checked at quarter points) the midpoint target is added by IK too (at
+    most 4 rounds: fast joint swings need denser waypoints; a midpoint keeps its
+    neighbours' mean roll; a midpoint out of reach, on a chord across a gap of the
+    workspace, is left out and its segment kept as the spline makes it). `Q_waypoints`
+    (N, 6): the waypoints' IK already solved by the caller (then not solved again)."""
     P = np.asarray(P_WT, dtype=float)
-    Q, solve_ms = ik_waypoints(robot, P, p_WC, q_start)
+    roll = None if roll_rad is None else np.asarray(roll_rad, dtype=float)
+    if Q_waypoints is None:
+        Q, solve_ms = ik_waypoints(robot, P, p_WC, q_start, roll)
+    else:
+        Q, solve_ms = np.array(Q_waypoints, dtype=float), float("nan")
     for _ in range(4):
         traj = joint_trajectory(robot, Q, P, tip_speed_mm_s)
         t = np.asarray(traj.get_segment_times())
@@ -124,8 +134,21 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         if not bad.size:
             break
         mids = 0.5 * (P[bad] + P[bad + 1])
-        Q_mid = np.array([rcm_ik(robot, m, p_WC, 0.5 * (Q[i] + Q[i + 1])) for m, i in zip(mids, bad)])
-        P, Q = np.insert(P, bad + 1, mids, axis=0), np.insert(Q, bad + 1, Q_mid, axis=0)
+        roll_mid = None if roll is None else np.angle(np.exp(1j * roll[bad]) + np.exp(1j * roll[bad + 1]))
+        added = []
+        for k, (m, i) in enumerate(zip(mids, bad)):
+            try:
+                added.append((i, m, rcm_ik(robot, m, p_WC, 0.5 * (Q[i] + Q[i + 1]),
+                                           roll_rad=None if roll is None else roll_mid[k]), k))
+            except IKFailure:  # the midpoint itself is out of reach (a chord over a gap): keep the segment
+                continue
+        if not added:
+            break
+        at = np.array([a[0] for a in added]) + 1
+        P = np.insert(P, at, np.array([a[1] for a in added]), axis=0)
+        Q = np.insert(Q, at, np.array([a[2] for a in added]), axis=0)
+        if roll is not None:
+            roll = np.insert(roll, at, roll_mid[[a[3] for a in added]])
     return joint_trajectory(robot, Q, P, tip_speed_mm_s), P, solve_ms
 
 

@@ -1,0 +1,152 @@
+"""`vitreoguard plan`: plan the peripheral shaving path on the FITTED eye model and execute
+it through the closed loop (safety filter on) against the TRUE eye.
+
+The model is built as the system would build it (spiral scan through the loop); the
+band, its reachability from the trocar and the serpentine path come from
+planning.peripheral; the path runs as a TipPathCommand (tip positions and port rolls of
+the planned joint trajectory). Writes plan.json (issue 7's keys + the reachability
+reasons, the second-trocar suggestion and the path's figures), coverage.png (the band
+as azimuth x height: why each cell is or is not reachable, and the path) and plan.mcap
+(the execution's log).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from eval.io import UsageError, prepare_out_dir, save_figure, write_json
+from models.eyes import EYE_SHAPES
+
+REASON_COLORS = {"ok": "tab:green", "lens": "tab:blue", "port": "tab:orange", "reach": "tab:red"}
+
+
+def register(sub) -> None:
+    p = sub.add_parser("plan", help="peripheral vitrectomy path on the fitted model, executed through the filter")
+    p.add_argument("--shape", default="emmetropic", help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--standoff-mm", type=float, default=1.0, help="shaving standoff inside the model, mm (> 0.6)")
+    p.add_argument("--band", default="0,5", help="band z_E range 'z0,z1' in mm (equator 0, ora serrata 5)")
+    p.add_argument("--sweep-mm", type=float, default=1.0, help="cutter sweep width = ring spacing, mm")
+    p.add_argument("--tip-speed-mm-s", type=float, default=5.0, help="shaving tip speed, mm/s")
+    p.add_argument("--seed", type=int, default=0, help="sensor noise seed of the model-building scan")
+    p.add_argument("--no-execute", action="store_true", help="plan only (no closed-loop execution)")
+    p.add_argument("--trust-angle-deg", type=float, default=10.0,
+                   help="the filter trusts the model this far (deg, from the eye centre) from measured directions; "
+                        "beyond, the conservative prior also bounds the tip (default 10: the band is unmeasured "
+                        "after the spiral, so the filter holds the tip back; 180 trusts the extrapolation)")
+    p.set_defaults(func=main)
+
+
+def spec_of(args):
+    from planning.peripheral import BandSpec
+
+    try:
+        z0, z1 = (float(v) for v in str(args.band).split(","))
+    except ValueError:
+        raise UsageError(f"--band must be 'z0,z1' in mm, got {args.band!r}") from None
+    if args.shape not in EYE_SHAPES:
+        raise UsageError(f"unknown shape {args.shape!r}; choose from {', '.join(EYE_SHAPES)}")
+    if not (np.isfinite(args.trust_angle_deg) and 0.0 < args.trust_angle_deg <= 180.0):
+        raise UsageError(f"--trust-angle-deg must be in (0, 180], got {args.trust_angle_deg}")
+    try:
+        return BandSpec(z_min_E=z0, z_max_E=z1, spacing_mm=args.sweep_mm, standoff_mm=args.standoff_mm,
+                        tip_speed_mm_s=args.tip_speed_mm_s)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def roll_of(robot, q, p_WC) -> float:
+    """The instrument's roll about the shaft at q (planning.ik.roll_direction_W convention)."""
+    from planning.ik import _signed_angle
+
+    R, p = robot.pose("I", q)
+    u = R[:, 0]
+    h = np.cross([0.0, 0.0, 1.0], u)
+    return _signed_angle(h / np.linalg.norm(h), R[:, 1], u)
+
+
+def main(args) -> int:
+    spec = spec_of(args)
+    from eval.boundary_experiment import build_model_by_spiral
+    from eval.closed_loop import ClosedLoop, LoopConfig
+    from eval.commands import TipPathCommand
+    from eval.mcap_log import RunLogger
+    from planning import SurgeryScenario
+    from planning.ik import IKFailure
+    from planning.peripheral import REASONS, coverage, plan_path, second_trocar
+
+    scenario = SurgeryScenario(eye_name=args.shape)
+    loop = ClosedLoop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg), sensor_seed=args.seed)
+    print(f"building the model (spiral through the loop) on the {args.shape} eye ...")
+    build = build_model_by_spiral(loop)
+    try:
+        plan = plan_path(loop.robot, scenario, build.model.shape, spec)
+    except (ValueError, IKFailure) as exc:
+        raise UsageError(f"cannot plan: {exc}") from None
+    out = prepare_out_dir(args.out)
+    robot, traj = loop.robot, plan.trajectory
+    ts = np.arange(traj.start_time(), traj.end_time(), 0.02)
+    Q = traj.vector_values(ts).T
+    tips = np.array([robot.pose("T", q)[1] for q in Q])
+    band = plan.band
+    result = {
+        "coverage": coverage(band, tips, spec.spacing_mm),
+        "band_reachable": float(band.reachable.mean()),
+        "min_model_clearance_mm": float(np.min(build.model.shape.signed_distance(tips))),
+        "min_true_clearance_mm": None,
+        "duration_s": float(traj.end_time() - traj.start_time()),
+        "path_length_mm": float(np.linalg.norm(np.diff(tips, axis=0), axis=1).sum()),
+        "min_joint_margin_deg": float(np.degrees(min(robot.joint_margin_rad(q).min() for q in Q))),
+        "filter_intervention_fraction": None,
+        "plan_time_s": plan.plan_time_s,
+        "shape": args.shape, "model_kind": build.kind_final, "standoff_mm": spec.standoff_mm,
+        "trust_angle_deg": args.trust_angle_deg,
+        "band_z_E_mm": [spec.z_min_E, spec.z_max_E], "cells": int(band.reason.size),
+        "reasons": {r: int(np.sum(band.reason == r)) for r in REASONS},
+        "max_port_angle_deg_on_path": float(np.max(band.port_deg[band.reachable])) if band.reachable.any() else None,
+        "max_planned_rcm_error_um": float(1e3 * max(robot.rcm_error_mm(q, scenario.p_WC) for q in Q)),
+        "second_trocar": second_trocar(robot, scenario, band, spec),
+    }
+    if not args.no_execute:
+        print(f"executing {result['duration_s']:.1f} s of shaving through the closed loop ...")
+        roll = np.unwrap([roll_of(robot, q, scenario.p_WC) for q in Q])
+        command = TipPathCommand(ts - ts[0], tips, roll_rad=roll)
+        with RunLogger(out / "plan.mcap", loop.config.filter, metadata={"shape": args.shape, "run": "peripheral plan"}) as log:
+            run = loop.run(command, Q[0], result["duration_s"] + 0.2, model=build.model, coverage=build.coverage, logger=log)
+        result["min_true_clearance_mm"] = float(run.true_clearance_mm.min())
+        result["filter_intervention_fraction"] = float(run.intervened.mean())
+        result["execution"] = {"failsafe_stops": run.failsafe_stops, "max_rcm_error_um": float(1e3 * np.nanmax(run.rcm_error_mm)),
+                               "realtime_factor": run.realtime_factor,
+                               "executed_coverage": coverage(band, np.array([robot.pose("T", q)[1] for q in run.q[::20]]),
+                                                             spec.spacing_mm)}
+    save_figure(_coverage_figure(band, tips, scenario, args.shape, result), out / "coverage.png")
+    write_json(out / "plan.json", result)
+    for key in ("coverage", "band_reachable", "min_model_clearance_mm", "min_true_clearance_mm", "duration_s",
+                "path_length_mm", "min_joint_margin_deg", "filter_intervention_fraction", "plan_time_s"):
+        v = result[key]
+        print(f"{key:30s} {v:.4g}" if isinstance(v, float) else f"{key:30s} {v}")
+    print(f"wrote {out / 'plan.json'}, {out / 'coverage.png'}" + ("" if args.no_execute else f", {out / 'plan.mcap'}"))
+    return 0
+
+
+def _coverage_figure(band, tips, scenario, shape: str, result: dict):
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(11, 4))
+    A, Z = np.meshgrid(np.degrees(band.azimuth), band.z_E)
+    for reason, color in REASON_COLORS.items():
+        m = band.reason == reason
+        ax.scatter(A[m], Z[m], s=28, marker="s", color=color, label=f"{reason} ({int(m.sum())})")
+    P_E = scenario.eye_pose.to_E(tips)
+    az = np.degrees(np.arctan2(P_E[:, 1], P_E[:, 0])) % 360.0
+    jumps = np.abs(np.diff(az)) > 180.0
+    az_plot = np.where(np.concatenate([[False], jumps]), np.nan, az)
+    ax.plot(az_plot, P_E[:, 2], color="k", lw=0.8, label="planned tip path")
+    ax.set_xlabel("azimuth in the eye frame (deg)")
+    ax.set_ylabel("height z_E (mm): equator 0, ora serrata 5")
+    st = result["second_trocar"]
+    extra = "" if st["azimuth_deg"] is None else f"; a second trocar at {st['azimuth_deg']:.0f} deg adds {st['adds_fraction']:.0%}"
+    ax.set_title(f"{shape}: reachable {result['band_reachable']:.0%} of the band, coverage {result['coverage']:.0%}{extra}",
+                 fontsize=9)
+    ax.legend(fontsize=7, loc="upper right", ncol=5)
+    fig.tight_layout()
+    return fig
