@@ -48,10 +48,17 @@ def spec_of(args):
     if not (np.isfinite(args.trust_angle_deg) and 0.0 < args.trust_angle_deg <= 180.0):
         raise UsageError(f"--trust-angle-deg must be in (0, 180], got {args.trust_angle_deg}")
     try:
-        return BandSpec(z_min_E=z0, z_max_E=z1, spacing_mm=args.sweep_mm, standoff_mm=args.standoff_mm,
+        spec = BandSpec(z_min_E=z0, z_max_E=z1, spacing_mm=args.sweep_mm, standoff_mm=args.standoff_mm,
                         tip_speed_mm_s=args.tip_speed_mm_s)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
+
+    limit = SMALLEST_RETINAL_SEMI_AXIS_MM - spec.standoff_mm  # checked before any motion; the model re-checks
+    if not (-limit < z0 and z1 < limit):
+        raise UsageError(f"--band {z0:g},{z1:g} lies outside the model of any eye we simulate "
+                         f"(|z_E| must stay below {limit:.2f} mm with a {spec.standoff_mm:g} mm standoff)")
+    return spec
 
 
 def roll_of(robot, q, p_WC) -> float:
