@@ -9,16 +9,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, DiscreteTimeIntegrator
 
-from planning import Robot, SurgeryScenario, start_posture
 from planning.iioct_sensor import IioctSensor, IioctSensorSystem, extractor_error_model
-
-
-@pytest.fixture(scope="module")
-def setup():
-    scenario = SurgeryScenario()
-    robot = Robot(scenario)
-    p = scenario.eye_pose.to_W(np.array([[1.0, 2.0, -3.0]]))[0]
-    return scenario, robot, start_posture(robot, p, scenario.p_WC)
 
 
 def test_the_beam_comes_from_the_true_sensor_and_the_point_from_the_calibrated_one(setup):

@@ -4,16 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planning import Robot, SurgeryScenario, start_posture
 from planning.instrument_points import PORT_I_MM, MonitoredPointsConfig, instrument_points
-
-
-@pytest.fixture(scope="module")
-def setup():
-    scenario = SurgeryScenario()
-    robot = Robot(scenario)
-    p = scenario.eye_pose.to_W(np.array([[1.0, 2.0, -3.0]]))[0]
-    return scenario, robot, start_posture(robot, p, scenario.p_WC)
 
 
 def test_points_jacobians_and_rcm_rows_match_drake(setup):
