@@ -19,10 +19,12 @@ def _bisect_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
     """Root t of F(t) = sum_i (e_i y_i / (t + e_i^2))^2 - 1 on (-em2, inf), per row.
 
     E2: (3,) squared semi-axes; Y: (M, 3) non-negative, zero where a coordinate is
-    inactive; em2: (M,) squared smallest active semi-axis. F is convex and decreasing:
-    Newton steps from left of the root stay left of it and converge monotonically
-    (a step from the right lands left of it); a step that would leave the bracket (rounding) is replaced by
-    bisection. Rows stop when the bracket or the step reaches rounding level.
+    inactive; em2: (M,) squared smallest active semi-axis. F is decreasing; Newton runs
+    on phi(t) = (F + 1)^(-1/2) - 1, which has the same root and is almost linear (exactly
+    so when one term dominates), inside the bracket [lo, hi] kept by the sign of F; a
+    step that would leave the bracket is replaced by plain Newton on F (which stays
+    inside from the left of the root, F being convex), else by bisection. Rows stop when the
+    bracket or the step reaches rounding level.
     """
     ey = np.sqrt(E2) * Y
     em = np.sqrt(em2)
@@ -34,23 +36,30 @@ def _bisect_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
     e_bar2 = np.mean(E2)
     t = np.clip(np.sqrt(e_bar2) * np.linalg.norm(Y, axis=1) - e_bar2, lo, hi)
     zero = ey == 0.0  # inactive terms (their denominator may vanish)
-    eps4 = 4.0 * np.finfo(float).eps
+    rel_tol = 4.0 * np.finfo(float).eps  # relative to t + em2 (~r^2)
     with np.errstate(divide="ignore", invalid="ignore"):
         for _ in range(_MAX_STEPS):
             den = t[:, None] + E2
             ratio = ey / den
             ratio[zero] = 0.0
             r2 = ratio * ratio
-            F = r2.sum(axis=1) - 1.0
-            dF = -2.0 * (r2 / np.where(zero, 1.0, den)).sum(axis=1)  # < 0
+            S = r2.sum(axis=1)  # F + 1
+            F = S - 1.0
+            dS = -2.0 * (r2 / np.where(zero, 1.0, den)).sum(axis=1)  # < 0
             pos = F > 0.0
             lo = np.where(pos, t, lo)
             hi = np.where(pos, hi, t)
-            step = t - F / dF
-            new = np.where((step > lo) & (step < hi), step, 0.5 * (lo + hi))
-            new = np.where(F == 0.0, t, new)
-            tol = eps4 * (np.abs(new) + em2)
-            converged = (np.abs(new - t) <= tol) | (hi - lo <= tol)
+            # Newton on phi = S^(-1/2) - 1 (same root): nearly linear in t, since one term
+            # dominates S near the pole, where Newton on F itself crawls
+            root = np.sqrt(S)
+            step = t + 2.0 * (1.0 / root - 1.0) * S * root / dS
+            step_F = t - F / dS  # plain Newton on the convex F: inside the bracket from its left
+            inside = lambda x: (x > lo) & (x < hi)  # noqa: E731
+            new = np.where(inside(step), step, np.where(inside(step_F), step_F, 0.5 * (lo + hi)))
+            at_root = np.abs(F) <= 8.0 * np.finfo(float).eps * S  # F at rounding level: t is the root
+            new = np.where(at_root, t, new)
+            tol = rel_tol * (np.abs(new) + em2)
+            converged = at_root | (np.abs(new - t) <= tol) | (hi - lo <= tol)
             t = new
             if converged.all():
                 break
