@@ -85,6 +85,13 @@ def main(args) -> int:
     loop = ClosedLoop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg), sensor_seed=args.seed)
     print(f"building the model (spiral through the loop) on the {args.shape} eye ...")
     build = build_model_by_spiral(loop)
+    last = build.model.history[-1]
+    residual = last.ef_residual_mm if build.kind_final == "ellipsoid" else last.sf_residual_mm
+    boundary = loop.config.filter.d_safe_mm + loop.config.margins.margin_mm(build.kind_final, residual)
+    if spec.standoff_mm < boundary + 0.2:
+        raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
+                         f"{build.kind_final} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
+                         f"stepping in); use at least {boundary + 0.2:.2f} mm")
     try:
         plan = plan_path(loop.robot, scenario, build.model.shape, spec)
     except (ValueError, IKFailure) as exc:
