@@ -56,7 +56,7 @@ class LoopConfig:
     centre) from every measured direction keeps the prior's clearance too: the fit's
     extrapolation is only as good as the eye is regular (models.coverage); nearer, its
     margin grows by the model's measured misfit there (how far inside the model the
-    retina was measured within that angle: a detachment the sphere averages away)."""
+    retina was measured within `misfit_angle_deg`: a detachment the sphere averages away)."""
 
     control_rate_hz: float = 1000.0
     sensor_rate_hz: float = 2000.0
@@ -69,6 +69,7 @@ class LoopConfig:
     model_min_points: int = 200
     model_min_scan_range_mm: float = 5.0
     trust_angle_deg: float = 10.0
+    misfit_angle_deg: float = 10.0
     model_radius_range_mm: tuple = (8.0, 16.0)
 
     def __post_init__(self):
@@ -80,6 +81,10 @@ class LoopConfig:
             raise ValueError(f"LoopConfig.sensor_packet must be an int >= 1, got {self.sensor_packet}")
         if self.sensor_mode not in ("distance", "ascan"):
             raise ValueError(f"LoopConfig.sensor_mode must be 'distance' or 'ascan', got {self.sensor_mode!r}")
+        for name in ("trust_angle_deg", "misfit_angle_deg"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and 0.0 < v <= 180.0):
+                raise ValueError(f"LoopConfig.{name} must be in (0, 180] deg, got {v}")
         if not (isinstance(self.drake_diffik_every, int) and self.drake_diffik_every >= 0):
             raise ValueError(f"LoopConfig.drake_diffik_every must be an int >= 0, got {self.drake_diffik_every}")
 
@@ -243,9 +248,8 @@ class FilterSystem(LeafSystem):
         if kind is None or snap.coverage is None:
             trusted, misfit = np.ones(k, dtype=bool), np.zeros(k)
         else:
-            trust = np.radians(self.config.trust_angle_deg)
-            trusted = snap.coverage.angle_from_data_rad(ip.P_W[:k]) <= trust
-            misfit = snap.coverage.local_misfit_mm(ip.P_W[:k], trust)
+            trusted = snap.coverage.angle_from_data_rad(ip.P_W[:k]) <= np.radians(self.config.trust_angle_deg)
+            misfit = snap.coverage.local_misfit_mm(ip.P_W[:k], np.radians(self.config.misfit_angle_deg))
         x = FilterInputs(
             t_s=t_s, q=np.array(q), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,
             v_cmd_W=np.array(command[:3]), J_tip=ip.J_tip,
