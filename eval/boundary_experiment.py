@@ -7,12 +7,11 @@ Units: mm, s, rad (times in us where named); frame W.
 from __future__ import annotations
 
 import copy
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from eval.closed_loop import ClosedLoop, LoopConfig, LoopRun
+from eval.closed_loop import ClosedLoop, LoopRun
 from eval.commands import AdversarialCommand, TipPathCommand
 from models import AdaptiveEyeModel
 from models.metrics import mae_exact
@@ -31,7 +30,6 @@ class SpiralBuild:
     model: object  # models.AdaptiveEyeModel, in W
     coverage: object  # models.coverage.DirectionCoverage of its points
     run: LoopRun
-    q_end: np.ndarray
     kind_final: str
     transition_at: float | None  # fraction of the spiral's duration, or None
     ef_mae_um: float
@@ -60,7 +58,7 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: 
     run = loop.run(path, q0, float(times[-1]) + 0.05, model=model, coverage=coverage, logger=logger)
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)
     trans = _transition_fraction(run, times[-1])
-    return SpiralBuild(model, coverage, run, run.q[-1].copy(), model.kind,
+    return SpiralBuild(model, coverage, run, model.kind,
                        trans, 1e3 * mae_exact(model.ellipsoid, truth).mean if model.ellipsoid is not None else float("nan"),
                        1e3 * mae_exact(model.sphere, truth).mean)
 
