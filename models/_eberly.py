@@ -15,31 +15,34 @@ import numpy as np
 _MAX_STEPS = 200  # safeguarded Newton: quadratic near the root, never slower than bisection
 
 
-def _bisect_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
-    """Root t of F(t) = sum_i (e_i y_i / (t + e_i^2))^2 - 1 on (-em2, inf), per row.
+def _shifted_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
+    """Root u = t + em2 of F(t) = sum_i (e_i y_i / (t + e_i^2))^2 - 1 on t in (-em2, inf), per row.
 
     E2: (3,) squared semi-axes; Y: (M, 3) non-negative, zero where a coordinate is
-    inactive; em2: (M,) squared smallest active semi-axis. F is decreasing; Newton runs
-    on phi(t) = (F + 1)^(-1/2) - 1, which has the same root and is almost linear (exactly
-    so when one term dominates), inside the bracket [lo, hi] kept by the sign of F; a
-    step that would leave the bracket is replaced by plain Newton on F (which stays
-    inside from the left of the root, F being convex), else by bisection. Rows stop when the
-    bracket or the step reaches rounding level.
+    inactive; em2: (M,) squared smallest active semi-axis. Solving for the shift u > 0
+    instead of t keeps the smallest axis's denominator (exactly u) free of the
+    cancellation t + em2 that ruins queries a hair off the plane of that axis.
+    F is decreasing; Newton runs on phi(u) = (F + 1)^(-1/2) - 1, which has the same
+    root and is almost linear (exactly so when one term dominates), inside the bracket
+    [lo, hi] kept by the sign of F; a step that would leave the bracket is replaced by
+    plain Newton on F (which stays inside from the left of the root, F being convex),
+    else by bisection in log u (lo > 0). Rows stop when the bracket or the step reaches rounding level.
     """
     ey = np.sqrt(E2) * Y
     em = np.sqrt(em2)
-    y_m = np.max(np.where(E2 == em2[:, None], Y, 0.0), axis=1)
-    lo = -em2 + em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
-    hi = -em2 + np.linalg.norm(ey, axis=1)  # F(hi) <= 0
+    D = E2[None, :] - em2[:, None]  # den_i = u + D_i, exactly u for the smallest axis
+    y_m = np.max(np.where(D == 0.0, Y, 0.0), axis=1)
+    lo = em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
+    hi = ey.sum(axis=1)  # F(hi) <= 0 (>= |ey|, and no squares to underflow for tiny queries)
     # start: the root for a sphere of the mean radius (exact when the radii are equal),
     # kept inside the bracket; from either side of the root the next step lands left of it
     e_bar2 = np.mean(E2)
-    t = np.clip(np.sqrt(e_bar2) * np.linalg.norm(Y, axis=1) - e_bar2, lo, hi)
+    u = np.clip(np.sqrt(e_bar2) * np.linalg.norm(Y, axis=1) - e_bar2 + em2, lo, hi)
     zero = ey == 0.0  # inactive terms (their denominator may vanish)
-    rel_tol = 4.0 * np.finfo(float).eps  # relative to t + em2 (~r^2)
+    rel_tol = 4.0 * np.finfo(float).eps
     with np.errstate(divide="ignore", invalid="ignore"):
         for _ in range(_MAX_STEPS):
-            den = t[:, None] + E2
+            den = u[:, None] + D
             ratio = ey / den
             ratio[zero] = 0.0
             r2 = ratio * ratio
@@ -47,23 +50,26 @@ def _bisect_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
             F = S - 1.0
             dS = -2.0 * (r2 / np.where(zero, 1.0, den)).sum(axis=1)  # < 0
             pos = F > 0.0
-            lo = np.where(pos, t, lo)
-            hi = np.where(pos, hi, t)
-            # Newton on phi = S^(-1/2) - 1 (same root): nearly linear in t, since one term
+            lo = np.where(pos, u, lo)
+            hi = np.where(pos, hi, u)
+            # Newton on phi = S^(-1/2) - 1 (same root): nearly linear in u, since one term
             # dominates S near the pole, where Newton on F itself crawls
             root = np.sqrt(S)
-            step = t + 2.0 * (1.0 / root - 1.0) * S * root / dS
-            step_F = t - F / dS  # plain Newton on the convex F: inside the bracket from its left
+            step = u + 2.0 * (1.0 / root - 1.0) * S * root / dS
+            step_F = u - F / dS  # plain Newton on the convex F: inside the bracket from its left
             inside = lambda x: (x > lo) & (x < hi)  # noqa: E731
-            new = np.where(inside(step), step, np.where(inside(step_F), step_F, 0.5 * (lo + hi)))
-            at_root = np.abs(F) <= 8.0 * np.finfo(float).eps * S  # F at rounding level: t is the root
-            new = np.where(at_root, t, new)
-            tol = rel_tol * (np.abs(new) + em2)
-            converged = at_root | (np.abs(new - t) <= tol) | (hi - lo <= tol)
-            t = new
+            # geometric bisection: the root may sit many decades below hi (u ~ y_m for a
+            # query a hair off the plane of the smallest axis)
+            mid = np.sqrt(lo) * np.sqrt(hi)
+            new = np.where(inside(step), step, np.where(inside(step_F), step_F, mid))
+            at_root = np.abs(F) <= 8.0 * np.finfo(float).eps * S  # F at rounding level: u is the root
+            new = np.where(at_root, u, new)
+            tol = rel_tol * new  # relative to the shift itself: no absolute floor to cancel against
+            converged = at_root | (np.abs(new - u) <= tol) | (hi - lo <= tol)
+            u = new
             if converged.all():
                 break
-    return t
+    return u
 
 
 def closest_point_first_octant(e: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -76,8 +82,8 @@ def closest_point_first_octant(e: np.ndarray, Y: np.ndarray) -> np.ndarray:
     # y2 > 0: generic root with the smallest axis e2 (inactive y0, y1 give x = 0).
     a = pos[:, 2]
     if a.any():
-        t = _bisect_root(E2, Y[a], np.full(a.sum(), E2[2]))
-        X[a] = E2 * Y[a] / (t[:, None] + E2)
+        u = _shifted_root(E2, Y[a], np.full(a.sum(), E2[2]))
+        X[a] = E2 * Y[a] / (u[:, None] + (E2 - E2[2]))
 
     # y2 = 0: the t = -e2^2 branch leaves the plane when the query lies between the foci.
     b = ~a
@@ -107,8 +113,8 @@ def _closest_point_ellipse(e: np.ndarray, Y: np.ndarray, E2: np.ndarray) -> np.n
     if a.any():
         Ya = np.column_stack([Y[a], np.zeros(a.sum())])
         E2a = np.array([E2[0], E2[1], 1.0])  # third term inactive (y = 0)
-        t = _bisect_root(E2a, Ya, np.full(a.sum(), E2[1]))
-        X[a, :2] = E2[:2] * Y[a] / (t[:, None] + E2[:2])
+        u = _shifted_root(E2a, Ya, np.full(a.sum(), E2[1]))
+        X[a, :2] = E2[:2] * Y[a] / (u[:, None] + (E2[:2] - E2[1]))
     b = ~a
     if b.any():
         y0 = Y[b, 0]

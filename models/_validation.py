@@ -10,7 +10,10 @@ def as_points(P, name: str = "P", *, allow_nonfinite: bool = False) -> np.ndarra
     Raises ValueError naming `name` when the shape is not (N, 3) or (3,), or when a
     value is NaN/inf (unless `allow_nonfinite`).
     """
-    A = np.asarray(P, dtype=float)
+    try:
+        A = np.asarray(P, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be an (N, 3) array of numbers (points in mm), got {type(P).__name__}") from None
     if A.ndim == 1 and A.shape[0] == 3:
         A = A[None, :]
     if A.ndim != 2 or A.shape[1] != 3:
@@ -22,7 +25,10 @@ def as_points(P, name: str = "P", *, allow_nonfinite: bool = False) -> np.ndarra
 
 def as_vector3(v, name: str) -> np.ndarray:
     """Return v as a finite float (3,) array, or raise ValueError naming `name`."""
-    a = np.asarray(v, dtype=float)
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a (3,) vector of numbers, got {type(v).__name__}") from None
     if a.shape != (3,):
         raise ValueError(f"{name} must have shape (3,), got {a.shape}")
     if not np.all(np.isfinite(a)):

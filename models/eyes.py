@@ -75,7 +75,10 @@ def pointed_rho(radii: np.ndarray, apex_offset_mm: float = 2.0):
         k = U[:, 0] ** 2 / a**2 + U[:, 1] ** 2 / b**2
         uz = U[:, 2]
         # root of h k r^2 - uz r - h = 0 in the cancellation-free form (uz < 0 here)
-        parab = 2.0 * h / (-uz + np.sqrt(uz * uz + 4.0 * h * h * k))
+        # (the denominator vanishes on the anterior axis, uz > 0 and k = 0, where the
+        # ellipsoid answers instead)
+        den = -uz + np.sqrt(uz * uz + 4.0 * h * h * k)
+        parab = 2.0 * h / np.where(uz < 0.0, den, 1.0)
         return np.where(uz >= 0.0, ell(U), parab)
 
     return rho

@@ -147,10 +147,6 @@ def test_gradient_is_a_unit_vector_that_matches_finite_differences(name):
     assert np.all(e.signed_distance(Q + 1e-3 * G) > e.signed_distance(Q))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "BUG models/_eberly.py closest_point_first_octant (y2 > 0 branch, line 51): a query inside "
-    "between the foci whose shortest-axis coordinate is tiny but non-zero gets t + e2^2 -> 0 "
-    "by cancellation: NaN/inf for |y2| <~ 1e-15 mm, errors up to 0.03 mm at 1e-13 mm, 2e-7 mm at 1e-8 mm"))
 @pytest.mark.parametrize("radii", [[12.0, 9.0, 6.0], [13.0, 8.0, 8.0], [11.455, 11.365, 10.148]])
 def test_distance_is_continuous_across_the_plane_of_the_shortest_axis(radii):
     """The distance is 1-Lipschitz: moving the query by delta changes it by <= delta. Points

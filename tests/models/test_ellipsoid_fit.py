@@ -202,9 +202,7 @@ def test_incremental_fit_keeps_last_ok_when_a_refit_fails(monkeypatch):
         np.zeros((20, 2)),
         np.zeros((20, 3, 1)),
         np.zeros(4),
-        pytest.param("points", marks=pytest.mark.xfail(strict=True, reason=(
-            "BUG models/_validation.py as_points line 13: np.asarray(P, dtype=float) raises numpy's "
-            "'could not convert string to float' without naming the argument"))),
+        "points",
     ],
     ids=["(N,2)", "(N,3,1)", "(4,)", "str"],
 )
