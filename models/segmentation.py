@@ -15,9 +15,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
-from numpy.lib.stride_tricks import as_strided
 
 from models._validation import check_count, check_positive
 from models.ascan import RETINA_DEPTH_UM, OctEngine, axial_sigma_mm, retina_layers
@@ -88,17 +88,47 @@ class TemplateBank:
         self._tids = np.arange(len(angles_rad)) * len(sigmas_mm) + np.array(rows)
         self._span = np.column_stack([self.lo[self._tids].min(1), self.hi[self._tids].max(1), self.reach[self._tids].max(1)])
         self._sigma_max = sigmas_mm[np.array(rows)].max(axis=1)
+        self._entries: dict[int, DistanceTemplates] = {}
+        self._by_key: dict[tuple, DistanceTemplates] = {}
 
     def sigma_of(self, t: int) -> float:
         """Axial sigma (mm of optical path) of template t."""
         return float(self.sigmas_mm[t % len(self.sigmas_mm)])
 
-    def for_distance(self, distance_mm: float) -> tuple[np.ndarray, int, int, int, float]:
-        """(template per angle, joint lo, joint hi, largest reach, largest sigma mm) for a
-        retina about `distance_mm` away."""
+    def for_distance(self, distance_mm: float) -> "DistanceTemplates":
+        """The templates (one per angle) for a retina about `distance_mm` away."""
         i = min(max(int(distance_mm / _TABLE_STEP_MM + 0.5) - 1, 0), len(self._tids) - 1)
-        lo, hi, reach = self._span[i]
-        return self._tids[i], int(lo), int(hi), int(reach), float(self._sigma_max[i])
+        entry = self._entries.get(i)
+        if entry is None:  # built on first use, shared by every distance with the same templates
+            tids = self._tids[i]
+            lo, hi, reach = (int(v) for v in self._span[i])
+            key = (tuple(tids.tolist()), lo, hi, reach, float(self._sigma_max[i]))
+            entry = self._entries[i] = self._by_key.get(key)
+        if entry is None:
+            k = np.arange(self.length)[:, None]  # ILM candidates of a typical match (grown on demand)
+            entry = self._entries[i] = self._by_key[key] = DistanceTemplates(
+                tids, lo, hi, reach, float(self._sigma_max[i]), np.ascontiguousarray(self.integer[tids, lo:hi].T),
+                k + (self.lo[tids] - lo), k + (self.hi[tids] - lo), self.support[tids])
+        return entry
+
+
+class DistanceTemplates(NamedTuple):
+    """The bank's templates for one distance: template ids `tids` (A,) (one per angle);
+    their joint extent [lo, hi) and largest `reach` (samples, relative to the bank's
+    rows); the largest axial sigma (mm); `T` (hi - lo, A) the integer-shift templates
+    over the joint extent; `lo_k`, `hi_k` (n, A): for the k-th ILM candidate, where each
+    template's own support starts and ends, relative to the window of candidate 0;
+    `support` (A,) each template's length in samples."""
+
+    tids: np.ndarray
+    lo: int
+    hi: int
+    reach: int
+    sigma_max_mm: float
+    T: np.ndarray
+    lo_k: np.ndarray
+    hi_k: np.ndarray
+    support: np.ndarray
 
 
 @lru_cache(maxsize=4)
@@ -169,7 +199,7 @@ class DistanceExtractor:
         """Extract the tip-retina distance (mm) from one A-scan (n_samples,); never raises."""
         e = self.engine
         try:
-            x = np.asarray(ascan, dtype=float)
+            x = np.ascontiguousarray(ascan, dtype=np.float64)
         except (TypeError, ValueError):
             return _invalid("not_numeric")
         if x.shape != (e.n_samples,):
@@ -194,7 +224,7 @@ class DistanceExtractor:
         clusters = self._clusters(x, tip, threshold)
         if not clusters:
             return _invalid("no_peak")
-        ncc, ilm, t, first, last = max(self._match(x, tip, a, b) + (a, b) for a, b in clusters)
+        ncc, ilm, t, first, last = max(m + c for m, c in zip(self._match(x, tip, clusters), clusters))
         if t < 0:
             return _invalid("no_peak")
         ilm_sub, ncc = self._refine(x, ilm, t)
@@ -242,36 +272,74 @@ class DistanceExtractor:
             starts, ends = starts[keep], ends[keep]
         return [(int(idx[a]), int(idx[b])) for a, b in zip(starts, ends)]
 
-    def _match(self, x, tip: float, first: int, last: int) -> tuple[float, int, int]:
-        """(NCC, ILM sample, template) of the best match of the templates for this
-        cluster's distance, over ILM positions from `reach` before its first sample to just
-        after its last; (-inf, 0, -1) when no template fits inside the scan there."""
+    def _ilm_range(self, tip: float, first: int, last: int, n: int):
+        """(templates, first ILM candidate, last ILM candidate) for a cluster spanning
+        samples first..last of a scan of n samples: from a whole retina before its first
+        sample to no further behind it than the ILM's own rise allows (else __call__
+        rejects the shape); the range is empty (last < first) when no template fits."""
         bank = self._bank
         d0 = max((first - tip) * self._dz / self.group_index, self.min_distance_mm)
-        tids, lo, hi, reach, sigma_max = bank.for_distance(d0)
-        o = bank.origin
+        tp = bank.for_distance(d0)
         min_ilm = int(np.ceil(tip + self.min_distance_mm * self.group_index / self._dz))
-        # ILM candidates: up to a whole retina before the first sample, and no further
-        # behind it than the ILM's own rise allows (else __call__ rejects the shape)
-        rise = int(self._max_rise * sigma_max / self._dz) + 2
-        ilm = np.arange(max(first - reach, min_ilm, o - lo),
-                        min(first + rise, last + 2, len(x) - hi + o) + 1)
-        if len(ilm) == 0:
-            return (-np.inf, 0, -1)
-        w0 = ilm[0] - o + lo
-        xs = x[w0:ilm[-1] - o + hi]
-        G = as_strided(xs, (len(ilm), hi - lo), (xs.strides[0], xs.strides[0]), writeable=False)
-        num = G @ bank.integer[tids, lo:hi].T  # (L, A)
-        c1 = np.concatenate([[0.0], np.cumsum(xs)])  # window sums of x and x^2 per template support
-        c2 = np.concatenate([[0.0], np.cumsum(xs * xs)])
-        a = ilm[:, None] - o - w0 + bank.lo[tids][None, :]
-        b = ilm[:, None] - o - w0 + bank.hi[tids][None, :]
-        s1, s2 = c1[b] - c1[a], c2[b] - c2[a]
-        ncc = num / np.sqrt(np.maximum(s2 - s1 * s1 / bank.support[tids], 1e-300))
+        rise = int(self._max_rise * tp.sigma_max_mm / self._dz) + 2
+        o = bank.origin
+        return tp, max(first - tp.reach, min_ilm, o - tp.lo), min(first + rise, last + 2, n - tp.hi + o)
+
+    def _match(self, x, tip: float, clusters: list[tuple[int, int]]) -> list[tuple[float, int, int]]:
+        """Per cluster: (NCC, ILM sample, template) of the best match of the templates for
+        its distance over its ILM candidates; (-inf, 0, -1) when no template fits inside
+        the scan there. Clusters whose candidate ranges overlap and share templates (the
+        layers of one retina, split by a gap) share one correlation over the union."""
+        o = self._bank.origin
+        ranges = sorted((self._ilm_range(tip, a, b, len(x)) + (k,) for k, (a, b) in enumerate(clusters)),
+                        key=lambda r: r[1])
+        out = [(-np.inf, 0, -1)] * len(clusters)
+        g = 0
+        while g < len(ranges):
+            tp, i0, i1 = ranges[g][:3]
+            h = g + 1
+            while h < len(ranges) and ranges[h][0] is tp and ranges[h][1] <= i1 + 1:
+                i1 = max(i1, ranges[h][2])
+                h += 1
+            if i1 >= i0:
+                ncc = self._ncc(x, tp, i0, i1, o)
+                for tp_k, a, b, k in ranges[g:h]:
+                    if b >= a:
+                        out[k] = self._best(ncc[a - i0:b - i0 + 1], a, tp)
+            g = h
+        return out
+
+    @staticmethod
+    def _ncc(x, tp: "DistanceTemplates", i0: int, i1: int, o: int) -> np.ndarray:
+        """(i1 - i0 + 1, A) NCC of the scan with each template, ILM at samples i0..i1."""
+        lo, hi = tp.lo, tp.hi
+        w0 = i0 - o + lo
+        xs = x[w0:i1 - o + hi]
+        n_ilm = i1 - i0 + 1
+        # windows of the scan as rows, without a copy (as_strided's Python overhead is
+        # a tenth of the whole match here); x is C-contiguous float64 (see __call__)
+        G = np.ndarray((n_ilm, hi - lo), np.float64, x, 8 * w0, (8, 8))
+        num = G @ tp.T  # (L, A)
+        c1 = np.empty(len(xs) + 1)  # window sums of x and x^2 over each template's support
+        c2 = np.empty(len(xs) + 1)
+        c1[0] = c2[0] = 0.0
+        np.cumsum(xs, out=c1[1:])
+        np.cumsum(xs * xs, out=c2[1:])
+        if n_ilm <= len(tp.lo_k):
+            a, b = tp.lo_k[:n_ilm], tp.hi_k[:n_ilm]
+        else:  # a union of overlapping clusters longer than the precomputed grid
+            k = np.arange(n_ilm)[:, None]
+            a, b = k + tp.lo_k[0], k + tp.hi_k[0]
+        s1 = c1[b] - c1[a]
+        return num / np.sqrt(np.maximum(c2[b] - c2[a] - s1 * s1 / tp.support, 1e-300))
+
+    def _best(self, ncc: np.ndarray, i0: int, tp: "DistanceTemplates") -> tuple[float, int, int]:
+        """(NCC, ILM sample, template) of the best match in ncc (rows: ILM at i0, i0 + 1, ...):
+        the least oblique template within `angle_tolerance` of the best, at its best row."""
         per_angle = ncc.max(axis=0)
-        j = int(np.argmax(per_angle >= per_angle.max() - self.angle_tolerance))  # least oblique that fits
+        j = int(np.argmax(per_angle >= per_angle.max() - self.angle_tolerance))
         i = int(np.argmax(ncc[:, j]))
-        return (float(ncc[i, j]), int(ilm[i]), int(tids[j]))
+        return (float(ncc[i, j]), i0 + i, int(tp.tids[j]))
 
     def _refine(self, x, ilm: int, t: int) -> tuple[float, float]:
         """(sub-sample ILM index, NCC there): the 1/8-sample bank of template t around
@@ -281,10 +349,11 @@ class DistanceExtractor:
         w = x[a:b]
         norm = np.sqrt(max(float(w @ w) - float(w.sum()) ** 2 / bank.support[t], 1e-300))
         c = bank.fine[t, :, bank.lo[t]:bank.hi[t]] @ w / norm
-        k = int(np.clip(np.argmax(c), 1, len(c) - 2))
-        den = c[k - 1] - 2.0 * c[k] + c[k + 1]
-        delta = float(np.clip(0.5 * (c[k - 1] - c[k + 1]) / den, -1.0, 1.0)) if den < 0.0 else 0.0
-        peak = c[k] - 0.25 * (c[k - 1] - c[k + 1]) * delta
+        k = min(max(int(np.argmax(c)), 1), len(c) - 2)
+        c0, c1, c2 = c[k - 1:k + 2].tolist()
+        den = c0 - 2.0 * c1 + c2
+        delta = min(max(0.5 * (c0 - c2) / den, -1.0), 1.0) if den < 0.0 else 0.0
+        peak = c1 - 0.25 * (c0 - c2) * delta
         return ilm + bank.shifts[k] + delta * bank.shift_step, float(peak)
 
 

@@ -182,6 +182,24 @@ def test_any_distance_in_the_working_range_is_extracted_within_tolerance_or_flag
     assert 0.7 <= m.confidence <= 1.0 and m.snr_db > 13.0
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.floats(2.5, 24.0), st.floats(0.0, np.deg2rad(50.0)), st.floats(0.1, 2.0), st.integers(0, 2 ** 31))
+def test_clusters_matched_together_score_as_if_matched_one_by_one(distance_mm, incidence_rad, gap_mm, seed):
+    """Candidate interfaces whose ILM ranges overlap share one correlation (speed); each
+    must still get exactly the match it would get alone, floaters included."""
+    ex = DistanceExtractor(ENGINE, max_candidates=4)
+    x = synthesize_ascan(distance_mm, incidence_rad, seed, floaters=[Floater(distance_mm - gap_mm, snr_db=30.0)])
+    noise = np.median(x[::8]) / np.sqrt(np.log(2.0))
+    threshold = noise * ex._threshold
+    tip = ex._tip_position(x, threshold)
+    clusters = ex._clusters(x, tip, threshold)
+    together = ex._match(x, tip, clusters)
+    alone = [ex._match(x, tip, [c])[0] for c in clusters]
+    # the same ILM and template; the NCC equal up to the rounding of sums over other windows
+    assert [m[1:] for m in together] == [m[1:] for m in alone]
+    np.testing.assert_allclose([m[0] for m in together], [m[0] for m in alone], rtol=0, atol=1e-12)
+
+
 # --- bad input: flagged with a reason, never a number ---------------------------------
 
 def _scan():
