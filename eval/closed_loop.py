@@ -160,9 +160,16 @@ class AdaptiveModelSystem(LeafSystem):
         self.errors_mm: list[float] = []  # extracted - true distance of the valid samples (evaluation)
         self.n_samples = 0
         self.n_invalid = 0
+        self.epochs: list[ModelSnapshot] = []  # the snapshot whenever the filter's model changed kind
+
+    def _mark_epoch(self, snap: ModelSnapshot) -> None:
+        if not self.epochs or self.epochs[-1].kind != snap.kind:
+            self.epochs.append(snap)
 
     def initial_snapshot(self) -> ModelSnapshot:
-        return snapshot_of(self.model, self.coverage, 0.0, *self._trust)
+        snap = snapshot_of(self.model, self.coverage, 0.0, *self._trust)
+        self._mark_epoch(snap)
+        return snap
 
     def _update(self, context, state) -> None:
         packet = [s for s in self._samples.Eval(context) if s.t_s > self._last_t]
@@ -187,6 +194,7 @@ class AdaptiveModelSystem(LeafSystem):
         snap = state.get_abstract_state(0).get_value()
         new = snapshot_of(self.model, self.coverage, self._last_t, *self._trust) if entry is not None or snap.shape is None else snap._replace(t_s=self._last_t)
         state.get_mutable_abstract_state(0).set_value(new)
+        self._mark_epoch(new)
 
 
 @dataclass
@@ -323,7 +331,9 @@ class LoopRun:
 
     `true_clearance_mm` (M,): the smallest TRUE clearance of the monitored points per
     step (ground-truth eye); `lens_clearance_mm` (M,): the shaft's lens points' smallest
-    distance outside the lens keep-out; `wall_s` the run's wall time."""
+    distance outside the lens keep-out; `wall_s` the run's wall time; `model_epochs` the
+    model the filter used (ModelSnapshot, W) from each change of kind on (prior -> sphere
+    -> ellipsoid), the first one from the start of the run."""
 
     t: np.ndarray
     q: np.ndarray
@@ -343,6 +353,7 @@ class LoopRun:
     drake_diffik_us: np.ndarray
     model_update_us: np.ndarray
     wall_s: float
+    model_epochs: list = field(default_factory=list)
 
     @property
     def duration_s(self) -> float:
@@ -449,4 +460,5 @@ class ClosedLoop:
             true_clearance_mm=true_clearances(r.points_W, eye) if r.points_W else np.zeros(0),
             lens_clearance_mm=lens_clear, kind=list(r.kind), rcm_error_mm=a(r.rcm_error_mm),
             drake_diffik_us=a(r.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
+            model_epochs=list(self.model.epochs),
         )

@@ -9,6 +9,8 @@ plots boundary_clearance.png and boundary_activity.png, and the MCAP logs spiral
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from eval.io import UsageError, prepare_out_dir, save_figure, write_json
@@ -46,9 +48,19 @@ def validate(args) -> None:
             raise UsageError(f"--{name.replace('_', '-')} must be in [{lo}, {hi}], got {v}")
 
 
+class BoundaryRun(NamedTuple):
+    """Everything of one `vitreoguard boundary` experiment: boundary.json's content, the
+    SpiralBuild, the adversarial Campaign and the ClosedLoop they ran in."""
+
+    result: dict
+    build: object
+    campaign: object
+    loop: object
+
+
 def run_boundary(args, out, progress=print, keep_build: bool = False):
     """The experiment of `args` (validated); writes logs and plots into `out`; returns
-    boundary.json's content (and the SpiralBuild with `keep_build`)."""
+    boundary.json's content (a BoundaryRun with `keep_build`)."""
     from eval.boundary_experiment import build_model_by_spiral, run_campaign
     from eval.closed_loop import ClosedLoop, LoopConfig
     from eval.mcap_log import RunLogger
@@ -96,7 +108,7 @@ def run_boundary(args, out, progress=print, keep_build: bool = False):
     }
     save_figure(_clearance_figure(campaign, args.shape), out / "boundary_clearance.png")
     save_figure(_activity_figure(campaign, s), out / "boundary_activity.png")
-    return (result, build) if keep_build else result
+    return BoundaryRun(result, build, campaign, loop) if keep_build else result
 
 
 def main(args) -> int:

@@ -23,6 +23,9 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the sensor noise, starts and adversary")
     p.add_argument("--scenarios", type=int, default=20, help="adversarial scenarios of 0.5 s after the scan")
     p.add_argument("--rows", type=int, default=10, help="rows of the model history table")
+    p.add_argument("--meshcat", action="store_true",
+                   help="then replay the scan and the first 3 scenarios in Meshcat (robot, true retina, model and "
+                        "boundary as they changed, beam, tip path) and wait")
     p.set_defaults(func=main)
 
 
@@ -58,7 +61,8 @@ def main(args) -> int:
                                        sensor_mode="distance")
     print(f"VitreoGuard demo: closed loop on the {args.shape} eye (Meca500 through the trocar, iiOCT at 2 kHz, "
           "filter at 1 kHz)")
-    result, build = run_boundary(boundary_args, out, keep_build=True)
+    boundary = run_boundary(boundary_args, out, keep_build=True)
+    result, build = boundary.result, boundary.build
     rows = _history_rows(build, args.rows)
     print(f"\nModel during the spiral scan ({build.run.duration_s:.1f} s, {build.model.n_points} points):")
     print(f"{'t (s)':>6} {'filter uses':>11} {'points':>7} {'range':>8} {'sphere r':>8} {'ellipsoid radii (mm)':>22} {'true clr':>8}")
@@ -80,4 +84,11 @@ def main(args) -> int:
     print(f"\nwrote {out / 'demo.json'}, plots boundary_clearance.png and boundary_activity.png, "
           f"MCAP logs {out / 'spiral.mcap'} and {out / 'boundary.mcap'} (open in Foxglove; "
           f"`vitreoguard replay {out / 'boundary.mcap'}` re-runs the filter)")
+    if args.meshcat:
+        from eval.loop_view import show_loop
+
+        loop = boundary.loop
+        url = show_loop(loop.robot, [build.run, *boundary.campaign.runs[:3]], loop.config.margins,
+                        loop.config.filter.d_safe_mm, loop.prior, eye=loop.scenario.eye)
+        input(f"Meshcat at {url} (press play on the recording): press Enter to quit ")
     return 0
