@@ -4,11 +4,11 @@ beam and the tip path, as a recording to replay in the browser."""
 from __future__ import annotations
 
 import numpy as np
-from pydrake.geometry import Meshcat, MeshcatVisualizer, Rgba
+from pydrake.geometry import Meshcat, Rgba
 from pydrake.math import RigidTransform, RotationMatrix
-from pydrake.systems.framework import DiagramBuilder
 
 from planning.robot import MM_PER_M, Robot
+from planning.view import visual_scene
 
 BEAM_LENGTH_MM = 25.0  # drawn length of the beam (the extractor's working range)
 _TRUTH_RGBA = Rgba(0.75, 0.75, 0.75, 0.25)
@@ -65,18 +65,13 @@ def show_loop(robot: Robot, runs: list, margins, d_safe_mm: float, prior, eye=No
     `model_epochs`) its surface and its boundary d_safe_mm + `margins.margin_mm(kind,
     residual)` inside it (the `prior` Sphere stands for the prior), visible while in use,
     the beam from the nominal sensor pose (drawn BEAM_LENGTH_MM long) and the tip path.
-    Builds its own visual copy of the scene, so `robot`'s diagram stays untouched."""
+    `robot`'s own diagram stays untouched (planning.view.visual_scene)."""
     if not runs or any(len(r.t) == 0 for r in runs):
         raise ValueError("show_loop needs at least one run, and no empty run")
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be > 0, got {fps}")
     meshcat = Meshcat() if meshcat is None else meshcat
-    builder = DiagramBuilder()
-    scene = Robot(robot.scenario, builder)
-    vis = MeshcatVisualizer.AddToBuilder(builder, scene.scene_graph, meshcat)
-    diagram = builder.Build()
-    context = diagram.CreateDefaultContext()
-    plant_context = scene.plant.GetMyContextFromRoot(context)
+    view = visual_scene(robot, meshcat)
 
     if eye is not None:
         _set_mesh(meshcat, "truth/retina", *eye_surface_mm(eye), _TRUTH_RGBA)
@@ -96,15 +91,13 @@ def show_loop(robot: Robot, runs: list, margins, d_safe_mm: float, prior, eye=No
     meshcat.SetLine("beam", np.asfortranarray(np.array([[0.0, 0.0], [0.0, 0.0], [0.0, BEAM_LENGTH_MM / MM_PER_M]])),
                     2.0, Rgba(0.2, 0.4, 1.0, 1.0))
 
-    animation = vis.StartRecording()
+    animation = view.visualizer.StartRecording()
     t_clock = 0.0
     for run in runs:
         for t in np.arange(0.0, run.duration_s, 1.0 / fps):
             q = run.q[min(int(np.searchsorted(run.t - run.t[0], t)), len(run.q) - 1)]
             now = t_clock + t
-            context.SetTime(now)
-            scene.plant.SetPositions(plant_context, q)
-            diagram.ForcedPublish(context)
+            view.show(q, now)
             frame = animation.frame(now)
             R_WS, p_WS = robot.pose("S", q)
             animation.SetTransform(frame, "/drake/beam", RigidTransform(RotationMatrix(R_WS), p_WS / MM_PER_M))
@@ -112,6 +105,6 @@ def show_loop(robot: Robot, runs: list, margins, d_safe_mm: float, prior, eye=No
             for i, (_, path) in enumerate(epochs):
                 animation.SetProperty(frame, f"/drake/{path}", "visible", i == current)
         t_clock += run.duration_s
-    vis.StopRecording()
-    vis.PublishRecording()
+    view.visualizer.StopRecording()
+    view.visualizer.PublishRecording()
     return meshcat.web_url()
