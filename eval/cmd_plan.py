@@ -11,12 +11,14 @@ as azimuth x height: why each cell is or is not reachable, and the path) and pla
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from eval.io import UsageError, prepare_out_dir, save_figure, write_json
 from models.eyes import EYE_SHAPES
 
-REASON_COLORS = {"ok": "tab:green", "lens": "tab:blue", "port": "tab:orange", "reach": "tab:red"}
+REASON_COLORS = {"ok": "tab:green", "lens": "tab:blue", "port": "tab:orange", "reach": "tab:red", "shaft": "tab:purple"}
 
 
 def register(sub) -> None:
@@ -92,6 +94,7 @@ def main(args) -> int:
         raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
                          f"{build.kind_final} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
                          f"stepping in); use at least {boundary + 0.2:.2f} mm")
+    spec = dataclasses.replace(spec, boundary_mm=boundary)  # the whole instrument plans outside it
     try:
         plan = plan_path(loop.robot, scenario, build.model.shape, spec)
     except (ValueError, IKFailure) as exc:
@@ -113,6 +116,7 @@ def main(args) -> int:
         "filter_intervention_fraction": None,
         "plan_time_s": plan.plan_time_s,
         "shape": args.shape, "model_kind": build.kind_final, "standoff_mm": spec.standoff_mm,
+        "boundary_mm": spec.boundary_mm,
         "trust_angle_deg": args.trust_angle_deg,
         "band_z_E_mm": [spec.z_min_E, spec.z_max_E], "cells": int(band.reason.size),
         "reasons": {r: int(np.sum(band.reason == r)) for r in REASONS},

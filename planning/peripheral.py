@@ -8,7 +8,11 @@ rings `spacing_mm` apart (the cutter's sweep width); each cell's shaving target 
 - the cutter port (on the shaft's side) can face the retina: the shaft's angle to the
   surface leaves the port normal within `port_max_deg` of the surface normal ("port"),
 - the arm reaches it through the trocar with every joint `min_margin_deg` from its
-  limits (closed-form shaft IK, any branch; "reach").
+  limits (closed-form shaft IK, any branch; "reach");
+- at that posture the shaft points the filter watches keep `boundary_mm` +
+  SHAFT_SLACK_MM from the model ("shaft"), else the filter would hold the instrument
+  back there (the shaft enters near the wall, and a model with a wide margin puts the
+  boundary across it); the tip and port are placed by the standoff.
 The path visits the reachable cells ring by ring, alternating direction (a serpentine),
 each waypoint by RCM inverse kinematics seeded from the previous one with the roll that
 turns the port to the retina; a C2 joint spline within the speed limits times it
@@ -23,19 +27,24 @@ import numpy as np
 
 from planning.closed_form import shaft_ik
 from planning.ik import IKFailure, _signed_angle, rcm_ik
+from planning.instrument_points import instrument_points
 from planning.robot import Robot
 from planning.scan import plan_ik_scan, start_posture
 from planning.scenario import LENS_CLEARANCE_MM, ORA_SERRATA_Z_E_MM
 
-REASONS = ("ok", "lens", "port", "reach")
+REASONS = ("ok", "lens", "port", "reach", "shaft")
 BOUNDARY_MM = 0.5  # the virtual boundary's d_safe: a standoff must leave room above it
+SHAFT_SLACK_MM = 0.2  # monitored points plan this far outside the boundary (the filter stays out)
 MAX_JOINT_STEP_RAD = 1.0  # between neighbouring cells (1 mm apart): more is a branch change
 
 
 @dataclass(frozen=True)
 class BandSpec:
     """Band z_E range (mm, eye frame), ring and azimuth spacing (= sweep width, mm),
-    standoff inside the model (mm), port and joint-margin limits (deg), tip speed (mm/s)."""
+    standoff inside the model (mm), port and joint-margin limits (deg), tip speed (mm/s),
+    and `boundary_mm`: the clearance the safety filter keeps from this model (d_safe +
+    the model's uncertainty margin), which the tip's standoff and the whole instrument
+    must respect."""
 
     z_min_E: float = 0.0
     z_max_E: float = ORA_SERRATA_Z_E_MM
@@ -44,15 +53,19 @@ class BandSpec:
     port_max_deg: float = 30.0
     min_margin_deg: float = 5.0
     tip_speed_mm_s: float = 5.0
+    boundary_mm: float = BOUNDARY_MM
 
     def __post_init__(self):
         if not (np.isfinite(self.z_min_E) and np.isfinite(self.z_max_E) and self.z_min_E < self.z_max_E):
             raise ValueError(f"band z_E range must be finite with z_min < z_max, got ({self.z_min_E}, {self.z_max_E}) mm")
         if not (0.2 <= self.spacing_mm <= 5.0):
             raise ValueError(f"spacing_mm must be in [0.2, 5] mm, got {self.spacing_mm}")
-        if not (self.standoff_mm > BOUNDARY_MM + 0.1 and self.standoff_mm <= 5.0):
-            raise ValueError(f"standoff_mm must be in ({BOUNDARY_MM + 0.1}, 5] mm (the boundary is {BOUNDARY_MM} mm "
-                             f"and the filter's margins need room), got {self.standoff_mm}")
+        if not (BOUNDARY_MM <= self.boundary_mm <= 4.0):
+            raise ValueError(f"boundary_mm must be in [{BOUNDARY_MM}, 4] mm (d_safe + the model's margin), "
+                             f"got {self.boundary_mm}")
+        if not (self.standoff_mm > self.boundary_mm + 0.1 and self.standoff_mm <= 5.0):
+            raise ValueError(f"standoff_mm must be in ({self.boundary_mm + 0.1:g}, 5] mm (the boundary is "
+                             f"{self.boundary_mm:g} mm and the filter's margins need room), got {self.standoff_mm}")
         if not (0.0 < self.port_max_deg <= 90.0) or not (0.0 <= self.min_margin_deg < 45.0):
             raise ValueError("port_max_deg must be in (0, 90] and min_margin_deg in [0, 45) deg")
         if not (0.1 <= self.tip_speed_mm_s <= 20.0):
@@ -214,6 +227,15 @@ def _after_widest_gap(ok: np.ndarray) -> int:
     return (best_end + 1) % n
 
 
+def shaft_clearance_mm(robot: Robot, q, p_WC, model) -> float:
+    """Smallest clearance (mm, inside > 0) from `model` of the shaft points the safety
+    filter watches at q (planning.instrument_points: past the trocar, behind the tip and
+    port, which the standoff places); inf when none is that deep."""
+    ip = instrument_points(robot, q, p_WC)
+    shaft = [k for k, name in enumerate(ip.names) if name.startswith("shaft")]
+    return float(np.min(model.signed_distance(ip.P_W[shaft]))) if shaft else float("inf")
+
+
 def plan_path(robot: Robot, scenario, model, spec: BandSpec = BandSpec(), q_start=None) -> Plan:
     """Plan the shaving path over the reachable band of `model`. Raises ValueError for a
     bad band or standoff and IKFailure when nothing is reachable."""
@@ -233,6 +255,13 @@ def plan_path(robot: Robot, scenario, model, spec: BandSpec = BandSpec(), q_star
         jump = np.abs(q - Q[-1]).max() if Q else 0.0
         if np.min(robot.joint_margin_rad(q)) < np.radians(spec.min_margin_deg) or jump > MAX_JOINT_STEP_RAD:
             band.reason[r, i] = "reach"  # beyond the margins, or only on another branch (no continuous path)
+            q = Q[-1] if Q else None
+            continue
+        # at the cell and on the way there (the joint spline runs close to the straight
+        # line in joint space between neighbouring waypoints)
+        on_way = [q] + [Q[-1] + f * (q - Q[-1]) for f in (0.25, 0.5, 0.75)] if Q else [q]
+        if min(shaft_clearance_mm(robot, x, scenario.p_WC, model) for x in on_way) < spec.boundary_mm + SHAFT_SLACK_MM:
+            band.reason[r, i] = "shaft"
             q = Q[-1] if Q else None
             continue
         kept.append((r, i))

@@ -7,7 +7,8 @@ import pytest
 
 from models import Ellipsoid
 from planning import Robot, SurgeryScenario
-from planning.peripheral import Band, BandSpec, coverage, plan_band, plan_path, port_roll_rad, serpentine
+from planning.peripheral import (SHAFT_SLACK_MM, Band, BandSpec, coverage, shaft_clearance_mm, plan_band, plan_path,
+                                 port_roll_rad, serpentine)
 
 SPEC = BandSpec(z_min_E=0.0, z_max_E=3.0, spacing_mm=1.0)
 
@@ -64,7 +65,7 @@ def test_coverage_of_a_known_case():
 def test_unreachable_cells_say_why(setup):
     scenario, robot, model, plan = setup
     reasons = set(plan.band.reason.ravel())
-    assert reasons <= {"ok", "lens", "port", "reach"} and {"ok", "port"} <= reasons
+    assert reasons <= {"ok", "lens", "port", "reach", "shaft"} and {"ok", "port"} <= reasons
 
 
 @pytest.mark.parametrize("kw, message", [({"standoff_mm": 0.5}, "standoff_mm"), ({"z_min_E": 3.0, "z_max_E": 1.0}, "z_min"),
@@ -81,3 +82,25 @@ def test_a_band_outside_the_model_is_refused(setup):
     small = Ellipsoid(model.center, [3.5, 3.5, 3.5], model.rotation)  # the band must end 1 mm (standoff) inside it
     with pytest.raises(ValueError, match="outside the model"):
         plan_band(robot, scenario, small, SPEC)
+
+
+def test_a_wide_boundary_drops_the_cells_where_the_shaft_would_cross_it(setup):
+    """With the sphere phase's boundary (0.5 + 1 mm), some postures bring a shaft point near
+    the trocar inside it: those cells say "shaft", and the path's shaft points clear it."""
+    scenario, robot, model, plan = setup
+    spec = BandSpec(z_min_E=0.0, z_max_E=3.0, spacing_mm=1.0, standoff_mm=1.7, boundary_mm=1.5)
+    wide = plan_path(robot, scenario, model, spec)
+    assert (wide.band.reason == "shaft").any() and wide.band.reachable.any()
+    ts = np.linspace(wide.trajectory.start_time(), wide.trajectory.end_time(), 200)
+    clearance = [shaft_clearance_mm(robot, q, scenario.p_WC, model) for q in wide.trajectory.vector_values(ts).T]
+    assert min(clearance) >= spec.boundary_mm + SHAFT_SLACK_MM - 0.1  # waypoints exact; 0.1 mm between them
+    # on the narrow boundary no waypoint of the default plan came near it
+    ts = np.linspace(plan.trajectory.start_time(), plan.trajectory.end_time(), 200)
+    assert min(shaft_clearance_mm(robot, q, scenario.p_WC, model) for q in plan.trajectory.vector_values(ts).T) >= 0.6
+
+
+def test_a_standoff_inside_the_boundary_is_refused():
+    with pytest.raises(ValueError, match="standoff_mm"):
+        BandSpec(standoff_mm=1.2, boundary_mm=1.5)
+    with pytest.raises(ValueError, match="boundary_mm"):
+        BandSpec(boundary_mm=0.3)
