@@ -14,6 +14,8 @@ from models._validation import check_count, check_positive
 from models.ellipsoid_fit import LENGTH_SCALE_MM
 from models.extrapolation import sampson_distance
 
+RESIDUAL_REFRESH = 16  # accepted points between refreshes of the robust residual (a median)
+
 
 @dataclass(frozen=True)
 class OutlierGate:
@@ -80,6 +82,7 @@ class GateState:
         self._last: list | None = None
         self._recent = np.empty(gate.window)  # |distance| of recently accepted points, mm
         self._n_recent = 0
+        self._refresh_at = 0  # count of accepted points at which the residual is next refreshed
         self._residual = np.inf
 
     def _distances(self, P: np.ndarray, quadric, p0) -> tuple[list, list]:
@@ -104,9 +107,10 @@ class GateState:
             self._last = P[-1].tolist()
             return P
         d, jump = self._distances(P, quadric, p0)
-        if self._n_recent % 16 == 0:  # the median is refreshed, not recomputed per point
+        if self._n_recent >= self._refresh_at:  # the median is refreshed every REFRESH points, not per point
             filled = self._recent[: min(self._n_recent, len(self._recent))]
             self._residual = 1.4826 * float(np.median(filled)) if len(filled) else np.inf
+            self._refresh_at = self._n_recent + RESIDUAL_REFRESH
         keep, self._run = self.gate.accept(d, jump, self._residual, n_model_points, self._run)
         for di, k in zip(d, keep):
             if k:

@@ -7,7 +7,8 @@ import pytest
 from models import AdaptiveEyeModel
 from models.eyes import make_eye
 from models.metrics import mae_exact
-from models.outlier_gate import OutlierGate
+from models.ellipsoid_fit import LENGTH_SCALE_MM
+from models.outlier_gate import RESIDUAL_REFRESH, GateState, OutlierGate
 from models.paper_scan import paper_scan
 
 
@@ -71,3 +72,24 @@ def test_gate_parameters_are_checked():
         OutlierGate(max_jump_mm=0.0)
     with pytest.raises(ValueError, match="window"):
         OutlierGate(window=0)
+
+
+@pytest.mark.parametrize("batch", [1, 7, 10, 23])
+def test_the_robust_residual_follows_the_data_whatever_the_batch_size(batch):
+    """The gate's residual is the median of the recent accepted distances, refreshed every
+    RESIDUAL_REFRESH accepted points. It once refreshed only when the count of accepted
+    points hit a multiple of 16 exactly, which packets of 10 with a rejection now and
+    then could skip for hundreds of points: a stale, wide gate let wrong points in."""
+    rng = np.random.default_rng(batch)
+    state = GateState(OutlierGate(min_points=0))
+    sphere = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0])  # unit sphere (scaled: 10 mm)
+    u = np.array([0.0, 0.0, -1.0])
+    for k in range(60):
+        # consecutive A-scans 10 um apart near the pole, 0-20 um inside the sphere, one in
+        # ten 2 mm inside (a floater: rejected once the residual is known)
+        d_mm = np.where(rng.random(batch) < 0.1, 2.0, rng.uniform(0.0, 0.02, batch))
+        P = (LENGTH_SCALE_MM - d_mm)[:, None] * u + 0.01 * np.arange(batch)[:, None] * np.array([1.0, 0.0, 0.0])
+        state.admit(P, sphere, np.zeros(3), 1000)
+        # the residual in use reflects the accepted distances of at most REFRESH + batch points ago
+        assert state._n_recent - (state._refresh_at - RESIDUAL_REFRESH) < RESIDUAL_REFRESH + batch
+    assert state._residual < 0.05 and state.n_rejected > 0  # the near points set it, not the floaters
