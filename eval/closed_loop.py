@@ -187,7 +187,9 @@ class AdaptiveModelSystem(LeafSystem):
         if points:
             t0 = time.perf_counter()
             entry = self.model.update(np.array(points))
-            self.coverage.add(np.array(points))
+            # only what the model took in: a floater the gate turned away must not count as
+            # retina measured deep inside the model (it would become every nearby point's margin)
+            self.coverage.add(self.model.last_accepted)
             self.update_us.append(1e6 * (time.perf_counter() - t0) / len(points))
             if entry is not None and self.logger is not None:
                 self.logger.log_model_update(self._last_t, entry)

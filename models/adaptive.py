@@ -69,7 +69,8 @@ class AdaptiveEyeModel:
     and the transition criteria are evaluated; the model switches to the ellipsoid when
     they all hold (and back, for a reversible criterion that asks for it).
     `kind` is "sphere" or "ellipsoid"; `shape` the current Sphere or Ellipsoid (None
-    before 4 points); `history` one ModelUpdate per update.
+    before 4 points); `history` one ModelUpdate per update; `last_accepted` the points
+    (K, 3) mm the last call took in (finite and past the gate).
     """
 
     def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate()):
@@ -90,6 +91,7 @@ class AdaptiveEyeModel:
         self.transition_index: int | None = None
         self.n_rejected_nonfinite = 0
         self.history: list[ModelUpdate] = []
+        self.last_accepted = np.zeros((0, 3))
 
     @property
     def n_points(self) -> int:
@@ -127,6 +129,7 @@ class AdaptiveEyeModel:
             P = P[finite]
         if self._gate is not None:
             P = self._gate.admit(P, self._current, self._ef.p0, self.n_points)
+        self.last_accepted = P
         if len(P) == 0:
             return None
         self._sf.absorb(P)

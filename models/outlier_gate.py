@@ -46,19 +46,26 @@ class OutlierGate:
         check_count(self, "min_points", "max_consecutive")
         check_count(self, "window", minimum=1)
 
-    def accept(self, distance_mm, jump_mm, residual_mm: float, n_model_points: int, run: int):
-        """(keep flags, new count of consecutive rejections) for points at `distance_mm`
-        from a model with robust residual `residual_mm` and `jump_mm` from the previous
-        point (sequences of floats, in A-scan order). While more than `max_consecutive`
-        far points have come in a row, the gate stays open: that is retina, not a floater."""
+    def accept(self, distance_mm, points, last, residual_mm: float, n_model_points: int, run: int):
+        """(keep flags, new count of consecutive rejections, last kept point) for points
+        (sequence of [x, y, z] mm, in A-scan order) at `distance_mm` from a model with
+        robust residual `residual_mm`; each point's jump is measured from the last point
+        KEPT before it (`last` on entry), so a rejected floater never counts as the
+        reference for the next A-scan. While more than `max_consecutive` far points have
+        come in a row, the gate stays open: that is retina, not a floater."""
         use_model = n_model_points >= self.min_points and residual_mm < float("inf")
         gate = max(self.min_gate_mm, self.k_residual * residual_mm) if use_model else float("inf")
         keep = []
-        for d, jump in zip(distance_mm, jump_mm):
+        lx, ly, lz = last
+        for d, (px, py, pz) in zip(distance_mm, points):
+            jump = ((px - lx) ** 2 + (py - ly) ** 2 + (pz - lz) ** 2) ** 0.5
             near = jump <= self.max_jump_mm and d <= gate
             run = 0 if near else run + 1
-            keep.append(near or run > self.max_consecutive)
-        return keep, run
+            k = near or run > self.max_consecutive
+            if k:
+                lx, ly, lz = px, py, pz
+            keep.append(k)
+        return keep, run, [lx, ly, lz]
 
 
 def _sampson_one(v: list, x: float, y: float, z: float) -> float:
@@ -85,39 +92,35 @@ class GateState:
         self._refresh_at = 0  # count of accepted points at which the residual is next refreshed
         self._residual = np.inf
 
-    def _distances(self, P: np.ndarray, quadric, p0) -> tuple[list, list]:
-        """(distance to the model, jump from the previous point) per point, mm."""
+    @staticmethod
+    def _distances(P: np.ndarray, quadric, p0) -> list:
+        """Distance (mm) of each point of P to the model (0 before a model exists)."""
+        if quadric is None:
+            return [0.0] * len(P)
         if len(P) == 1:  # the per-A-scan path, in plain floats
             px, py, pz = P[0].tolist()
-            lx, ly, lz = self._last
-            jump = ((px - lx) ** 2 + (py - ly) ** 2 + (pz - lz) ** 2) ** 0.5
-            if quadric is None:
-                return [0.0], [jump]
             ox, oy, oz = p0.tolist()
             L = LENGTH_SCALE_MM
-            return [L * _sampson_one(quadric.tolist(), (px - ox) / L, (py - oy) / L, (pz - oz) / L)], [jump]
-        d = np.zeros(len(P)) if quadric is None else LENGTH_SCALE_MM * sampson_distance(quadric, (P - p0) / LENGTH_SCALE_MM)
-        jump = np.linalg.norm(np.diff(np.vstack([self._last, P]), axis=0), axis=1)
-        return d.tolist(), jump.tolist()
+            return [L * _sampson_one(quadric.tolist(), (px - ox) / L, (py - oy) / L, (pz - oz) / L)]
+        return (LENGTH_SCALE_MM * sampson_distance(quadric, (P - p0) / LENGTH_SCALE_MM)).tolist()
 
     def admit(self, P: np.ndarray, quadric, p0, n_model_points: int) -> np.ndarray:
         if len(P) == 0:
             return P
-        if self._last is None:  # nothing to compare the first point with
-            self._last = P[-1].tolist()
-            return P
-        d, jump = self._distances(P, quadric, p0)
+        first = self._last is None
+        if first:  # nothing to compare the very first point with: it becomes the reference
+            self._last = P[0].tolist()
+        d = self._distances(P, quadric, p0)
         if self._n_recent >= self._refresh_at:  # the median is refreshed every REFRESH points, not per point
             filled = self._recent[: min(self._n_recent, len(self._recent))]
             self._residual = 1.4826 * float(np.median(filled)) if len(filled) else np.inf
             self._refresh_at = self._n_recent + RESIDUAL_REFRESH
-        keep, self._run = self.gate.accept(d, jump, self._residual, n_model_points, self._run)
+        keep, self._run, self._last = self.gate.accept(d, P.tolist(), self._last, self._residual, n_model_points,
+                                                       self._run)
         for di, k in zip(d, keep):
             if k:
                 self._recent[self._n_recent % len(self._recent)] = di
                 self._n_recent += 1
-        if any(keep):
-            self._last = P[len(keep) - 1 - keep[::-1].index(True)].tolist()
         if all(keep):
             return P
         self.n_rejected += keep.count(False)

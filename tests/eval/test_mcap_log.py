@@ -223,7 +223,7 @@ def test_inputs_round_trip_bit_for_bit(v, J, margin, roll, ellipsoid):
 def test_model_updates_and_run_metadata_are_logged(tmp_path):
     """An adaptive model's history entry (sphere phase, 200 points on the 12 mm retina)
     lands on /model with its fit and criteria; run metadata in the file's metadata."""
-    model = AdaptiveEyeModel()
+    model = AdaptiveEyeModel(gate=None)  # a grid of samples, not A-scans in order: no jump gate
     update = model.update(EYE.sample_surface(10, 20, z_max=0.0))
     with RunLogger(tmp_path / "m.mcap", metadata={"scenario": "toy", "seed": 3}) as log:
         log.log_model_update(0.5, update)

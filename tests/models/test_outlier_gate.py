@@ -93,3 +93,17 @@ def test_the_robust_residual_follows_the_data_whatever_the_batch_size(batch):
         # the residual in use reflects the accepted distances of at most REFRESH + batch points ago
         assert state._n_recent - (state._refresh_at - RESIDUAL_REFRESH) < RESIDUAL_REFRESH + batch
     assert state._residual < 0.05 and state.n_rejected > 0  # the near points set it, not the floaters
+
+
+def test_in_a_batch_each_jump_is_measured_from_the_last_kept_point():
+    """A floater 2 mm in front of the retina is turned away by its jump; the A-scan after it
+    is compared with the last KEPT point (it used to be compared with the floater and
+    turned away too). The very first batch is gated the same way from its first point."""
+    state = GateState(OutlierGate())
+    retina = np.array([[0.0, 0.0, -10.0], [0.01, 0.0, -10.0], [0.02, 0.0, -8.0], [0.03, 0.0, -10.0],
+                       [0.04, 0.0, -10.0]])
+    kept = state.admit(retina, None, np.zeros(3), 0)
+    np.testing.assert_array_equal(kept, retina[[0, 1, 3, 4]])
+    assert state.n_rejected == 1
+    more = retina + [0.05, 0.0, 0.0]
+    np.testing.assert_array_equal(state.admit(more, None, np.zeros(3), 0), more[[0, 1, 3, 4]])
