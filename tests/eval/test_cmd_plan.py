@@ -30,3 +30,12 @@ def test_bad_plans_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
     assert main(["plan", "--out", str(out), "--no-execute", *argv]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_model_the_filter_does_not_trust_is_refused_before_any_motion(tmp_path, capsys):
+    """The pointed eye's ellipsoid (fitted to its posterior cap) has semi-axes of 150 and 29
+    mm: the filter keeps the conservative prior for it, which no band cell lies inside."""
+    out = tmp_path / "never"
+    assert main(["plan", "--shape", "pointed", "--out", str(out), "--trust-angle-deg", "180"]) == 2
+    assert "the filter does not trust this ellipsoid model" in capsys.readouterr().err
+    assert not out.exists()
