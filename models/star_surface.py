@@ -2,7 +2,7 @@
 
 The composite eye shapes (pointed, staphyloma, detached) are such surfaces in the eye
 frame E. This module answers the geometric questions for any radial function:
-first ray hits (march + bisection, sub-nanometre), exact signed distance (nearest
+first ray hits (march + regula falsi, sub-nanometre), exact signed distance (nearest
 sample of a dense surface cloud, then Levenberg-Marquardt on the surface
 parametrisation), normals and equal-area surface samples.
 """
@@ -42,6 +42,7 @@ class StarSurface:
         self._cloud_shape = cloud_shape
         self._tree: cKDTree | None = None
         self._cloud_dirs: np.ndarray | None = None
+        self._bounds: tuple[float, float] | None = None
 
     def points(self, U: np.ndarray) -> np.ndarray:
         """(M, 3) surface points (mm) in the directions U (M, 3), unit vectors."""
@@ -57,37 +58,64 @@ class StarSurface:
         """(M,) distance (mm) along unit rays D from O to the first crossing of the surface
         (from inside: the first exit), NaN when there is none within t_max_mm.
 
-        Marches in `step_mm` steps (finer than any feature of the eye shapes) and bisects the
-        first sign change to machine precision.
+        Marches in `step_mm` steps (finer than any feature of the eye shapes), from where the
+        ray leaves the ball that lies inside the surface, and refines the first sign change
+        to ~1e-13 mm (Illinois regula falsi).
         """
+        r_in, r_out = self._radial_bounds()
         if t_max_mm is None:
-            t_max_mm = 2.0 * float(self.rho(unit_sphere_grid(24, 48)).max()) + float(
-                np.linalg.norm(O, axis=1).max()
-            )
+            t_max_mm = 2.0 * r_out + float(np.linalg.norm(O, axis=1).max())
         M = len(O)
         t_hit = np.full(M, np.nan)
         f0 = self.inside_value(O)
         s0 = np.sign(f0)
-        lo = np.zeros(M)
+        # no ray can cross the surface while it is inside the ball of radius r_in (all of it
+        # lies inside): a ray from there starts marching where it leaves that ball
+        b = np.einsum("ij,ij->i", O, D)
+        c = np.einsum("ij,ij->i", O, O) - r_in * r_in
+        t = np.where(c < 0.0, -b + np.sqrt(np.maximum(b * b - c, 0.0)), 0.0)
         todo = np.arange(M)
-        t = 0.0
-        while len(todo) and t < t_max_mm:
-            t_next = min(t + step_mm, t_max_mm)
-            f = self.inside_value(O[todo] + t_next * D[todo])
+        while len(todo):
+            t_now = t[todo]
+            t_next = np.minimum(t_now + step_mm, t_max_mm)
+            f = self.inside_value(O[todo] + t_next[:, None] * D[todo])
             crossed = np.sign(f) != s0[todo]
             idx = todo[crossed]
             if len(idx):
-                t_hit[idx] = self._bisect(O[idx], D[idx], np.full(len(idx), t), np.full(len(idx), t_next), s0[idx])
-            todo = todo[~crossed]
-            t = t_next
+                t_hit[idx] = self._bisect(O[idx], D[idx], t_now[crossed], t_next[crossed], s0[idx])
+            t[todo] = t_next
+            todo = todo[~crossed & (t_next < t_max_mm)]
         return t_hit
 
+    def _radial_bounds(self) -> tuple[float, float]:
+        """(r_in, r_out) mm: every point of the surface lies between these radii (the
+        sampled extremes of rho on a 96 x 192 grid, widened by 5 % for what lies between)."""
+        if self._bounds is None:
+            r = self.rho(unit_sphere_grid(96, 192))
+            self._bounds = (0.95 * float(r.min()), 1.05 * float(r.max()))
+        return self._bounds
+
     def _bisect(self, O, D, lo, hi, s0):
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            same = np.sign(self.inside_value(O + mid[:, None] * D)) == s0
-            lo = np.where(same, mid, lo)
-            hi = np.where(same, hi, mid)
+        """The crossing in [lo, hi] (mm along each ray) to ~1e-13 mm: regula falsi with the
+        Illinois modification on the bracket (superlinear: ~10 evaluations instead of 60
+        halvings), falling back to halving while a side has not moved."""
+        f_lo = self.inside_value(O + lo[:, None] * D)
+        f_hi = self.inside_value(O + hi[:, None] * D)
+        side = np.zeros(len(lo))  # +1 / -1: which end moved last (Illinois halves the other's value)
+        for _ in range(80):
+            width = hi - lo
+            if np.all(width <= 1e-13 * np.maximum(hi, 1.0)):
+                break
+            den = f_hi - f_lo
+            t = np.where(den != 0.0, lo - f_lo * width / np.where(den != 0.0, den, 1.0), 0.5 * (lo + hi))
+            t = np.where((t > lo) & (t < hi), t, 0.5 * (lo + hi))
+            f = self.inside_value(O + t[:, None] * D)
+            same = np.sign(f) == s0  # still on the starting side: t becomes the new lo
+            f_hi = np.where(same & (side == 1.0), 0.5 * f_hi, f_hi)  # lo moved twice: halve the stale end
+            f_lo = np.where(~same & (side == -1.0), 0.5 * f_lo, f_lo)
+            lo, f_lo = np.where(same, t, lo), np.where(same, f, f_lo)
+            hi, f_hi = np.where(same, hi, t), np.where(same, f_hi, f)
+            side = np.where(same, 1.0, -1.0)
         return 0.5 * (lo + hi)
 
     def _seed_directions(self, Q: np.ndarray) -> np.ndarray:
