@@ -72,8 +72,10 @@ def _transition_fraction(run: LoopRun, duration_s: float) -> float | None:
 
 def adversarial_starts(loop: ClosedLoop, model_shape, n: int, rng: np.random.Generator) -> list:
     """n start postures (6,) rad: tip at a random point START_DEPTH_MM inside the model
-    (uniform direction from the eye centre, posterior of the trocar plane), reachable
-    through the trocar with the shaft clear of the lens."""
+    and inside the true retina (whichever wall is nearer along a uniform direction from
+    the eye centre, posterior of the trocar plane: a surgeon's instrument starts clear
+    of the real retina even where the model is off), reachable through the trocar with
+    the shaft clear of the lens."""
     scenario, robot = loop.scenario, loop.robot
     c = scenario.eye_pose.p_WE
     out = []
@@ -87,7 +89,7 @@ def adversarial_starts(loop: ClosedLoop, model_shape, n: int, rng: np.random.Gen
         if u_E[2] > 0.3:  # in front of the trocar plane: the shaft would run along the lens
             continue
         u = scenario.eye_pose.R_WE @ u_E
-        wall = float(model_shape.ray_cast(c[None], u[None])[0])
+        wall = min(float(model_shape.ray_cast(c[None], u[None])[0]), float(scenario.eye.ray_cast(c[None], u[None])[0]))
         depth = rng.uniform(*START_DEPTH_MM)
         p = c + max(wall - depth, 0.0) * u
         try:

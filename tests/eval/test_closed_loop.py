@@ -13,7 +13,7 @@ from eval.closed_loop import ClosedLoop, LoopConfig
 from eval.commands import TipPathCommand, VelocityReplayCommand
 from eval.mcap_log import RunLogger
 from eval.mcap_replay import replay
-from models import AdaptiveEyeModel
+from models import AdaptiveEyeModel, Ellipsoid
 from models.coverage import DirectionCoverage
 from models.transition import PredictiveCriteria
 from planning import SurgeryScenario, start_posture
@@ -158,3 +158,15 @@ def test_bad_loop_arguments_are_refused(emmetropic):
         loop.run(cmd, deep_start(loop), -1.0)
     with pytest.raises(ValueError, match="sensor_mode"):
         LoopConfig(sensor_mode="camera")
+
+
+def test_adversarial_starts_are_inside_the_true_retina_where_the_model_bulges_past_it():
+    """A model 3 mm too large (like the pointed eye's ellipsoid at its periphery) must not
+    put a start in the eye wall: the nearer of model and truth sets the depth."""
+    scenario = SurgeryScenario()
+    loop = ClosedLoop(scenario)
+    e = scenario.eye.ellipsoid
+    too_big = Ellipsoid(e.center, e.radii + 3.0, e.rotation)
+    for q in adversarial_starts(loop, too_big, 5, np.random.default_rng(1)):
+        p = loop.robot.pose("T", q)[1]
+        assert 1.5 - 0.3 <= scenario.eye.signed_distance(p[None])[0] <= 4.0 + 0.5
