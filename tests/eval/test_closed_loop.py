@@ -170,3 +170,20 @@ def test_adversarial_starts_are_inside_the_true_retina_where_the_model_bulges_pa
     for q in adversarial_starts(loop, too_big, 5, np.random.default_rng(1)):
         p = loop.robot.pose("T", q)[1]
         assert 1.5 - 0.3 <= scenario.eye.signed_distance(p[None])[0] <= 4.0 + 0.5
+
+
+def test_an_ascan_mode_run_logs_a_scans_at_20_hz(emmetropic, tmp_path):
+    """Issue 6's log holds A-scans: in "ascan" mode one in ASCAN_LOG_EVERY (20 Hz of the
+    2 kHz stream), each the engine's full length, beside every distance."""
+    from eval.closed_loop import ASCAN_LOG_EVERY
+    from eval.mcap_log import read_log
+
+    loop, state = emmetropic
+    ascan_loop = ClosedLoop(loop.scenario, LoopConfig(sensor_mode="ascan"))
+    with RunLogger(tmp_path / "a.mcap", ascan_loop.config.filter) as log:
+        ascan_loop.run(VelocityReplayCommand([0.0], [[2.0, 0.0, 0.0]]), deep_start(ascan_loop), 0.2, logger=log, **state.kw())
+    messages = read_log(tmp_path / "a.mcap").messages
+    scans, distances = messages["/oct/ascan"], messages["/oct/distance"]
+    assert len(distances) >= 390  # 2 kHz for 0.2 s, the last packet may be pending
+    assert len(scans) == -(-len(distances) // ASCAN_LOG_EVERY)
+    assert all(m["n_samples"] == ascan_loop.sensor.engine.n_samples for _, m in scans)
