@@ -1,6 +1,7 @@
 """The adaptive eye model: a sphere at first, an ellipsoid once the data supports it."""
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -49,12 +50,6 @@ class ModelUpdate(NamedTuple):
         if self.ellipsoid_center is None:
             return None
         return Ellipsoid(self.ellipsoid_center, self.ellipsoid_radii, self.ellipsoid_rotation)
-
-
-def sphere_quadric(center_scaled: np.ndarray, radius_scaled: float) -> np.ndarray:
-    """Quadric coefficients (10,) of a sphere, in the ellipsoid fit's parametrisation."""
-    k = radius_scaled**2 - center_scaled @ center_scaled
-    return np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, *(-center_scaled), -k])
 
 
 class AdaptiveEyeModel:
@@ -121,12 +116,19 @@ class AdaptiveEyeModel:
     def update(self, P) -> ModelUpdate | None:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
         no entry, if no point was finite and passed the gate)."""
-        P = as_points(P, "P", allow_nonfinite=True)
-        self.n_received += len(P)
-        finite = np.isfinite(P).all(axis=1)
-        if not finite.all():
-            self.n_rejected_nonfinite += int((~finite).sum())
-            P = P[finite]
+        if type(P) is np.ndarray and P.dtype == np.float64 and P.size == 3 and P.ndim <= 2 and P.shape[-1] == 3:
+            P = P.reshape(1, 3)  # one A-scan's point: the per-A-scan path, checked in floats
+            self.n_received += 1
+            if not all(map(math.isfinite, P[0].tolist())):
+                self.n_rejected_nonfinite += 1
+                P = P[:0]
+        else:
+            P = as_points(P, "P", allow_nonfinite=True)
+            self.n_received += len(P)
+            finite = np.isfinite(P).all(axis=1)
+            if not finite.all():
+                self.n_rejected_nonfinite += int((~finite).sum())
+                P = P[finite]
         if self._gate is not None:
             P = self._gate.admit(P, self._current, self._ef.p0, self.n_points)
         self.last_accepted = P
@@ -145,7 +147,10 @@ class AdaptiveEyeModel:
         sf_res = ef_res = axis_change = np.nan
         v_sf = None
         if sf is not None:
-            v_sf = sphere_quadric((sf[0] - self._ef.p0) / LENGTH_SCALE_MM, sf[1] / LENGTH_SCALE_MM)
+            # the Kalman state [c, r^2 - |c|^2] is already in the fits' scaled coordinates
+            # (both take the first point as origin): the sphere's quadric without a round trip
+            cx, cy, cz, k = self._sf.state.tolist()
+            v_sf = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, -cx, -cy, -cz, -k])
         if fit.ok:
             if v_sf is None:
                 ef_res = LENGTH_SCALE_MM * taubin_residual(S, fit.v)

@@ -103,7 +103,7 @@ def solve_scatter(S: np.ndarray) -> np.ndarray | None:
 def quadric_parameters(v: np.ndarray, p0: np.ndarray, scale: float):
     """(center (3,), radii (3,) descending, rotation (3, 3)) in mm and the frame of p0, of
     the quadric v given in coordinates (x - p0) / scale; None when it is not a real ellipsoid."""
-    a, b, c, f, g, h, p, q, r, d = v
+    a, b, c, f, g, h, p, q, r, d = v.tolist()  # floats: unpacking NumPy scalars costs more
     A = np.array([[a, h, g], [h, b, f], [g, f, c]])
     _, _, x, info = lapack.dgesv(A, v[6:9])
     if info != 0:
@@ -132,12 +132,12 @@ def taubin_residual(S: np.ndarray, v: np.ndarray):
     sqrt(sum Q^2 / sum |grad Q|^2), from the moments alone: sum Q^2 = v^T S v and
     sum |grad Q|^2 = 4 sum_i w_i^T M w_i with w_i = v[rows_i] and M the second moments
     of [x, y, z, 1]. O(1) whatever the number of points."""
-    V = np.atleast_2d(v)
+    V = v if v.ndim == 2 else v[None]
     W = V[:, _GRAD_ROWS]  # (k, 3, 4)
     g2 = 4.0 * ((W @ (S[6:, 6:] * _MOMENT_SCALE)) * W).sum(axis=(1, 2))
     q2 = ((V @ S) * V).sum(axis=1)
     r = [(max(q, 0.0) / g) ** 0.5 if g > 0.0 else float("inf") for q, g in zip(q2.tolist(), g2.tolist())]
-    return np.array(r) if np.ndim(v) == 2 else r[0]
+    return np.array(r) if v.ndim == 2 else r[0]
 
 
 def fit_scatter(S: np.ndarray, p0: np.ndarray, scale: float = LENGTH_SCALE_MM, check_spread: bool = True) -> EllipsoidFit:
@@ -185,13 +185,14 @@ class IncrementalEllipsoidFit:
 
     def __init__(self):
         self.S = np.zeros((10, 10))
+        self._n = 0  # points in S (its [9, 9] entry, kept as an int)
         self.p0: np.ndarray | None = None
         self.last_ok: EllipsoidFit | None = None
         self._spread_checked_at = 0  # point count at the last passed spread test (0: none)
 
     @property
     def n_points(self) -> int:
-        return int(round(self.S[9, 9]))
+        return self._n
 
     def scaled(self, P: np.ndarray) -> np.ndarray:
         """Points (N, 3) mm in the fit's centred, scaled coordinates."""
@@ -207,9 +208,11 @@ class IncrementalEllipsoidFit:
             x, y, z = (P[0] - self.p0) / LENGTH_SCALE_MM
             m = np.array([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0])
             self.S += np.multiply.outer(m, m)
+            self._n += 1
             return
         M = design_rows(self.scaled(P))
         self.S += M.T @ M
+        self._n += len(P)
 
     def fit(self) -> EllipsoidFit:
         """Refit from all points so far; keeps `last_ok` on failure."""

@@ -68,6 +68,17 @@ class OutlierGate:
         return keep, run, [lx, ly, lz]
 
 
+def _median(x: np.ndarray) -> float:
+    """The median of x (inf when empty), by partition: a fifth of np.median's overhead on
+    the gate's 64-value window."""
+    n = len(x)
+    if n == 0:
+        return float("inf")
+    k = n // 2
+    part = np.partition(x, (k - 1, k) if n % 2 == 0 else k)
+    return float(part[k]) if n % 2 else 0.5 * (float(part[k - 1]) + float(part[k]))
+
+
 def _sampson_one(v: list, x: float, y: float, z: float) -> float:
     """|Q| / |grad Q| of one point (scaled coordinates) for quadric coefficients v, in floats."""
     a, b, c, f, g, h, p, q, r, d = v
@@ -112,8 +123,7 @@ class GateState:
             self._last = P[0].tolist()
         d = self._distances(P, quadric, p0)
         if self._n_recent >= self._refresh_at:  # the median is refreshed every REFRESH points, not per point
-            filled = self._recent[: min(self._n_recent, len(self._recent))]
-            self._residual = 1.4826 * float(np.median(filled)) if len(filled) else np.inf
+            self._residual = 1.4826 * _median(self._recent[: min(self._n_recent, len(self._recent))])
             self._refresh_at = self._n_recent + RESIDUAL_REFRESH
         keep, self._run, self._last = self.gate.accept(d, P.tolist(), self._last, self._residual, n_model_points,
                                                        self._run)
