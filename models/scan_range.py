@@ -1,6 +1,8 @@
 """Scan range: the largest distance between any two measured points, kept up to date."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -38,10 +40,10 @@ class ScanRange:
         x = p - self._p0
         sq = float(x @ x)
         n = self._n
-        r = np.sqrt(sq)
+        r = math.sqrt(sq)
         if n and r + self._max_from_p0 > self.diameter_mm:
             d2 = self._sq[:n] - 2.0 * (self._X[:n] @ x)
-            self.diameter_mm = max(self.diameter_mm, float(np.sqrt(max(d2.max() + sq, 0.0))))
+            self.diameter_mm = max(self.diameter_mm, math.sqrt(max(float(d2.max()) + sq, 0.0)))
         if n == len(self._X):
             self._X = np.concatenate([self._X, np.empty_like(self._X)])
             self._sq = np.concatenate([self._sq, np.empty_like(self._sq)])

@@ -43,21 +43,25 @@ class SphereKalmanFilter:
             return
         if self.p0 is None:
             self.p0 = P[0].copy()
-        X = (P - self.p0) / LENGTH_SCALE_MM
-        if len(X) == 1:  # the per-A-scan path
-            x, y, z = X[0].tolist()
+            self._p0_floats = self.p0.tolist()
+        if len(P) == 1:  # the per-A-scan path, in floats
+            (px, py, pz), (ox, oy, oz) = P[0].tolist(), self._p0_floats
+            L = LENGTH_SCALE_MM
+            x, y, z = (px - ox) / L, (py - oy) / L, (pz - oz) / L
             h = np.array([2.0 * x, 2.0 * y, 2.0 * z, 1.0])
             self.information += np.multiply.outer(h, h)
             self._info_vector += h * (x * x + y * y + z * z)
         else:
+            X = (P - self.p0) / LENGTH_SCALE_MM
             H = np.column_stack([2.0 * X, np.ones(len(X))])
             self.information += H.T @ H
             self._info_vector += H.T @ np.einsum("ij,ij->i", X, X)
-        self.n_points += len(X)
+        self.n_points += len(P)
         self.state = None
         if self.n_points >= 4:
             _, x, info = lapack.dposv(self.information, self._info_vector)
-            if info == 0 and x[3] + x[0] * x[0] + x[1] * x[1] + x[2] * x[2] > 0.0:
+            c0, c1, c2, k = x.tolist()
+            if info == 0 and k + c0 * c0 + c1 * c1 + c2 * c2 > 0.0:
                 self.state = x
 
     @property
