@@ -105,13 +105,23 @@ class ModelSnapshot(NamedTuple):
     def __deepcopy__(self, memo) -> ModelSnapshot:
         return self  # immutable (the shapes are frozen): Drake copies abstract state values often
 
+    def margin_mm(self, margins: UncertaintyMargins) -> float:
+        """The uncertainty margin (mm) the filter adds to d_safe for this model (none for
+        the prior, which is conservative by construction)."""
+        return margins.margin_mm(None if self.shape is None else self.kind, self.residual_mm)
+
+
+def semi_axes_mm(shape) -> np.ndarray:
+    """The semi-axes (mm) of a Sphere (its radius, once) or an Ellipsoid."""
+    return np.atleast_1d(getattr(shape, "radii", getattr(shape, "radius", np.nan)))
+
 
 def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float, min_points: int = 0,
                 min_scan_range_mm: float = 0.0, radius_range_mm: tuple = (0.0, np.inf)) -> ModelSnapshot:
     """The snapshot of `model` at t_s ("prior" until it has a shape from at least
     `min_points` points over `min_scan_range_mm` with radii within `radius_range_mm`)."""
     shape = model.shape
-    radii = None if shape is None else np.atleast_1d(getattr(shape, "radii", getattr(shape, "radius", np.nan)))
+    radii = None if shape is None else semi_axes_mm(shape)
     if (shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm
             or not (radius_range_mm[0] <= radii.min() and radii.max() <= radius_range_mm[1])):
         return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
@@ -167,8 +177,12 @@ class AdaptiveModelSystem(LeafSystem):
         if not self.epochs or self.epochs[-1].kind != snap.kind:
             self.epochs.append(snap)
 
+    def snapshot_for(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float) -> ModelSnapshot:
+        """What the filter would read of `model` at t_s under this loop's trust rules."""
+        return snapshot_of(model, coverage, t_s, *self._trust)
+
     def initial_snapshot(self) -> ModelSnapshot:
-        snap = snapshot_of(self.model, self.coverage, 0.0, *self._trust)
+        snap = self.snapshot_for(self.model, self.coverage, 0.0)
         self._mark_epoch(snap)
         return snap
 
@@ -198,7 +212,7 @@ class AdaptiveModelSystem(LeafSystem):
             if entry is not None and self.logger is not None:
                 self.logger.log_model_update(self._last_t, entry)
         snap = state.get_abstract_state(0).get_value()
-        new = snapshot_of(self.model, self.coverage, self._last_t, *self._trust) if entry is not None or snap.shape is None else snap._replace(t_s=self._last_t)
+        new = self.snapshot_for(self.model, self.coverage, self._last_t) if entry is not None or snap.shape is None else snap._replace(t_s=self._last_t)
         state.get_mutable_abstract_state(0).set_value(new)
         self._mark_epoch(new)
 
@@ -272,7 +286,7 @@ class FilterSystem(LeafSystem):
             model=model, model_time_s=t_s if kind is None else snap.t_s, sensor_time_s=sensor_t_s,
             rcm_A=ip.rcm_A, rcm_b=ip.rcm_b, lens=self.lens,
             lens_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.lens_names, ip.L_W, ip.J_L)],
-            margin_mm=self.config.margins.margin_mm(kind, snap.residual_mm), J_roll=ip.J_roll,
+            margin_mm=snap.margin_mm(self.config.margins), J_roll=ip.J_roll,
             roll_rate_cmd=float(command[3]), fallback=None if kind is None else self.prior,
         )
         return x, ip

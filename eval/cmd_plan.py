@@ -76,7 +76,7 @@ def roll_of(robot, q, p_WC) -> float:
 def main(args) -> int:
     spec = spec_of(args)
     from eval.boundary_experiment import build_model_by_spiral
-    from eval.closed_loop import ClosedLoop, LoopConfig, snapshot_of
+    from eval.closed_loop import ClosedLoop, LoopConfig, semi_axes_mm
     from eval.commands import TipPathCommand
     from eval.mcap_log import RunLogger
     from planning import SurgeryScenario
@@ -87,16 +87,13 @@ def main(args) -> int:
     loop = ClosedLoop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg), sensor_seed=args.seed)
     print(f"building the model (spiral through the loop) on the {args.shape} eye ...")
     build = build_model_by_spiral(loop)
-    trusted = snapshot_of(build.model, build.coverage, 0.0, loop.config.model_min_points,
-                          loop.config.model_min_scan_range_mm, loop.config.model_radius_range_mm)
-    if trusted.kind == "prior":
-        radii = np.atleast_1d(getattr(build.model.shape, "radii", getattr(build.model.shape, "radius", np.nan)))
+    trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
+    if trusted.shape is None:
+        radii = semi_axes_mm(build.model.shape)
         raise UsageError(f"cannot plan: the filter does not trust this {build.kind_final} model (semi-axes "
                          f"{', '.join(f'{r:.1f}' for r in radii)} mm; an eye's lie in {loop.config.model_radius_range_mm} "
                          f"mm) and would hold the instrument inside the conservative prior, away from the band")
-    last = build.model.history[-1]
-    residual = last.ef_residual_mm if build.kind_final == "ellipsoid" else last.sf_residual_mm
-    boundary = loop.config.filter.d_safe_mm + loop.config.margins.margin_mm(build.kind_final, residual)
+    boundary = loop.config.filter.d_safe_mm + trusted.margin_mm(loop.config.margins)
     if spec.standoff_mm < boundary + 0.2:
         raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
                          f"{build.kind_final} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "

@@ -35,13 +35,12 @@ def direction_grid(n_theta: int = 30, n_phi: int = 60) -> tuple[np.ndarray, np.n
 
 
 def model_surface_mm(shape, offset_mm: float = 0.0, n_theta: int = 30, n_phi: int = 60):
-    """(vertices (N, 3) mm, triangles (M, 3)) of a Sphere or Ellipsoid's surface moved
-    `offset_mm` inward along its normal (the filter's boundary for offset = d_safe +
-    margin; exact, as an offset surface, at every vertex)."""
+    """(vertices (N, 3) mm, triangles (M, 3)) of a Sphere or Ellipsoid's surface (its ray
+    casts from its centre) moved `offset_mm` inward along its normal (the filter's boundary
+    for offset = d_safe + margin; exact, as an offset surface, at every vertex)."""
     U, F = direction_grid(n_theta, n_phi)
-    radii = np.broadcast_to(np.atleast_1d(getattr(shape, "radii", getattr(shape, "radius", None))), (3,))
-    R = getattr(shape, "rotation", np.eye(3))
-    V = shape.center + (U * radii) @ np.asarray(R).T
+    C = np.broadcast_to(shape.center, U.shape)
+    V = C + shape.ray_cast(C, U)[:, None] * U
     if offset_mm:
         V = V + offset_mm * shape.gradient(V)  # gradient: unit, towards the inside
     return V, F
@@ -92,7 +91,7 @@ def show_loop(robot: Robot, runs: list, margins, d_safe_mm: float, prior, eye=No
                     2.0, Rgba(0.2, 0.4, 1.0, 1.0))
 
     animation = view.visualizer.StartRecording()
-    t_clock = 0.0
+    t_clock, shown = 0.0, None
     for run in runs:
         for t in np.arange(0.0, run.duration_s, 1.0 / fps):
             q = run.q[min(int(np.searchsorted(run.t - run.t[0], t)), len(run.q) - 1)]
@@ -102,8 +101,10 @@ def show_loop(robot: Robot, runs: list, margins, d_safe_mm: float, prior, eye=No
             R_WS, p_WS = robot.pose("S", q)
             animation.SetTransform(frame, "/drake/beam", RigidTransform(RotationMatrix(R_WS), p_WS / MM_PER_M))
             current = max((i for i, (t0, _) in enumerate(epochs) if t0 <= now), default=0)
-            for i, (_, path) in enumerate(epochs):
-                animation.SetProperty(frame, f"/drake/{path}", "visible", i == current)
+            if current != shown:  # a property holds until set again
+                for i, (_, path) in enumerate(epochs):
+                    animation.SetProperty(frame, f"/drake/{path}", "visible", i == current)
+                shown = current
         t_clock += run.duration_s
     view.visualizer.StopRecording()
     view.visualizer.PublishRecording()

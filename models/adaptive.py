@@ -116,7 +116,7 @@ class AdaptiveEyeModel:
     def update(self, P) -> ModelUpdate | None:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
         no entry, if no point was finite and passed the gate)."""
-        if type(P) is np.ndarray and P.dtype == np.float64 and P.size == 3 and P.ndim <= 2 and P.shape[-1] == 3:
+        if isinstance(P, np.ndarray) and P.shape in ((3,), (1, 3)) and P.dtype == np.float64:
             P = P.reshape(1, 3)  # one A-scan's point: the per-A-scan path, checked in floats
             self.n_received += 1
             if not all(map(math.isfinite, P[0].tolist())):

@@ -88,8 +88,11 @@ class TemplateBank:
         self._tids = np.arange(len(angles_rad)) * len(sigmas_mm) + np.array(rows)
         self._span = np.column_stack([self.lo[self._tids].min(1), self.hi[self._tids].max(1), self.reach[self._tids].max(1)])
         self._sigma_max = sigmas_mm[np.array(rows)].max(axis=1)
-        self._entries: dict[int, DistanceTemplates] = {}
-        self._by_key: dict[tuple, DistanceTemplates] = {}
+        # distances whose templates and extents coincide share one DistanceTemplates
+        table = np.column_stack([self._tids, self._span, self._sigma_max])
+        _, self._group = np.unique(table, axis=0, return_inverse=True)
+        self._group = self._group.ravel()
+        self._groups: list[DistanceTemplates | None] = [None] * (int(self._group.max()) + 1)
 
     def sigma_of(self, t: int) -> float:
         """Axial sigma (mm of optical path) of template t."""
@@ -98,27 +101,23 @@ class TemplateBank:
     def for_distance(self, distance_mm: float) -> "DistanceTemplates":
         """The templates (one per angle) for a retina about `distance_mm` away."""
         i = min(max(int(distance_mm / _TABLE_STEP_MM + 0.5) - 1, 0), len(self._tids) - 1)
-        entry = self._entries.get(i)
-        if entry is None:  # built on first use, shared by every distance with the same templates
+        g = self._group[i]
+        if self._groups[g] is None:  # built on first use
             tids = self._tids[i]
             lo, hi, reach = (int(v) for v in self._span[i])
-            key = (tuple(tids.tolist()), lo, hi, reach, float(self._sigma_max[i]))
-            entry = self._entries[i] = self._by_key.get(key)
-        if entry is None:
-            k = np.arange(self.length)[:, None]  # ILM candidates of a typical match (grown on demand)
-            entry = self._entries[i] = self._by_key[key] = DistanceTemplates(
+            self._groups[g] = DistanceTemplates(
                 tids, lo, hi, reach, float(self._sigma_max[i]), np.ascontiguousarray(self.integer[tids, lo:hi].T),
-                k + (self.lo[tids] - lo), k + (self.hi[tids] - lo), self.support[tids])
-        return entry
+                self.lo[tids] - lo, self.hi[tids] - lo, self.support[tids])
+        return self._groups[g]
 
 
 class DistanceTemplates(NamedTuple):
     """The bank's templates for one distance: template ids `tids` (A,) (one per angle);
     their joint extent [lo, hi) and largest `reach` (samples, relative to the bank's
     rows); the largest axial sigma (mm); `T` (hi - lo, A) the integer-shift templates
-    over the joint extent; `lo_k`, `hi_k` (n, A): for the k-th ILM candidate, where each
-    template's own support starts and ends, relative to the window of candidate 0;
-    `support` (A,) each template's length in samples."""
+    over the joint extent; `lo_off`, `hi_off` (A,): where each template's own support
+    starts and ends within the joint extent; `support` (A,) each template's length in
+    samples."""
 
     tids: np.ndarray
     lo: int
@@ -126,8 +125,8 @@ class DistanceTemplates(NamedTuple):
     reach: int
     sigma_max_mm: float
     T: np.ndarray
-    lo_k: np.ndarray
-    hi_k: np.ndarray
+    lo_off: np.ndarray
+    hi_off: np.ndarray
     support: np.ndarray
 
 
@@ -303,7 +302,7 @@ class DistanceExtractor:
                 h += 1
             if i1 >= i0:
                 ncc = self._ncc(x, tp, i0, i1, o)
-                for tp_k, a, b, k in ranges[g:h]:
+                for _, a, b, k in ranges[g:h]:
                     if b >= a:
                         out[k] = self._best(ncc[a - i0:b - i0 + 1], a, tp)
             g = h
@@ -325,11 +324,8 @@ class DistanceExtractor:
         c1[0] = c2[0] = 0.0
         np.cumsum(xs, out=c1[1:])
         np.cumsum(xs * xs, out=c2[1:])
-        if n_ilm <= len(tp.lo_k):
-            a, b = tp.lo_k[:n_ilm], tp.hi_k[:n_ilm]
-        else:  # a union of overlapping clusters longer than the precomputed grid
-            k = np.arange(n_ilm)[:, None]
-            a, b = k + tp.lo_k[0], k + tp.hi_k[0]
+        k = np.arange(n_ilm)[:, None]  # ILM candidate k's window starts k samples in
+        a, b = k + tp.lo_off, k + tp.hi_off
         s1 = c1[b] - c1[a]
         return num / np.sqrt(np.maximum(c2[b] - c2[a] - s1 * s1 / tp.support, 1e-300))
 

@@ -43,9 +43,8 @@ class SphereKalmanFilter:
             return
         if self.p0 is None:
             self.p0 = P[0].copy()
-            self._p0_floats = self.p0.tolist()
         if len(P) == 1:  # the per-A-scan path, in floats
-            (px, py, pz), (ox, oy, oz) = P[0].tolist(), self._p0_floats
+            (px, py, pz), (ox, oy, oz) = P[0].tolist(), self.p0.tolist()
             L = LENGTH_SCALE_MM
             x, y, z = (px - ox) / L, (py - oy) / L, (pz - oz) / L
             h = np.array([2.0 * x, 2.0 * y, 2.0 * z, 1.0])

@@ -82,7 +82,7 @@ class StarSurface:
             crossed = np.sign(f) != s0[todo]
             idx = todo[crossed]
             if len(idx):
-                t_hit[idx] = self._bisect(O[idx], D[idx], t_now[crossed], t_next[crossed], s0[idx])
+                t_hit[idx] = self._refine_crossing(O[idx], D[idx], t_now[crossed], t_next[crossed], s0[idx])
             t[todo] = t_next
             todo = todo[~crossed & (t_next < t_max_mm)]
         return t_hit
@@ -95,7 +95,7 @@ class StarSurface:
             self._bounds = (0.95 * float(r.min()), 1.05 * float(r.max()))
         return self._bounds
 
-    def _bisect(self, O, D, lo, hi, s0):
+    def _refine_crossing(self, O, D, lo, hi, s0):
         """The crossing in [lo, hi] (mm along each ray) to ~1e-13 mm: regula falsi with the
         Illinois modification on the bracket (superlinear: ~10 evaluations instead of 60
         halvings), falling back to halving while a side has not moved."""

@@ -259,7 +259,7 @@ def plan_path(robot: Robot, scenario, model, spec: BandSpec = BandSpec(), q_star
             continue
         # at the cell and on the way there (the joint spline runs close to the straight
         # line in joint space between neighbouring waypoints)
-        on_way = [q] + [Q[-1] + f * (q - Q[-1]) for f in (0.25, 0.5, 0.75)] if Q else [q]
+        on_way = [q] + ([Q[-1] + f * (q - Q[-1]) for f in (0.25, 0.5, 0.75)] if Q else [])
         if min(shaft_clearance_mm(robot, x, scenario.p_WC, model) for x in on_way) < spec.boundary_mm + SHAFT_SLACK_MM:
             band.reason[r, i] = "shaft"
             q = Q[-1] if Q else None

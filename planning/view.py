@@ -15,13 +15,14 @@ class VisualScene(NamedTuple):
 
     diagram: object
     context: object
+    plant_context: object
     scene: Robot
     visualizer: MeshcatVisualizer
 
     def show(self, q, t_s: float) -> None:
         """Publish the robot at joint angles q (6,) rad at time t_s (s)."""
         self.context.SetTime(t_s)
-        self.scene.plant.SetPositions(self.scene.plant.GetMyContextFromRoot(self.context), q)
+        self.scene.plant.SetPositions(self.plant_context, q)
         self.diagram.ForcedPublish(self.context)
 
 
@@ -32,7 +33,8 @@ def visual_scene(robot: Robot, meshcat: Meshcat) -> VisualScene:
     scene = Robot(robot.scenario, builder)
     vis = MeshcatVisualizer.AddToBuilder(builder, scene.scene_graph, meshcat)
     diagram = builder.Build()
-    return VisualScene(diagram, diagram.CreateDefaultContext(), scene, vis)
+    context = diagram.CreateDefaultContext()
+    return VisualScene(diagram, context, scene.plant.GetMyContextFromRoot(context), scene, vis)
 
 
 def show_scan(robot: Robot, run, P_WT, meshcat: Meshcat | None = None, fps: float = 30.0) -> str:
