@@ -36,6 +36,7 @@ REASONS = ("ok", "lens", "port", "reach", "shaft")
 BOUNDARY_MM = 0.5  # the virtual boundary's d_safe: a standoff must leave room above it
 SHAFT_SLACK_MM = 0.2  # monitored points plan this far outside the boundary (the filter stays out)
 MAX_JOINT_STEP_RAD = 1.0  # between neighbouring cells (1 mm apart): more is a branch change
+SHAFT_CHECK_DT_S = 0.005  # the timed path's shaft check: the shaft moves < 0.05 mm between samples at 10 mm/s
 
 
 @dataclass(frozen=True)
@@ -227,13 +228,38 @@ def _after_widest_gap(ok: np.ndarray) -> int:
     return (best_end + 1) % n
 
 
-def shaft_clearance_mm(robot: Robot, q, p_WC, model) -> float:
-    """Smallest clearance (mm, inside > 0) from `model` of the shaft points the safety
-    filter watches at q (planning.instrument_points: past the trocar, behind the tip and
-    port, which the standoff places); inf when none is that deep."""
-    ip = instrument_points(robot, q, p_WC)
-    shaft = [k for k, name in enumerate(ip.names) if name.startswith("shaft")]
-    return float(np.min(model.signed_distance(ip.P_W[shaft]))) if shaft else float("inf")
+def shaft_clearances_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
+    """(K,) smallest clearance (mm, inside > 0) from `model` of the shaft points the safety
+    filter watches at each posture Q (K, 6) rad (planning.instrument_points: past the
+    trocar, behind the tip and port, which the standoff places); inf at a posture where
+    none is that deep."""
+    Q = np.atleast_2d(np.asarray(Q, dtype=float))
+    shaft = [ip.P_W[[k for k, name in enumerate(ip.names) if name.startswith("shaft")]]
+             for ip in (instrument_points(robot, q, p_WC) for q in Q)]
+    owner = np.repeat(np.arange(len(Q)), [len(P) for P in shaft])
+    out = np.full(len(Q), np.inf)
+    if len(owner):
+        np.minimum.at(out, owner, np.asarray(model.signed_distance(np.vstack(shaft)), dtype=float))
+    return out
+
+
+def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: np.ndarray, p_WC, model,
+                               limit_mm: float) -> np.ndarray:
+    """Indices into P_cells (K, 3) of the cells on whose way (from the previous waypoint of
+    the timed joint trajectory, sampled every SHAFT_CHECK_DT_S) or at whose posture a
+    watched shaft point comes within `limit_mm` of the model. P_used (M, 3): the targets
+    of the trajectory's knots, P_cells in order among them (plan_ik_scan adds midpoints)."""
+    knots = np.asarray(traj.get_segment_times())
+    cell_knot = np.empty(len(P_cells), dtype=int)
+    j = 0
+    for k, p in enumerate(P_cells):  # the midpoints lie between the cells' rows
+        while not np.array_equal(P_used[j], p):
+            j += 1
+        cell_knot[k] = j
+    ts = np.union1d(np.arange(knots[0], knots[-1], SHAFT_CHECK_DT_S), knots)
+    near = ts[shaft_clearances_mm(robot, traj.vector_values(ts).T, p_WC, model) < limit_mm]
+    # a sample belongs to the first cell reached at or after it
+    return np.unique(np.searchsorted(knots[cell_knot], near - 1e-12, side="left"))
 
 
 def plan_path(robot: Robot, scenario, model, spec: BandSpec = BandSpec(), q_start=None) -> Plan:
@@ -242,6 +268,7 @@ def plan_path(robot: Robot, scenario, model, spec: BandSpec = BandSpec(), q_star
     t0 = time.perf_counter()
     band = plan_band(robot, scenario, model, spec)
     cells = serpentine(band)
+    limit = spec.boundary_mm + SHAFT_SLACK_MM
     q = q_start
     kept, Q = [], []
     for r, i in cells:  # RCM IK with the port's roll, seeded along the path; a failing cell is "reach"
@@ -257,20 +284,28 @@ def plan_path(robot: Robot, scenario, model, spec: BandSpec = BandSpec(), q_star
             band.reason[r, i] = "reach"  # beyond the margins, or only on another branch (no continuous path)
             q = Q[-1] if Q else None
             continue
-        # at the cell and on the way there (the joint spline runs close to the straight
-        # line in joint space between neighbouring waypoints)
+        # at the cell and on the way there (a first, cheap look: the joint spline runs close
+        # to the straight line in joint space between neighbouring waypoints)
         on_way = [q] + ([Q[-1] + f * (q - Q[-1]) for f in (0.25, 0.5, 0.75)] if Q else [])
-        if min(shaft_clearance_mm(robot, x, scenario.p_WC, model) for x in on_way) < spec.boundary_mm + SHAFT_SLACK_MM:
+        if shaft_clearances_mm(robot, on_way, scenario.p_WC, model).min() < limit:
             band.reason[r, i] = "shaft"
             q = Q[-1] if Q else None
             continue
         kept.append((r, i))
         Q.append(q)
-    if not kept:
-        raise IKFailure("no cell of the band is reachable from this trocar")
-    P = np.array([band.target_W[r, i] for r, i in kept])
-    roll = np.array([port_roll_rad(band.target_W[r, i], scenario.p_WC, band.normal_W[r, i]) for r, i in kept])
-    traj, P_used, _ = plan_ik_scan(robot, P, scenario.p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q)
+    while True:  # the timed trajectory, densely: drop the cells whose way in still nears the boundary
+        if not kept:
+            raise IKFailure("no cell of the band is reachable from this trocar")
+        P = np.array([band.target_W[r, i] for r, i in kept])
+        roll = np.array([port_roll_rad(band.target_W[r, i], scenario.p_WC, band.normal_W[r, i]) for r, i in kept])
+        traj, P_used, _ = plan_ik_scan(robot, P, scenario.p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q)
+        bad = _cells_too_near_on_the_way(robot, traj, P_used, P, scenario.p_WC, model, limit)
+        if not len(bad):
+            break
+        for k in bad:
+            band.reason[kept[k]] = "shaft"
+        keep = np.setdiff1d(np.arange(len(kept)), bad)
+        kept, Q = [kept[k] for k in keep], [Q[k] for k in keep]
     return Plan(band, P, roll, traj, P_used, time.perf_counter() - t0)
 
 
