@@ -146,16 +146,19 @@ class AdaptiveEyeModel:
         S = self._ef.S
         sf_res = ef_res = axis_change = np.nan
         v_sf = None
+        V = np.empty((2, 10))  # the sphere's and the ellipsoid's quadrics, for one residual call
         if sf is not None:
             # the Kalman state [c, r^2 - |c|^2] is already in the fits' scaled coordinates
             # (both take the first point as origin): the sphere's quadric without a round trip
             cx, cy, cz, k = self._sf.state.tolist()
-            v_sf = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, -cx, -cy, -cz, -k])
+            V[0] = (1.0, 1.0, 1.0, 0.0, 0.0, 0.0, -cx, -cy, -cz, -k)
+            v_sf = V[0]
         if fit.ok:
             if v_sf is None:
                 ef_res = LENGTH_SCALE_MM * taubin_residual(S, fit.v)
             else:
-                sf_res, ef_res = (LENGTH_SCALE_MM * taubin_residual(S, np.stack([v_sf, fit.v]))).tolist()
+                V[1] = fit.v
+                sf_res, ef_res = (LENGTH_SCALE_MM * taubin_residual(S, V)).tolist()
             radii = sorted(fit.radii.tolist())
             if self._prev_radii is not None:
                 axis_change = max(abs(a - b) / b for a, b in zip(radii, self._prev_radii))

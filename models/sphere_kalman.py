@@ -9,9 +9,11 @@ on the same points at every step, with no prior to tune and no loss of precision
 """
 from __future__ import annotations
 
-import numpy as np
-from scipy.linalg import lapack
+import math
 
+import numpy as np
+
+from models._kernels import add_sphere_row, sphere_state
 from models._validation import as_points
 from models.ellipsoid_fit import LENGTH_SCALE_MM
 from models.sphere import Sphere
@@ -47,9 +49,7 @@ class SphereKalmanFilter:
             (px, py, pz), (ox, oy, oz) = P[0].tolist(), self.p0.tolist()
             L = LENGTH_SCALE_MM
             x, y, z = (px - ox) / L, (py - oy) / L, (pz - oz) / L
-            h = np.array([2.0 * x, 2.0 * y, 2.0 * z, 1.0])
-            self.information += np.multiply.outer(h, h)
-            self._info_vector += h * (x * x + y * y + z * z)
+            add_sphere_row(self.information, self._info_vector, x, y, z)
         else:
             X = (P - self.p0) / LENGTH_SCALE_MM
             H = np.column_stack([2.0 * X, np.ones(len(X))])
@@ -58,9 +58,8 @@ class SphereKalmanFilter:
         self.n_points += len(P)
         self.state = None
         if self.n_points >= 4:
-            _, x, info = lapack.dposv(self.information, self._info_vector)
-            c0, c1, c2, k = x.tolist()
-            if info == 0 and k + c0 * c0 + c1 * c1 + c2 * c2 > 0.0:
+            x, ok = sphere_state(self.information, self._info_vector)
+            if ok:
                 self.state = x
 
     @property
@@ -68,8 +67,9 @@ class SphereKalmanFilter:
         """(center (3,) mm, radius mm) of the current estimate, or None."""
         if self.state is None:
             return None
-        c = self.state[:3]
-        return self.p0 + LENGTH_SCALE_MM * c, LENGTH_SCALE_MM * float(np.sqrt(self.state[3] + c @ c))
+        (cx, cy, cz, k), (ox, oy, oz) = self.state.tolist(), self.p0.tolist()  # floats: called per A-scan
+        L = LENGTH_SCALE_MM
+        return np.array([ox + L * cx, oy + L * cy, oz + L * cz]), L * math.sqrt(k + cx * cx + cy * cy + cz * cz)
 
     @property
     def sphere(self) -> Sphere | None:

@@ -1,0 +1,344 @@
+"""Compiled (numba) kernels of the per-A-scan model update: small fixed-size linear algebra.
+
+An update of the adaptive model is a handful of operations on 4x4, 6x6 and 10x10
+matrices; in NumPy each costs one to three microseconds of call overhead, which at one
+update per A-scan (2 kHz) dominates the arithmetic. These kernels do the same
+arithmetic in one compiled call each. They are the only implementation (the batch fits
+use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit).
+
+The ellipsoid-specific fit (Li & Griffiths 2004, k = 4) minimises v^T S v subject to
+v1^T C1 v1 = 1. With the Schur complement S' = S11 - S12 S22^-1 S12^T (symmetric,
+positive semi-definite) the problem is the pencil S' v1 = lambda C1 v1. C1 has exactly
+one positive eigenvalue, so (Sylvester's law of inertia) the symmetric matrix
+K = L^-1 C1 L^-T, with S' = L L^T, has exactly one positive eigenvalue mu = 1 / lambda,
+and its eigenvector w gives the solution v1 = L^-T w: a symmetric eigenproblem, real by
+construction (a general eigensolver on C1^-1 S' may return near-equal negative
+eigenvalues as complex pairs). S' is singular when the points lie exactly on a quadric
+(noise-free data): its null vector is then the answer if it is an ellipsoid
+(v1^T C1 v1 > 0), no answer exists on the k = 4 boundary (= 0: a paraboloid, a
+cylinder, semi-axes (a, a, a/2)), and otherwise the minimiser is found as for noisy
+data, where a relative 1e-15 on the diagonal of S' keeps the Cholesky factor defined
+(results agree with a general eigensolver to 2e-13 mm on noise-free and noisy
+ellipsoids).
+
+Status codes of `fit_quadric`: see FIT_STATUS.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+FIT_STATUS = ("ok", "too_few_points", "collinear", "coplanar", "not_ellipsoid")
+MIN_POINTS = 9
+PLANARITY_TOL = 1e-10  # smallest / largest point-cloud variance below which data is flat
+_REGULARISATION = 1e-15  # relative to trace(S'), see the module doc
+NEAR_SINGULAR = 1e-8  # smallest Cholesky pivot^2 / largest diagonal of S' that asks for its eigenvalues
+EXACT_QUADRIC = 1e-12  # smallest / largest eigenvalue of S' at which the points lie on one quadric
+BOUNDARY = 1e-12  # |v1^T C1 v1| of a unit v1 below which a quadric is on the k = 4 boundary
+
+# v1^T C1 v1 = 4 J - I^2 for v1 = (a, b, c, f, g, h) (k = 4).
+C1 = np.zeros((6, 6))
+C1[:3, :3] = 1.0
+np.fill_diagonal(C1[:3, :3], -1.0)
+C1[3:, 3:] = -4.0 * np.eye(3)
+
+
+@njit(cache=True)
+def add_design_row(S, x, y, z):
+    """S (10, 10) += m m^T for the design row m of the scaled point (x, y, z), in place."""
+    m = np.array([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0])
+    for i in range(10):
+        for j in range(10):
+            S[i, j] += m[i] * m[j]
+
+
+@njit(cache=True)
+def add_sphere_row(Y, y, x, yy, z):
+    """The sphere filter's information form, in place: Y (4, 4) += h h^T, y (4,) += h |p|^2
+    for h = [2x, 2y, 2z, 1] of the scaled point (x, yy, z)."""
+    h = np.array([2.0 * x, 2.0 * yy, 2.0 * z, 1.0])
+    r2 = x * x + yy * yy + z * z
+    for i in range(4):
+        y[i] += h[i] * r2
+        for j in range(4):
+            Y[i, j] += h[i] * h[j]
+
+
+@njit(cache=True)
+def _cholesky(A):
+    """(L, ok): the lower Cholesky factor of the symmetric A (n, n); not ok when A is not
+    positive definite (an answer, not an exception: a singular matrix is degenerate data)."""
+    n = A.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        s = A[j, j] - np.sum(L[j, :j] ** 2)
+        if not s > 1e-300:
+            return L, False
+        L[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            L[i, j] = (A[i, j] - np.sum(L[i, :j] * L[j, :j])) / L[j, j]
+    return L, True
+
+
+@njit(cache=True)
+def sphere_state(Y, y):
+    """(state [cx, cy, cz, r^2 - |c|^2] (4,), ok): the least-squares solution Y^-1 y; not ok
+    when Y is not positive definite (coplanar points) or the radius is not real."""
+    L, ok = _cholesky(Y)
+    x = np.zeros(4)
+    if not ok:
+        return x, False
+    u = np.zeros(4)
+    for i in range(4):
+        u[i] = (y[i] - np.sum(L[i, :i] * u[:i])) / L[i, i]
+    for i in range(3, -1, -1):
+        x[i] = (u[i] - np.sum(L[i + 1:, i] * x[i + 1:])) / L[i, i]
+    return x, x[3] + x[0] * x[0] + x[1] * x[1] + x[2] * x[2] > 0.0
+
+
+@njit(cache=True)
+def eigh_sym(A):
+    """(eigenvalues ascending (n,), eigenvectors as columns (n, n)) of the symmetric A, by
+    cyclic Jacobi rotations (Golub & Van Loan 8.5): for the 3x3-6x6 matrices here a few
+    microseconds, against tens for a LAPACK call through NumPy, and accurate to rounding."""
+    n = A.shape[0]
+    a = A.copy()
+    V = np.eye(n)
+    scale = 0.0
+    for i in range(n):
+        for j in range(n):
+            scale += a[i, j] * a[i, j]
+    for _ in range(50):
+        off = 0.0
+        for i in range(n):
+            for j in range(i + 1, n):
+                off += a[i, j] * a[i, j]
+        if off <= 1e-32 * scale:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):  # a <- a J (columns p, q)
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p] = c * akp - s * akq
+                    a[k, q] = s * akp + c * akq
+                for k in range(n):  # a <- J^T a (rows p, q)
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k] = c * apk - s * aqk
+                    a[q, k] = s * apk + c * aqk
+                for k in range(n):
+                    vkp, vkq = V[k, p], V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    w = np.empty(n)
+    for i in range(n):
+        w[i] = a[i, i]
+    order = np.argsort(w)
+    return w[order], np.ascontiguousarray(V[:, order])
+
+
+@njit(cache=True)
+def _lower_inverse(L):
+    """L^-1 of the lower-triangular L (n, n) with a positive diagonal, by forward substitution."""
+    n = L.shape[0]
+    X = np.zeros((n, n))
+    for j in range(n):
+        X[j, j] = 1.0 / L[j, j]
+        for i in range(j + 1, n):
+            s = 0.0
+            for k in range(j, i):
+                s += L[i, k] * X[k, j]
+            X[i, j] = -s / L[i, i]
+    return X
+
+
+@njit(cache=True)
+def _degeneracy(S):
+    """Status code (FIT_STATUS) of the cloud behind S: 0 when spread in 3-D."""
+    n = S[9, 9]
+    if n < MIN_POINTS:
+        return 1
+    mean = S[6:9, 9] / (2.0 * n)
+    cov = S[6:9, 6:9] / (4.0 * n) - np.outer(mean, mean)
+    w = eigh_sym(cov)[0]
+    if not (w[2] > 0.0) or w[1] <= PLANARITY_TOL * w[2]:
+        return 2
+    if w[0] <= PLANARITY_TOL * w[2]:
+        return 3
+    return 0
+
+
+@njit(cache=True)
+def fit_quadric(S, check_spread):
+    """(status code, v (10,)): the ellipsoid-specific least-squares quadric of scatter
+    matrix S; `check_spread` adds the collinear/coplanar test (too few points are always
+    refused). v holds zeros unless the code is 0."""
+    v = np.zeros(10)
+    code = _degeneracy(S) if check_spread else (1 if S[9, 9] < MIN_POINTS else 0)
+    if code:
+        return code, v
+    S12 = np.ascontiguousarray(S[:6, 6:])
+    S22 = np.ascontiguousarray(S[6:, 6:])
+    L22, ok = _cholesky(S22)
+    if not ok:  # S22 is positive definite unless the data is flat
+        return 3, v
+    Li22 = _lower_inverse(L22)
+    X = Li22.T @ (Li22 @ np.ascontiguousarray(S12.T))  # S22^-1 S12^T, (4, 6)
+    Sp = np.ascontiguousarray(S[:6, :6]) - S12 @ X
+    Sp = 0.5 * (Sp + Sp.T)
+    L, ok = _cholesky(Sp)
+    pivot2 = np.inf
+    for i in range(6):
+        pivot2 = min(pivot2, L[i, i] ** 2)
+    if not ok or pivot2 <= NEAR_SINGULAR * np.max(np.diag(Sp)):  # maybe points on one quadric: look closer
+        lam, Q = eigh_sym(Sp)
+        if lam[0] <= EXACT_QUADRIC * lam[5]:  # a quadric through every point (noise-free data)
+            v1 = np.ascontiguousarray(Q[:, 0])
+            c = v1 @ (C1 @ v1)
+            if c > BOUNDARY:  # an ellipsoid: the exact answer
+                return _with_linear_part(v1 / np.sqrt(c), X)
+            if c >= -BOUNDARY:  # on the k = 4 boundary 4J - I^2 = 0: v^T S v -> 0 only as v -> infinity
+                return 4, v
+            # else the exact quadric is no ellipsoid: the constrained minimiser lies elsewhere
+        L, ok = _cholesky(Sp + _REGULARISATION * np.trace(Sp) * np.eye(6))
+        if not ok:
+            return 4, v
+    Li = _lower_inverse(L)
+    K = Li @ C1 @ Li.T
+    start = L.T @ np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])  # the sphere direction (v1^T C1 v1 > 0)
+    w, mu = _top_eigenvector(0.5 * (K + K.T), start)
+    if not (mu > 0.0):
+        return 4, v
+    v1 = Li.T @ w
+    c = v1 @ (C1 @ v1)
+    if not (c > BOUNDARY * (v1 @ v1)):
+        return 4, v
+    return _with_linear_part(v1 / np.sqrt(c), X)
+
+
+@njit(cache=True)
+def _top_eigenvector(K, start):
+    """(unit eigenvector, eigenvalue) of the largest eigenvalue of the symmetric K (n, n):
+    power iteration on K + sigma I, sigma from Gershgorin's bound so that every eigenvalue
+    of the shifted matrix is >= 0 and the largest dominates; from `start` (not orthogonal
+    to the answer), until the residual |K y - mu y| is at rounding level of mu. K's one positive
+    eigenvalue is far above the rest for data near an ellipsoid, so a few tens of 6x6
+    products; eigh_sym if it has not converged in 500."""
+    n = K.shape[0]
+    g = np.inf
+    for i in range(n):
+        g = min(g, K[i, i] - (np.sum(np.abs(K[i])) - abs(K[i, i])))
+    sigma = max(0.0, -g)
+    y = start / np.sqrt(start @ start)
+    for _ in range(500):
+        Ky = K @ y
+        mu = y @ Ky
+        r = Ky - mu * y
+        if r @ r <= 1e-28 * mu * mu:  # residual |K y - mu y| <= 1e-14 |mu|: converged, whatever the ratio
+            return y, mu
+        y = Ky + sigma * y
+        y /= np.sqrt(y @ y)
+    mu, W = eigh_sym(K)
+    return np.ascontiguousarray(W[:, n - 1]), mu[n - 1]
+
+
+@njit(cache=True)
+def _with_linear_part(v1, X):
+    """(0, v (10,)): the quadratic part v1 (6,) with its optimal linear part v2 = -S22^-1 S12^T v1."""
+    v = np.empty(10)
+    v[:6] = v1
+    v[6:] = -(X @ v1)
+    return 0, v
+
+
+@njit(cache=True)
+def quadric_parameters(v, p0, scale):
+    """(ok, centre (3,), semi-axes (3,) descending, rotation (3, 3) with the axes as
+    columns, right-handed) in mm and the frame of p0, of the quadric v (10,) given in
+    coordinates (x - p0) / scale; not ok when it is not a real ellipsoid."""
+    a, b, c, f, g, h = v[0], v[1], v[2], v[3], v[4], v[5]
+    A = np.array([[a, h, g], [h, b, f], [g, f, c]])
+    center = np.zeros(3)
+    radii = np.zeros(3)
+    R = np.eye(3)
+    detA = a * (b * c - f * f) - h * (h * c - f * g) + g * (h * f - b * g)
+    if not (abs(detA) > 1e-300):
+        return False, center, radii, R
+    adj = np.array([[b * c - f * f, g * f - h * c, h * f - b * g],
+                    [g * f - h * c, a * c - g * g, h * g - a * f],
+                    [h * f - b * g, h * g - a * f, a * b - h * h]])  # A symmetric: A^-1 = adj / det
+    w = -(adj @ np.ascontiguousarray(v[6:9])) / detA
+    mu = w @ (A @ w) - v[9]
+    lam, E = eigh_sym(A / mu)
+    if not (lam[0] > 0.0 and np.isfinite(lam[2])):
+        return False, center, radii, R
+    E = np.ascontiguousarray(E)
+    det = (E[0, 0] * (E[1, 1] * E[2, 2] - E[1, 2] * E[2, 1]) - E[0, 1] * (E[1, 0] * E[2, 2] - E[1, 2] * E[2, 0])
+           + E[0, 2] * (E[1, 0] * E[2, 1] - E[1, 1] * E[2, 0]))
+    if det < 0.0:  # eigenvectors come with arbitrary signs: make the frame right-handed
+        E[:, 2] = -E[:, 2]
+    return True, p0 + scale * w, scale / np.sqrt(lam), E
+
+
+# dQ/dx = 2(a x + h y + g z + p), dQ/dy = 2(h x + b y + f z + q), dQ/dz = 2(g x + f y + c z + r):
+# row i lists the coefficients of v multiplying [x, y, z, 1] in component i.
+GRAD_ROWS = np.array([[0, 5, 4, 6], [5, 1, 3, 7], [4, 3, 2, 8]])
+
+
+@njit(cache=True)
+def taubin_residuals(S, V):
+    """(k,) RMS point-to-surface distance (scaled units) of each quadric row of V (k, 10)
+    over the points of S, in Taubin's first-order form sqrt(v^T S v / sum |grad Q|^2),
+    from the moments alone (S[6:, 6:] holds the moments of [2x, 2y, 2z, 1])."""
+    M = np.empty((4, 4))
+    for i in range(4):
+        for j in range(4):
+            M[i, j] = S[6 + i, 6 + j] * (0.5 if i < 3 else 1.0) * (0.5 if j < 3 else 1.0)
+    out = np.empty(V.shape[0])
+    for k in range(V.shape[0]):
+        v = V[k]
+        q2 = v @ (S @ v)
+        g2 = 0.0
+        for i in range(3):
+            wi = np.array([v[GRAD_ROWS[i, 0]], v[GRAD_ROWS[i, 1]], v[GRAD_ROWS[i, 2]], v[GRAD_ROWS[i, 3]]])
+            g2 += wi @ (M @ wi)
+        g2 *= 4.0
+        out[k] = np.sqrt(max(q2, 0.0) / g2) if g2 > 0.0 else np.inf
+    return out
+
+
+SCAN_BLOCK = 64  # points per bounding ball of models.scan_range
+
+
+@njit(cache=True)
+def diameter_after_adding(X, block_r, n, x, diameter):
+    """The diameter (mm) of the first n rows of X (cap, 3) and x (3,), given theirs
+    (`diameter`); x is stored as row n and its block's radius updated, in place. Block k
+    holds rows [k B, (k + 1) B) with B = SCAN_BLOCK, its ball centred on row k B with
+    radius block_r[k]; a block with |x - centre| + radius <= diameter is skipped."""
+    best2 = diameter * diameter
+    for k in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
+        c0, c1, c2 = X[k * SCAN_BLOCK, 0], X[k * SCAN_BLOCK, 1], X[k * SCAN_BLOCK, 2]
+        dc = np.sqrt((x[0] - c0) ** 2 + (x[1] - c1) ** 2 + (x[2] - c2) ** 2)
+        if dc + block_r[k] <= diameter:
+            continue
+        for i in range(k * SCAN_BLOCK, min(n, (k + 1) * SCAN_BLOCK)):
+            d2 = (x[0] - X[i, 0]) ** 2 + (x[1] - X[i, 1]) ** 2 + (x[2] - X[i, 2]) ** 2
+            if d2 > best2:
+                best2 = d2
+    X[n, 0], X[n, 1], X[n, 2] = x[0], x[1], x[2]
+    k = n // SCAN_BLOCK
+    if n % SCAN_BLOCK == 0:
+        block_r[k] = 0.0
+    else:
+        r = np.sqrt((x[0] - X[k * SCAN_BLOCK, 0]) ** 2 + (x[1] - X[k * SCAN_BLOCK, 1]) ** 2
+                    + (x[2] - X[k * SCAN_BLOCK, 2]) ** 2)
+        if r > block_r[k]:
+            block_r[k] = r
+    return np.sqrt(best2)
