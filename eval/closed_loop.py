@@ -118,16 +118,23 @@ def semi_axes_mm(shape) -> np.ndarray:
 
 def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float, min_points: int = 0,
                 min_scan_range_mm: float = 0.0, radius_range_mm: tuple = (0.0, np.inf)) -> ModelSnapshot:
-    """The snapshot of `model` at t_s ("prior" until it has a shape from at least
-    `min_points` points over `min_scan_range_mm` with radii within `radius_range_mm`)."""
-    shape = model.shape
-    radii = None if shape is None else semi_axes_mm(shape)
-    if (shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm
-            or not (radius_range_mm[0] <= radii.min() and radii.max() <= radius_range_mm[1])):
-        return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
+    """The snapshot of `model` at t_s: its current shape once it rests on at least
+    `min_points` points over `min_scan_range_mm` with semi-axes within `radius_range_mm`;
+    an ellipsoid outside that range (a fit to a pathological eye, like the pointed eye's
+    153 x 29 x 29 mm) gives way to the model's sphere fit if that one is an eye's (its
+    phase's wider margin applies); "prior" otherwise."""
+    prior = ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
+    if model.shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
+        return prior
     last = model.history[-1]
-    res = last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm
-    return ModelSnapshot(model.kind, shape, t_s, float(res), model.n_points, coverage.view(shape))
+    candidates = [(model.kind, model.shape, last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm)]
+    if model.kind == "ellipsoid" and model.sphere is not None:
+        candidates.append(("sphere", model.sphere, last.sf_residual_mm))
+    for kind, shape, residual_mm in candidates:
+        radii = semi_axes_mm(shape)
+        if radius_range_mm[0] <= radii.min() and radii.max() <= radius_range_mm[1]:
+            return ModelSnapshot(kind, shape, t_s, float(residual_mm), model.n_points, coverage.view(shape))
+    return prior
 
 
 class CommandSystem(LeafSystem):

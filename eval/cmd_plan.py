@@ -93,14 +93,15 @@ def main(args) -> int:
         raise UsageError(f"cannot plan: the filter does not trust this {build.kind_final} model (semi-axes "
                          f"{', '.join(f'{r:.1f}' for r in radii)} mm; an eye's lie in {loop.config.model_radius_range_mm} "
                          f"mm) and would hold the instrument inside the conservative prior, away from the band")
+    model = trusted.shape  # what the filter will bound the motion with (the sphere if the ellipsoid is no eye's)
     boundary = loop.config.filter.d_safe_mm + trusted.margin_mm(loop.config.margins)
     if spec.standoff_mm < boundary + 0.2:
         raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
-                         f"{build.kind_final} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
+                         f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
                          f"stepping in); use at least {boundary + 0.2:.2f} mm")
     spec = dataclasses.replace(spec, boundary_mm=boundary)  # the whole instrument plans outside it
     try:
-        plan = plan_path(loop.robot, scenario, build.model.shape, spec)
+        plan = plan_path(loop.robot, scenario, model, spec)
     except (ValueError, IKFailure) as exc:
         raise UsageError(f"cannot plan: {exc}") from None
     out = prepare_out_dir(args.out)
@@ -112,14 +113,14 @@ def main(args) -> int:
     result = {
         "coverage": coverage(band, tips, spec.spacing_mm),
         "band_reachable": float(band.reachable.mean()),
-        "min_model_clearance_mm": float(np.min(build.model.shape.signed_distance(tips))),
+        "min_model_clearance_mm": float(np.min(model.signed_distance(tips))),
         "min_true_clearance_mm": None,
         "duration_s": float(traj.end_time() - traj.start_time()),
         "path_length_mm": float(np.linalg.norm(np.diff(tips, axis=0), axis=1).sum()),
         "min_joint_margin_deg": float(np.degrees(min(robot.joint_margin_rad(q).min() for q in Q))),
         "filter_intervention_fraction": None,
         "plan_time_s": plan.plan_time_s,
-        "shape": args.shape, "model_kind": build.kind_final, "standoff_mm": spec.standoff_mm,
+        "shape": args.shape, "model_kind": trusted.kind, "fitted_kind": build.kind_final, "standoff_mm": spec.standoff_mm,
         "boundary_mm": spec.boundary_mm,
         "trust_angle_deg": args.trust_angle_deg,
         "band_z_E_mm": [spec.z_min_E, spec.z_max_E], "cells": int(band.reason.size),

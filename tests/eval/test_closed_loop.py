@@ -187,3 +187,23 @@ def test_an_ascan_mode_run_logs_a_scans_at_20_hz(emmetropic, tmp_path):
     assert len(distances) >= 390  # 2 kHz for 0.2 s, the last packet may be pending
     assert len(scans) == -(-len(distances) // ASCAN_LOG_EVERY)
     assert all(m["n_samples"] == ascan_loop.sensor.engine.n_samples for _, m in scans)
+
+
+def test_an_ellipsoid_that_is_no_eye_gives_way_to_the_sphere_fit():
+    """On the pointed eye's paper spiral the ellipsoid ends at about 129 x 27 x 27 mm (its
+    posterior paraboloid), outside an eye's 8-16 mm: the filter reads the sphere fit
+    (radius 10.6 mm), with the sphere's residual; with no eye-sized fit it keeps the prior."""
+    from eval.closed_loop import snapshot_of
+    from models.eyes import make_eye
+    from models.paper_scan import paper_scan
+
+    model = AdaptiveEyeModel()
+    for p in paper_scan(make_eye("pointed"), seed=0).points:
+        model.update(p)
+    assert model.kind == "ellipsoid" and model.ellipsoid.radii.max() > 16.0
+    coverage = DirectionCoverage(np.zeros(3))
+    snap = snapshot_of(model, coverage, 1.0, 200, 5.0, (8.0, 16.0))
+    assert snap.kind == "sphere" and 8.0 <= snap.shape.radius <= 16.0
+    assert snap.shape.radius == model.sphere.radius and np.array_equal(snap.shape.center, model.sphere.center)
+    assert snap.residual_mm == model.history[-1].sf_residual_mm
+    assert snapshot_of(model, coverage, 1.0, 200, 5.0, (8.0, 10.0)).kind == "prior"
