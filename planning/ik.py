@@ -8,7 +8,9 @@ micrometres off the line (bench_robot measures it). Hence the first initial gues
 exact closed-form solution (planning.closed_form) of the seed's branch, where SNOPT only
 has to confirm it (with the roll and seed-distance cost); a few exact Gauss-Newton steps
 then take the tip and RCM errors to numerical zero, and the result is checked against
-the joint limits.
+the joint limits. With the roll given the solutions are isolated and the closed-form one
+is already exact: it is returned without SNOPT when it checks out (the planner's case);
+SNOPT takes over from it and the other seeds otherwise.
 """
 from __future__ import annotations
 
@@ -67,40 +69,54 @@ def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = N
     if np.linalg.norm(p_T - p_C) < 1.0:
         raise ValueError(f"p_WT_mm must be at least 1 mm from the trocar p_WC_mm, got {np.linalg.norm(p_T - p_C):.3g} mm")
     y_W = None if roll_rad is None else roll_direction_W(p_T, p_C, float(_finite(roll_rad, "roll_rad", (), "rad")))
+    exact = _closed_form_guess(robot, p_T, p_C, q_seed, y_W)
+
+    def checked(q_try):  # (polished solution or None, why not)
+        q_sol = polish(robot, q_try, p_T, p_C)
+        if y_W is not None:  # J6 turns about the shaft: restore the roll the polish disturbed
+            q_sol[5] += _signed_angle(robot.pose("I", q_sol)[0][:, 1], y_W, (p_T - p_C) / np.linalg.norm(p_T - p_C))
+        tip_err = float(np.linalg.norm(robot.point("T", np.zeros(3), q_sol) - p_T))
+        rcm_err = robot.rcm_error_mm(q_sol, p_C)
+        if np.all(robot.joint_margin_rad(q_sol) >= 0) and rcm_err <= rcm_tol_mm and tip_err <= tip_tol_mm:
+            return q_sol, None
+        return None, f"polished solution off by tip {tip_err:.2g} mm, RCM {rcm_err:.2g} mm or beyond a joint limit"
+
+    if y_W is not None and exact is not None:
+        # with the roll fixed, tip + RCM + roll are six conditions on six joints: the
+        # solutions are isolated, and the closed-form one of the seed's branch is exact,
+        # so SNOPT would only confirm it (at ~6 ms a solve): it is taken when it checks out
+        q_sol, _ = checked(exact)
+        if q_sol is not None:
+            return q_sol
     prog, q = _program(robot, p_T, p_C, q_seed, y_W)
     solver = SnoptSolver()
     last = None
-    for guess in _initial_guesses(robot, p_T, p_C, q_seed, y_W):
+    seeds = [q_seed] + [q_seed + dq for dq in _SEED_OFFSETS] + [_wrist_flip(q_seed)]
+    for guess in ([] if exact is None else [exact]) + seeds:
         prog.SetInitialGuess(q, np.clip(guess, robot.q_lower, robot.q_upper))
         result = solver.Solve(prog)
         if result.is_success():
-            q_sol = polish(robot, result.GetSolution(q), p_T, p_C)
-            if y_W is not None:  # J6 turns about the shaft: restore the roll the polish disturbed
-                q_sol[5] += _signed_angle(robot.pose("I", q_sol)[0][:, 1], y_W, (p_T - p_C) / np.linalg.norm(p_T - p_C))
-            tip_err = float(np.linalg.norm(robot.point("T", np.zeros(3), q_sol) - p_T))
-            rcm_err = robot.rcm_error_mm(q_sol, p_C)
-            if np.all(robot.joint_margin_rad(q_sol) >= 0) and rcm_err <= rcm_tol_mm and tip_err <= tip_tol_mm:
+            q_sol, last = checked(result.GetSolution(q))
+            if q_sol is not None:
                 return q_sol
-            last = f"polished solution off by tip {tip_err:.2g} mm, RCM {rcm_err:.2g} mm or beyond a joint limit"
         else:
             last = f"{result.get_solver_id().name()}: {result.get_solution_result().name}"
     raise IKFailure(f"tip target p_WT_mm = {np.round(p_T, 3)} is not reachable through the trocar "
                     f"p_WC_mm = {np.round(p_C, 3)} within the joint limits ({last})")
 
 
-def _initial_guesses(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.ndarray, y_W=None) -> list[np.ndarray]:
-    """The exact closed-form solution of the seed's branch (nearest to the seed; J6 kept,
-    or turned to the roll y_W when given), then the seed, perturbed seeds and the
-    wrist-flipped seed."""
+def _closed_form_guess(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: np.ndarray, y_W=None):
+    """The exact closed-form solution (6,) rad of the seed's branch (nearest to the seed; J6
+    kept, or turned to the roll y_W when given), or None when the closed form has none."""
     u = (p_T - p_C) / np.linalg.norm(p_T - p_C)
     exact = shaft_ik(p_T, u, robot.tip_offset_mm, q_seed[5])
-    near = [exact[np.argmin(np.abs((exact - q_seed + np.pi) % (2 * np.pi) - np.pi).sum(axis=1))]] if len(exact) else []
-    if near and y_W is not None:  # J6 turns about the shaft: the exact roll in closed form
-        q = near[0].copy()
+    if not len(exact):
+        return None
+    q = exact[np.argmin(np.abs((exact - q_seed + np.pi) % (2 * np.pi) - np.pi).sum(axis=1))].copy()
+    if y_W is not None:  # J6 turns about the shaft: the exact roll in closed form
         q[5] += _signed_angle(robot.pose("I", q)[0][:, 1], y_W, u)
         q[5] = q_seed[5] + (q[5] - q_seed[5] + np.pi) % (2 * np.pi) - np.pi  # the turn nearest the seed
-        near = [q]
-    return near + [q_seed] + [q_seed + dq for dq in _SEED_OFFSETS] + [_wrist_flip(q_seed)]
+    return q
 
 
 def _signed_angle(a: np.ndarray, b: np.ndarray, axis: np.ndarray) -> float:
