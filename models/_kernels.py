@@ -32,6 +32,7 @@ FIT_STATUS = ("ok", "too_few_points", "collinear", "coplanar", "not_ellipsoid")
 MIN_POINTS = 9
 PLANARITY_TOL = 1e-10  # smallest / largest point-cloud variance below which data is flat
 _REGULARISATION = 1e-15  # relative to trace(S'), see the module doc
+POWER_ITERATIONS = 40  # beyond, the Jacobi solver is cheaper than converging slowly
 NEAR_SINGULAR = 1e-8  # smallest Cholesky pivot^2 / largest diagonal of S' that asks for its eigenvalues
 EXACT_QUADRIC = 1e-12  # smallest / largest eigenvalue of S' at which the points lie on one quadric
 BOUNDARY = 1e-12  # |v1^T C1 v1| of a unit v1 below which a quadric is on the k = 4 boundary
@@ -44,6 +45,39 @@ C1[3:, 3:] = -4.0 * np.eye(3)
 
 
 @njit(cache=True)
+def _mm(A, B):
+    """A @ B by loops: for these few-by-few matrices a BLAS call's overhead exceeds the work."""
+    n, k, m = A.shape[0], A.shape[1], B.shape[1]
+    C = np.zeros((n, m))
+    for i in range(n):
+        for l in range(k):
+            a = A[i, l]
+            for j in range(m):
+                C[i, j] += a * B[l, j]
+    return C
+
+
+@njit(cache=True)
+def _mv(A, x):
+    """A @ x by loops (see _mm)."""
+    y = np.zeros(A.shape[0])
+    for i in range(A.shape[0]):
+        s = 0.0
+        for j in range(A.shape[1]):
+            s += A[i, j] * x[j]
+        y[i] = s
+    return y
+
+
+@njit(cache=True)
+def _dot(a, b):
+    s = 0.0
+    for i in range(a.shape[0]):
+        s += a[i] * b[i]
+    return s
+
+
+@njit(cache=True)
 def add_design_row(S, x, y, z):
     """S (10, 10) += m m^T for the design row m of the scaled point (x, y, z), in place."""
     m = np.array([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0])
@@ -53,15 +87,16 @@ def add_design_row(S, x, y, z):
 
 
 @njit(cache=True)
-def add_sphere_row(Y, y, x, yy, z):
-    """The sphere filter's information form, in place: Y (4, 4) += h h^T, y (4,) += h |p|^2
-    for h = [2x, 2y, 2z, 1] of the scaled point (x, yy, z)."""
-    h = np.array([2.0 * x, 2.0 * yy, 2.0 * z, 1.0])
-    r2 = x * x + yy * yy + z * z
-    for i in range(4):
-        y[i] += h[i] * r2
-        for j in range(4):
-            Y[i, j] += h[i] * h[j]
+def add_sphere_rows(Y, y, X):
+    """The sphere filter's information form, in place: Y (4, 4) += sum h h^T, y (4,) +=
+    sum h |x|^2 over the scaled points X (N, 3), h = [2x, 2y, 2z, 1]."""
+    for n in range(X.shape[0]):
+        h = np.array([2.0 * X[n, 0], 2.0 * X[n, 1], 2.0 * X[n, 2], 1.0])
+        r2 = X[n, 0] ** 2 + X[n, 1] ** 2 + X[n, 2] ** 2
+        for i in range(4):
+            y[i] += h[i] * r2
+            for j in range(4):
+                Y[i, j] += h[i] * h[j]
 
 
 @njit(cache=True)
@@ -189,8 +224,8 @@ def fit_quadric(S, check_spread):
     if not ok:  # S22 is positive definite unless the data is flat
         return 3, v
     Li22 = _lower_inverse(L22)
-    X = Li22.T @ (Li22 @ np.ascontiguousarray(S12.T))  # S22^-1 S12^T, (4, 6)
-    Sp = np.ascontiguousarray(S[:6, :6]) - S12 @ X
+    X = _mm(Li22.T, _mm(Li22, S12.T))  # S22^-1 S12^T, (4, 6)
+    Sp = S[:6, :6] - _mm(S12, X)
     Sp = 0.5 * (Sp + Sp.T)
     L, ok = _cholesky(Sp)
     pivot2 = np.inf
@@ -200,7 +235,7 @@ def fit_quadric(S, check_spread):
         lam, Q = eigh_sym(Sp)
         if lam[0] <= EXACT_QUADRIC * lam[5]:  # a quadric through every point (noise-free data)
             v1 = np.ascontiguousarray(Q[:, 0])
-            c = v1 @ (C1 @ v1)
+            c = _dot(v1, _mv(C1, v1))
             if c > BOUNDARY:  # an ellipsoid: the exact answer
                 return _with_linear_part(v1 / np.sqrt(c), X)
             if c >= -BOUNDARY:  # on the k = 4 boundary 4J - I^2 = 0: v^T S v -> 0 only as v -> infinity
@@ -210,14 +245,14 @@ def fit_quadric(S, check_spread):
         if not ok:
             return 4, v
     Li = _lower_inverse(L)
-    K = Li @ C1 @ Li.T
-    start = L.T @ np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])  # the sphere direction (v1^T C1 v1 > 0)
+    K = _mm(_mm(Li, C1), Li.T)
+    start = _mv(L.T, np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]))  # the sphere direction (v1^T C1 v1 > 0)
     w, mu = _top_eigenvector(0.5 * (K + K.T), start)
     if not (mu > 0.0):
         return 4, v
-    v1 = Li.T @ w
-    c = v1 @ (C1 @ v1)
-    if not (c > BOUNDARY * (v1 @ v1)):
+    v1 = _mv(Li.T, w)
+    c = _dot(v1, _mv(C1, v1))
+    if not (c > BOUNDARY * _dot(v1, v1)):
         return 4, v
     return _with_linear_part(v1 / np.sqrt(c), X)
 
@@ -229,21 +264,22 @@ def _top_eigenvector(K, start):
     of the shifted matrix is >= 0 and the largest dominates; from `start` (not orthogonal
     to the answer), until the residual |K y - mu y| is at rounding level of mu. K's one positive
     eigenvalue is far above the rest for data near an ellipsoid, so a few tens of 6x6
-    products; eigh_sym if it has not converged in 500."""
+    products; eigh_sym (~5 us) when it has not converged in POWER_ITERATIONS (small early
+    patches, where the positive eigenvalue does not stand out)."""
     n = K.shape[0]
     g = np.inf
     for i in range(n):
         g = min(g, K[i, i] - (np.sum(np.abs(K[i])) - abs(K[i, i])))
     sigma = max(0.0, -g)
-    y = start / np.sqrt(start @ start)
-    for _ in range(500):
-        Ky = K @ y
-        mu = y @ Ky
+    y = start / np.sqrt(_dot(start, start))
+    for _ in range(POWER_ITERATIONS):
+        Ky = _mv(K, y)
+        mu = _dot(y, Ky)
         r = Ky - mu * y
-        if r @ r <= 1e-28 * mu * mu:  # residual |K y - mu y| <= 1e-14 |mu|: converged, whatever the ratio
+        if _dot(r, r) <= 1e-28 * mu * mu:  # residual |K y - mu y| <= 1e-14 |mu|: converged, whatever the ratio
             return y, mu
         y = Ky + sigma * y
-        y /= np.sqrt(y @ y)
+        y /= np.sqrt(_dot(y, y))
     mu, W = eigh_sym(K)
     return np.ascontiguousarray(W[:, n - 1]), mu[n - 1]
 
@@ -253,7 +289,7 @@ def _with_linear_part(v1, X):
     """(0, v (10,)): the quadratic part v1 (6,) with its optimal linear part v2 = -S22^-1 S12^T v1."""
     v = np.empty(10)
     v[:6] = v1
-    v[6:] = -(X @ v1)
+    v[6:] = -_mv(X, v1)
     return 0, v
 
 
@@ -273,8 +309,8 @@ def quadric_parameters(v, p0, scale):
     adj = np.array([[b * c - f * f, g * f - h * c, h * f - b * g],
                     [g * f - h * c, a * c - g * g, h * g - a * f],
                     [h * f - b * g, h * g - a * f, a * b - h * h]])  # A symmetric: A^-1 = adj / det
-    w = -(adj @ np.ascontiguousarray(v[6:9])) / detA
-    mu = w @ (A @ w) - v[9]
+    w = -_mv(adj, v[6:9]) / detA
+    mu = _dot(w, _mv(A, w)) - v[9]
     lam, E = eigh_sym(A / mu)
     if not (lam[0] > 0.0 and np.isfinite(lam[2])):
         return False, center, radii, R
@@ -284,6 +320,20 @@ def quadric_parameters(v, p0, scale):
     if det < 0.0:  # eigenvectors come with arbitrary signs: make the frame right-handed
         E[:, 2] = -E[:, 2]
     return True, p0 + scale * w, scale / np.sqrt(lam), E
+
+
+@njit(cache=True)
+def fit_ellipsoid_scatter(S, p0, scale, check_spread):
+    """(status code, v (10,), centre (3,), semi-axes (3,), rotation (3, 3)): fit_quadric
+    and quadric_parameters in one call (code 4 when the best quadric is no real ellipsoid)."""
+    code, v = fit_quadric(S, check_spread)
+    ok = code == 0
+    center, radii, R = np.zeros(3), np.zeros(3), np.eye(3)
+    if ok:
+        ok, center, radii, R = quadric_parameters(v, p0, scale)
+        if not ok:
+            code = 4
+    return code, v, center, radii, R
 
 
 # dQ/dx = 2(a x + h y + g z + p), dQ/dy = 2(h x + b y + f z + q), dQ/dz = 2(g x + f y + c z + r):
@@ -303,11 +353,11 @@ def taubin_residuals(S, V):
     out = np.empty(V.shape[0])
     for k in range(V.shape[0]):
         v = V[k]
-        q2 = v @ (S @ v)
+        q2 = _dot(v, _mv(S, v))
         g2 = 0.0
         for i in range(3):
             wi = np.array([v[GRAD_ROWS[i, 0]], v[GRAD_ROWS[i, 1]], v[GRAD_ROWS[i, 2]], v[GRAD_ROWS[i, 3]]])
-            g2 += wi @ (M @ wi)
+            g2 += _dot(wi, _mv(M, wi))
         g2 *= 4.0
         out[k] = np.sqrt(max(q2, 0.0) / g2) if g2 > 0.0 else np.inf
     return out
@@ -317,11 +367,12 @@ SCAN_BLOCK = 64  # points per bounding ball of models.scan_range
 
 
 @njit(cache=True)
-def diameter_after_adding(X, block_r, n, x, diameter):
-    """The diameter (mm) of the first n rows of X (cap, 3) and x (3,), given theirs
+def diameter_after_adding(X, block_r, n, p, p0, diameter):
+    """The diameter (mm) of the first n rows of X (cap, 3) and x = p - p0 (3,), given theirs
     (`diameter`); x is stored as row n and its block's radius updated, in place. Block k
     holds rows [k B, (k + 1) B) with B = SCAN_BLOCK, its ball centred on row k B with
     radius block_r[k]; a block with |x - centre| + radius <= diameter is skipped."""
+    x = p - p0
     best2 = diameter * diameter
     for k in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
         c0, c1, c2 = X[k * SCAN_BLOCK, 0], X[k * SCAN_BLOCK, 1], X[k * SCAN_BLOCK, 2]

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from models._kernels import FIT_STATUS, MIN_POINTS, add_design_row, fit_quadric, quadric_parameters, taubin_residuals
+from models._kernels import (FIT_STATUS, MIN_POINTS, add_design_row, fit_ellipsoid_scatter, quadric_parameters,
+                             taubin_residuals)
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
 
@@ -68,12 +69,9 @@ def fit_scatter(S: np.ndarray, p0: np.ndarray, scale: float = LENGTH_SCALE_MM, c
     """Fit an ellipsoid to the points summarised by scatter matrix S (see module doc).
     `check_spread=False` skips the collinear/coplanar test (for a caller that knows the
     cloud is already spread in 3-D); too few points are always refused."""
-    code, v = fit_quadric(S, check_spread)
+    code, v, center, radii, rotation = fit_ellipsoid_scatter(S, p0, scale, check_spread)
     if code:
         return EllipsoidFit(FIT_STATUS[code])
-    ok, center, radii, rotation = quadric_parameters(v, p0, scale)
-    if not ok:
-        return EllipsoidFit("not_ellipsoid")
     return EllipsoidFit("ok", center, radii, rotation, v=v)
 
 

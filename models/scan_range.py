@@ -37,6 +37,6 @@ class ScanRange:
             if self._n == len(self._X):
                 self._X = np.concatenate([self._X, np.empty_like(self._X)])
                 self._block_r = np.concatenate([self._block_r, np.zeros_like(self._block_r)])
-            self.diameter_mm = diameter_after_adding(self._X, self._block_r, self._n, p - self._p0, self.diameter_mm)
+            self.diameter_mm = diameter_after_adding(self._X, self._block_r, self._n, p, self._p0, self.diameter_mm)
             self._n += 1
         return self.diameter_mm

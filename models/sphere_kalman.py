@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from models._kernels import add_sphere_row, sphere_state
+from models._kernels import add_sphere_rows, sphere_state
 from models._validation import as_points
 from models.ellipsoid_fit import LENGTH_SCALE_MM
 from models.sphere import Sphere
@@ -45,16 +45,7 @@ class SphereKalmanFilter:
             return
         if self.p0 is None:
             self.p0 = P[0].copy()
-        if len(P) == 1:  # the per-A-scan path, in floats
-            (px, py, pz), (ox, oy, oz) = P[0].tolist(), self.p0.tolist()
-            L = LENGTH_SCALE_MM
-            x, y, z = (px - ox) / L, (py - oy) / L, (pz - oz) / L
-            add_sphere_row(self.information, self._info_vector, x, y, z)
-        else:
-            X = (P - self.p0) / LENGTH_SCALE_MM
-            H = np.column_stack([2.0 * X, np.ones(len(X))])
-            self.information += H.T @ H
-            self._info_vector += H.T @ np.einsum("ij,ij->i", X, X)
+        add_sphere_rows(self.information, self._info_vector, (P - self.p0) / LENGTH_SCALE_MM)
         self.n_points += len(P)
         self.state = None
         if self.n_points >= 4:

@@ -234,7 +234,8 @@ def test_incremental_fit_keeps_last_ok_when_a_refit_fails(monkeypatch):
     assert good.ok and inc.last_ok is good
     # A best quadric that is no ellipsoid is hard to provoke with real data once an
     # ellipsoid has been found, so the solver is made to report one.
-    monkeypatch.setattr(ellipsoid_fit, "fit_quadric", lambda S, check_spread: (4, np.zeros(10)))
+    monkeypatch.setattr(ellipsoid_fit, "fit_ellipsoid_scatter",
+                        lambda S, p0, scale, check: (4, np.zeros(10), np.zeros(3), np.zeros(3), np.eye(3)))
     inc.add(scan_patch(e, 3, 5))
     failed = inc.fit()
     assert failed.status == "not_ellipsoid" and not failed.ok and failed.ellipsoid is None
