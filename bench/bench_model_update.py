@@ -46,9 +46,14 @@ def _drake_signed_distance(Q_mm: np.ndarray):
 def run() -> None:
     eye = make_eye("emmetropic")
     points = paper_scan(eye, seed=0).points
+    _update_times(points[:500], None, 1)  # warm-up: loads the compiled kernels (models._kernels) once
     for name, criteria in (("paper criteria", None), ("predictive criteria", PredictiveCriteria())):
-        t = _update_times(points, criteria, 1)
-        print(f"  AdaptiveEyeModel.update, one A-scan per call, {name:19s}: {summary_us(t)}")
+        passes = np.array([_update_times(points, criteria, 1) for _ in range(3)])
+        for t in passes:
+            print(f"  AdaptiveEyeModel.update, one A-scan per call, {name:19s}: {summary_us(t)}")
+        # the same update in each pass does the same work: its fastest pass is that work
+        # without the machine's interruptions (a shared VM's p99 is ~2.7 x its median)
+        print(f"    the same, per update the fastest of the 3 passes (work alone):    {summary_us(passes.min(axis=0))}")
     t = _update_times(points, None, 10)
     print(f"  AdaptiveEyeModel.update, 10 A-scans per call (200 Hz), per A-scan:       {summary_us(t)}")
 
