@@ -13,15 +13,16 @@ one positive eigenvalue, so (Sylvester's law of inertia) the symmetric matrix
 K = L^-1 C1 L^-T, with S' = L L^T, has exactly one positive eigenvalue mu = 1 / lambda,
 and its eigenvector w gives the solution v1 = L^-T w: a symmetric eigenproblem, real by
 construction (a general eigensolver on C1^-1 S' may return near-equal negative
-eigenvalues as complex pairs). S' is singular when the points lie exactly on a quadric
-(noise-free data): its null vector is then the answer if it is an ellipsoid
-(v1^T C1 v1 > 0), no answer exists on the k = 4 boundary (= 0: a paraboloid, a
-cylinder, semi-axes (a, a, a/2)), and otherwise the minimiser is found as for noisy
-data, where a relative 1e-15 on the diagonal of S' keeps the Cholesky factor defined
-(results agree with a general eigensolver to 2e-13 mm on noise-free and noisy
-ellipsoids).
+eigenvalues as complex pairs), solved by shifted power iteration (the positive
+eigenvalue is the largest) with cyclic Jacobi as the fallback. S' is singular when the
+points lie exactly on a quadric (noise-free data): its null vector is then the answer
+if it is an ellipsoid (v1^T C1 v1 > 0), no answer exists on the k = 4 boundary (= 0: a
+paraboloid, a cylinder, semi-axes (a, a, a/2)), and otherwise the minimiser is found as
+for noisy data, where a relative 1e-15 on the diagonal of S' keeps the Cholesky factor
+defined. Results agree with SciPy's general eigensolver to 1e-7 mm on noisy patches
+(tests/models/test_ellipsoid_fit.py).
 
-Status codes of `fit_quadric`: see FIT_STATUS.
+Status codes of `fit_quadric` and `fit_ellipsoid_scatter`: see FIT_STATUS.
 """
 from __future__ import annotations
 
