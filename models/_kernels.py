@@ -79,21 +79,26 @@ def _dot(a, b):
 
 
 @njit(cache=True)
-def add_design_row(S, x, y, z):
-    """S (10, 10) += m m^T for the design row m of the scaled point (x, y, z), in place."""
-    m = np.array([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0])
-    for i in range(10):
-        for j in range(10):
-            S[i, j] += m[i] * m[j]
+def add_design_rows(S, P, p0, scale):
+    """S (10, 10) += sum m m^T over the design rows m of the points P (N, 3) mm, taken in
+    the scaled coordinates (p - p0) / scale; in place."""
+    for n in range(P.shape[0]):
+        x, y, z = (P[n, 0] - p0[0]) / scale, (P[n, 1] - p0[1]) / scale, (P[n, 2] - p0[2]) / scale
+        m = np.array([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0])
+        for i in range(10):
+            for j in range(10):
+                S[i, j] += m[i] * m[j]
 
 
 @njit(cache=True)
-def add_sphere_rows(Y, y, X):
+def add_sphere_rows(Y, y, P, p0, scale):
     """The sphere filter's information form, in place: Y (4, 4) += sum h h^T, y (4,) +=
-    sum h |x|^2 over the scaled points X (N, 3), h = [2x, 2y, 2z, 1]."""
-    for n in range(X.shape[0]):
-        h = np.array([2.0 * X[n, 0], 2.0 * X[n, 1], 2.0 * X[n, 2], 1.0])
-        r2 = X[n, 0] ** 2 + X[n, 1] ** 2 + X[n, 2] ** 2
+    sum h |x|^2 over the points P (N, 3) mm in scaled coordinates x = (p - p0) / scale,
+    h = [2x, 2y, 2z, 1]."""
+    for n in range(P.shape[0]):
+        x0, x1, x2 = (P[n, 0] - p0[0]) / scale, (P[n, 1] - p0[1]) / scale, (P[n, 2] - p0[2]) / scale
+        h = np.array([2.0 * x0, 2.0 * x1, 2.0 * x2, 1.0])
+        r2 = x0 * x0 + x1 * x1 + x2 * x2
         for i in range(4):
             y[i] += h[i] * r2
             for j in range(4):

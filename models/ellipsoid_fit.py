@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models._kernels import (FIT_STATUS, MIN_POINTS, add_design_row, fit_ellipsoid_scatter, quadric_parameters,
+from models._kernels import (FIT_STATUS, MIN_POINTS, add_design_rows, fit_ellipsoid_scatter, quadric_parameters,
                              taubin_residuals)
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
@@ -112,24 +112,13 @@ class IncrementalEllipsoidFit:
     def n_points(self) -> int:
         return self._n
 
-    def scaled(self, P: np.ndarray) -> np.ndarray:
-        """Points (N, 3) mm in the fit's centred, scaled coordinates."""
-        return (P - self.p0) / LENGTH_SCALE_MM
-
     def add(self, P: np.ndarray) -> None:
         """Accumulate finite points P (N, 3) mm (the caller filters non-finite ones)."""
         if len(P) == 0:
             return
         if self.p0 is None:
             self.p0 = np.array(P[0], dtype=float)
-        if len(P) == 1:  # the per-A-scan path: one compiled rank-1 update
-            (px, py, pz), (ox, oy, oz) = P[0].tolist(), self.p0.tolist()
-            L = LENGTH_SCALE_MM
-            add_design_row(self.S, (px - ox) / L, (py - oy) / L, (pz - oz) / L)
-            self._n += 1
-            return
-        M = design_rows(self.scaled(P))
-        self.S += M.T @ M
+        add_design_rows(self.S, P, self.p0, LENGTH_SCALE_MM)
         self._n += len(P)
 
     def fit(self) -> EllipsoidFit:

@@ -45,7 +45,7 @@ class SphereKalmanFilter:
             return
         if self.p0 is None:
             self.p0 = P[0].copy()
-        add_sphere_rows(self.information, self._info_vector, (P - self.p0) / LENGTH_SCALE_MM)
+        add_sphere_rows(self.information, self._info_vector, P, self.p0, LENGTH_SCALE_MM)
         self.n_points += len(P)
         self.state = None
         if self.n_points >= 4:
