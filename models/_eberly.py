@@ -11,8 +11,10 @@ leave the plane (the query sits between the foci: the t = -e_m^2 branch).
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 _MAX_STEPS = 200  # safeguarded Newton: quadratic near the root, never slower than bisection
+_EPS = float(np.finfo(float).eps)
 
 
 def _shifted_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
@@ -26,50 +28,74 @@ def _shifted_root(E2: np.ndarray, Y: np.ndarray, em2: np.ndarray) -> np.ndarray:
     root and is almost linear (exactly so when one term dominates), inside the bracket
     [lo, hi] kept by the sign of F; a step that would leave the bracket is replaced by
     plain Newton on F (which stays inside from the left of the root, F being convex),
-    else by bisection in log u (lo > 0). Rows stop when the bracket or the step reaches rounding level.
+    else by bisection in log u (lo > 0). A row stops when the bracket or the step
+    reaches rounding level. Compiled (numba): a row's iteration is a few scalar steps,
+    for which NumPy's per-call overhead was most of a control step's distance query.
     """
-    ey = np.sqrt(E2) * Y
-    em = np.sqrt(em2)
-    D = E2[None, :] - em2[:, None]  # den_i = u + D_i, exactly u for the smallest axis
-    y_m = np.max(np.where(D == 0.0, Y, 0.0), axis=1)
-    lo = em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
-    hi = ey.sum(axis=1)  # F(hi) <= 0 (>= |ey|, and no squares to underflow for tiny queries)
-    # start: the root for a sphere of the mean radius (exact when the radii are equal),
-    # kept inside the bracket; from either side of the root the next step lands left of it
-    e_bar2 = np.mean(E2)
-    u = np.clip(np.sqrt(e_bar2) * np.linalg.norm(Y, axis=1) - e_bar2 + em2, lo, hi)
-    zero = ey == 0.0  # inactive terms (their denominator may vanish)
-    rel_tol = 4.0 * np.finfo(float).eps
-    with np.errstate(divide="ignore", invalid="ignore"):
+    return _shifted_root_rows(np.ascontiguousarray(E2, dtype=float), np.ascontiguousarray(Y, dtype=float),
+                              np.ascontiguousarray(em2, dtype=float))
+
+
+@njit(cache=True)
+def _shifted_root_rows(E2, Y, em2):
+    M = Y.shape[0]
+    out = np.empty(M)
+    e = np.sqrt(E2)
+    e_bar2 = (E2[0] + E2[1] + E2[2]) / 3.0
+    rel_tol = 4.0 * _EPS
+    ey = np.empty(3)
+    D = np.empty(3)
+    for m in range(M):
+        em = np.sqrt(em2[m])
+        y_m = 0.0
+        hi = 0.0
+        norm2 = 0.0
+        for i in range(3):
+            ey[i] = e[i] * Y[m, i]
+            D[i] = E2[i] - em2[m]  # den_i = u + D_i, exactly u for the smallest axis
+            if D[i] == 0.0 and Y[m, i] > y_m:
+                y_m = Y[m, i]
+            hi += ey[i]  # F(hi) <= 0 (>= |ey|, and no squares to underflow for tiny queries)
+            norm2 += Y[m, i] * Y[m, i]
+        lo = em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
+        # start: the root for a sphere of the mean radius (exact when the radii are equal),
+        # kept inside the bracket; from either side of the root the next step lands left of it
+        u = min(max(np.sqrt(e_bar2) * np.sqrt(norm2) - e_bar2 + em2[m], lo), hi)
         for _ in range(_MAX_STEPS):
-            den = u[:, None] + D
-            ratio = ey / den
-            ratio[zero] = 0.0
-            r2 = ratio * ratio
-            S = r2.sum(axis=1)  # F + 1
+            S = 0.0
+            dS = 0.0
+            for i in range(3):
+                if ey[i] != 0.0:  # inactive terms (their denominator may vanish)
+                    den = u + D[i]
+                    r = ey[i] / den
+                    S += r * r
+                    dS -= 2.0 * r * r / den
             F = S - 1.0
-            dS = -2.0 * (r2 / np.where(zero, 1.0, den)).sum(axis=1)  # < 0
-            pos = F > 0.0
-            lo = np.where(pos, u, lo)
-            hi = np.where(pos, hi, u)
+            if F > 0.0:
+                lo = u
+            else:
+                hi = u
             # Newton on phi = S^(-1/2) - 1 (same root): nearly linear in u, since one term
             # dominates S near the pole, where Newton on F itself crawls
             root = np.sqrt(S)
             step = u + 2.0 * (1.0 / root - 1.0) * S * root / dS
             step_F = u - F / dS  # plain Newton on the convex F: inside the bracket from its left
-            inside = lambda x: (x > lo) & (x < hi)  # noqa: E731
-            # geometric bisection: the root may sit many decades below hi (u ~ y_m for a
-            # query a hair off the plane of the smallest axis)
-            mid = np.sqrt(lo) * np.sqrt(hi)
-            new = np.where(inside(step), step, np.where(inside(step_F), step_F, mid))
-            at_root = np.abs(F) <= 8.0 * np.finfo(float).eps * S  # F at rounding level: u is the root
-            new = np.where(at_root, u, new)
+            if lo < step < hi:
+                new = step
+            elif lo < step_F < hi:
+                new = step_F
+            else:  # geometric bisection: the root may sit many decades below hi
+                new = np.sqrt(lo) * np.sqrt(hi)
+            at_root = abs(F) <= 8.0 * _EPS * S  # F at rounding level: u is the root
+            if at_root:
+                new = u
             tol = rel_tol * new  # relative to the shift itself: no absolute floor to cancel against
-            converged = at_root | (np.abs(new - u) <= tol) | (hi - lo <= tol)
+            converged = at_root or abs(new - u) <= tol or hi - lo <= tol
             u = new
-            if converged.all():
+            if converged:
                 break
-    return u
+        out[m] = u
+    return out
 
 
 def closest_point_first_octant(e: np.ndarray, Y: np.ndarray) -> np.ndarray:
