@@ -156,8 +156,8 @@ class SafetyFilter:
         # cannot be active); tip and port are always evaluated (clearance, cutter interlock)
         reach = cfg.max_tip_speed_mm_s / cfg.gain_per_s
         extra = max((p.margin_mm for p in x.boundary_points), default=0.0)
-        pts = [p for k, p in enumerate(x.boundary_points)
-               if p.name in ("tip", "port") or k in _maybe_near(x.model, x.boundary_points, d_safe + extra + reach, 1.0)]
+        near = _maybe_near(x.model, x.boundary_points, d_safe + extra + reach, 1.0)
+        pts = [p for k, p in enumerate(x.boundary_points) if p.name in ("tip", "port") or k in near]
         h, grad = _distance_and_gradient(x.model, np.array([p.p_W for p in pts]))
         untrusted = [k for k, p in enumerate(pts) if not p.trusted]
         if untrusted and x.fallback is not None:  # the tighter of the model and the fallback
