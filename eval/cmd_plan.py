@@ -31,10 +31,11 @@ def register(sub) -> None:
     p.add_argument("--tip-speed-mm-s", type=float, default=5.0, help="shaving tip speed, mm/s")
     p.add_argument("--seed", type=int, default=0, help="sensor noise seed of the model-building scan")
     p.add_argument("--no-execute", action="store_true", help="plan only (no closed-loop execution)")
-    p.add_argument("--trust-angle-deg", type=float, default=10.0,
-                   help="the filter trusts the model this far (deg, from the eye centre) from measured directions; "
-                        "beyond, the conservative prior also bounds the tip (default 10: the band is unmeasured "
-                        "after the spiral, so the filter holds the tip back; 180 trusts the extrapolation)")
+    p.add_argument("--trust-angle-deg", type=float, default=180.0,
+                   help="during the shaving the filter trusts the model this far (deg, from the eye centre) from "
+                        "measured directions; beyond, the conservative prior also bounds the tip. Default 180: the "
+                        "band is never measured (the fibre looks along the shaft), so shaving it rests on the global "
+                        "model's extrapolation, as planning does; 10, the teleoperation default, holds the tip back")
     p.set_defaults(func=main)
 
 

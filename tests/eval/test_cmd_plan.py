@@ -37,6 +37,6 @@ def test_an_ellipsoid_that_is_no_eye_gives_way_to_the_sphere_and_its_wider_bound
     mm: the filter bounds the motion with the sphere fit instead, whose phase margin
     (1 mm) puts the boundary at 1.5 mm, so a 1 mm standoff is refused before any motion."""
     out = tmp_path / "never"
-    assert main(["plan", "--shape", "pointed", "--out", str(out), "--trust-angle-deg", "180"]) == 2
+    assert main(["plan", "--shape", "pointed", "--out", str(out)]) == 2
     assert "below the boundary the filter keeps from this sphere model (1.50 mm" in capsys.readouterr().err
     assert not out.exists()
