@@ -3,6 +3,8 @@ where a control step's time goes (monitored-point kinematics, filter, sensor pac
 model update), with Drake's DoDifferentialInverseKinematics on the same states."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from bench.timing import summary_us, time_calls_us
@@ -12,7 +14,52 @@ from planning import SurgeryScenario
 from planning.instrument_points import instrument_points
 
 
+def _empty_diagram_realtime_factor(duration_s: float = 2.0) -> float:
+    """Realtime factor of the loop's diagram shape with empty callbacks (command and filter
+    at 1 kHz, a DiscreteTimeIntegrator, a 200 Hz abstract-state system feeding the filter):
+    what Drake's simulator costs before any of our per-step work."""
+    from pydrake.common.value import AbstractValue
+    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.framework import DiagramBuilder, LeafSystem
+    from pydrake.systems.primitives import DiscreteTimeIntegrator
+
+    def periodic(period_s: float, inputs: list, state: int | None):
+        sys = LeafSystem()
+        ports = [sys.DeclareAbstractInputPort(n, AbstractValue.Make(0)) if size is None else sys.DeclareVectorInputPort(n, size)
+                 for n, size in inputs]
+        def read_inputs(context, _state) -> None:  # the work every callback does at least
+            for port in ports:
+                port.Eval(context)
+
+        if state is None:
+            st = sys.DeclareAbstractState(AbstractValue.Make(0))
+            sys.DeclarePeriodicUnrestrictedUpdateEvent(period_s, 0.0, read_inputs)
+        else:
+            st = sys.DeclareDiscreteState(state)
+            sys.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, read_inputs)
+        sys.DeclareStateOutputPort("out", st)
+        return sys
+
+    b = DiagramBuilder()
+    cmd = b.AddSystem(periodic(1e-3, [("q", 6)], 4))
+    filt = b.AddSystem(periodic(1e-3, [("q", 6), ("c", 4), ("snap", None)], 6))
+    integ = b.AddSystem(DiscreteTimeIntegrator(6, 1e-3))
+    model = b.AddSystem(periodic(5e-3, [("q", 6)], None))
+    b.Connect(cmd.get_output_port(), filt.get_input_port(1))
+    b.Connect(filt.get_output_port(), integ.get_input_port())
+    for sink, port in ((filt, 0), (cmd, 0), (model, 0)):
+        b.Connect(integ.get_output_port(), sink.get_input_port(port))
+    b.Connect(model.get_output_port(), filt.get_input_port(2))
+    sim = Simulator(b.Build())
+    sim.Initialize()
+    t0 = time.perf_counter()
+    sim.AdvanceTo(duration_s)
+    return duration_s / (time.perf_counter() - t0)
+
+
 def run() -> None:
+    print(f"the loop's diagram with empty callbacks: realtime factor {_empty_diagram_realtime_factor():.0f} "
+          "(Drake's own cost per step; the rest is ours)")
     scenario = SurgeryScenario()
     loop = ClosedLoop(scenario)
     build = build_model_by_spiral(loop, 17.0, pitch_mm=3.0, revolutions=3.0)
