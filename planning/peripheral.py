@@ -9,7 +9,8 @@ rings `spacing_mm` apart (the cutter's sweep width); each cell's shaving target 
   surface leaves the port normal within `port_max_deg` of the surface normal ("port"),
 - the arm reaches it through the trocar with every joint `min_margin_deg` from its
   limits (closed-form shaft IK, any branch; "reach");
-- at that posture the shaft points the filter watches keep `boundary_mm` +
+- at that posture, and all along the timed path's way to it (checked every
+  SHAFT_CHECK_DT_S), the shaft points the filter watches keep `boundary_mm` +
   SHAFT_SLACK_MM from the model ("shaft"), else the filter would hold the instrument
   back there (the shaft enters near the wall, and a model with a wide margin puts the
   boundary across it); the tip and port are placed by the standoff.
