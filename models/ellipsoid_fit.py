@@ -84,8 +84,9 @@ def fit_ellipsoid(P) -> Ellipsoid:
     """
     P = as_points(P, "P")
     p0 = P.mean(axis=0) if len(P) else np.zeros(3)
-    Mrows = design_rows((P - p0) / LENGTH_SCALE_MM)
-    fit = fit_scatter(Mrows.T @ Mrows, p0)
+    S = np.zeros((10, 10))
+    add_design_rows(S, P, p0, LENGTH_SCALE_MM)  # the scatter matrix as the incremental fit builds it
+    fit = fit_scatter(S, p0)
     if not fit.ok:
         raise ValueError(f"fit_ellipsoid: cannot fit an ellipsoid to {len(P)} points: {fit.status}")
     return fit.ellipsoid
