@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models._kernels import (FIT_STATUS, MIN_POINTS, add_design_rows, fit_ellipsoid_scatter, quadric_parameters,
-                             taubin_residuals)
+from models._kernels import FIT_STATUS, add_design_rows, fit_ellipsoid_scatter, taubin_residuals
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
 

@@ -158,7 +158,7 @@ def _general_eigensolver_fit(P: np.ndarray) -> Ellipsoid:
     smallest lambda whose real eigenvector satisfies the constraint v1^T C1 v1 > 0."""
     import scipy.linalg
 
-    from models._kernels import C1
+    from models._kernels import C1, quadric_parameters
 
     p0 = P.mean(axis=0)
     M = ellipsoid_fit.design_rows((P - p0) / ellipsoid_fit.LENGTH_SCALE_MM)
@@ -169,7 +169,7 @@ def _general_eigensolver_fit(P: np.ndarray) -> Ellipsoid:
     ok = np.isfinite(w) & (np.abs(w.imag) <= 1e-9 * np.abs(w)) & (c > 0)
     j = np.flatnonzero(ok)[np.argmin(w.real[ok])]
     v1 = V.real[:, j] / np.sqrt(c[j])
-    _, center, radii, R = ellipsoid_fit.quadric_parameters(np.concatenate([v1, -(X @ v1)]), p0, ellipsoid_fit.LENGTH_SCALE_MM)
+    _, center, radii, R = quadric_parameters(np.concatenate([v1, -(X @ v1)]), p0, ellipsoid_fit.LENGTH_SCALE_MM)
     return Ellipsoid(center, radii, R)
 
 
