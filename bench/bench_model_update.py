@@ -65,7 +65,7 @@ def run() -> None:
     e = Ellipsoid(np.zeros(3), RADII)
     Q = np.random.default_rng(1).normal(0, 6, (250_000, 3))
     t0 = time.perf_counter()
-    d_ours = e.signed_distance(Q)
+    e.signed_distance(Q)
     dt = time.perf_counter() - t0
     print(f"  Ellipsoid.signed_distance (exact, Eberly): {len(Q) / dt / 1e6:.2f} M points/s")
     pointed = make_eye("pointed")

@@ -1,7 +1,6 @@
 """`vitreoguard paper`: reproduce (and beat) the paper's simulation results, Table 2 and Fig. 5."""
 from __future__ import annotations
 
-import argparse
 import os
 from concurrent.futures import ProcessPoolExecutor
 
@@ -102,7 +101,7 @@ def _pct(x) -> str:
 def table_markdown(results: dict, args) -> str:
     """Table 2 as Markdown, ours (exact and sampled forms) beside the paper's."""
     lines = [
-        f"# Table 2 (simulation): ours vs the paper\n",
+        "# Table 2 (simulation): ours vs the paper\n",
         f"Noise {args.noise_um:g} um, {args.seeds} seed(s), every {args.stride}. A-scan, eye pose {args.pose}, "
         f"{args.grid} x {args.grid} sampling. mm, mean (SD). *exact*: each distance computed exactly; "
         f"*sampled*: the paper's nearest-sample distances between {args.grid} x {args.grid} clouds (adds discretisation error).\n",
@@ -112,8 +111,8 @@ def table_markdown(results: dict, args) -> str:
     for shape, r in results.items():
         p = r["paper"]
         lines.append(f"| {shape} | ours, exact | " + " | ".join(_fmt(r[k]) for k in METRIC_KEYS) + " |")
-        lines.append(f"| | ours, sampled | " + " | ".join(_fmt(r[k + "_sampled"]) for k in METRIC_KEYS) + " |")
-        lines.append(f"| | paper | " + " | ".join(_fmt(p[k]) for k in METRIC_KEYS) + " |")
+        lines.append("| | ours, sampled | " + " | ".join(_fmt(r[k + "_sampled"]) for k in METRIC_KEYS) + " |")
+        lines.append("| | paper | " + " | ".join(_fmt(p[k]) for k in METRIC_KEYS) + " |")
     lines += [
         "\n## Transition sphere -> ellipsoid (fractions of the spiral)\n",
         f"Driving criterion: **{args.criterion}**. Lag = transition - optimal transition (paper: "

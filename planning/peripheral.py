@@ -120,11 +120,11 @@ def band_surface(model, eye_pose, spec: BandSpec) -> tuple[np.ndarray, np.ndarra
         P = c + d[:, None] * U
         return P.reshape(A.shape + (3,)), eye_pose.to_E(P)[:, 2].reshape(A.shape)
     e0, e1 = np.arcsin(np.clip(Z / equator, -1, 1)), np.arcsin(np.clip(Z / equator, -1, 1)) + 0.01
-    P0, z0 = hit(e0)
+    _, z0 = hit(e0)
     P1, z1 = hit(e1)
     for _ in range(6):  # secant on the elevation: z_E(hit) = ring z
         e2 = e1 - (z1 - Z) * (e1 - e0) / np.where(np.abs(z1 - z0) > 1e-12, z1 - z0, 1e-12)
-        e0, z0, P0 = e1, z1, P1
+        e0, z0 = e1, z1
         e1 = e2
         P1, z1 = hit(e1)
     return az, z, P1, _model_normal(model, P1.reshape(-1, 3)).reshape(P1.shape)
