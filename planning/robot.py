@@ -7,8 +7,9 @@ tip, S nominal sensor (z along the beam), P cutter port; with a scenario also E 
 (planning/data/eye.sdf welded at X_WE), C trocar (on the eye) and S_true, the true
 sensor (S with the scenario's calibration error).
 
-Per-step queries reuse one plant Context and skip the kinematics update when q repeats,
-so the 1 kHz loop pays only for what changed.
+Poses and Jacobians come from the plant's chain compiled once (planning.chain: a
+product of exponentials read off the plant, held to it by tests): the 1 kHz loop asks
+for several per step, and Drake's Python bindings cost 10-50 us a query.
 """
 from __future__ import annotations
 
@@ -19,13 +20,14 @@ from pydrake.geometry import Sphere
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
-from pydrake.multibody.tree import FixedOffsetFrame, JacobianWrtVariable
+from pydrake.multibody.tree import FixedOffsetFrame
 from pydrake.systems.framework import DiagramBuilder
+
+from planning.chain import MM_PER_M, Chain
 
 URDF = files("planning") / "data" / "meca500.urdf"
 EYE_SDF = files("planning") / "data" / "eye.sdf"
 FRAMES = {"F": "flange", "I": "instrument", "T": "tip", "S": "sensor", "P": "port"}
-MM_PER_M = 1000.0
 TROCAR_VISUAL_RADIUS_MM = 0.4
 # RCM drift-correction gain: k dt = 0.2 at 1 kHz (stable, no overshoot); holds the RCM
 # error of the spiral scan within 3 um at 5 mm/s (50/s: 11 um).
@@ -52,12 +54,11 @@ class Robot:
             self._add_scenario(scenario)
             frames.update({"E": "eye", "C": "trocar", "S_true": "sensor_true"})
         self.plant.Finalize()
-        self._context = self.plant.CreateDefaultContext()
         self._frames = {k: self.plant.GetFrameByName(v) for k, v in frames.items()}
+        self.chain = Chain(self.plant, self._frames)
         self.q_lower = self.plant.GetPositionLowerLimits().copy()
         self.q_upper = self.plant.GetPositionUpperLimits().copy()
         self.qdot_max = self.plant.GetVelocityUpperLimits().copy()
-        self._q = np.full(6, np.nan)
         R_WF, p_WF = self.pose("F", np.zeros(6))
         self.tip_offset_mm = float(np.linalg.norm(self.pose("T", np.zeros(6))[1] - p_WF))  # along the flange x axis
 
@@ -88,22 +89,19 @@ class Robot:
     def nq(self) -> int:
         return 6
 
-    def _set(self, q) -> None:
+    @staticmethod
+    def _checked(q) -> np.ndarray:
         q = np.asarray(q, dtype=float)
         if q.shape != (6,):
             raise ValueError(f"q must have shape (6,) in rad, got {q.shape}")
         if not np.all(np.isfinite(q)):
             raise ValueError(f"q must be finite (rad), got {q}")
-        if not np.array_equal(q, self._q):
-            self.plant.SetPositions(self._context, q)
-            self._q = q.copy()
+        return q
 
     def pose(self, frame: str, q) -> tuple[np.ndarray, np.ndarray]:
         """(R_W<frame> (3, 3), p_W<frame> (3,) mm) of frame F, I, T, S, P (and E, C,
         S_true with a scenario) at q."""
-        self._set(q)
-        X = self._frames[frame].CalcPoseInWorld(self._context)
-        return X.rotation().matrix(), MM_PER_M * X.translation()
+        return self.chain.pose(frame, self._checked(q))
 
     def point(self, frame: str, p_frame_mm, q) -> np.ndarray:
         """Position (3,) mm in W of a point fixed in `frame` at p_frame_mm (3,) mm."""
@@ -112,23 +110,15 @@ class Robot:
 
     def jacobian(self, frame: str, p_frame_mm, q) -> np.ndarray:
         """(3, 6) translational Jacobian, mm/rad, of the point p_frame_mm fixed in `frame`, in W."""
-        self._set(q)
-        J = self.plant.CalcJacobianTranslationalVelocity(
-            self._context, JacobianWrtVariable.kQDot, self._frames[frame],
-            np.asarray(p_frame_mm, dtype=float) / MM_PER_M, self.plant.world_frame(), self.plant.world_frame(),
-        )
-        return MM_PER_M * J
+        R, _, J = self.chain.pose_and_jacobian(frame, self._checked(q))
+        r = R @ np.asarray(p_frame_mm, dtype=float)
+        return J[3:] - np.cross(r, J[:3], axisa=0, axisb=0, axisc=0)
 
     def spatial_jacobian(self, frame: str, q) -> np.ndarray:
         """(6, 6) spatial Jacobian of `frame`'s origin in W at q: rows 0-2 angular (rad/rad),
         rows 3-5 translational (mm/rad). A point r_W (mm, from the origin) fixed in the frame
         moves with J_v - [r_W]x J_w: one call gives every point of a rigid body."""
-        self._set(q)
-        J = self.plant.CalcJacobianSpatialVelocity(
-            self._context, JacobianWrtVariable.kQDot, self._frames[frame], np.zeros(3),
-            self.plant.world_frame(), self.plant.world_frame())
-        J[3:] *= MM_PER_M
-        return J
+        return self.chain.pose_and_jacobian(frame, self._checked(q))[2]
 
     def shaft(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(p_WI (3,) mm: a point on the shaft axis, u_W (3,): unit direction towards the tip)."""

@@ -1,0 +1,157 @@
+"""Compiled forward kinematics of the arm, read off its Drake MultibodyPlant.
+
+The 1 kHz loop asks for a few frame poses and Jacobians per step. Drake answers each
+in 10-50 us from Python (SetPositions, CalcPoseInWorld, the Jacobian calls and their
+argument conversions); the arithmetic is well under a microsecond. So the chain is
+taken from the plant once, as a product of exponentials (Lynch & Park, Modern
+Robotics, ch. 4): the joints' screw axes in W at q = 0 (the columns of the plant's
+spatial Jacobian there) and each frame's home pose, and evaluated by one compiled call.
+
+    X_WB(q) = exp([S_1] q_1) ... exp([S_6] q_6) X_WB(0)
+    J_s(q)  = [Ad_{e_1..e_{i-1}} S_i]_i   (space Jacobian: twists about W's origin)
+
+Tests hold it to the plant's own answers. Units: mm, rad; twists (omega rad/rad,
+v mm/rad); frame W.
+"""
+from __future__ import annotations
+
+import numba
+import numpy as np
+from pydrake.multibody.tree import JacobianWrtVariable
+
+MM_PER_M = 1000.0
+
+
+@numba.njit(cache=True)
+def chain_kinematics(S, q):
+    """(R (3, 3), p (3,) mm, J_s (6, n)) of the chain at q: the product of the
+    exponentials (applied to a home pose X_WB(0) it gives X_WB(q)) and the space
+    Jacobian, rows 0-2 angular, 3-5 the velocity of the point at W's origin. Written
+    out in scalars: for 3-vectors a BLAS call costs more than its work."""
+    n = S.shape[1]
+    R = np.eye(3)
+    p = np.zeros(3)
+    J = np.empty((6, n))
+    Ri = np.empty((3, 3))
+    G = np.empty((3, 3))
+    Rn = np.empty((3, 3))
+    for i in range(n):
+        wx, wy, wz = S[0, i], S[1, i], S[2, i]
+        for r in range(3):  # the twist moved by the product so far: (R w, R v + p x R w)
+            J[r, i] = R[r, 0] * wx + R[r, 1] * wy + R[r, 2] * wz
+            J[3 + r, i] = R[r, 0] * S[3, i] + R[r, 1] * S[4, i] + R[r, 2] * S[5, i]
+        J[3, i] += p[1] * J[2, i] - p[2] * J[1, i]
+        J[4, i] += p[2] * J[0, i] - p[0] * J[2, i]
+        J[5, i] += p[0] * J[1, i] - p[1] * J[0, i]
+        th = q[i]
+        c, s = np.cos(th), np.sin(th)
+        W = ((0.0, -wz, wy), (wz, 0.0, -wx), (-wy, wx, 0.0))
+        for r in range(3):  # Rodrigues: R_i = I + s W + (1 - c) W^2; G = th I + (1 - c) W + (th - s) W^2
+            for k in range(3):
+                w2 = W[r][0] * W[0][k] + W[r][1] * W[1][k] + W[r][2] * W[2][k]
+                e = 1.0 if r == k else 0.0
+                Ri[r, k] = e + s * W[r][k] + (1.0 - c) * w2
+                G[r, k] = th * e + (1.0 - c) * W[r][k] + (th - s) * w2
+        # the exponential's translation t = G v; then p += R t and R = R R_i
+        tx = G[0, 0] * S[3, i] + G[0, 1] * S[4, i] + G[0, 2] * S[5, i]
+        ty = G[1, 0] * S[3, i] + G[1, 1] * S[4, i] + G[1, 2] * S[5, i]
+        tz = G[2, 0] * S[3, i] + G[2, 1] * S[4, i] + G[2, 2] * S[5, i]
+        for r in range(3):
+            p[r] += R[r, 0] * tx + R[r, 1] * ty + R[r, 2] * tz
+            for k in range(3):
+                Rn[r, k] = R[r, 0] * Ri[0, k] + R[r, 1] * Ri[1, k] + R[r, 2] * Ri[2, k]
+        R[:, :] = Rn
+    return R, p, J
+
+
+@numba.njit(cache=True)
+def _apply(R, p, R_home, p_home):
+    """(R R_home, R p_home + p)."""
+    R_WF = np.empty((3, 3))
+    p_WF = p.copy()
+    for r in range(3):
+        for k in range(3):
+            R_WF[r, k] = R[r, 0] * R_home[0, k] + R[r, 1] * R_home[1, k] + R[r, 2] * R_home[2, k]
+        p_WF[r] += R[r, 0] * p_home[0] + R[r, 1] * p_home[1] + R[r, 2] * p_home[2]
+    return R_WF, p_WF
+
+
+@numba.njit(cache=True)
+def frame_pose(S, q, R_home, p_home):
+    """(R_WF (3, 3), p_WF (3,) mm) of a frame with home pose (R_home, p_home) at q = 0."""
+    R, p, _ = chain_kinematics(S, q)
+    return _apply(R, p, R_home, p_home)
+
+
+@numba.njit(cache=True)
+def frame_pose_and_jacobian(S, q, R_home, p_home):
+    """(R_WF, p_WF mm, J (6, n)): the frame's pose and the spatial Jacobian of its origin
+    (rows 0-2 angular rad/rad, 3-5 translational mm/rad), in W."""
+    R, p, J = chain_kinematics(S, q)
+    R_WF, p_WF = _apply(R, p, R_home, p_home)
+    for i in range(J.shape[1]):  # shift the twists from W's origin to the frame's: v += w x p_WF
+        J[3, i] += J[1, i] * p_WF[2] - J[2, i] * p_WF[1]
+        J[4, i] += J[2, i] * p_WF[0] - J[0, i] * p_WF[2]
+        J[5, i] += J[0, i] * p_WF[1] - J[1, i] * p_WF[0]
+    return R_WF, p_WF, J
+
+
+class Chain:
+    """The plant's serial chain of revolute joints with the home poses of `frames`.
+
+    `S` (6, n): screw axes in W at q = 0 (angular; linear at W's origin, mm/rad);
+    `homes`: {name: (R (3, 3), p (3,) mm)} at q = 0; `fixed`: the names of frames
+    welded to the world (their pose never changes)."""
+
+    def __init__(self, plant, frames: dict):
+        context = plant.CreateDefaultContext()
+        n = plant.num_positions()
+        joints = [j for j in plant.GetJointIndices() if plant.get_joint(j).num_positions() > 0]
+        by_all = set.intersection(*(set(plant.GetBodiesKinematicallyAffectedBy([j])) for j in joints))
+        by_any = set(plant.GetBodiesKinematicallyAffectedBy(joints))
+        self.homes, self.fixed = {}, set()
+        for name, frame in frames.items():
+            X = frame.CalcPoseInWorld(context)
+            self.homes[name] = (np.ascontiguousarray(X.rotation().matrix()), MM_PER_M * X.translation())
+            body = frame.body().index()
+            if body not in by_any:
+                self.fixed.add(name)
+            elif body not in by_all:
+                raise ValueError(f"Chain: frame {name!r} moves with some joints only; its body must follow all of them")
+        moving = [f for name, f in frames.items() if name not in self.fixed]
+        if not moving:
+            raise ValueError("Chain needs at least one frame that moves with the joints")
+        J = plant.CalcJacobianSpatialVelocity(context, JacobianWrtVariable.kQDot, moving[0], np.zeros(3),
+                                              plant.world_frame(), plant.world_frame())
+        p_W = moving[0].CalcPoseInWorld(context).translation()
+        S = np.array(J, dtype=float)
+        for i in range(n):  # the twist about W's origin: v_0 = v_F - w x p_WF
+            S[3:, i] = MM_PER_M * (S[3:, i] - np.cross(S[:3, i], p_W))
+        norms = np.linalg.norm(S[:3], axis=0)
+        if not np.allclose(norms, 1.0, atol=1e-12):
+            raise ValueError(f"Chain needs a revolute joint per position; axis norms {norms}")
+        self.S = np.ascontiguousarray(S)
+        self.n = n
+        # the product runs base to tip in the order of q: hold it to the plant at one posture
+        q = np.linspace(-0.7, 0.9, n)
+        plant.SetPositions(context, q)
+        name = next(k for k in frames if k not in self.fixed)
+        X = frames[name].CalcPoseInWorld(context)
+        R, p = self.pose(name, q)
+        if not (np.allclose(R, X.rotation().matrix(), atol=1e-12) and np.allclose(p, MM_PER_M * X.translation(), atol=1e-9)):
+            raise ValueError("Chain: the plant's joints are not a serial chain in the order of q")
+
+    def pose(self, name: str, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R_W<name> (3, 3), p_W<name> (3,) mm) at q (n,) rad (finite, checked by the caller)."""
+        R_h, p_h = self.homes[name]
+        if name in self.fixed:
+            return R_h.copy(), p_h.copy()
+        return frame_pose(self.S, q, R_h, p_h)
+
+    def pose_and_jacobian(self, name: str, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(R, p mm, spatial Jacobian (6, n) of the frame's origin: angular rad/rad, then
+        translational mm/rad) in W at q."""
+        R_h, p_h = self.homes[name]
+        if name in self.fixed:
+            return R_h.copy(), p_h.copy(), np.zeros((6, self.n))
+        return frame_pose_and_jacobian(self.S, q, R_h, p_h)
