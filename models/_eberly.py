@@ -41,61 +41,119 @@ def _shifted_root_rows(E2, Y, em2):
     M = Y.shape[0]
     out = np.empty(M)
     e = np.sqrt(E2)
-    e_bar2 = (E2[0] + E2[1] + E2[2]) / 3.0
+    for m in range(M):
+        out[m] = _shifted_root_row(E2, e, Y[m], em2[m])
+    return out
+
+
+@njit(cache=True)
+def _shifted_root_row(E2, e, y, em2):
+    """One row of _shifted_root: y (3,) the query, em2 its squared smallest active axis."""
     rel_tol = 4.0 * _EPS
+    e_bar2 = (E2[0] + E2[1] + E2[2]) / 3.0
     ey = np.empty(3)
     D = np.empty(3)
-    for m in range(M):
-        em = np.sqrt(em2[m])
-        y_m = 0.0
-        hi = 0.0
-        norm2 = 0.0
+    em = np.sqrt(em2)
+    y_m = 0.0
+    hi = 0.0
+    norm2 = 0.0
+    for i in range(3):
+        ey[i] = e[i] * y[i]
+        D[i] = E2[i] - em2  # den_i = u + D_i, exactly u for the smallest axis
+        if D[i] == 0.0 and y[i] > y_m:
+            y_m = y[i]
+        hi += ey[i]  # F(hi) <= 0 (>= |ey|, and no squares to underflow for tiny queries)
+        norm2 += y[i] * y[i]
+    lo = em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
+    # start: the root for a sphere of the mean radius (exact when the radii are equal),
+    # kept inside the bracket; from either side of the root the next step lands left of it
+    u = min(max(np.sqrt(e_bar2) * np.sqrt(norm2) - e_bar2 + em2, lo), hi)
+    for _ in range(_MAX_STEPS):
+        S = 0.0
+        dS = 0.0
         for i in range(3):
-            ey[i] = e[i] * Y[m, i]
-            D[i] = E2[i] - em2[m]  # den_i = u + D_i, exactly u for the smallest axis
-            if D[i] == 0.0 and Y[m, i] > y_m:
-                y_m = Y[m, i]
-            hi += ey[i]  # F(hi) <= 0 (>= |ey|, and no squares to underflow for tiny queries)
-            norm2 += Y[m, i] * Y[m, i]
-        lo = em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
-        # start: the root for a sphere of the mean radius (exact when the radii are equal),
-        # kept inside the bracket; from either side of the root the next step lands left of it
-        u = min(max(np.sqrt(e_bar2) * np.sqrt(norm2) - e_bar2 + em2[m], lo), hi)
-        for _ in range(_MAX_STEPS):
-            S = 0.0
-            dS = 0.0
+            if ey[i] != 0.0:  # inactive terms (their denominator may vanish)
+                den = u + D[i]
+                r = ey[i] / den
+                S += r * r
+                dS -= 2.0 * r * r / den
+        F = S - 1.0
+        if F > 0.0:
+            lo = u
+        else:
+            hi = u
+        # Newton on phi = S^(-1/2) - 1 (same root): nearly linear in u, since one term
+        # dominates S near the pole, where Newton on F itself crawls
+        root = np.sqrt(S)
+        step = u + 2.0 * (1.0 / root - 1.0) * S * root / dS
+        step_F = u - F / dS  # plain Newton on the convex F: inside the bracket from its left
+        if lo < step < hi:
+            new = step
+        elif lo < step_F < hi:
+            new = step_F
+        else:  # geometric bisection: the root may sit many decades below hi
+            new = np.sqrt(lo) * np.sqrt(hi)
+        at_root = abs(F) <= 8.0 * _EPS * S  # F at rounding level: u is the root
+        if at_root:
+            new = u
+        tol = rel_tol * new  # relative to the shift itself: no absolute floor to cancel against
+        converged = at_root or abs(new - u) <= tol or hi - lo <= tol
+        u = new
+        if converged:
+            break
+    return u
+
+
+@njit(cache=True)
+def generic_distance_and_gradient(center, rotation, radii, Q):
+    """(d (M,) signed distance mm, > 0 inside; g (M, 3) unit inward normal at the closest
+    point; generic (M,) bool) for the ellipsoid (center, rotation, radii) in the points'
+    frame, in one compiled pass: the control loop's query, a few points per call.
+    Rows off the plane of the smallest axis (the generic case of Eberly's construction,
+    zero coordinates of the other axes included) are answered here; the others (generic
+    False, measure zero) are left to closest_point_first_octant."""
+    M = Q.shape[0]
+    order = np.argsort(-radii, kind="mergesort")
+    e = radii[order]
+    E2 = e * e
+    d = np.zeros(M)
+    g = np.zeros((M, 3))
+    generic = np.zeros(M, dtype=np.bool_)
+    L = np.empty(3)
+    y = np.empty(3)
+    x = np.empty(3)
+    n = np.empty(3)
+    for m in range(M):
+        k = 0.0
+        for i in range(3):
+            s = 0.0
+            for r in range(3):
+                s += (Q[m, r] - center[r]) * rotation[r, order[i]]
+            L[i] = s
+            y[i] = abs(s)
+            k += (s / e[i]) ** 2
+        if not y[2] > 0.0:  # on the smallest axis's plane: the closest point may leave it
+            continue
+        generic[m] = True
+        u = _shifted_root_row(E2, e, y, E2[2])
+        dist2 = 0.0
+        for i in range(3):
+            x[i] = E2[i] * y[i] / (u + (E2[i] - E2[2]))
+            dist2 += (y[i] - x[i]) ** 2
+            x[i] = x[i] if L[i] >= 0.0 else -x[i]
+        dist = np.sqrt(dist2)
+        d[m] = dist if k < 1.0 else -dist
+        norm = 0.0
+        for r in range(3):  # inward normal: -R (x / e^2) in the points' frame
+            s = 0.0
             for i in range(3):
-                if ey[i] != 0.0:  # inactive terms (their denominator may vanish)
-                    den = u + D[i]
-                    r = ey[i] / den
-                    S += r * r
-                    dS -= 2.0 * r * r / den
-            F = S - 1.0
-            if F > 0.0:
-                lo = u
-            else:
-                hi = u
-            # Newton on phi = S^(-1/2) - 1 (same root): nearly linear in u, since one term
-            # dominates S near the pole, where Newton on F itself crawls
-            root = np.sqrt(S)
-            step = u + 2.0 * (1.0 / root - 1.0) * S * root / dS
-            step_F = u - F / dS  # plain Newton on the convex F: inside the bracket from its left
-            if lo < step < hi:
-                new = step
-            elif lo < step_F < hi:
-                new = step_F
-            else:  # geometric bisection: the root may sit many decades below hi
-                new = np.sqrt(lo) * np.sqrt(hi)
-            at_root = abs(F) <= 8.0 * _EPS * S  # F at rounding level: u is the root
-            if at_root:
-                new = u
-            tol = rel_tol * new  # relative to the shift itself: no absolute floor to cancel against
-            converged = at_root or abs(new - u) <= tol or hi - lo <= tol
-            u = new
-            if converged:
-                break
-        out[m] = u
-    return out
+                s -= rotation[r, order[i]] * x[i] / E2[i]
+            n[r] = s
+            norm += s * s
+        norm = np.sqrt(norm)
+        for r in range(3):
+            g[m, r] = n[r] / norm
+    return d, g, generic
 
 
 def closest_point_first_octant(e: np.ndarray, Y: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models._eberly import closest_point_first_octant
+from models._eberly import closest_point_first_octant, generic_distance_and_gradient
 from models._validation import as_points, as_rotation, as_vector3
 from models.sphere import sample_quadric_surface
 
@@ -78,8 +78,17 @@ class Ellipsoid:
         return float(self.radii.min()) * (1.0 - np.sqrt(self._inside_value(Q) + 1.0))
 
     def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
-        """((M,) signed distance mm, (M, 3) unit gradient) from one closest-point search."""
+        """((M,) signed distance mm, (M, 3) unit gradient) from one closest-point search
+        (compiled for points off the smallest axis's plane, which is all but measure zero)."""
         Q = as_points(Q, "Q")
+        d, g, generic = generic_distance_and_gradient(self.center, self.rotation, self.radii, Q)
+        if not generic.all():
+            rest = ~generic
+            d[rest], g[rest] = self._distance_and_gradient_from_closest_point(Q[rest])
+        return d, g
+
+    def _distance_and_gradient_from_closest_point(self, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """signed_distance_and_gradient through closest_point: every case, axes included."""
         X = self.closest_point(Q)
         d = np.linalg.norm(Q - X, axis=1)
         L = (X - self.center) @ self.rotation / self.radii**2
