@@ -1,14 +1,22 @@
-"""The QP blocks of the safety filter, one small function per task or constraint.
+"""The safety filter's QP, built in one compiled call from a step's kinematics.
 
 Decision variable: joint velocities qdot (n,) in rad/s. Jacobians map qdot to point
 velocities in W in mm/s (so J is in mm/rad). A control barrier row keeps a value
 h(q) >= h_min: dh/dt = grad_h . J qdot >= -gain (h - h_min), with `gain` in 1/s.
+
+    cost        |J_tip qdot - v_cmd|^2 + |J_roll qdot - roll|^2 + damping |qdot|^2
+    bounds      |qdot| <= qdot_max; joints approach [q_min + margin, q_max - margin]
+                no faster than joint_gain x distance
+    tip speed   |J_tip qdot| <= max speed, as 26 half-spaces inside the ball
+    barriers    one row per monitored point (retina and lens keep-out alike)
+    equalities  the RCM rows A qdot = b (with their drift correction)
 """
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
-from safety.qp import Block
+from safety.qp import DenseQP
 
 # Tip speed polytope: 26 face normals (the cube's faces, edges and corners). With every
 # face at distance d, the polytope holds the ball of radius d and lies within the ball
@@ -17,42 +25,47 @@ from safety.qp import Block
 _D = np.array([v for v in np.ndindex(3, 3, 3) if v != (1, 1, 1)], dtype=float) - 1.0
 _D /= np.linalg.norm(_D, axis=1, keepdims=True)
 _POLYTOPE_REACH = 1.15
+TIP_SPEED_ROWS = ("tip_speed",) * len(_D)
 
 
-def tracking(J_tip: np.ndarray, v_cmd: np.ndarray, damping: float, J_roll=None, roll_rate_cmd: float = 0.0) -> Block:
-    """Cost |J_tip qdot - v_cmd|^2 (+ |J_roll qdot - roll|^2) + damping |qdot|^2 (mm/s, rad/s)."""
-    n = J_tip.shape[1]
-    H = J_tip.T @ J_tip + damping * np.eye(n)
-    c = -J_tip.T @ v_cmd
-    if J_roll is not None:
-        Jr = np.atleast_2d(J_roll)
-        H = H + Jr.T @ Jr
-        c = c - Jr.T @ np.atleast_1d(roll_rate_cmd)
-    return Block("tracking", H=2.0 * H, c=2.0 * c)
+@njit(cache=True)
+def _filter_qp(J_tip, v_cmd, damping, J_roll, roll_cmd, q, q_min, q_max, qdot_max, joint_gain, joint_margin,
+               max_tip_speed, D, reach, h_pts, grad_pts, J_pts, h_min_pts, gain, max_recovery):
+    n = q.shape[0]
+    H = 2.0 * (J_tip.T @ J_tip + J_roll.T @ J_roll + damping * np.eye(n))
+    c = -2.0 * (J_tip.T @ v_cmd + J_roll.T @ roll_cmd)
+    lb = np.maximum(-qdot_max, -joint_gain * (q - (q_min + joint_margin)))
+    ub = np.minimum(qdot_max, joint_gain * ((q_max - joint_margin) - q))
+    k, m = D.shape[0], h_pts.shape[0]
+    G = np.empty((k + m, n))
+    h = np.empty(k + m)
+    G[:k] = D @ J_tip
+    h[:k] = max_tip_speed / reach
+    for i in range(m):  # -(grad . J) qdot <= gain (h - h_min), the recovery below h_min capped
+        for j in range(n):
+            G[k + i, j] = -(grad_pts[i, 0] * J_pts[i, 0, j] + grad_pts[i, 1] * J_pts[i, 1, j] + grad_pts[i, 2] * J_pts[i, 2, j])
+        h[k + i] = max(gain * (h_pts[i] - h_min_pts[i]), -max_recovery)
+    return H, c, lb, ub, G, h
 
 
-def barrier(name: str, h: float, grad_W: np.ndarray, J_W: np.ndarray, h_min: float, gain: float,
-            max_recovery: float = np.inf) -> Block:
-    """Row -(grad . J) qdot <= gain (h - h_min): h (mm) may not fall faster than the barrier
-    allows; below h_min it must rise at gain (h_min - h), capped at `max_recovery` mm/s
-    (so that a point pushed inside the margin, e.g. by a model update, asks for a
-    recovery the speed limits can give instead of making the QP infeasible)."""
-    return Block(name, G=-(grad_W @ J_W)[None, :], h=np.array([max(gain * (h - h_min), -max_recovery)]))
-
-
-def equality(name: str, A: np.ndarray, b: np.ndarray) -> Block:
-    """Hard equality rows A qdot = b (the RCM rows, with their drift correction)."""
-    return Block(name, A=A, b=b)
-
-
-def joint_limits(q, q_min, q_max, qdot_max, gain: float, margin_rad: float) -> Block:
-    """Bounds: |qdot| <= qdot_max, and the joints approach [q_min + margin, q_max - margin]
-    no faster than the barrier rate gain x distance (rad, rad/s, 1/s)."""
-    lo = np.maximum(-qdot_max, -gain * (q - (q_min + margin_rad)))
-    hi = np.minimum(qdot_max, gain * ((q_max - margin_rad) - q))
-    return Block("joint_limits", lb=lo, ub=hi)
-
-
-def tip_speed(J_tip: np.ndarray, max_speed: float) -> Block:
-    """|tip velocity| <= max_speed (mm/s), as 26 half-spaces inside the ball."""
-    return Block("tip_speed", G=_D @ J_tip, h=np.full(len(_D), max_speed / _POLYTOPE_REACH))
+def filter_qp(J_tip, v_cmd, damping: float, J_roll, roll_rate_cmd: float, q, q_min, q_max, qdot_max,
+              joint_gain: float, joint_margin_rad: float, max_tip_speed: float, names: tuple, h_pts, grad_pts, J_pts,
+              h_min_pts, gain: float, max_recovery: float, rcm_A=None, rcm_b=None) -> DenseQP:
+    """The filter's DenseQP (mm, s, rad; W). Barrier rows: point i (named names[i]) with
+    clearance h_pts[i] mm, gradient grad_pts[i] (3,), Jacobian J_pts[i] (3, n) mm/rad,
+    kept above h_min_pts[i] mm at `gain` 1/s; below it, it must rise at gain (h_min - h),
+    capped at `max_recovery` mm/s (so that a point pushed inside the margin, e.g. by a
+    model update, asks for a recovery the speed limits can give instead of making the
+    QP infeasible). Tip speed <= max_tip_speed mm/s; RCM rows rcm_A qdot = rcm_b."""
+    n = len(q)
+    f = np.asarray
+    J_roll = np.zeros((0, n)) if J_roll is None else np.atleast_2d(f(J_roll, dtype=float))
+    H, c, lb, ub, G, h = _filter_qp(
+        f(J_tip, dtype=float), f(v_cmd, dtype=float), float(damping), J_roll,
+        np.full(len(J_roll), float(roll_rate_cmd)), f(q, dtype=float), f(q_min, dtype=float), f(q_max, dtype=float),
+        f(qdot_max, dtype=float), float(joint_gain), float(joint_margin_rad), float(max_tip_speed), _D, _POLYTOPE_REACH,
+        f(h_pts, dtype=float).reshape(-1), f(grad_pts, dtype=float).reshape(-1, 3), f(J_pts, dtype=float).reshape(-1, 3, n),
+        f(h_min_pts, dtype=float).reshape(-1), float(gain), float(max_recovery))
+    A = np.zeros((0, n)) if rcm_A is None else np.atleast_2d(f(rcm_A, dtype=float))
+    b = np.zeros(0) if rcm_b is None else np.atleast_1d(f(rcm_b, dtype=float))
+    return DenseQP(H, c, lb, ub, G, h, A, b, TIP_SPEED_ROWS + tuple(names))

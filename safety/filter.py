@@ -168,29 +168,27 @@ class SafetyFilter:
         if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
             return self._stop(n, "model returned non-finite distance or gradient")
         clearance = float(h.min())
-        blocks = [
-            constraints.tracking(x.J_tip, x.v_cmd_W, cfg.damping, x.J_roll, x.roll_rate_cmd),
-            constraints.joint_limits(x.q, x.q_min, x.q_max, x.qdot_max, cfg.joint_gain_per_s, cfg.joint_margin_rad),
-            constraints.tip_speed(x.J_tip, cfg.max_tip_speed_mm_s),
-        ]
-        blocks += [constraints.barrier(f"boundary:{p.name}", hi, gi, p.J_W, d_safe + p.margin_mm, cfg.gain_per_s,
-                                       cfg.max_recovery_mm_s)
-                   for p, hi, gi in zip(pts, h, grad)]
+        names = [f"boundary:{p.name}" for p in pts]
+        J = np.array([p.J_W for p in pts])
+        h_min = np.array([d_safe + p.margin_mm for p in pts])
         if x.lens is not None and x.lens_points:
             near = _maybe_near(x.lens, x.lens_points, cfg.lens_margin_mm + reach, -1.0)
             lens_pts = [p for k, p in enumerate(x.lens_points) if k in near]
             if lens_pts:
                 h_lens, g_lens = _distance_and_gradient(x.lens, np.array([p.p_W for p in lens_pts]))
-                h_lens, g_lens = -h_lens, -g_lens  # > 0 outside the lens
-                blocks += [constraints.barrier(f"lens:{p.name}", hi, gi, p.J_W, cfg.lens_margin_mm, cfg.gain_per_s,
-                                               cfg.max_recovery_mm_s)
-                           for p, hi, gi in zip(lens_pts, h_lens, g_lens)]
-        if x.rcm_A is not None:
-            blocks.append(constraints.equality("rcm", x.rcm_A, x.rcm_b))
-        result = solve(blocks, n, cfg.solver)
+                # > 0 outside the lens
+                h, grad = np.concatenate([h, -h_lens]), np.vstack([grad, -g_lens])
+                J = np.concatenate([J, [p.J_W for p in lens_pts]])
+                h_min = np.concatenate([h_min, np.full(len(lens_pts), cfg.lens_margin_mm)])
+                names += [f"lens:{p.name}" for p in lens_pts]
+        qp = constraints.filter_qp(
+            x.J_tip, x.v_cmd_W, cfg.damping, x.J_roll, x.roll_rate_cmd, x.q, x.q_min, x.q_max, x.qdot_max,
+            cfg.joint_gain_per_s, cfg.joint_margin_rad, cfg.max_tip_speed_mm_s, tuple(names), h, grad, J, h_min,
+            cfg.gain_per_s, cfg.max_recovery_mm_s, x.rcm_A, x.rcm_b)
+        result = solve(qp, cfg.solver)
         if not result.ok:
             return self._stop(n, f"QP: {result.reason}", clearance)
-        port = [hi for p, hi in zip(x.boundary_points, h) if p.name == "port"]
+        port = [hi for p, hi in zip(pts, h) if p.name == "port"]
         cutter = bool(port) and bool(port[0] > cfg.cutter_clearance_mm)
         v_out = x.J_tip @ result.x
         speed = np.linalg.norm(x.v_cmd_W)

@@ -1,46 +1,54 @@
-"""The filter's quadratic program: blocks contributed by tasks and constraints, stacked
-and solved through qpsolvers. A failure is a value (QPResult.reason), never an exception.
+"""The filter's quadratic program, dense, and its solution. A failure is a value
+(QPResult.reason), never an exception.
 
-    minimise 1/2 x^T H x + c^T x   subject to   G x <= h,  A x = b,  lb <= x <= ub
+    minimise 1/2 x^T H x + c^T x   subject to   lb <= x <= ub,  G x <= h,  A x = b
+
+Most control steps have no inequality near its bound; then the minimiser under the
+equalities alone (one KKT solve, compiled with the data checks) is the answer and no
+solver runs. Otherwise DAQP (dense active set, MIT) is called directly, without the
+per-call conversions of qpsolvers; every other backend goes through qpsolvers.
 """
 from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass
+from typing import NamedTuple
 
+import daqp
 import numpy as np
 import qpsolvers
+from numba import njit
 from scipy import sparse
 
 SPARSE_SOLVERS = {"clarabel", "osqp", "scs", "piqp", "highs"}  # take CSC matrices natively
+_DAQP_INF = 1e30  # DAQP's "no bound"
+_DAQP_EQUALITY = 5  # sense flags: active (1) and immutable (4)
+
+_NONFINITE, _CROSSED, _OPTIMAL, _NEEDS_SOLVER = 0, 1, 2, 3
 
 
-@dataclass(frozen=True, eq=False)
-class Block:
-    """One contribution to the QP over x (n,): any of cost (H, c), inequalities (G, h),
-    equalities (A, b), bounds (lb, ub). `name` labels its inequality rows for reporting."""
+class DenseQP(NamedTuple):
+    """The QP over x (n,): H (n, n), c (n,), lb/ub (n,) (+-inf: none), G (m, n), h (m,),
+    A (p, n), b (p,); `row_names` (m,) label G's rows for reporting."""
 
-    name: str
-    H: np.ndarray | None = None
-    c: np.ndarray | None = None
-    G: np.ndarray | None = None
-    h: np.ndarray | None = None
-    A: np.ndarray | None = None
-    b: np.ndarray | None = None
-    lb: np.ndarray | None = None
-    ub: np.ndarray | None = None
+    H: np.ndarray
+    c: np.ndarray
+    lb: np.ndarray
+    ub: np.ndarray
+    G: np.ndarray
+    h: np.ndarray
+    A: np.ndarray
+    b: np.ndarray
+    row_names: tuple
 
 
-@dataclass(frozen=True, eq=False)
-class QPResult:
-    """`x` (n,) or None; `reason` "ok" or why not; `row_names` of the stacked G rows,
-    `active` the names of inequality rows at their bound; `solve_us` wall time."""
+class QPResult(NamedTuple):
+    """`x` (n,) or None; `reason` "ok" or why not; `active` the names of the inequality
+    rows at their bound; `solve_us` wall time."""
 
     x: np.ndarray | None
     reason: str
-    row_names: tuple[str, ...]
-    active: tuple[str, ...]
+    active: tuple
     solve_us: float
 
     @property
@@ -48,107 +56,94 @@ class QPResult:
         return self.reason == "ok"
 
 
-def stack(blocks: list[Block], n: int, as_sparse: bool = False) -> tuple[qpsolvers.Problem, tuple[str, ...]]:
-    """The qpsolvers Problem of all blocks (costs added, rows stacked, bounds intersected);
-    matrices in CSC form when `as_sparse` (what sparse solvers take without converting)."""
-    H = np.zeros((n, n))
-    c = np.zeros(n)
-    G, h, A, b, names = [], [], [], [], []
-    lb, ub = np.full(n, -np.inf), np.full(n, np.inf)
-    for blk in blocks:
-        if blk.H is not None:
-            H += blk.H
-        if blk.c is not None:
-            c += blk.c
-        if blk.G is not None:
-            G.append(np.atleast_2d(blk.G))
-            h.append(np.atleast_1d(blk.h))
-            names += [blk.name] * len(h[-1])
-        if blk.A is not None:
-            A.append(np.atleast_2d(blk.A))
-            b.append(np.atleast_1d(blk.b))
-        if blk.lb is not None:
-            lb = np.maximum(lb, blk.lb)
-        if blk.ub is not None:
-            ub = np.minimum(ub, blk.ub)
-    Gm = np.vstack(G) if G else None
-    Am = np.vstack(A) if A else None
-    if not all(np.all(np.isfinite(m)) for m in (H, c, *(G + h + A + b))):
-        raise ValueError("non-finite QP data")
-    if as_sparse:
-        H, Gm, Am = (None if m is None else sparse.csc_matrix(m) for m in (H, Gm, Am))
-    problem = qpsolvers.Problem(
-        H,
-        c,
-        Gm,
-        np.concatenate(h) if h else None,
-        Am,
-        np.concatenate(b) if b else None,
-        lb if np.isfinite(lb).any() else None,
-        ub if np.isfinite(ub).any() else None,
-    )
-    return problem, tuple(names)
+@njit(cache=True)
+def _finite(a) -> bool:
+    for v in a.ravel():
+        if not np.isfinite(v):
+            return False
+    return True
 
 
-def _equality_optimum(problem: qpsolvers.Problem, tol: float) -> np.ndarray | None:
-    """The minimiser of the cost under the equalities alone (its KKT system), when it also
-    satisfies every inequality and bound: then it is the QP's solution (convex problem,
-    no inequality active). None otherwise, or when H is not dense or the system singular."""
-    H, c, A, b = problem.P, problem.q, problem.A, problem.b
-    if sparse.issparse(H) or (A is not None and sparse.issparse(A)):
-        return None
-    n = len(c)
-    if A is None:
-        K, rhs = H, -c
-    else:
-        m = len(b)
-        K = np.empty((n + m, n + m))
-        K[:n, :n], K[:n, n:], K[n:, :n], K[n:, n:] = H, A.T, A, 0.0
-        rhs = np.concatenate([-c, b])
-    try:
-        x = np.linalg.solve(K, rhs)[:n]
-    except np.linalg.LinAlgError:
-        return None
-    if not np.all(np.isfinite(x)):
-        return None
-    if problem.G is not None and np.any(problem.G @ x > problem.h + tol * (1.0 + np.abs(problem.h))):
-        return None
-    if problem.lb is not None and np.any(x < problem.lb - tol * (1.0 + np.abs(problem.lb))):
-        return None
-    if problem.ub is not None and np.any(x > problem.ub + tol * (1.0 + np.abs(problem.ub))):
-        return None
-    return x
+@njit(cache=True)
+def _screen(H, c, lb, ub, G, h, A, b, tol):
+    """(code, x): _NONFINITE data, _CROSSED bounds, _OPTIMAL with x the minimiser under
+    the equalities that also satisfies every inequality and bound (then it is the convex
+    QP's solution), or _NEEDS_SOLVER (an inequality would be violated, or the KKT
+    system is singular)."""
+    n, p = c.shape[0], b.shape[0]
+    x = np.zeros(n)
+    if not (_finite(H) and _finite(c) and _finite(G) and _finite(h) and _finite(A) and _finite(b)):
+        return _NONFINITE, x
+    for i in range(n):
+        if np.isnan(lb[i]) or np.isnan(ub[i]):
+            return _NONFINITE, x
+        if lb[i] > ub[i]:
+            return _CROSSED, x
+    K = np.zeros((n + p, n + p))
+    rhs = np.zeros(n + p)
+    K[:n, :n] = H
+    K[:n, n:] = A.T
+    K[n:, :n] = A
+    rhs[:n] = -c
+    rhs[n:] = b
+    x = np.linalg.solve(K, rhs)[:n]  # raises LinAlgError when K is singular
+    if not _finite(x):
+        return _NEEDS_SOLVER, x
+    r = G @ x
+    for i in range(h.shape[0]):
+        if r[i] > h[i] + tol * (1.0 + abs(h[i])):
+            return _NEEDS_SOLVER, x
+    for i in range(n):
+        if x[i] < lb[i] - tol * (1.0 + abs(lb[i])) or x[i] > ub[i] + tol * (1.0 + abs(ub[i])):
+            return _NEEDS_SOLVER, x
+    return _OPTIMAL, x
 
 
-def solve(blocks: list[Block], n: int, solver: str = "clarabel", active_tol: float = 1e-6) -> QPResult:
-    """Stack and solve; any failure (inconsistent bounds, infeasible, solver error, NaN
-    in the data or the answer) comes back as a QPResult with x None and the reason.
+def _solve_daqp(qp: DenseQP) -> np.ndarray | None:
+    n, m, p = len(qp.c), len(qp.h), len(qp.b)
+    upper = np.concatenate([np.minimum(qp.ub, _DAQP_INF), qp.h, qp.b])
+    lower = np.concatenate([np.maximum(qp.lb, -_DAQP_INF), np.full(m, -_DAQP_INF), qp.b])
+    sense = np.zeros(n + m + p, dtype=np.intc)
+    sense[n + m:] = _DAQP_EQUALITY
+    x, _, exitflag, _ = daqp.solve(qp.H, qp.c, np.vstack([qp.G, qp.A]), upper, lower, sense)
+    return x if exitflag > 0 else None
 
-    When the equality-constrained optimum already satisfies every inequality (nothing
-    near its bound: most control steps), it is returned without calling the solver;
-    it is the solver's answer up to the solver's tolerance."""
+
+def _solve_qpsolvers(qp: DenseQP, solver: str) -> np.ndarray | None:
+    H, G, A = qp.H, qp.G if len(qp.h) else None, qp.A if len(qp.b) else None
+    if solver in SPARSE_SOLVERS:
+        H, G, A = (None if m is None else sparse.csc_matrix(m) for m in (H, G, A))
+    problem = qpsolvers.Problem(H, qp.c, G, qp.h if len(qp.h) else None, A, qp.b if len(qp.b) else None,
+                                qp.lb if np.isfinite(qp.lb).any() else None, qp.ub if np.isfinite(qp.ub).any() else None)
+    with warnings.catch_warnings():  # the reason is reported in the result instead
+        warnings.simplefilter("ignore")
+        solution = qpsolvers.solve_problem(problem, solver=solver)
+    return solution.x if solution.found else None
+
+
+def solve(qp: DenseQP, solver: str = "daqp", active_tol: float = 1e-6) -> QPResult:
+    """Solve; any failure (non-finite data, crossed bounds, infeasible, solver error, NaN
+    in the answer) comes back as a QPResult with x None and the reason. When no
+    inequality is active the equality-constrained optimum is returned without a solver
+    (it is every solver's answer up to that solver's tolerance)."""
     t0 = time.perf_counter()
     try:
-        problem, names = stack(blocks, n, as_sparse=solver in SPARSE_SOLVERS)
-    except ValueError as exc:
-        return QPResult(None, str(exc), (), (), 1e6 * (time.perf_counter() - t0))
-    if problem.lb is not None and problem.ub is not None and np.any(problem.lb > problem.ub):
-        return QPResult(None, "infeasible: bounds cross", names, (), 1e6 * (time.perf_counter() - t0))
-    x = _equality_optimum(problem, active_tol)
-    if x is not None:
-        return QPResult(x, "ok", names, (), 1e6 * (time.perf_counter() - t0))
+        code, x = _screen(qp.H, qp.c, qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b, active_tol)
+    except np.linalg.LinAlgError:  # singular KKT system: the solver decides
+        code = _NEEDS_SOLVER
+    if code == _NONFINITE:
+        return QPResult(None, "non-finite QP data", (), 1e6 * (time.perf_counter() - t0))
+    if code == _CROSSED:
+        return QPResult(None, "infeasible: bounds cross", (), 1e6 * (time.perf_counter() - t0))
+    if code == _OPTIMAL:
+        return QPResult(x, "ok", (), 1e6 * (time.perf_counter() - t0))
     try:
-        with warnings.catch_warnings():  # the reason is reported in the result instead
-            warnings.simplefilter("ignore")
-            solution = qpsolvers.solve_problem(problem, solver=solver)
+        x = _solve_daqp(qp) if solver == "daqp" else _solve_qpsolvers(qp, solver)
     except Exception as exc:  # a solver error must not escape the control loop
-        return QPResult(None, f"solver error: {type(exc).__name__}: {exc}", names, (), 1e6 * (time.perf_counter() - t0))
+        return QPResult(None, f"solver error: {type(exc).__name__}: {exc}", (), 1e6 * (time.perf_counter() - t0))
     dt = 1e6 * (time.perf_counter() - t0)
-    x = solution.x
-    if not solution.found or x is None or not np.all(np.isfinite(x)):
-        return QPResult(None, "infeasible or not solved", names, (), dt)
-    active = ()
-    if problem.G is not None:
-        slack = problem.h - problem.G @ x
-        active = tuple(sorted({nm for nm, s in zip(names, slack) if s <= active_tol * (1.0 + abs(s))}))
-    return QPResult(x, "ok", names, active, dt)
+    if x is None or not np.all(np.isfinite(x)):
+        return QPResult(None, "infeasible or not solved", (), dt)
+    slack = qp.h - qp.G @ x
+    at_bound = np.flatnonzero(slack <= active_tol * (1.0 + np.abs(slack)))
+    return QPResult(x, "ok", tuple(sorted({qp.row_names[i] for i in at_bound})), dt)
