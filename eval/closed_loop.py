@@ -53,8 +53,8 @@ class LoopConfig:
     patch can be millimetres off) and its radii lie in `model_radius_range_mm` (human
     retinas: 9.5-12.5 mm; anything else is not an eye but a bad fit); until then the
     conservative prior bounds the motion.
-    Afterwards a monitored point further than `trust_angle_deg` (seen from the eye
-    centre) from every measured direction keeps the prior's clearance too: the fit's
+    Afterwards the tip or the port, further than `trust_angle_deg` (seen from the eye
+    centre) from every measured direction, keeps the prior's clearance too: the fit's
     extrapolation is only as good as the eye is regular (models.coverage); nearer, its
     margin grows by the model's measured misfit there (how far inside the model the
     retina was measured within `misfit_angle_deg`: a detachment the sphere averages away)."""
@@ -123,9 +123,11 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     an ellipsoid outside that range (a fit to a pathological eye, like the pointed eye's
     153 x 29 x 29 mm) gives way to the model's sphere fit if that one is an eye's (its
     phase's wider margin applies); "prior" otherwise."""
-    prior = ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
+    def prior() -> ModelSnapshot:  # made only when returned: a view of another kind is a rebuild
+        return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
+
     if model.shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
-        return prior
+        return prior()
     last = model.history[-1]
     candidates = [(model.kind, model.shape, last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm)]
     if model.kind == "ellipsoid" and model.sphere is not None:
@@ -134,7 +136,7 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
         radii = semi_axes_mm(shape)
         if radius_range_mm[0] <= radii.min() and radii.max() <= radius_range_mm[1]:
             return ModelSnapshot(kind, shape, t_s, float(residual_mm), model.n_points, coverage.view(shape))
-    return prior
+    return prior()
 
 
 class CommandSystem(LeafSystem):
@@ -280,10 +282,11 @@ class FilterSystem(LeafSystem):
         # the prior lies inside every retina, so the shaft behind the tip (which crosses the
         # eye wall at the trocar) is outside it: against the prior only tip and port count
         k = 2 if kind is None else len(ip.names)
-        if kind is None or snap.coverage is None:
-            trusted, misfit = np.ones(k, dtype=bool), np.zeros(k)
-        else:
-            trusted = snap.coverage.angle_from_data_rad(ip.P_W[:k]) <= np.radians(self.config.trust_angle_deg)
+        trusted, misfit = np.ones(k, dtype=bool), np.zeros(k)
+        if kind is not None and snap.coverage is not None:
+            # the prior as fallback only for tip and port: the shaft points lie outside it by
+            # construction (the prior phase's reason above), where it would only push them in
+            trusted[:2] = snap.coverage.angle_from_data_rad(ip.P_W[:2]) <= np.radians(self.config.trust_angle_deg)
             misfit = snap.coverage.local_misfit_mm(ip.P_W[:k], np.radians(self.config.misfit_angle_deg))
         x = FilterInputs(
             t_s=t_s, q=np.array(q), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,

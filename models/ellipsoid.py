@@ -69,14 +69,6 @@ class Ellipsoid:
         """(M, 3) unit gradient of the signed distance: the inward normal at the closest point."""
         return self.signed_distance_and_gradient(Q)[1]
 
-    def signed_distance_bound(self, Q) -> np.ndarray:
-        """(M,) a cheap bound b on the signed distance (mm) of Q (M, 3) mm: same sign, and
-        |b| <= |signed distance|. b = r_min (1 - k), k the point's scaled radius
-        |diag(1/r) R^T (q - c)|: a path of length d in space is at most d / r_min long in
-        the scaled coordinates, where the surface is the unit sphere."""
-        Q = as_points(Q, "Q")
-        return float(self.radii.min()) * (1.0 - np.sqrt(self._inside_value(Q) + 1.0))
-
     def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
         """((M,) signed distance mm, (M, 3) unit gradient) from one closest-point search
         (compiled for points off the smallest axis's plane, which is all but measure zero)."""

@@ -38,14 +38,18 @@ class Sphere:
     def gradient(self, Q) -> np.ndarray:
         """(M, 3) unit gradient of the signed distance: the inward surface normal
         at the closest point. At the centre (undefined) it is +z by convention."""
+        return self.signed_distance_and_gradient(Q)[1]
+
+    def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) signed distance mm, (M, 3) unit gradient): both from one pass."""
         Q = as_points(Q, "Q")
         v = self.center - Q
-        n = np.linalg.norm(v, axis=1)
-        out = np.tile([0.0, 0.0, 1.0], (len(Q), 1))
-        ok = n > 0
-        out[ok] = v[ok] / n[ok, None]
-        return out
-
+        n = np.sqrt(np.einsum("ij,ij->i", v, v))
+        at_center = n == 0.0
+        g = v / np.where(at_center, 1.0, n)[:, None]
+        if at_center.any():
+            g[at_center] = (0.0, 0.0, 1.0)
+        return self.radius - n, g
 
     def ray_cast(self, origins, dirs) -> np.ndarray:
         """(M,) distance (mm) along unit rays to the sphere: first hit from inside, first
@@ -61,13 +65,6 @@ class Sphere:
         t = np.where(c < 0.0, -b + sq, np.where(-b - sq >= 0.0, -b - sq, np.nan))
         return np.where(b * b - c >= 0.0, t, np.nan)
 
-    def signed_distance_bound(self, Q) -> np.ndarray:
-        """(M,) the signed distance itself (exact, so a valid bound; see Ellipsoid)."""
-        return self.signed_distance(Q)
-
-    def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
-        """((M,) signed distance mm, (M, 3) unit gradient): both queries in one call."""
-        return self.signed_distance(Q), self.gradient(Q)
     def closest_point(self, Q) -> np.ndarray:
         """(M, 3) closest surface points (mm) to Q (M, 3); at the centre: the +z pole."""
         Q = as_points(Q, "Q")

@@ -84,6 +84,17 @@ def frame_pose(S, q, R_home, p_home):
 
 
 @numba.njit(cache=True)
+def frame_poses(S, Q, R_home, p_home):
+    """(R (M, 3, 3), p (M, 3) mm): frame_pose at each row of Q (M, n)."""
+    M = Q.shape[0]
+    R = np.empty((M, 3, 3))
+    p = np.empty((M, 3))
+    for m in range(M):
+        R[m], p[m] = frame_pose(S, Q[m], R_home, p_home)
+    return R, p
+
+
+@numba.njit(cache=True)
 def frame_pose_and_jacobian(S, q, R_home, p_home):
     """(R_WF, p_WF mm, J (6, n)): the frame's pose and the spatial Jacobian of its origin
     (rows 0-2 angular rad/rad, 3-5 translational mm/rad), in W."""
@@ -94,6 +105,26 @@ def frame_pose_and_jacobian(S, q, R_home, p_home):
         J[4, i] += J[2, i] * p_WF[0] - J[0, i] * p_WF[2]
         J[5, i] += J[0, i] * p_WF[1] - J[1, i] * p_WF[0]
     return R_WF, p_WF, J
+
+
+@numba.njit(cache=True)
+def rigid_points(R_WF, p_WF, J_F, P_F):
+    """(P_W (k, 3) mm, J_W (k, 3, n) mm/rad) of points P_F (k, 3) mm fixed in a frame with
+    pose (R_WF, p_WF) and origin spatial Jacobian J_F (6, n): J_v - [r]x J_w, r = R_WF p."""
+    k, n = P_F.shape[0], J_F.shape[1]
+    P_W = np.empty((k, 3))
+    J_W = np.empty((k, 3, n))
+    for m in range(k):
+        r0 = R_WF[0, 0] * P_F[m, 0] + R_WF[0, 1] * P_F[m, 1] + R_WF[0, 2] * P_F[m, 2]
+        r1 = R_WF[1, 0] * P_F[m, 0] + R_WF[1, 1] * P_F[m, 1] + R_WF[1, 2] * P_F[m, 2]
+        r2 = R_WF[2, 0] * P_F[m, 0] + R_WF[2, 1] * P_F[m, 1] + R_WF[2, 2] * P_F[m, 2]
+        P_W[m, 0], P_W[m, 1], P_W[m, 2] = p_WF[0] + r0, p_WF[1] + r1, p_WF[2] + r2
+        for j in range(n):  # v_p = v + w x r
+            w0, w1, w2 = J_F[0, j], J_F[1, j], J_F[2, j]
+            J_W[m, 0, j] = J_F[3, j] + w1 * r2 - w2 * r1
+            J_W[m, 1, j] = J_F[4, j] + w2 * r0 - w0 * r2
+            J_W[m, 2, j] = J_F[5, j] + w0 * r1 - w1 * r0
+    return P_W, J_W
 
 
 class Chain:
@@ -147,6 +178,13 @@ class Chain:
         if name in self.fixed:
             return R_h.copy(), p_h.copy()
         return frame_pose(self.S, q, R_h, p_h)
+
+    def poses(self, name: str, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(R (M, 3, 3), p (M, 3) mm) at each row of Q (M, n) rad (finite, checked by the caller)."""
+        R_h, p_h = self.homes[name]
+        if name in self.fixed:
+            return np.broadcast_to(R_h, (len(Q), 3, 3)).copy(), np.broadcast_to(p_h, (len(Q), 3)).copy()
+        return frame_poses(self.S, np.ascontiguousarray(Q, dtype=float), R_h, p_h)
 
     def pose_and_jacobian(self, name: str, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(R, p mm, spatial Jacobian (6, n) of the frame's origin: angular rad/rad, then

@@ -110,6 +110,16 @@ def extractor_error_model(engine: OctEngine = OctEngine(), samples: int = 24, se
     return ExtractorErrorModel(tuple(D), tuple(A), bias.tolist(), sd.tolist(), p_invalid.tolist())
 
 
+def _joint_rows(Q, m: int) -> np.ndarray:
+    """Q as an (m, 6) float array of joint angles (rad); a row of the wrong size, or an
+    array of the wrong shape, becomes NaN rows (reported per sample as bad joint states)."""
+    try:
+        A = np.asarray(Q, dtype=float)
+    except (TypeError, ValueError):  # ragged rows: check each
+        return np.array([_joint_rows([q], 1)[0] for q in Q]).reshape(m, 6)
+    return A if A.shape == (m, 6) else np.full((m, 6), np.nan)
+
+
 class IioctSensor:
     """The iiOCT sensor on `robot` (planning.Robot built with a scenario).
 
@@ -152,20 +162,20 @@ class IioctSensor:
         self._rng = np.random.default_rng(seed)
         self.max_distance_mm = self.engine.depth_mm / self.engine.group_index - self.engine.tip_offset_mm
 
-    def reported_beam(self, q_reported) -> tuple[np.ndarray, np.ndarray]:
-        """(origin (3,) mm, unit direction (3,)) of the calibrated beam at the reported q
-        (plus the encoder noise)."""
-        q = np.asarray(q_reported, dtype=float)
+    def reported_beams(self, Q_reported: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(origins (M, 3) mm, unit directions (M, 3)) of the calibrated beam at the reported
+        joint angles Q_reported (M, 6) rad (plus the encoder noise, drawn per sample)."""
+        Q = Q_reported
         if self.encoder_noise_rad > 0:
-            q = q + self.encoder_noise_rad * self._rng.standard_normal(6)
-        R_WS, p_WS = self.robot.pose("S", q)
+            Q = Q + self.encoder_noise_rad * np.array([self._rng.standard_normal(6) for _ in range(len(Q))]).reshape(-1, 6)
+        R_WS, p_WS = self.robot.poses("S", Q)
         return p_WS + R_WS @ self._p_S_Scal, R_WS @ self._R_S_Scal[:, 2]
 
     def true_geometry(self, Q_true) -> tuple[np.ndarray, np.ndarray]:
         """((M,) true distances mm along the true beams at Q_true (M, 6) to the retina,
         NaN where there is none; (M,) incidences rad)."""
-        beams = [self.robot.beam(q, true=True) for q in Q_true]
-        O, U = np.array([b[0] for b in beams]), np.array([b[1] for b in beams])
+        R, O = self.robot.poses("S_true", Q_true)
+        U = R[:, :, 2]
         d = np.asarray(self.eye.ray_cast(O, U), dtype=float)
         d = np.where(np.isfinite(d) & (d > 0), d, np.nan)
         hit = np.isfinite(d)
@@ -186,20 +196,17 @@ class IioctSensor:
         geometry is computed vectorised, which is what makes 2 kHz affordable."""
         nan3 = np.full(3, np.nan)
         out: list = [None] * len(T_s)
-        good, beams = [], []
-        for k, (qt, qr) in enumerate(zip(Q_true, Q_reported)):
-            qt, qr = np.asarray(qt, dtype=float), np.asarray(qr, dtype=float)
-            if qt.shape != (6,) or qr.shape != (6,) or not (np.all(np.isfinite(qt)) and np.all(np.isfinite(qr))):
-                out[k] = SensorSample(float(T_s[k]), float("nan"), False, 0.0,
-                                      "bad_joint_state: q must be 6 finite angles (rad)", nan3, nan3, nan3)
-                continue
-            good.append(k)
-            beams.append(self.reported_beam(qr))
-        if not good:
+        Qt, Qr = _joint_rows(Q_true, len(T_s)), _joint_rows(Q_reported, len(T_s))
+        good = np.flatnonzero(np.isfinite(Qt).all(axis=1) & np.isfinite(Qr).all(axis=1))
+        for k in set(range(len(T_s))) - set(good.tolist()):
+            out[k] = SensorSample(float(T_s[k]), float("nan"), False, 0.0,
+                                  "bad_joint_state: q must be 6 finite angles (rad)", nan3, nan3, nan3)
+        if not len(good):
             return out
-        d_true, incidence = self.true_geometry([Q_true[k] for k in good])
-        for k, (origin, u), d0, a in zip(good, beams, d_true, incidence):
-            out[k] = self._sample_one(float(T_s[k]), origin, u, float(d0), float(a), model)
+        O, U = self.reported_beams(Qr[good])
+        d_true, incidence = self.true_geometry(Qt[good])
+        for k, origin, u, d0, a in zip(good.tolist(), O, U, d_true.tolist(), incidence.tolist()):
+            out[k] = self._sample_one(float(T_s[k]), origin, u, d0, a, model)
         return out
 
     def _sample_one(self, t_s: float, origin, u, d_true: float, incidence: float, model) -> SensorSample:

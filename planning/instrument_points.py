@@ -1,4 +1,4 @@
-"""The instrument's monitored points and the RCM rows at one posture, from one Drake query.
+"""The instrument's monitored points and the RCM rows at one posture, from one evaluation of the chain.
 
 The safety filter keeps a set of material points of the instrument inside the retina
 (tip T, cutter port P, points along the shaft inside the eye) and the shaft outside the
@@ -14,9 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from planning.chain import rigid_points
 from planning.robot import RCM_GAIN_PER_S, Robot
 
 PORT_I_MM = np.array([91.7, -0.25, 0.0])  # cutter port in I (meca500.urdf "port_frame")
+_NAMES = ("tip", "port") + tuple(f"shaft{k}" for k in range(20))  # n_shaft <= 20
+_LENS_NAMES = tuple(f"lens{k}" for k in range(64))
 
 
 @dataclass(frozen=True)
@@ -42,6 +45,8 @@ class MonitoredPointsConfig:
             raise ValueError(f"n_shaft must be an int in [0, 20], got {self.n_shaft}")
         if not (np.isfinite(self.min_depth_past_trocar_mm) and self.min_depth_past_trocar_mm >= 0):
             raise ValueError(f"min_depth_past_trocar_mm must be >= 0 mm, got {self.min_depth_past_trocar_mm}")
+        if len(self.lens_offsets_mm) > len(_LENS_NAMES):
+            raise ValueError(f"lens_offsets_mm takes at most {len(_LENS_NAMES)} offsets, got {len(self.lens_offsets_mm)}")
         if any(not (np.isfinite(o) and o >= 0) for o in self.lens_offsets_mm):
             raise ValueError(f"lens_offsets_mm must be >= 0 mm, got {self.lens_offsets_mm}")
 
@@ -72,41 +77,29 @@ class InstrumentPoints:
     rcm_error_mm: float
 
 
-_LEVI_CIVITA = np.zeros((3, 3, 3))
-_LEVI_CIVITA[0, 1, 2] = _LEVI_CIVITA[1, 2, 0] = _LEVI_CIVITA[2, 0, 1] = 1.0
-_LEVI_CIVITA[0, 2, 1] = _LEVI_CIVITA[2, 1, 0] = _LEVI_CIVITA[1, 0, 2] = -1.0
-
-
-def _point_jacobians(R_WI: np.ndarray, J: np.ndarray, P_I: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Positions relative to I's origin (k, 3) and Jacobians (k, 3, 6) of points P_I (k, 3)
-    fixed in I: J_v - r x J_w, column by column."""
-    R = P_I @ R_WI.T
-    return R, J[3:] - np.einsum("ijk,nj,kc->nic", _LEVI_CIVITA, R, J[:3], optimize=False)
-
-
 def instrument_points(robot: Robot, q, p_WC, config: MonitoredPointsConfig = MonitoredPointsConfig(),
                       rcm_gain_per_s: float = RCM_GAIN_PER_S) -> InstrumentPoints:
     """The monitored points, their Jacobians and the RCM rows at q (6,) rad, trocar p_WC (3,) mm."""
-    R_WI, p_WI = robot.pose("I", q)
-    J = robot.spatial_jacobian("I", q)
+    R_WI, p_WI, J = robot.pose_and_spatial_jacobian("I", q)
     u = R_WI[:, 0]
     tip_x = robot.tip_offset_mm
     d = np.asarray(p_WC, dtype=float) - p_WI
     lam = float(u @ d)  # the trocar's shaft coordinate, mm
     shaft_x = [tip_x - k * config.shaft_spacing_mm for k in range(1, config.n_shaft + 1)]
     shaft_x = [x for x in shaft_x if x >= lam + config.min_depth_past_trocar_mm]
-    names = ("tip", "port") + tuple(f"shaft{k}" for k in range(len(shaft_x)))
-    P_I = np.vstack([[tip_x, 0.0, 0.0], PORT_I_MM] + [[x, 0.0, 0.0] for x in shaft_x])
     lens_x = [lam + o for o in config.lens_offsets_mm if lam + o <= tip_x]
-    lens_names = tuple(f"lens{k}" for k in range(len(lens_x)))
-    L_I = np.array([[x, 0.0, 0.0] for x in lens_x]).reshape(-1, 3)
-    R_all, J_all = _point_jacobians(R_WI, J, np.vstack([P_I, L_I, [[lam, 0.0, 0.0]]]))
-    k, m = len(P_I), len(L_I)
-    R, J_W, RL, J_L, J_Q = R_all[:k], J_all[:k], R_all[k:k + m], J_all[k:k + m], J_all[-1]
+    k, m = 2 + len(shaft_x), len(lens_x)
+    names = _NAMES[:k]
+    lens_names = _LENS_NAMES[:m]
+    P_I = np.zeros((k + m + 1, 3))  # tip, port, shaft points, lens points, the trocar's shaft point
+    P_I[:, 0] = [tip_x, 0.0, *shaft_x, *lens_x, lam]
+    P_I[1] = PORT_I_MM
+    P_all, J_all = rigid_points(R_WI, p_WI, J, P_I)
+    P_W, J_W, L_W, J_L, J_Q = P_all[:k], J_all[:k], P_all[k:k + m], J_all[k:k + m], J_all[-1]
     N = R_WI[:, 1:].T  # the shaft's two lateral directions
     e = N @ d
     return InstrumentPoints(
-        names=names, P_W=p_WI + R, J_W=J_W, lens_names=lens_names, L_W=p_WI + RL, J_L=J_L,
+        names=names, P_W=P_W, J_W=J_W, lens_names=lens_names, L_W=L_W, J_L=J_L,
         J_tip=J_W[0], J_roll=(u @ J[:3])[None, :], rcm_A=N @ J_Q, rcm_b=rcm_gain_per_s * e,
         p_WI=p_WI, u_W=u, rcm_error_mm=float(np.linalg.norm(e)),
     )

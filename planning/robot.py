@@ -23,7 +23,7 @@ from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
 from pydrake.multibody.tree import FixedOffsetFrame
 from pydrake.systems.framework import DiagramBuilder
 
-from planning.chain import MM_PER_M, Chain
+from planning.chain import MM_PER_M, Chain, rigid_points
 
 URDF = files("planning") / "data" / "meca500.urdf"
 EYE_SDF = files("planning") / "data" / "eye.sdf"
@@ -103,6 +103,15 @@ class Robot:
         S_true with a scenario) at q."""
         return self.chain.pose(frame, self._checked(q))
 
+    def poses(self, frame: str, Q) -> tuple[np.ndarray, np.ndarray]:
+        """(R (M, 3, 3), p (M, 3) mm) of `frame` at each row of Q (M, 6) rad (all finite)."""
+        Q = np.asarray(Q, dtype=float)
+        if Q.ndim != 2 or Q.shape[1] != 6:
+            raise ValueError(f"Q must have shape (M, 6) in rad, got {Q.shape}")
+        if not np.all(np.isfinite(Q)):
+            raise ValueError("Q must be finite (rad)")
+        return self.chain.poses(frame, Q)
+
     def point(self, frame: str, p_frame_mm, q) -> np.ndarray:
         """Position (3,) mm in W of a point fixed in `frame` at p_frame_mm (3,) mm."""
         R, p = self.pose(frame, q)
@@ -110,15 +119,18 @@ class Robot:
 
     def jacobian(self, frame: str, p_frame_mm, q) -> np.ndarray:
         """(3, 6) translational Jacobian, mm/rad, of the point p_frame_mm fixed in `frame`, in W."""
-        R, _, J = self.chain.pose_and_jacobian(frame, self._checked(q))
-        r = R @ np.asarray(p_frame_mm, dtype=float)
-        return J[3:] - np.cross(r, J[:3], axisa=0, axisb=0, axisc=0)
+        R, p, J = self.pose_and_spatial_jacobian(frame, q)
+        return rigid_points(R, p, J, np.asarray(p_frame_mm, dtype=float).reshape(1, 3))[1][0]
 
     def spatial_jacobian(self, frame: str, q) -> np.ndarray:
         """(6, 6) spatial Jacobian of `frame`'s origin in W at q: rows 0-2 angular (rad/rad),
         rows 3-5 translational (mm/rad). A point r_W (mm, from the origin) fixed in the frame
         moves with J_v - [r_W]x J_w: one call gives every point of a rigid body."""
-        return self.chain.pose_and_jacobian(frame, self._checked(q))[2]
+        return self.pose_and_spatial_jacobian(frame, q)[2]
+
+    def pose_and_spatial_jacobian(self, frame: str, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(R_W<frame>, p_W<frame> mm, spatial_jacobian) from one evaluation of the chain."""
+        return self.chain.pose_and_jacobian(frame, self._checked(q))
 
     def shaft(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(p_WI (3,) mm: a point on the shaft axis, u_W (3,): unit direction towards the tip)."""

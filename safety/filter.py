@@ -10,6 +10,7 @@ and says why: the robot stays put.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -126,16 +127,6 @@ def _distance_and_gradient(shape, P: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return np.asarray(h, dtype=float), np.asarray(g, dtype=float)
 
 
-def _maybe_near(shape, points: list, within_mm: float, side: float) -> set:
-    """Indices of `points` whose clearance side x (signed distance to `shape`) may be
-    below `within_mm`, judged by the shape's cheap signed_distance_bound when it has one
-    (every index otherwise). side = 1: clearance inside the shape; -1: outside."""
-    if not hasattr(shape, "signed_distance_bound"):
-        return set(range(len(points)))
-    b = side * np.asarray(shape.signed_distance_bound(np.array([p.p_W for p in points])), dtype=float)
-    return {k for k, v in enumerate(b) if not (v > within_mm)}
-
-
 class SafetyFilter:
     """`filter(inputs) -> FilterOutput`; stateless apart from its configuration."""
 
@@ -148,43 +139,43 @@ class SafetyFilter:
     def __call__(self, x: FilterInputs) -> FilterOutput:
         cfg = self.config
         n = len(np.atleast_1d(x.q))
+        pts = x.boundary_points
+        lens_pts = x.lens_points if x.lens is not None else []
         fault = self._fault(x, n)
         if fault:
             return self._stop(n, fault)
-        d_safe = cfg.d_safe_mm + x.margin_mm
-        # rows a point cannot reach within the speed limits are left out (exactly: they
-        # cannot be active); tip and port are always evaluated (clearance, cutter interlock)
-        reach = cfg.max_tip_speed_mm_s / cfg.gain_per_s
-        extra = max((p.margin_mm for p in x.boundary_points), default=0.0)
-        near = _maybe_near(x.model, x.boundary_points, d_safe + extra + reach, 1.0)
-        pts = [p for k, p in enumerate(x.boundary_points) if p.name in ("tip", "port") or k in near]
-        h, grad = _distance_and_gradient(x.model, np.array([p.p_W for p in pts]))
-        untrusted = [k for k, p in enumerate(pts) if not p.trusted]
+        P = np.array([p.p_W for p in pts + lens_pts], dtype=float)
+        J = np.array([p.J_W for p in pts + lens_pts], dtype=float)
+        if not (np.isfinite(P).all() and np.isfinite(J).all()):
+            bad = next(p for p in pts + lens_pts if not (np.all(np.isfinite(p.p_W)) and np.all(np.isfinite(p.J_W))))
+            return self._stop(n, f"non-finite kinematics of {bad.name}")
+        k = len(pts)
+        h, grad = _distance_and_gradient(x.model, P[:k])
+        untrusted = [i for i, p in enumerate(pts) if not p.trusted]
         if untrusted and x.fallback is not None:  # the tighter of the model and the fallback
-            h_f, g_f = _distance_and_gradient(x.fallback, np.array([pts[k].p_W for k in untrusted]))
+            h_f, g_f = _distance_and_gradient(x.fallback, P[untrusted])
             tighter = h_f < h[untrusted]
             idx = np.array(untrusted)[tighter]
             h[idx], grad[idx] = h_f[tighter], g_f[tighter]
         if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
             return self._stop(n, "model returned non-finite distance or gradient")
         clearance = float(h.min())
+        h_min = cfg.d_safe_mm + x.margin_mm + np.array([p.margin_mm for p in pts])
         names = [f"boundary:{p.name}" for p in pts]
-        J = np.array([p.J_W for p in pts])
-        h_min = np.array([d_safe + p.margin_mm for p in pts])
-        if x.lens is not None and x.lens_points:
-            near = _maybe_near(x.lens, x.lens_points, cfg.lens_margin_mm + reach, -1.0)
-            lens_pts = [p for k, p in enumerate(x.lens_points) if k in near]
-            if lens_pts:
-                h_lens, g_lens = _distance_and_gradient(x.lens, np.array([p.p_W for p in lens_pts]))
-                # > 0 outside the lens
-                h, grad = np.concatenate([h, -h_lens]), np.vstack([grad, -g_lens])
-                J = np.concatenate([J, [p.J_W for p in lens_pts]])
-                h_min = np.concatenate([h_min, np.full(len(lens_pts), cfg.lens_margin_mm)])
-                names += [f"lens:{p.name}" for p in lens_pts]
+        if lens_pts:
+            h_lens, g_lens = _distance_and_gradient(x.lens, P[k:])
+            h, grad = np.concatenate([h, -h_lens]), np.vstack([grad, -g_lens])  # > 0 outside the lens
+            h_min = np.concatenate([h_min, np.full(len(lens_pts), cfg.lens_margin_mm)])
+            names += [f"lens:{p.name}" for p in lens_pts]
+        # a row further from its bound than the speed limit can close at the barrier rate
+        # cannot be active: left out (tip and port stay, for the clearance and the interlock)
+        keep = h - h_min <= cfg.max_tip_speed_mm_s / cfg.gain_per_s
+        keep[:k] |= [p.name in ("tip", "port") for p in pts]
+        rows = np.flatnonzero(keep)
         qp = constraints.filter_qp(
             x.J_tip, x.v_cmd_W, cfg.damping, x.J_roll, x.roll_rate_cmd, x.q, x.q_min, x.q_max, x.qdot_max,
-            cfg.joint_gain_per_s, cfg.joint_margin_rad, cfg.max_tip_speed_mm_s, tuple(names), h, grad, J, h_min,
-            cfg.gain_per_s, cfg.max_recovery_mm_s, x.rcm_A, x.rcm_b)
+            cfg.joint_gain_per_s, cfg.joint_margin_rad, cfg.max_tip_speed_mm_s, tuple(names[i] for i in rows), h[rows],
+            grad[rows], J[rows], h_min[rows], cfg.gain_per_s, cfg.max_recovery_mm_s, x.rcm_A, x.rcm_b)
         result = solve(qp, cfg.solver)
         if not result.ok:
             return self._stop(n, f"QP: {result.reason}", clearance)
@@ -200,17 +191,14 @@ class SafetyFilter:
         """Why this step must not move the robot, or None."""
         cfg = self.config
         arrays = {"q": x.q, "v_cmd_W": x.v_cmd_W, "J_tip": x.J_tip}
-        for name, a in arrays.items():
-            if not np.all(np.isfinite(a)):
-                return f"non-finite {name}"
+        if not math.isfinite(sum(float(np.sum(a)) for a in arrays.values())):  # one pass; names on failure
+            bad = next((name for name, a in arrays.items() if not np.all(np.isfinite(a))), None)
+            if bad is not None:
+                return f"non-finite {bad}"
         if np.shape(x.J_tip) != (3, n):
             return f"J_tip has shape {np.shape(x.J_tip)}, expected (3, {n})"
         if not x.boundary_points:
             return "no boundary points"
-        points = x.boundary_points + list(x.lens_points)
-        if not np.isfinite(sum(float(p.p_W.sum()) + float(p.J_W.sum()) for p in points)):  # one pass; names on failure
-            bad = next(p for p in points if not (np.all(np.isfinite(p.p_W)) and np.all(np.isfinite(p.J_W))))
-            return f"non-finite kinematics of {bad.name}"
         speed = float(np.linalg.norm(x.v_cmd_W))
         if speed > cfg.max_command_speed_mm_s:
             return f"absurd command speed {speed:.1f} mm/s > {cfg.max_command_speed_mm_s:g} mm/s"
@@ -222,7 +210,7 @@ class SafetyFilter:
             return f"stale sensor: {x.t_s - x.sensor_time_s:.3f} s old > {cfg.max_sensor_age_s:g} s"
         if not (np.isfinite(x.margin_mm) and x.margin_mm >= 0):
             return f"invalid margin {x.margin_mm}"
-        bad = next((p for p in x.boundary_points if not (np.isfinite(p.margin_mm) and p.margin_mm >= 0)), None)
+        bad = next((p for p in x.boundary_points if not (math.isfinite(p.margin_mm) and p.margin_mm >= 0)), None)
         if bad is not None:
             return f"invalid margin {bad.margin_mm} of {bad.name}"
         return None

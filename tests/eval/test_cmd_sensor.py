@@ -14,7 +14,7 @@ KEYS = {"distance_bias_um", "distance_sd_um", "invalid_fraction", "outliers_reje
 
 def run(tmp_path, *argv):
     out = tmp_path / "sensor"
-    assert main(["sensor", "--out", str(out), "--revolutions", "3", "--speed-mm-s", "17", *argv]) == 0
+    assert main(["sensor", "--out", str(out), "--revolutions", "5", "--speed-mm-s", "17", *argv]) == 0
     return json.loads((out / "sensor.json").read_text()), out
 
 
@@ -26,7 +26,10 @@ def clean_run(tmp_path_factory):
 def test_the_full_chain_meets_the_extraction_and_model_targets(clean_run):
     """A-scans -> distances -> points (calibration error of the paper's calibration) ->
     model: extraction |bias| <= 5 um and SD <= 20 um (issue 5), and EF MAE <= 50 um even
-    on this shorter spiral (3 turns)."""
+    on this shorter spiral (5 turns; the command's default is 6). Fewer turns are not
+    enough: the calibration error's imprint on the points depends on the instrument's
+    orientations along the path, and on 3 turns the EF MAE ranged 39-57 um across
+    filter changes that left the path's extent the same (4 turns: 48, 5: 38, 6: 37 um)."""
     r, out = clean_run
     assert KEYS <= set(r)
     assert abs(r["distance_bias_um"]) <= 5.0 and r["distance_sd_um"] <= 20.0

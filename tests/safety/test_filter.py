@@ -127,6 +127,21 @@ def test_an_untrusted_point_keeps_the_fallback_clearance_too():
     assert trusted.qdot[2] == pytest.approx(-5.0, rel=0.01)
 
 
+def test_an_untrusted_shaft_point_far_inside_the_model_is_held_by_the_fallback():
+    """The same for a point the filter may leave out of the QP (not tip or port): rows are
+    left out by the tighter clearance, not by the model's. The model is 4 mm away, beyond
+    what the barrier can close in a step (20 mm/s / 20 /s = 1 mm); the fallback is at the
+    margin, so a push stops there."""
+    fallback = Sphere(np.zeros(3), 10.0)
+    p = np.array([0.0, 0.0, -9.5])  # 0.5 mm inside the fallback: at d_safe
+    tip = PointKinematics("tip", np.array([0.0, 0.0, -2.0]), np.eye(3))
+    x = inputs(p, [0.0, 0.0, -5.0], fallback=fallback, model=Sphere(np.zeros(3), 14.0))
+    x = FilterInputs(**{**x.__dict__, "boundary_points": [tip, PointKinematics("shaft1", p, np.eye(3), trusted=False)]})
+    out = SafetyFilter()(x)
+    assert out.ok and out.qdot[2] == pytest.approx(0.0, abs=1e-6)
+    assert "boundary:shaft1" in out.active
+
+
 def test_pruned_rows_do_not_change_the_answer():
     """Shaft points far from every bound are left out of the QP: same qdot as with the
     rows forced in (a model without the cheap bound)."""
