@@ -407,3 +407,157 @@ def diameter_after_adding(X, block_r, n, p, p0, diameter):
         if r > block_r[k]:
             block_r[k] = r
     return np.sqrt(best2)
+
+
+@njit(cache=True)
+def sphere_absorb(Y, y, P, p0, scale, n_total):
+    """add_sphere_rows, then (state (4,), ok) of sphere_state once the filter holds
+    n_total >= 4 points (not ok before: fewer than four points define no sphere)."""
+    add_sphere_rows(Y, y, P, p0, scale)
+    if n_total < 4:
+        return np.zeros(4), False
+    return sphere_state(Y, y)
+
+
+@njit(cache=True)
+def sampson_one(v, x, y, z):
+    """|Q| / |grad Q| of the point (x, y, z) (scaled coordinates) from the quadric v (10,):
+    Sampson's first-order distance (scaled units; inf where the gradient vanishes)."""
+    a, b, c, f, g, h, p, q, r, d = v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9]
+    Q = a * x * x + b * y * y + c * z * z + 2.0 * (f * y * z + g * x * z + h * x * y + p * x + q * y + r * z) + d
+    gx, gy, gz = a * x + h * y + g * z + p, h * x + b * y + f * z + q, g * x + f * y + c * z + r
+    grad = 2.0 * np.sqrt(gx * gx + gy * gy + gz * gz)
+    return abs(Q) / grad if grad > 0.0 else np.inf
+
+
+@njit(cache=True)
+def sampson_distances(v, X):
+    """(K,) sampson_one of each row of X (K, 3) (scaled coordinates) from the quadric v (10,)."""
+    out = np.empty(X.shape[0])
+    for k in range(X.shape[0]):
+        out[k] = sampson_one(v, X[k, 0], X[k, 1], X[k, 2])
+    return out
+
+
+RESIDUAL_REFRESH = 16  # accepted points between refreshes of the gate's robust residual (a median)
+# models.outlier_gate.GateState's state, in arrays the gate kernel updates in place:
+# GATE_PARAMS indexes its float parameters, GATE_COUNTS its integer counters
+G_K_RESIDUAL, G_MIN_GATE_MM, G_MIN_POINTS, G_MAX_CONSECUTIVE, G_MAX_JUMP_MM = range(5)
+G_HAS_LAST, G_RUN, G_N_RECENT, G_REFRESH_AT, G_N_REJECTED = range(5)
+
+
+@njit(cache=True)
+def gate_points(P, keep, quadric, has_quadric, p0, scale, n_model_points, params, counts, last, residual, recent):
+    """The innovation gate (models.outlier_gate.OutlierGate) over the points P (N, 3) mm in
+    A-scan order; sets keep[:N] and returns the count kept, updating the gate's state in
+    place: `counts` (GATE_COUNTS: int64), `last` (3,) the last kept point (mm),
+    `residual` (1,) the robust residual (mm, refreshed every RESIDUAL_REFRESH accepted
+    points as 1.4826 x the median of `recent`, the last accepted distances, mm).
+    `quadric` (10,) is the current model about p0 in coordinates (x - p0) / scale
+    (ignored unless `has_quadric`: every distance is then 0)."""
+    if counts[G_HAS_LAST] == 0:  # nothing to compare the very first point with: it becomes the reference
+        last[0], last[1], last[2] = P[0, 0], P[0, 1], P[0, 2]
+        counts[G_HAS_LAST] = 1
+    window = recent.shape[0]
+    if counts[G_N_RECENT] >= counts[G_REFRESH_AT]:  # the median is refreshed every REFRESH points, not per point
+        m = min(counts[G_N_RECENT], window)
+        residual[0] = 1.4826 * np.median(recent[:m]) if m > 0 else np.inf
+        counts[G_REFRESH_AT] = counts[G_N_RECENT] + RESIDUAL_REFRESH
+    use_model = n_model_points >= params[G_MIN_POINTS] and residual[0] < np.inf
+    gate = max(params[G_MIN_GATE_MM], params[G_K_RESIDUAL] * residual[0]) if use_model else np.inf
+    n_kept = 0
+    for n in range(P.shape[0]):
+        px, py, pz = P[n, 0], P[n, 1], P[n, 2]
+        d = 0.0
+        if has_quadric:
+            d = scale * sampson_one(quadric, (px - p0[0]) / scale, (py - p0[1]) / scale, (pz - p0[2]) / scale)
+        jump = np.sqrt((px - last[0]) ** 2 + (py - last[1]) ** 2 + (pz - last[2]) ** 2)
+        near = jump <= params[G_MAX_JUMP_MM] and d <= gate
+        counts[G_RUN] = 0 if near else counts[G_RUN] + 1
+        k = near or counts[G_RUN] > params[G_MAX_CONSECUTIVE]  # a long run of far points is retina
+        keep[n] = k
+        if k:
+            last[0], last[1], last[2] = px, py, pz
+            recent[counts[G_N_RECENT] % window] = d
+            counts[G_N_RECENT] += 1
+            n_kept += 1
+        else:
+            counts[G_N_REJECTED] += 1
+    return n_kept
+
+
+@njit(cache=True)
+def fit_summary(S, sf_state, sf_ok, v_ef, ef_ok, radii, prev_radii, has_prev, v_sf, scale):
+    """(sphere residual mm, ellipsoid residual mm, axis change) of one update of the
+    adaptive model: the RMS distances (Taubin, taubin_residuals) over the points of S of
+    the sphere (state [c, r^2 - |c|^2] in the fits' coordinates scaled by `scale` mm; its
+    quadric is written to v_sf (10,)) and of the ellipsoid v_ef (NaN for a fit that is
+    not ok), and the largest relative change of the sorted semi-axes `radii` since
+    `prev_radii` (NaN unless `has_prev` and ef_ok); prev_radii then holds the sorted
+    radii (the caller keeps has_prev = ef_ok)."""
+    V = np.empty((2, 10))
+    k = 0
+    if sf_ok:
+        cx, cy, cz, c = sf_state[0], sf_state[1], sf_state[2], sf_state[3]
+        v_sf[0], v_sf[1], v_sf[2], v_sf[3], v_sf[4], v_sf[5] = 1.0, 1.0, 1.0, 0.0, 0.0, 0.0
+        v_sf[6], v_sf[7], v_sf[8], v_sf[9] = -cx, -cy, -cz, -c
+        V[k] = v_sf
+        k += 1
+    if ef_ok:
+        V[k] = v_ef
+        k += 1
+    res = scale * taubin_residuals(S, V[:k])
+    sf_res = res[0] if sf_ok else np.nan
+    ef_res = res[k - 1] if ef_ok else np.nan
+    axis_change = np.nan
+    if ef_ok:
+        r = np.sort(radii)
+        if has_prev:
+            axis_change = 0.0
+            for i in range(3):
+                axis_change = max(axis_change, abs(r[i] - prev_radii[i]) / prev_radii[i])
+        prev_radii[:] = r
+    return sf_res, ef_res, axis_change
+
+
+# ascan_update's outcomes and the layout of its output vector `out`
+ASCAN_NONFINITE, ASCAN_GATED, ASCAN_ABSORBED = range(3)
+OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SIZE = 0, 4, 14, 24, 27, 30, 39
+
+
+@njit(cache=True)
+def ascan_update(P1, n, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
+                 Y, y, p0_sf, S, p0_ef, check_spread, X, block_r, p0_range, diameter, prev_radii, has_prev, scale,
+                 out):
+    """The adaptive model's update by one A-scan's point P1 (1, 3) mm, in one call: the
+    same kernels as a batch update of one point, in the same order. A model of n points
+    (n >= 1: the first point, the origin p0 of every part, is taken by the batch path)
+    gates P1 (gate_points, when `gate_on`; `quadric` the current model about p0_ef),
+    and absorbs it into the sphere filter (Y, y), the scatter matrix S and the scan range
+    (X, block_r, `diameter` mm), refits the ellipsoid (`check_spread`: with the spread
+    test) and summarises the fits (fit_summary), all state updated in place.
+
+    Returns (outcome: ASCAN_NONFINITE / ASCAN_GATED (nothing changed but the gate's state)
+    / ASCAN_ABSORBED, sphere ok, fit status code, diameter mm, sphere residual mm,
+    ellipsoid residual mm, axis change); `out` (OUT_SIZE,) receives the sphere state,
+    the sphere's quadric, and the fit's quadric, centre, semi-axes and rotation (row-major).
+    """
+    if not (np.isfinite(P1[0, 0]) and np.isfinite(P1[0, 1]) and np.isfinite(P1[0, 2])):
+        return ASCAN_NONFINITE, False, 0, diameter, np.nan, np.nan, np.nan
+    if gate_on:
+        keep = np.empty(1, np.bool_)
+        if gate_points(P1, keep, quadric, has_quadric, p0_ef, scale, n, g_params, g_counts, g_last, g_residual,
+                       g_recent) == 0:
+            return ASCAN_GATED, False, 0, diameter, np.nan, np.nan, np.nan
+    state, sf_ok = sphere_absorb(Y, y, P1, p0_sf, scale, n + 1)
+    add_design_rows(S, P1, p0_ef, scale)
+    diameter = diameter_after_adding(X, block_r, n, P1[0], p0_range, diameter)
+    code, v, center, radii, R = fit_ellipsoid_scatter(S, p0_ef, scale, check_spread)
+    v_sf = out[OUT_V_SF:OUT_V_EF]
+    sf_res, ef_res, axis_change = fit_summary(S, state, sf_ok, v, code == 0, radii, prev_radii, has_prev, v_sf, scale)
+    out[OUT_STATE:OUT_V_SF] = state
+    out[OUT_V_EF:OUT_CENTER] = v
+    out[OUT_CENTER:OUT_RADII] = center
+    out[OUT_RADII:OUT_ROTATION] = radii
+    out[OUT_ROTATION:OUT_SIZE] = R.ravel()
+    return ASCAN_ABSORBED, sf_ok, code, diameter, sf_res, ef_res, axis_change
