@@ -120,12 +120,18 @@ def _cholesky(A):
     n = A.shape[0]
     L = np.zeros((n, n))
     for j in range(n):
-        s = A[j, j] - np.sum(L[j, :j] ** 2)
+        acc = 0.0  # the sums run in index order, from 0: no temporary arrays
+        for k in range(j):
+            acc += L[j, k] * L[j, k]
+        s = A[j, j] - acc
         if not s > 1e-300:
             return L, False
         L[j, j] = np.sqrt(s)
         for i in range(j + 1, n):
-            L[i, j] = (A[i, j] - np.sum(L[i, :j] * L[j, :j])) / L[j, j]
+            acc = 0.0
+            for k in range(j):
+                acc += L[i, k] * L[j, k]
+            L[i, j] = (A[i, j] - acc) / L[j, j]
     return L, True
 
 
@@ -139,9 +145,15 @@ def sphere_state(Y, y):
         return x, False
     u = np.zeros(4)
     for i in range(4):
-        u[i] = (y[i] - np.sum(L[i, :i] * u[:i])) / L[i, i]
+        acc = 0.0
+        for k in range(i):
+            acc += L[i, k] * u[k]
+        u[i] = (y[i] - acc) / L[i, i]
     for i in range(3, -1, -1):
-        x[i] = (u[i] - np.sum(L[i + 1:, i] * x[i + 1:])) / L[i, i]
+        acc = 0.0
+        for k in range(i + 1, 4):
+            acc += L[k, i] * x[k]
+        x[i] = (u[i] - acc) / L[i, i]
     return x, x[3] + x[0] * x[0] + x[1] * x[1] + x[2] * x[2] > 0.0
 
 
@@ -283,17 +295,31 @@ def _top_eigenvector(K, start):
     n = K.shape[0]
     g = np.inf
     for i in range(n):
-        g = min(g, K[i, i] - (np.sum(np.abs(K[i])) - abs(K[i, i])))
+        row = 0.0
+        for j in range(n):
+            row += abs(K[i, j])
+        g = min(g, K[i, i] - (row - abs(K[i, i])))
     sigma = max(0.0, -g)
     y = start / np.sqrt(_dot(start, start))
-    for _ in range(POWER_ITERATIONS):
-        Ky = _mv(K, y)
+    Ky = np.empty(n)
+    for _ in range(POWER_ITERATIONS):  # in place: a 6x6 product per step, no temporary arrays
+        for i in range(n):
+            s = 0.0
+            for j in range(n):
+                s += K[i, j] * y[j]
+            Ky[i] = s
         mu = _dot(y, Ky)
-        r = Ky - mu * y
-        if _dot(r, r) <= 1e-28 * mu * mu:  # residual |K y - mu y| <= 1e-14 |mu|: converged, whatever the ratio
+        r2 = 0.0
+        for i in range(n):
+            r = Ky[i] - mu * y[i]
+            r2 += r * r
+        if r2 <= 1e-28 * mu * mu:  # residual |K y - mu y| <= 1e-14 |mu|: converged, whatever the ratio
             return y, mu
-        y = Ky + sigma * y
-        y /= np.sqrt(_dot(y, y))
+        for i in range(n):
+            y[i] = Ky[i] + sigma * y[i]
+        norm = np.sqrt(_dot(y, y))
+        for i in range(n):
+            y[i] /= norm
     mu, W = eigh_sym(K)
     return np.ascontiguousarray(W[:, n - 1]), mu[n - 1]
 
@@ -365,13 +391,22 @@ def taubin_residuals(S, V):
         for j in range(4):
             M[i, j] = S[6 + i, 6 + j] * (0.5 if i < 3 else 1.0) * (0.5 if j < 3 else 1.0)
     out = np.empty(V.shape[0])
-    for k in range(V.shape[0]):
-        v = V[k]
-        q2 = _dot(v, _mv(S, v))
+    for k in range(V.shape[0]):  # the products by loops, in index order: no temporary arrays
+        q2 = 0.0
+        for i in range(10):
+            Sv = 0.0
+            for j in range(10):
+                Sv += S[i, j] * V[k, j]
+            q2 += V[k, i] * Sv
         g2 = 0.0
         for i in range(3):
-            wi = np.array([v[GRAD_ROWS[i, 0]], v[GRAD_ROWS[i, 1]], v[GRAD_ROWS[i, 2]], v[GRAD_ROWS[i, 3]]])
-            g2 += _dot(wi, _mv(M, wi))
+            wMw = 0.0
+            for a in range(4):
+                Mw = 0.0
+                for b in range(4):
+                    Mw += M[a, b] * V[k, GRAD_ROWS[i, b]]
+                wMw += V[k, GRAD_ROWS[i, a]] * Mw
+            g2 += wMw
         g2 *= 4.0
         out[k] = np.sqrt(max(q2, 0.0) / g2) if g2 > 0.0 else np.inf
     return out
