@@ -339,19 +339,30 @@ def quadric_parameters(v, p0, scale):
     columns, right-handed) in mm and the frame of p0, of the quadric v (10,) given in
     coordinates (x - p0) / scale; not ok when it is not a real ellipsoid."""
     a, b, c, f, g, h = v[0], v[1], v[2], v[3], v[4], v[5]
-    A = np.array([[a, h, g], [h, b, f], [g, f, c]])
+    A = np.empty((3, 3))
+    A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2], A[2, 0], A[2, 1], A[2, 2] = a, h, g, h, b, f, g, f, c
     center = np.zeros(3)
     radii = np.zeros(3)
     R = np.eye(3)
     detA = a * (b * c - f * f) - h * (h * c - f * g) + g * (h * f - b * g)
     if not (abs(detA) > 1e-300):
         return False, center, radii, R
-    adj = np.array([[b * c - f * f, g * f - h * c, h * f - b * g],
-                    [g * f - h * c, a * c - g * g, h * g - a * f],
-                    [h * f - b * g, h * g - a * f, a * b - h * h]])  # A symmetric: A^-1 = adj / det
-    w = -_mv(adj, v[6:9]) / detA
-    mu = _dot(w, _mv(A, w)) - v[9]
-    lam, E = eigh_sym(A / mu)
+    # A symmetric: A^-1 = adj / det; the centre w = -A^-1 v[6:9]
+    adj = np.empty((3, 3))
+    adj[0, 0], adj[0, 1], adj[0, 2] = b * c - f * f, g * f - h * c, h * f - b * g
+    adj[1, 0], adj[1, 1], adj[1, 2] = g * f - h * c, a * c - g * g, h * g - a * f
+    adj[2, 0], adj[2, 1], adj[2, 2] = h * f - b * g, h * g - a * f, a * b - h * h
+    w = np.empty(3)
+    for i in range(3):
+        w[i] = -(adj[i, 0] * v[6] + adj[i, 1] * v[7] + adj[i, 2] * v[8]) / detA
+    wAw = 0.0
+    for i in range(3):
+        wAw += w[i] * (A[i, 0] * w[0] + A[i, 1] * w[1] + A[i, 2] * w[2])
+    mu = wAw - v[9]
+    for i in range(3):
+        for j in range(3):
+            A[i, j] /= mu
+    lam, E = eigh_sym(A)
     if not (lam[0] > 0.0 and np.isfinite(lam[2])):
         return False, center, radii, R
     E = np.ascontiguousarray(E)
@@ -452,6 +463,15 @@ def sphere_absorb(Y, y, P, p0, scale, n_total):
     if n_total < 4:
         return np.zeros(4), False
     return sphere_state(Y, y)
+
+
+@njit(cache=True)
+def sphere_center_radius(state, p0, scale, center):
+    """Radius (mm) of the sphere filter's state [c, r^2 - |c|^2] (coordinates (x - p0) /
+    scale); its centre (mm, frame of p0) is written to center (3,)."""
+    cx, cy, cz, k = state[0], state[1], state[2], state[3]
+    center[0], center[1], center[2] = p0[0] + scale * cx, p0[1] + scale * cy, p0[2] + scale * cz
+    return scale * np.sqrt(k + cx * cx + cy * cy + cz * cz)
 
 
 @njit(cache=True)
@@ -557,42 +577,43 @@ def fit_summary(S, sf_state, sf_ok, v_ef, ef_ok, radii, prev_radii, has_prev, v_
 
 # ascan_update's outcomes and the layout of its output vector `out`
 ASCAN_NONFINITE, ASCAN_GATED, ASCAN_ABSORBED = range(3)
-OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SIZE = 0, 4, 14, 24, 27, 30, 39
+OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE = 0, 4, 14, 24, 27, 30, 39, 42
 
 
 @njit(cache=True)
-def ascan_update(P1, n, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
-                 Y, y, p0_sf, S, p0_ef, check_spread, X, block_r, p0_range, diameter, prev_radii, has_prev, scale,
-                 out):
+def ascan_update(P1, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
+                 Y, y, S, check_spread, X, block_r, diameter, prev_radii, has_prev, scale, out):
     """The adaptive model's update by one A-scan's point P1 (1, 3) mm, in one call: the
-    same kernels as a batch update of one point, in the same order. A model of n points
-    (n >= 1: the first point, the origin p0 of every part, is taken by the batch path)
-    gates P1 (gate_points, when `gate_on`; `quadric` the current model about p0_ef),
-    and absorbs it into the sphere filter (Y, y), the scatter matrix S and the scan range
-    (X, block_r, `diameter` mm), refits the ellipsoid (`check_spread`: with the spread
-    test) and summarises the fits (fit_summary), all state updated in place.
+    same kernels as a batch update of one point, in the same order. A model of n >= 1
+    points (the batch path takes the first, p0 (mm): the origin of every part) gates P1
+    (gate_points, when `gate_on`; `quadric` the current model about p0) and absorbs it
+    into the sphere filter (Y, y), the scatter matrix S and the scan range (X, block_r,
+    `diameter` mm), refits the ellipsoid (`check_spread`: with the spread test) and
+    summarises the fits (fit_summary), all state updated in place.
 
     Returns (outcome: ASCAN_NONFINITE / ASCAN_GATED (nothing changed but the gate's state)
     / ASCAN_ABSORBED, sphere ok, fit status code, diameter mm, sphere residual mm,
-    ellipsoid residual mm, axis change); `out` (OUT_SIZE,) receives the sphere state,
-    the sphere's quadric, and the fit's quadric, centre, semi-axes and rotation (row-major).
+    ellipsoid residual mm, axis change, sphere radius mm); `out` (OUT_SIZE,) receives the
+    sphere state, the sphere's quadric, the fit's quadric, centre, semi-axes and rotation
+    (row-major), and the sphere's centre (mm).
     """
     if not (np.isfinite(P1[0, 0]) and np.isfinite(P1[0, 1]) and np.isfinite(P1[0, 2])):
-        return ASCAN_NONFINITE, False, 0, diameter, np.nan, np.nan, np.nan
+        return ASCAN_NONFINITE, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
     if gate_on:
         keep = np.empty(1, np.bool_)
-        if gate_points(P1, keep, quadric, has_quadric, p0_ef, scale, n, g_params, g_counts, g_last, g_residual,
+        if gate_points(P1, keep, quadric, has_quadric, p0, scale, n, g_params, g_counts, g_last, g_residual,
                        g_recent) == 0:
-            return ASCAN_GATED, False, 0, diameter, np.nan, np.nan, np.nan
-    state, sf_ok = sphere_absorb(Y, y, P1, p0_sf, scale, n + 1)
-    add_design_rows(S, P1, p0_ef, scale)
-    diameter = diameter_after_adding(X, block_r, n, P1[0], p0_range, diameter)
-    code, v, center, radii, R = fit_ellipsoid_scatter(S, p0_ef, scale, check_spread)
+            return ASCAN_GATED, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
+    state, sf_ok = sphere_absorb(Y, y, P1, p0, scale, n + 1)
+    add_design_rows(S, P1, p0, scale)
+    diameter = diameter_after_adding(X, block_r, n, P1[0], p0, diameter)
+    code, v, center, radii, R = fit_ellipsoid_scatter(S, p0, scale, check_spread)
     v_sf = out[OUT_V_SF:OUT_V_EF]
     sf_res, ef_res, axis_change = fit_summary(S, state, sf_ok, v, code == 0, radii, prev_radii, has_prev, v_sf, scale)
     out[OUT_STATE:OUT_V_SF] = state
     out[OUT_V_EF:OUT_CENTER] = v
     out[OUT_CENTER:OUT_RADII] = center
     out[OUT_RADII:OUT_ROTATION] = radii
-    out[OUT_ROTATION:OUT_SIZE] = R.ravel()
-    return ASCAN_ABSORBED, sf_ok, code, diameter, sf_res, ef_res, axis_change
+    out[OUT_ROTATION:OUT_SF_CENTER] = R.ravel()
+    radius = sphere_center_radius(state, p0, scale, out[OUT_SF_CENTER:OUT_SIZE]) if sf_ok else np.nan
+    return ASCAN_ABSORBED, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius

@@ -6,8 +6,8 @@ from typing import NamedTuple
 import numpy as np
 
 from models._kernels import (
-    ASCAN_ABSORBED, ASCAN_NONFINITE, FIT_STATUS, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SIZE, OUT_STATE, OUT_V_EF,
-    OUT_V_SF, ascan_update, fit_summary,
+    ASCAN_ABSORBED, ASCAN_NONFINITE, FIT_STATUS, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE, OUT_STATE,
+    OUT_V_EF, OUT_V_SF, ascan_update, fit_summary,
 )
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
@@ -143,11 +143,13 @@ class AdaptiveEyeModel:
         sf_res, ef_res, axis_change = fit_summary(
             self._ef.S, self._sf.state if sf_ok else _NO_STATE, sf_ok, fit.v if fit.ok else _NO_QUADRIC, fit.ok,
             fit.radii if fit.ok else _NO_RADII, self._prev_radii, fit.ok and self._has_prev, v_sf, LENGTH_SCALE_MM)
-        return self._evaluate(fit, v_sf if sf_ok else None, sf_res, ef_res, axis_change)
+        return self._evaluate(fit, v_sf if sf_ok else None, self._sf.center_radius, sf_res, ef_res, axis_change)
 
     def _update_one(self, P1: np.ndarray) -> ModelUpdate | None:
         """`update` by one A-scan's point P1 (1, 3) float mm, once the model has its first
-        point: the batch path's kernels in one compiled call (models._kernels.ascan_update)."""
+        point: the batch path's kernels in one compiled call (models._kernels.ascan_update).
+        The sphere filter, the ellipsoid fit and the scan range all took the first point as
+        their origin: ef.p0 stands for the three."""
         self.n_received += 1
         sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
         n = sf.n_points
@@ -156,11 +158,10 @@ class AdaptiveEyeModel:
         g = _NO_GATE if gate is None else gate
         current = self._current
         out = np.empty(OUT_SIZE)
-        outcome, sf_ok, code, diameter, sf_res, ef_res, axis_change = ascan_update(
-            P1, n, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
-            g.params, g.counts, g.last, g.residual, g.recent, sf.information, sf.information_vector, sf.p0,
-            ef.S, ef.p0, check, scan.X, scan.block_r, scan.p0, scan.diameter_mm, self._prev_radii, self._has_prev,
-            LENGTH_SCALE_MM, out)
+        outcome, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = ascan_update(
+            P1, n, ef.p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
+            g.params, g.counts, g.last, g.residual, g.recent, sf.information, sf.information_vector, ef.S, check,
+            scan.X, scan.block_r, scan.diameter_mm, self._prev_radii, self._has_prev, LENGTH_SCALE_MM, out)
         if outcome != ASCAN_ABSORBED:
             if outcome == ASCAN_NONFINITE:
                 self.n_rejected_nonfinite += 1
@@ -175,16 +176,19 @@ class AdaptiveEyeModel:
             fit = EllipsoidFit(FIT_STATUS[code])
         else:
             fit = EllipsoidFit("ok", out[OUT_CENTER:OUT_RADII], out[OUT_RADII:OUT_ROTATION],
-                               out[OUT_ROTATION:OUT_SIZE].reshape(3, 3), out[OUT_V_EF:OUT_CENTER])
+                               out[OUT_ROTATION:OUT_SF_CENTER].reshape(3, 3), out[OUT_V_EF:OUT_CENTER])
         ef.record(fit, check)
-        return self._evaluate(fit, out[OUT_V_SF:OUT_V_EF] if sf_ok else None, sf_res, ef_res, axis_change)
+        if sf_ok:
+            return self._evaluate(fit, out[OUT_V_SF:OUT_V_EF], (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res,
+                                  axis_change)
+        return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
 
-    def _evaluate(self, fit, v_sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
+    def _evaluate(self, fit, v_sf, sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
         """The criteria, the transition and the history entry of an update whose fits are
-        `fit` (the ellipsoid's EllipsoidFit) and v_sf (the sphere's quadric in the fits'
-        scaled coordinates, or None), with residuals (mm) and axis change from fit_summary."""
+        `fit` (the ellipsoid's EllipsoidFit), v_sf (the sphere's quadric in the fits' scaled
+        coordinates) and sf (its centre mm, radius mm) (both None without a sphere), with
+        residuals (mm) and axis change from fit_summary."""
         self._has_prev = fit.ok
-        sf = self._sf.center_radius
         snap = FitSnapshot(
             self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, self._ef.S, v_sf,
             fit.v if fit.ok else None, sf, (fit.center, fit.radii, fit.rotation) if fit.ok else None, self._ef.p0,

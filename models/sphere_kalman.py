@@ -9,11 +9,9 @@ on the same points at every step, with no prior to tune and no loss of precision
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from models._kernels import sphere_absorb
+from models._kernels import sphere_absorb, sphere_center_radius
 from models._validation import as_points
 from models.ellipsoid_fit import LENGTH_SCALE_MM
 from models.sphere import Sphere
@@ -55,9 +53,8 @@ class SphereKalmanFilter:
         """(center (3,) mm, radius mm) of the current estimate, or None."""
         if self.state is None:
             return None
-        (cx, cy, cz, k), (ox, oy, oz) = self.state.tolist(), self.p0.tolist()  # floats: called per A-scan
-        L = LENGTH_SCALE_MM
-        return np.array([ox + L * cx, oy + L * cy, oz + L * cz]), L * math.sqrt(k + cx * cx + cy * cy + cz * cz)
+        center = np.empty(3)
+        return center, sphere_center_radius(self.state, self.p0, LENGTH_SCALE_MM, center)
 
     @property
     def sphere(self) -> Sphere | None:
