@@ -33,7 +33,8 @@ FIT_STATUS = ("ok", "too_few_points", "collinear", "coplanar", "not_ellipsoid")
 MIN_POINTS = 9
 PLANARITY_TOL = 1e-10  # smallest / largest point-cloud variance below which data is flat
 _REGULARISATION = 1e-15  # relative to trace(S'), see the module doc
-POWER_ITERATIONS = 40  # beyond, the Jacobi solver is cheaper than converging slowly
+POWER_ITERATIONS = 12  # beyond, Rayleigh quotient iteration takes over from the power iteration
+RQI_STEPS = 6  # Rayleigh quotient steps (cubic convergence: 2-3 suffice) before the Jacobi fallback
 NEAR_SINGULAR = 1e-8  # smallest Cholesky pivot^2 / largest diagonal of S' that asks for its eigenvalues
 EXACT_QUADRIC = 1e-12  # smallest / largest eigenvalue of S' at which the points lie on one quadric
 BOUNDARY = 1e-12  # |v1^T C1 v1| of a unit v1 below which a quadric is on the k = 4 boundary
@@ -290,15 +291,20 @@ def _top_eigenvector(K, start):
     of the shifted matrix is >= 0 and the largest dominates; from `start` (not orthogonal
     to the answer), until the residual |K y - mu y| is at rounding level of mu. K's one positive
     eigenvalue is far above the rest for data near an ellipsoid, so a few tens of 6x6
-    products; eigh_sym (~5 us) when it has not converged in POWER_ITERATIONS (small early
-    patches, where the positive eigenvalue does not stand out)."""
+    products. On small early patches the positive eigenvalue does not stand out, the
+    power iteration has not converged in POWER_ITERATIONS, and Rayleigh quotient
+    iteration from its last vector finishes in two or three 6x6 solves: it converges to
+    some eigenpair, and one with mu > 0 is the answer (K has only one); eigh_sym when
+    not within RQI_STEPS."""
     n = K.shape[0]
     g = np.inf
+    norm_K = 0.0  # largest absolute row sum: a bound on |K|, the scale of rounding in K y
     for i in range(n):
         row = 0.0
         for j in range(n):
             row += abs(K[i, j])
         g = min(g, K[i, i] - (row - abs(K[i, i])))
+        norm_K = max(norm_K, row)
     sigma = max(0.0, -g)
     y = start / np.sqrt(_dot(start, start))
     Ky = np.empty(n)
@@ -320,8 +326,55 @@ def _top_eigenvector(K, start):
         norm = np.sqrt(_dot(y, y))
         for i in range(n):
             y[i] /= norm
-    mu, W = eigh_sym(K)
-    return np.ascontiguousarray(W[:, n - 1]), mu[n - 1]
+    A = np.empty((n, n))
+    for _ in range(RQI_STEPS):
+        mu = _dot(y, _mv(K, y))
+        for i in range(n):
+            for j in range(n):
+                A[i, j] = K[i, j] - (mu if i == j else 0.0)
+        y = _solve(A, y, 1e-300 + 1e-16 * norm_K)
+        y /= np.sqrt(_dot(y, y))
+        Ky = _mv(K, y)
+        mu = _dot(y, Ky)
+        r2 = 0.0
+        for i in range(n):
+            r = Ky[i] - mu * y[i]
+            r2 += r * r
+        if mu > 0.0 and r2 <= 1e-28 * max(mu * mu, norm_K * norm_K):  # converged to rounding in K
+            return y, mu
+    lam, W = eigh_sym(K)
+    return np.ascontiguousarray(W[:, n - 1]), lam[n - 1]
+
+
+@njit(cache=True)
+def _solve(A, b, tiny):
+    """x with A x = b for A (n, n) (overwritten), by Gaussian elimination with partial
+    pivoting; a pivot below `tiny` is replaced by `tiny` (for a shift at an eigenvalue,
+    where the near-singular solve is the point: its answer is the eigenvector)."""
+    n = A.shape[0]
+    x = b.copy()
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(A[i, k]) > abs(A[p, k]):
+                p = i
+        if p != k:
+            for j in range(n):
+                A[k, j], A[p, j] = A[p, j], A[k, j]
+            x[k], x[p] = x[p], x[k]
+        if abs(A[k, k]) < tiny:
+            A[k, k] = tiny
+        for i in range(k + 1, n):
+            f = A[i, k] / A[k, k]
+            for j in range(k + 1, n):
+                A[i, j] -= f * A[k, j]
+            x[i] -= f * x[k]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for j in range(i + 1, n):
+            s -= A[i, j] * x[j]
+        x[i] = s / A[i, i]
+    return x
 
 
 @njit(cache=True)
