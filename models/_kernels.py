@@ -33,7 +33,8 @@ FIT_STATUS = ("ok", "too_few_points", "collinear", "coplanar", "not_ellipsoid")
 MIN_POINTS = 9
 PLANARITY_TOL = 1e-10  # smallest / largest point-cloud variance below which data is flat
 _REGULARISATION = 1e-15  # relative to trace(S'), see the module doc
-POWER_ITERATIONS = 12  # beyond, Rayleigh quotient iteration takes over from the power iteration
+POWER_ITERATIONS = 40  # power steps at the most, before the Jacobi solver
+RQI_AFTER = 6  # power steps before Rayleigh quotient iteration may take over (_top_eigenvector)
 RQI_STEPS = 6  # Rayleigh quotient steps (cubic convergence: 2-3 suffice) before the Jacobi fallback
 NEAR_SINGULAR = 1e-8  # smallest Cholesky pivot^2 / largest diagonal of S' that asks for its eigenvalues
 EXACT_QUADRIC = 1e-12  # smallest / largest eigenvalue of S' at which the points lie on one quadric
@@ -286,16 +287,16 @@ def fit_quadric(S, check_spread):
 
 @njit(cache=True)
 def _top_eigenvector(K, start):
-    """(unit eigenvector, eigenvalue) of the largest eigenvalue of the symmetric K (n, n):
-    power iteration on K + sigma I, sigma from Gershgorin's bound so that every eigenvalue
-    of the shifted matrix is >= 0 and the largest dominates; from `start` (not orthogonal
-    to the answer), until the residual |K y - mu y| is at rounding level of mu. K's one positive
-    eigenvalue is far above the rest for data near an ellipsoid, so a few tens of 6x6
-    products. On small early patches the positive eigenvalue does not stand out, the
-    power iteration has not converged in POWER_ITERATIONS, and Rayleigh quotient
-    iteration from its last vector finishes in two or three 6x6 solves: it converges to
-    some eigenpair, and one with mu > 0 is the answer (K has only one); eigh_sym when
-    not within RQI_STEPS."""
+    """(unit eigenvector, eigenvalue) of the largest eigenvalue of the symmetric K (n, n),
+    which has exactly one positive eigenvalue mu (see the module doc): power iteration
+    on K + sigma I, sigma from Gershgorin's bound so that every eigenvalue of the shifted
+    matrix is >= 0 and the largest dominates; from `start` (not orthogonal to the
+    answer), until the residual |K y - mu y| is at rounding level of mu. For data near an
+    ellipsoid mu stands far above the rest: a few tens of 6x6 products. On small early
+    patches it does not, and the power iteration crawls; once it has taken RQI_AFTER
+    steps and its residual is below mu / 2, an eigenvalue lies within that of mu and
+    every other one is negative, more than mu away, so Rayleigh quotient iteration
+    converges to the answer: two or three 6x6 solves. eigh_sym when neither converges."""
     n = K.shape[0]
     g = np.inf
     norm_K = 0.0  # largest absolute row sum: a bound on |K|, the scale of rounding in K y
@@ -308,7 +309,7 @@ def _top_eigenvector(K, start):
     sigma = max(0.0, -g)
     y = start / np.sqrt(_dot(start, start))
     Ky = np.empty(n)
-    for _ in range(POWER_ITERATIONS):  # in place: a 6x6 product per step, no temporary arrays
+    for step in range(POWER_ITERATIONS):  # in place: a 6x6 product per step, no temporary arrays
         for i in range(n):
             s = 0.0
             for j in range(n):
@@ -321,14 +322,26 @@ def _top_eigenvector(K, start):
             r2 += r * r
         if r2 <= 1e-28 * mu * mu:  # residual |K y - mu y| <= 1e-14 |mu|: converged, whatever the ratio
             return y, mu
+        if step >= RQI_AFTER and mu > 0.0 and r2 < 0.25 * mu * mu:
+            return _rayleigh_quotient_iteration(K, y, mu, norm_K)
         for i in range(n):
             y[i] = Ky[i] + sigma * y[i]
         norm = np.sqrt(_dot(y, y))
         for i in range(n):
             y[i] /= norm
+    lam, W = eigh_sym(K)
+    return np.ascontiguousarray(W[:, n - 1]), lam[n - 1]
+
+
+@njit(cache=True)
+def _rayleigh_quotient_iteration(K, y, mu, norm_K):
+    """(unit eigenvector, eigenvalue) of the symmetric K (n, n) nearest to mu, from y
+    (unit) with Rayleigh quotient mu, by Rayleigh quotient iteration until the residual
+    is at rounding level of K (|K| <= norm_K); eigh_sym's largest eigenpair when not
+    converged in RQI_STEPS (the caller asks for the largest, which is the nearest)."""
+    n = K.shape[0]
     A = np.empty((n, n))
     for _ in range(RQI_STEPS):
-        mu = _dot(y, _mv(K, y))
         for i in range(n):
             for j in range(n):
                 A[i, j] = K[i, j] - (mu if i == j else 0.0)
@@ -340,7 +353,7 @@ def _top_eigenvector(K, start):
         for i in range(n):
             r = Ky[i] - mu * y[i]
             r2 += r * r
-        if mu > 0.0 and r2 <= 1e-28 * max(mu * mu, norm_K * norm_K):  # converged to rounding in K
+        if r2 <= 1e-28 * max(mu * mu, norm_K * norm_K):
             return y, mu
     lam, W = eigh_sym(K)
     return np.ascontiguousarray(W[:, n - 1]), lam[n - 1]
