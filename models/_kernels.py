@@ -4,7 +4,9 @@ An update of the adaptive model is a handful of operations on 4x4, 6x6 and 10x10
 matrices; in NumPy each costs one to three microseconds of call overhead, which at one
 update per A-scan (2 kHz) dominates the arithmetic. These kernels do the same
 arithmetic in one compiled call each. They are the only implementation (the batch fits
-use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit).
+use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit); one
+A-scan's whole update (gate, sphere filter, scatter matrix, scan range, refit,
+residuals) is one call of `ascan_update`, which runs the same kernels as a batch update.
 
 The ellipsoid-specific fit (Li & Griffiths 2004, k = 4) minimises v^T S v subject to
 v1^T C1 v1 = 1. With the Schur complement S' = S11 - S12 S22^-1 S12^T (symmetric,
@@ -14,7 +16,8 @@ K = L^-1 C1 L^-T, with S' = L L^T, has exactly one positive eigenvalue mu = 1 / 
 and its eigenvector w gives the solution v1 = L^-T w: a symmetric eigenproblem, real by
 construction (a general eigensolver on C1^-1 S' may return near-equal negative
 eigenvalues as complex pairs), solved by shifted power iteration (the positive
-eigenvalue is the largest) with cyclic Jacobi as the fallback. S' is singular when the
+eigenvalue is the largest), finished by Rayleigh quotient iteration where the power
+iteration is slow, with cyclic Jacobi as the fallback. S' is singular when the
 points lie exactly on a quadric (noise-free data): its null vector is then the answer
 if it is an ellipsoid (v1^T C1 v1 > 0), no answer exists on the k = 4 boundary (= 0: a
 paraboloid, a cylinder, semi-axes (a, a, a/2)), and otherwise the minimiser is found as

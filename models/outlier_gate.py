@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models._kernels import G_N_RECENT, G_N_REJECTED, G_REFRESH_AT, RESIDUAL_REFRESH, gate_points
+from models._kernels import G_N_REJECTED, RESIDUAL_REFRESH, gate_points
 from models._validation import check_count, check_positive
 from models.ellipsoid_fit import LENGTH_SCALE_MM
 
