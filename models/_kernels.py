@@ -506,8 +506,8 @@ def diameter_after_adding(X, block_r, n, p, p0, diameter):
     best, best2 = diameter, diameter * diameter
     for k in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
         c0, c1, c2 = X[k * SCAN_BLOCK, 0], X[k * SCAN_BLOCK, 1], X[k * SCAN_BLOCK, 2]
-        dc = np.sqrt((x[0] - c0) ** 2 + (x[1] - c1) ** 2 + (x[2] - c2) ** 2)
-        if dc + block_r[k] <= best:
+        slack = best - block_r[k]  # |x - centre| + radius <= best, without a square root
+        if slack >= 0.0 and (x[0] - c0) ** 2 + (x[1] - c1) ** 2 + (x[2] - c2) ** 2 <= slack * slack:
             continue
         for i in range(k * SCAN_BLOCK, min(n, (k + 1) * SCAN_BLOCK)):
             d2 = (x[0] - X[i, 0]) ** 2 + (x[1] - X[i, 1]) ** 2 + (x[2] - X[i, 2]) ** 2
