@@ -51,21 +51,8 @@ C1[3:, 3:] = -4.0 * np.eye(3)
 
 
 @njit(cache=True)
-def _mm(A, B):
-    """A @ B by loops: for these few-by-few matrices a BLAS call's overhead exceeds the work."""
-    n, k, m = A.shape[0], A.shape[1], B.shape[1]
-    C = np.zeros((n, m))
-    for i in range(n):
-        for l in range(k):
-            a = A[i, l]
-            for j in range(m):
-                C[i, j] += a * B[l, j]
-    return C
-
-
-@njit(cache=True)
 def _mv(A, x):
-    """A @ x by loops (see _mm)."""
+    """A @ x by loops: for these few-by-few matrices a BLAS call's overhead exceeds the work."""
     y = np.zeros(A.shape[0])
     for i in range(A.shape[0]):
         s = 0.0
@@ -241,6 +228,63 @@ def _degeneracy(S):
 
 
 @njit(cache=True)
+def _schur_complement(S, Li22):
+    """(X = S22^-1 S12^T (4, 6), S' = S11 - S12 X symmetrised (6, 6)) of the scatter matrix
+    S (10, 10), with Li22 = L22^-1 of S22's Cholesky factor: X = Li22^T (Li22 S12^T), by
+    loops in one pass each (every sum in index order)."""
+    T = np.zeros((4, 6))  # Li22 S12^T
+    for i in range(4):
+        for l in range(i + 1):  # Li22 is lower triangular
+            a = Li22[i, l]
+            for j in range(6):
+                T[i, j] += a * S[j, 6 + l]
+    X = np.zeros((4, 6))
+    for i in range(4):
+        for l in range(i, 4):  # Li22^T is upper triangular
+            a = Li22[l, i]
+            for j in range(6):
+                X[i, j] += a * T[l, j]
+    Sp = np.zeros((6, 6))  # S12 X first, then S11 - S12 X
+    for i in range(6):
+        for l in range(4):
+            a = S[i, 6 + l]
+            for j in range(6):
+                Sp[i, j] += a * X[l, j]
+    for i in range(6):
+        for j in range(6):
+            Sp[i, j] = S[i, j] - Sp[i, j]
+    for i in range(6):
+        for j in range(i + 1, 6):
+            Sp[i, j] = Sp[j, i] = 0.5 * (Sp[i, j] + Sp[j, i])
+    return X, Sp
+
+
+@njit(cache=True)
+def _congruence_C1(Li):
+    """K = Li C1 Li^T (6, 6) symmetrised, for the lower-triangular Li: the sums over the
+    non-zero terms of Li and C1 only (C1: the 3x3 block of -1 / +1 and -4 I), in index order."""
+    M = np.zeros((6, 6))  # Li C1
+    for i in range(6):
+        for l in range(min(i, 2) + 1):
+            a = Li[i, l]
+            for j in range(3):
+                M[i, j] += a * C1[l, j]
+        for j in range(3, i + 1):
+            M[i, j] = Li[i, j] * -4.0
+    K = np.zeros((6, 6))  # M Li^T
+    for i in range(6):
+        for j in range(6):
+            s = 0.0
+            for l in range(j + 1):
+                s += M[i, l] * Li[j, l]
+            K[i, j] = s
+    for i in range(6):
+        for j in range(i + 1, 6):
+            K[i, j] = K[j, i] = 0.5 * (K[i, j] + K[j, i])
+    return K
+
+
+@njit(cache=True)
 def fit_quadric(S, check_spread):
     """(status code, v (10,)): the ellipsoid-specific least-squares quadric of scatter
     matrix S; `check_spread` adds the collinear/coplanar test (too few points are always
@@ -249,15 +293,11 @@ def fit_quadric(S, check_spread):
     code = _degeneracy(S) if check_spread else (1 if S[9, 9] < MIN_POINTS else 0)
     if code:
         return code, v
-    S12 = np.ascontiguousarray(S[:6, 6:])
-    S22 = np.ascontiguousarray(S[6:, 6:])
-    L22, ok = _cholesky(S22)
+    L22, ok = _cholesky(np.ascontiguousarray(S[6:, 6:]))
     if not ok:  # S22 is positive definite unless the data is flat
         return 3, v
     Li22 = _lower_inverse(L22)
-    X = _mm(Li22.T, _mm(Li22, S12.T))  # S22^-1 S12^T, (4, 6)
-    Sp = S[:6, :6] - _mm(S12, X)
-    Sp = 0.5 * (Sp + Sp.T)
+    X, Sp = _schur_complement(S, Li22)
     L, ok = _cholesky(Sp)
     pivot2 = np.inf
     for i in range(6):
@@ -276,9 +316,8 @@ def fit_quadric(S, check_spread):
         if not ok:
             return 4, v
     Li = _lower_inverse(L)
-    K = _mm(_mm(Li, C1), Li.T)
     start = _mv(L.T, np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]))  # the sphere direction (v1^T C1 v1 > 0)
-    w, mu = _top_eigenvector(0.5 * (K + K.T), start)
+    w, mu = _top_eigenvector(_congruence_C1(Li), start)
     if not (mu > 0.0):
         return 4, v
     v1 = _mv(Li.T, w)
