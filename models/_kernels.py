@@ -619,7 +619,10 @@ def gate_points(P, keep, quadric, has_quadric, p0, scale, n_model_points, params
     `residual` (1,) the robust residual (mm, refreshed every RESIDUAL_REFRESH accepted
     points as 1.4826 x the median of `recent`, the last accepted distances, mm).
     `quadric` (10,) is the current model about p0 in coordinates (x - p0) / scale
-    (ignored unless `has_quadric`: every distance is then 0)."""
+    (ignored unless `has_quadric`: every distance is then 0). Each point's jump is
+    measured from the last point kept before it, so a rejected floater never becomes the
+    reference for the next A-scan; while more than max_consecutive far points have come
+    in a row, they are kept: that is retina, not a floater."""
     if counts[G_HAS_LAST] == 0:  # nothing to compare the very first point with: it becomes the reference
         last[0], last[1], last[2] = P[0, 0], P[0, 1], P[0, 2]
         counts[G_HAS_LAST] = 1
