@@ -4,7 +4,9 @@ An update of the adaptive model is a handful of operations on 4x4, 6x6 and 10x10
 matrices; in NumPy each costs one to three microseconds of call overhead, which at one
 update per A-scan (2 kHz) dominates the arithmetic. These kernels do the same
 arithmetic in one compiled call each. They are the only implementation (the batch fits
-use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit).
+use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit); one
+A-scan's whole update (gate, sphere filter, scatter matrix, scan range, refit,
+residuals) is one call of `ascan_update`, which runs the same kernels as a batch update.
 
 The ellipsoid-specific fit (Li & Griffiths 2004, k = 4) minimises v^T S v subject to
 v1^T C1 v1 = 1. With the Schur complement S' = S11 - S12 S22^-1 S12^T (symmetric,
@@ -14,7 +16,8 @@ K = L^-1 C1 L^-T, with S' = L L^T, has exactly one positive eigenvalue mu = 1 / 
 and its eigenvector w gives the solution v1 = L^-T w: a symmetric eigenproblem, real by
 construction (a general eigensolver on C1^-1 S' may return near-equal negative
 eigenvalues as complex pairs), solved by shifted power iteration (the positive
-eigenvalue is the largest) with cyclic Jacobi as the fallback. S' is singular when the
+eigenvalue is the largest), finished by Rayleigh quotient iteration where the power
+iteration is slow, with cyclic Jacobi as the fallback. S' is singular when the
 points lie exactly on a quadric (noise-free data): its null vector is then the answer
 if it is an ellipsoid (v1^T C1 v1 > 0), no answer exists on the k = 4 boundary (= 0: a
 paraboloid, a cylinder, semi-axes (a, a, a/2)), and otherwise the minimiser is found as
@@ -33,7 +36,9 @@ FIT_STATUS = ("ok", "too_few_points", "collinear", "coplanar", "not_ellipsoid")
 MIN_POINTS = 9
 PLANARITY_TOL = 1e-10  # smallest / largest point-cloud variance below which data is flat
 _REGULARISATION = 1e-15  # relative to trace(S'), see the module doc
-POWER_ITERATIONS = 40  # beyond, the Jacobi solver is cheaper than converging slowly
+POWER_ITERATIONS = 40  # power steps at the most, before the Jacobi solver
+RQI_AFTER = 6  # power steps before Rayleigh quotient iteration may take over (_top_eigenvector)
+RQI_STEPS = 6  # Rayleigh quotient steps (cubic convergence: 2-3 suffice) before the Jacobi fallback
 NEAR_SINGULAR = 1e-8  # smallest Cholesky pivot^2 / largest diagonal of S' that asks for its eigenvalues
 EXACT_QUADRIC = 1e-12  # smallest / largest eigenvalue of S' at which the points lie on one quadric
 BOUNDARY = 1e-12  # |v1^T C1 v1| of a unit v1 below which a quadric is on the k = 4 boundary
@@ -46,21 +51,8 @@ C1[3:, 3:] = -4.0 * np.eye(3)
 
 
 @njit(cache=True)
-def _mm(A, B):
-    """A @ B by loops: for these few-by-few matrices a BLAS call's overhead exceeds the work."""
-    n, k, m = A.shape[0], A.shape[1], B.shape[1]
-    C = np.zeros((n, m))
-    for i in range(n):
-        for l in range(k):
-            a = A[i, l]
-            for j in range(m):
-                C[i, j] += a * B[l, j]
-    return C
-
-
-@njit(cache=True)
 def _mv(A, x):
-    """A @ x by loops (see _mm)."""
+    """A @ x by loops: for these few-by-few matrices a BLAS call's overhead exceeds the work."""
     y = np.zeros(A.shape[0])
     for i in range(A.shape[0]):
         s = 0.0
@@ -120,12 +112,18 @@ def _cholesky(A):
     n = A.shape[0]
     L = np.zeros((n, n))
     for j in range(n):
-        s = A[j, j] - np.sum(L[j, :j] ** 2)
+        acc = 0.0  # the sums run in index order, from 0: no temporary arrays
+        for k in range(j):
+            acc += L[j, k] * L[j, k]
+        s = A[j, j] - acc
         if not s > 1e-300:
             return L, False
         L[j, j] = np.sqrt(s)
         for i in range(j + 1, n):
-            L[i, j] = (A[i, j] - np.sum(L[i, :j] * L[j, :j])) / L[j, j]
+            acc = 0.0
+            for k in range(j):
+                acc += L[i, k] * L[j, k]
+            L[i, j] = (A[i, j] - acc) / L[j, j]
     return L, True
 
 
@@ -139,9 +137,15 @@ def sphere_state(Y, y):
         return x, False
     u = np.zeros(4)
     for i in range(4):
-        u[i] = (y[i] - np.sum(L[i, :i] * u[:i])) / L[i, i]
+        acc = 0.0
+        for k in range(i):
+            acc += L[i, k] * u[k]
+        u[i] = (y[i] - acc) / L[i, i]
     for i in range(3, -1, -1):
-        x[i] = (u[i] - np.sum(L[i + 1:, i] * x[i + 1:])) / L[i, i]
+        acc = 0.0
+        for k in range(i + 1, 4):
+            acc += L[k, i] * x[k]
+        x[i] = (u[i] - acc) / L[i, i]
     return x, x[3] + x[0] * x[0] + x[1] * x[1] + x[2] * x[2] > 0.0
 
 
@@ -224,6 +228,63 @@ def _degeneracy(S):
 
 
 @njit(cache=True)
+def _schur_complement(S, Li22):
+    """(X = S22^-1 S12^T (4, 6), S' = S11 - S12 X symmetrised (6, 6)) of the scatter matrix
+    S (10, 10), with Li22 = L22^-1 of S22's Cholesky factor: X = Li22^T (Li22 S12^T), by
+    loops in one pass each (every sum in index order)."""
+    T = np.zeros((4, 6))  # Li22 S12^T
+    for i in range(4):
+        for l in range(i + 1):  # Li22 is lower triangular
+            a = Li22[i, l]
+            for j in range(6):
+                T[i, j] += a * S[j, 6 + l]
+    X = np.zeros((4, 6))
+    for i in range(4):
+        for l in range(i, 4):  # Li22^T is upper triangular
+            a = Li22[l, i]
+            for j in range(6):
+                X[i, j] += a * T[l, j]
+    Sp = np.zeros((6, 6))  # S12 X first, then S11 - S12 X
+    for i in range(6):
+        for l in range(4):
+            a = S[i, 6 + l]
+            for j in range(6):
+                Sp[i, j] += a * X[l, j]
+    for i in range(6):
+        for j in range(6):
+            Sp[i, j] = S[i, j] - Sp[i, j]
+    for i in range(6):
+        for j in range(i + 1, 6):
+            Sp[i, j] = Sp[j, i] = 0.5 * (Sp[i, j] + Sp[j, i])
+    return X, Sp
+
+
+@njit(cache=True)
+def _congruence_C1(Li):
+    """K = Li C1 Li^T (6, 6) symmetrised, for the lower-triangular Li: the sums over the
+    non-zero terms of Li and C1 only (C1: the 3x3 block of -1 / +1 and -4 I), in index order."""
+    M = np.zeros((6, 6))  # Li C1
+    for i in range(6):
+        for l in range(min(i, 2) + 1):
+            a = Li[i, l]
+            for j in range(3):
+                M[i, j] += a * C1[l, j]
+        for j in range(3, i + 1):
+            M[i, j] = Li[i, j] * -4.0
+    K = np.zeros((6, 6))  # M Li^T
+    for i in range(6):
+        for j in range(6):
+            s = 0.0
+            for l in range(j + 1):
+                s += M[i, l] * Li[j, l]
+            K[i, j] = s
+    for i in range(6):
+        for j in range(i + 1, 6):
+            K[i, j] = K[j, i] = 0.5 * (K[i, j] + K[j, i])
+    return K
+
+
+@njit(cache=True)
 def fit_quadric(S, check_spread):
     """(status code, v (10,)): the ellipsoid-specific least-squares quadric of scatter
     matrix S; `check_spread` adds the collinear/coplanar test (too few points are always
@@ -232,15 +293,11 @@ def fit_quadric(S, check_spread):
     code = _degeneracy(S) if check_spread else (1 if S[9, 9] < MIN_POINTS else 0)
     if code:
         return code, v
-    S12 = np.ascontiguousarray(S[:6, 6:])
-    S22 = np.ascontiguousarray(S[6:, 6:])
-    L22, ok = _cholesky(S22)
+    L22, ok = _cholesky(np.ascontiguousarray(S[6:, 6:]))
     if not ok:  # S22 is positive definite unless the data is flat
         return 3, v
     Li22 = _lower_inverse(L22)
-    X = _mm(Li22.T, _mm(Li22, S12.T))  # S22^-1 S12^T, (4, 6)
-    Sp = S[:6, :6] - _mm(S12, X)
-    Sp = 0.5 * (Sp + Sp.T)
+    X, Sp = _schur_complement(S, Li22)
     L, ok = _cholesky(Sp)
     pivot2 = np.inf
     for i in range(6):
@@ -259,9 +316,8 @@ def fit_quadric(S, check_spread):
         if not ok:
             return 4, v
     Li = _lower_inverse(L)
-    K = _mm(_mm(Li, C1), Li.T)
     start = _mv(L.T, np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0]))  # the sphere direction (v1^T C1 v1 > 0)
-    w, mu = _top_eigenvector(0.5 * (K + K.T), start)
+    w, mu = _top_eigenvector(_congruence_C1(Li), start)
     if not (mu > 0.0):
         return 4, v
     v1 = _mv(Li.T, w)
@@ -273,29 +329,107 @@ def fit_quadric(S, check_spread):
 
 @njit(cache=True)
 def _top_eigenvector(K, start):
-    """(unit eigenvector, eigenvalue) of the largest eigenvalue of the symmetric K (n, n):
-    power iteration on K + sigma I, sigma from Gershgorin's bound so that every eigenvalue
-    of the shifted matrix is >= 0 and the largest dominates; from `start` (not orthogonal
-    to the answer), until the residual |K y - mu y| is at rounding level of mu. K's one positive
-    eigenvalue is far above the rest for data near an ellipsoid, so a few tens of 6x6
-    products; eigh_sym (~5 us) when it has not converged in POWER_ITERATIONS (small early
-    patches, where the positive eigenvalue does not stand out)."""
+    """(unit eigenvector, eigenvalue) of the largest eigenvalue of the symmetric K (n, n),
+    which has exactly one positive eigenvalue mu (see the module doc): power iteration
+    on K + sigma I, sigma from Gershgorin's bound so that every eigenvalue of the shifted
+    matrix is >= 0 and the largest dominates; from `start` (not orthogonal to the
+    answer), until the residual |K y - mu y| is at rounding level of mu. For data near an
+    ellipsoid mu stands far above the rest: a few tens of 6x6 products. On small early
+    patches it does not, and the power iteration crawls; once it has taken RQI_AFTER
+    steps and its residual is below mu / 2, an eigenvalue lies within that of mu and
+    every other one is negative, more than mu away, so Rayleigh quotient iteration
+    converges to the answer: two or three 6x6 solves. eigh_sym when neither converges."""
     n = K.shape[0]
     g = np.inf
+    norm_K = 0.0  # largest absolute row sum: a bound on |K|, the scale of rounding in K y
     for i in range(n):
-        g = min(g, K[i, i] - (np.sum(np.abs(K[i])) - abs(K[i, i])))
+        row = 0.0
+        for j in range(n):
+            row += abs(K[i, j])
+        g = min(g, K[i, i] - (row - abs(K[i, i])))
+        norm_K = max(norm_K, row)
     sigma = max(0.0, -g)
     y = start / np.sqrt(_dot(start, start))
-    for _ in range(POWER_ITERATIONS):
+    Ky = np.empty(n)
+    for step in range(POWER_ITERATIONS):  # in place: a 6x6 product per step, no temporary arrays
+        for i in range(n):
+            s = 0.0
+            for j in range(n):
+                s += K[i, j] * y[j]
+            Ky[i] = s
+        mu = _dot(y, Ky)
+        r2 = 0.0
+        for i in range(n):
+            r = Ky[i] - mu * y[i]
+            r2 += r * r
+        if r2 <= 1e-28 * mu * mu:  # residual |K y - mu y| <= 1e-14 |mu|: converged, whatever the ratio
+            return y, mu
+        if step >= RQI_AFTER and mu > 0.0 and r2 < 0.25 * mu * mu:
+            return _rayleigh_quotient_iteration(K, y, mu, norm_K)
+        for i in range(n):
+            y[i] = Ky[i] + sigma * y[i]
+        norm = np.sqrt(_dot(y, y))
+        for i in range(n):
+            y[i] /= norm
+    lam, W = eigh_sym(K)
+    return np.ascontiguousarray(W[:, n - 1]), lam[n - 1]
+
+
+@njit(cache=True)
+def _rayleigh_quotient_iteration(K, y, mu, norm_K):
+    """(unit eigenvector, eigenvalue) of the symmetric K (n, n) nearest to mu, from y
+    (unit) with Rayleigh quotient mu, by Rayleigh quotient iteration until the residual
+    is at rounding level of K (|K| <= norm_K); eigh_sym's largest eigenpair when not
+    converged in RQI_STEPS (the caller asks for the largest, which is the nearest)."""
+    n = K.shape[0]
+    A = np.empty((n, n))
+    for _ in range(RQI_STEPS):
+        for i in range(n):
+            for j in range(n):
+                A[i, j] = K[i, j] - (mu if i == j else 0.0)
+        y = _solve(A, y, 1e-300 + 1e-16 * norm_K)
+        y /= np.sqrt(_dot(y, y))
         Ky = _mv(K, y)
         mu = _dot(y, Ky)
-        r = Ky - mu * y
-        if _dot(r, r) <= 1e-28 * mu * mu:  # residual |K y - mu y| <= 1e-14 |mu|: converged, whatever the ratio
+        r2 = 0.0
+        for i in range(n):
+            r = Ky[i] - mu * y[i]
+            r2 += r * r
+        if r2 <= 1e-28 * max(mu * mu, norm_K * norm_K):
             return y, mu
-        y = Ky + sigma * y
-        y /= np.sqrt(_dot(y, y))
-    mu, W = eigh_sym(K)
-    return np.ascontiguousarray(W[:, n - 1]), mu[n - 1]
+    lam, W = eigh_sym(K)
+    return np.ascontiguousarray(W[:, n - 1]), lam[n - 1]
+
+
+@njit(cache=True)
+def _solve(A, b, tiny):
+    """x with A x = b for A (n, n) (overwritten), by Gaussian elimination with partial
+    pivoting; a pivot below `tiny` is replaced by `tiny` (for a shift at an eigenvalue,
+    where the near-singular solve is the point: its answer is the eigenvector)."""
+    n = A.shape[0]
+    x = b.copy()
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(A[i, k]) > abs(A[p, k]):
+                p = i
+        if p != k:
+            for j in range(n):
+                A[k, j], A[p, j] = A[p, j], A[k, j]
+            x[k], x[p] = x[p], x[k]
+        if abs(A[k, k]) < tiny:
+            A[k, k] = tiny
+        for i in range(k + 1, n):
+            f = A[i, k] / A[k, k]
+            for j in range(k + 1, n):
+                A[i, j] -= f * A[k, j]
+            x[i] -= f * x[k]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for j in range(i + 1, n):
+            s -= A[i, j] * x[j]
+        x[i] = s / A[i, i]
+    return x
 
 
 @njit(cache=True)
@@ -313,19 +447,30 @@ def quadric_parameters(v, p0, scale):
     columns, right-handed) in mm and the frame of p0, of the quadric v (10,) given in
     coordinates (x - p0) / scale; not ok when it is not a real ellipsoid."""
     a, b, c, f, g, h = v[0], v[1], v[2], v[3], v[4], v[5]
-    A = np.array([[a, h, g], [h, b, f], [g, f, c]])
+    A = np.empty((3, 3))
+    A[0, 0], A[0, 1], A[0, 2], A[1, 0], A[1, 1], A[1, 2], A[2, 0], A[2, 1], A[2, 2] = a, h, g, h, b, f, g, f, c
     center = np.zeros(3)
     radii = np.zeros(3)
     R = np.eye(3)
     detA = a * (b * c - f * f) - h * (h * c - f * g) + g * (h * f - b * g)
     if not (abs(detA) > 1e-300):
         return False, center, radii, R
-    adj = np.array([[b * c - f * f, g * f - h * c, h * f - b * g],
-                    [g * f - h * c, a * c - g * g, h * g - a * f],
-                    [h * f - b * g, h * g - a * f, a * b - h * h]])  # A symmetric: A^-1 = adj / det
-    w = -_mv(adj, v[6:9]) / detA
-    mu = _dot(w, _mv(A, w)) - v[9]
-    lam, E = eigh_sym(A / mu)
+    # A symmetric: A^-1 = adj / det; the centre w = -A^-1 v[6:9]
+    adj = np.empty((3, 3))
+    adj[0, 0], adj[0, 1], adj[0, 2] = b * c - f * f, g * f - h * c, h * f - b * g
+    adj[1, 0], adj[1, 1], adj[1, 2] = g * f - h * c, a * c - g * g, h * g - a * f
+    adj[2, 0], adj[2, 1], adj[2, 2] = h * f - b * g, h * g - a * f, a * b - h * h
+    w = np.empty(3)
+    for i in range(3):
+        w[i] = -(adj[i, 0] * v[6] + adj[i, 1] * v[7] + adj[i, 2] * v[8]) / detA
+    wAw = 0.0
+    for i in range(3):
+        wAw += w[i] * (A[i, 0] * w[0] + A[i, 1] * w[1] + A[i, 2] * w[2])
+    mu = wAw - v[9]
+    for i in range(3):
+        for j in range(3):
+            A[i, j] /= mu
+    lam, E = eigh_sym(A)
     if not (lam[0] > 0.0 and np.isfinite(lam[2])):
         return False, center, radii, R
     E = np.ascontiguousarray(E)
@@ -365,19 +510,28 @@ def taubin_residuals(S, V):
         for j in range(4):
             M[i, j] = S[6 + i, 6 + j] * (0.5 if i < 3 else 1.0) * (0.5 if j < 3 else 1.0)
     out = np.empty(V.shape[0])
-    for k in range(V.shape[0]):
-        v = V[k]
-        q2 = _dot(v, _mv(S, v))
+    for k in range(V.shape[0]):  # the products by loops, in index order: no temporary arrays
+        q2 = 0.0
+        for i in range(10):
+            Sv = 0.0
+            for j in range(10):
+                Sv += S[i, j] * V[k, j]
+            q2 += V[k, i] * Sv
         g2 = 0.0
         for i in range(3):
-            wi = np.array([v[GRAD_ROWS[i, 0]], v[GRAD_ROWS[i, 1]], v[GRAD_ROWS[i, 2]], v[GRAD_ROWS[i, 3]]])
-            g2 += _dot(wi, _mv(M, wi))
+            wMw = 0.0
+            for a in range(4):
+                Mw = 0.0
+                for b in range(4):
+                    Mw += M[a, b] * V[k, GRAD_ROWS[i, b]]
+                wMw += V[k, GRAD_ROWS[i, a]] * Mw
+            g2 += wMw
         g2 *= 4.0
         out[k] = np.sqrt(max(q2, 0.0) / g2) if g2 > 0.0 else np.inf
     return out
 
 
-SCAN_BLOCK = 64  # points per bounding ball of models.scan_range
+SCAN_BLOCK = 16  # points per bounding ball of models.scan_range (16: ~1 us per point on the paper spiral, 64: ~2.5)
 
 
 @njit(cache=True)
@@ -385,18 +539,20 @@ def diameter_after_adding(X, block_r, n, p, p0, diameter):
     """The diameter (mm) of the first n rows of X (cap, 3) and x = p - p0 (3,), given theirs
     (`diameter`); x is stored as row n and its block's radius updated, in place. Block k
     holds rows [k B, (k + 1) B) with B = SCAN_BLOCK, its ball centred on row k B with
-    radius block_r[k]; a block with |x - centre| + radius <= diameter is skipped."""
+    radius block_r[k]; a block with |x - centre| + radius <= the largest distance found
+    so far (at first `diameter`) is skipped."""
     x = p - p0
-    best2 = diameter * diameter
+    best, best2 = diameter, diameter * diameter
     for k in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
         c0, c1, c2 = X[k * SCAN_BLOCK, 0], X[k * SCAN_BLOCK, 1], X[k * SCAN_BLOCK, 2]
-        dc = np.sqrt((x[0] - c0) ** 2 + (x[1] - c1) ** 2 + (x[2] - c2) ** 2)
-        if dc + block_r[k] <= diameter:
+        slack = best - block_r[k]  # |x - centre| + radius <= best, without a square root
+        if slack >= 0.0 and (x[0] - c0) ** 2 + (x[1] - c1) ** 2 + (x[2] - c2) ** 2 <= slack * slack:
             continue
         for i in range(k * SCAN_BLOCK, min(n, (k + 1) * SCAN_BLOCK)):
             d2 = (x[0] - X[i, 0]) ** 2 + (x[1] - X[i, 1]) ** 2 + (x[2] - X[i, 2]) ** 2
             if d2 > best2:
                 best2 = d2
+        best = np.sqrt(best2)
     X[n, 0], X[n, 1], X[n, 2] = x[0], x[1], x[2]
     k = n // SCAN_BLOCK
     if n % SCAN_BLOCK == 0:
@@ -407,3 +563,170 @@ def diameter_after_adding(X, block_r, n, p, p0, diameter):
         if r > block_r[k]:
             block_r[k] = r
     return np.sqrt(best2)
+
+
+@njit(cache=True)
+def sphere_absorb(Y, y, P, p0, scale, n_total):
+    """add_sphere_rows, then (state (4,), ok) of sphere_state once the filter holds
+    n_total >= 4 points (not ok before: fewer than four points define no sphere)."""
+    add_sphere_rows(Y, y, P, p0, scale)
+    if n_total < 4:
+        return np.zeros(4), False
+    return sphere_state(Y, y)
+
+
+@njit(cache=True)
+def sphere_center_radius(state, p0, scale, center):
+    """Radius (mm) of the sphere filter's state [c, r^2 - |c|^2] (coordinates (x - p0) /
+    scale); its centre (mm, frame of p0) is written to center (3,)."""
+    cx, cy, cz, k = state[0], state[1], state[2], state[3]
+    center[0], center[1], center[2] = p0[0] + scale * cx, p0[1] + scale * cy, p0[2] + scale * cz
+    return scale * np.sqrt(k + cx * cx + cy * cy + cz * cz)
+
+
+@njit(cache=True)
+def sampson_one(v, x, y, z):
+    """|Q| / |grad Q| of the point (x, y, z) (scaled coordinates) from the quadric v (10,):
+    Sampson's first-order distance (scaled units; inf where the gradient vanishes)."""
+    a, b, c, f, g, h, p, q, r, d = v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9]
+    Q = a * x * x + b * y * y + c * z * z + 2.0 * (f * y * z + g * x * z + h * x * y + p * x + q * y + r * z) + d
+    gx, gy, gz = a * x + h * y + g * z + p, h * x + b * y + f * z + q, g * x + f * y + c * z + r
+    grad = 2.0 * np.sqrt(gx * gx + gy * gy + gz * gz)
+    return abs(Q) / grad if grad > 0.0 else np.inf
+
+
+@njit(cache=True)
+def sampson_distances(v, X):
+    """(K,) sampson_one of each row of X (K, 3) (scaled coordinates) from the quadric v (10,)."""
+    out = np.empty(X.shape[0])
+    for k in range(X.shape[0]):
+        out[k] = sampson_one(v, X[k, 0], X[k, 1], X[k, 2])
+    return out
+
+
+RESIDUAL_REFRESH = 16  # accepted points between refreshes of the gate's robust residual (a median)
+# models.outlier_gate.GateState's state, in arrays the gate kernel updates in place:
+# GATE_PARAMS indexes its float parameters, GATE_COUNTS its integer counters
+G_K_RESIDUAL, G_MIN_GATE_MM, G_MIN_POINTS, G_MAX_CONSECUTIVE, G_MAX_JUMP_MM = range(5)
+G_HAS_LAST, G_RUN, G_N_RECENT, G_REFRESH_AT, G_N_REJECTED = range(5)
+
+
+@njit(cache=True)
+def gate_points(P, keep, quadric, has_quadric, p0, scale, n_model_points, params, counts, last, residual, recent):
+    """The innovation gate (models.outlier_gate.OutlierGate) over the points P (N, 3) mm in
+    A-scan order; sets keep[:N] and returns the count kept, updating the gate's state in
+    place: `counts` (GATE_COUNTS: int64), `last` (3,) the last kept point (mm),
+    `residual` (1,) the robust residual (mm, refreshed every RESIDUAL_REFRESH accepted
+    points as 1.4826 x the median of `recent`, the last accepted distances, mm).
+    `quadric` (10,) is the current model about p0 in coordinates (x - p0) / scale
+    (ignored unless `has_quadric`: every distance is then 0). Each point's jump is
+    measured from the last point kept before it, so a rejected floater never becomes the
+    reference for the next A-scan; while more than max_consecutive far points have come
+    in a row, they are kept: that is retina, not a floater."""
+    if counts[G_HAS_LAST] == 0:  # nothing to compare the very first point with: it becomes the reference
+        last[0], last[1], last[2] = P[0, 0], P[0, 1], P[0, 2]
+        counts[G_HAS_LAST] = 1
+    window = recent.shape[0]
+    if counts[G_N_RECENT] >= counts[G_REFRESH_AT]:  # the median is refreshed every REFRESH points, not per point
+        m = min(counts[G_N_RECENT], window)
+        residual[0] = 1.4826 * np.median(recent[:m]) if m > 0 else np.inf
+        counts[G_REFRESH_AT] = counts[G_N_RECENT] + RESIDUAL_REFRESH
+    use_model = n_model_points >= params[G_MIN_POINTS] and residual[0] < np.inf
+    gate = max(params[G_MIN_GATE_MM], params[G_K_RESIDUAL] * residual[0]) if use_model else np.inf
+    n_kept = 0
+    for n in range(P.shape[0]):
+        px, py, pz = P[n, 0], P[n, 1], P[n, 2]
+        d = 0.0
+        if has_quadric:
+            d = scale * sampson_one(quadric, (px - p0[0]) / scale, (py - p0[1]) / scale, (pz - p0[2]) / scale)
+        jump = np.sqrt((px - last[0]) ** 2 + (py - last[1]) ** 2 + (pz - last[2]) ** 2)
+        near = jump <= params[G_MAX_JUMP_MM] and d <= gate
+        counts[G_RUN] = 0 if near else counts[G_RUN] + 1
+        k = near or counts[G_RUN] > params[G_MAX_CONSECUTIVE]  # a long run of far points is retina
+        keep[n] = k
+        if k:
+            last[0], last[1], last[2] = px, py, pz
+            recent[counts[G_N_RECENT] % window] = d
+            counts[G_N_RECENT] += 1
+            n_kept += 1
+        else:
+            counts[G_N_REJECTED] += 1
+    return n_kept
+
+
+@njit(cache=True)
+def fit_summary(S, sf_state, sf_ok, v_ef, ef_ok, radii, prev_radii, has_prev, v_sf, scale):
+    """(sphere residual mm, ellipsoid residual mm, axis change) of one update of the
+    adaptive model: the RMS distances (Taubin, taubin_residuals) over the points of S of
+    the sphere (state [c, r^2 - |c|^2] in the fits' coordinates scaled by `scale` mm; its
+    quadric is written to v_sf (10,)) and of the ellipsoid v_ef (NaN for a fit that is
+    not ok), and the largest relative change of the sorted semi-axes `radii` since
+    `prev_radii` (NaN unless `has_prev` and ef_ok); prev_radii then holds the sorted
+    radii (the caller keeps has_prev = ef_ok)."""
+    V = np.empty((2, 10))
+    k = 0
+    if sf_ok:
+        cx, cy, cz, c = sf_state[0], sf_state[1], sf_state[2], sf_state[3]
+        v_sf[0], v_sf[1], v_sf[2], v_sf[3], v_sf[4], v_sf[5] = 1.0, 1.0, 1.0, 0.0, 0.0, 0.0
+        v_sf[6], v_sf[7], v_sf[8], v_sf[9] = -cx, -cy, -cz, -c
+        V[k] = v_sf
+        k += 1
+    if ef_ok:
+        V[k] = v_ef
+        k += 1
+    res = scale * taubin_residuals(S, V[:k])
+    sf_res = res[0] if sf_ok else np.nan
+    ef_res = res[k - 1] if ef_ok else np.nan
+    axis_change = np.nan
+    if ef_ok:
+        r = np.sort(radii)
+        if has_prev:
+            axis_change = 0.0
+            for i in range(3):
+                axis_change = max(axis_change, abs(r[i] - prev_radii[i]) / prev_radii[i])
+        prev_radii[:] = r
+    return sf_res, ef_res, axis_change
+
+
+# ascan_update's outcomes and the layout of its output vector `out`
+ASCAN_NONFINITE, ASCAN_GATED, ASCAN_ABSORBED = range(3)
+OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE = 0, 4, 14, 24, 27, 30, 39, 42
+
+
+@njit(cache=True)
+def ascan_update(P1, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
+                 Y, y, S, check_spread, X, block_r, diameter, prev_radii, has_prev, scale, out):
+    """The adaptive model's update by one A-scan's point P1 (1, 3) mm, in one call: the
+    same kernels as a batch update of one point, in the same order. A model of n >= 1
+    points (the batch path takes the first, p0 (mm): the origin of every part) gates P1
+    (gate_points, when `gate_on`; `quadric` the current model about p0) and absorbs it
+    into the sphere filter (Y, y), the scatter matrix S and the scan range (X, block_r,
+    `diameter` mm), refits the ellipsoid (`check_spread`: with the spread test) and
+    summarises the fits (fit_summary), all state updated in place.
+
+    Returns (outcome: ASCAN_NONFINITE / ASCAN_GATED (nothing changed but the gate's state)
+    / ASCAN_ABSORBED, sphere ok, fit status code, diameter mm, sphere residual mm,
+    ellipsoid residual mm, axis change, sphere radius mm); `out` (OUT_SIZE,) receives the
+    sphere state, the sphere's quadric, the fit's quadric, centre, semi-axes and rotation
+    (row-major), and the sphere's centre (mm).
+    """
+    if not (np.isfinite(P1[0, 0]) and np.isfinite(P1[0, 1]) and np.isfinite(P1[0, 2])):
+        return ASCAN_NONFINITE, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
+    if gate_on:
+        keep = np.empty(1, np.bool_)
+        if gate_points(P1, keep, quadric, has_quadric, p0, scale, n, g_params, g_counts, g_last, g_residual,
+                       g_recent) == 0:
+            return ASCAN_GATED, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
+    state, sf_ok = sphere_absorb(Y, y, P1, p0, scale, n + 1)
+    add_design_rows(S, P1, p0, scale)
+    diameter = diameter_after_adding(X, block_r, n, P1[0], p0, diameter)
+    code, v, center, radii, R = fit_ellipsoid_scatter(S, p0, scale, check_spread)
+    v_sf = out[OUT_V_SF:OUT_V_EF]
+    sf_res, ef_res, axis_change = fit_summary(S, state, sf_ok, v, code == 0, radii, prev_radii, has_prev, v_sf, scale)
+    out[OUT_STATE:OUT_V_SF] = state
+    out[OUT_V_EF:OUT_CENTER] = v
+    out[OUT_CENTER:OUT_RADII] = center
+    out[OUT_RADII:OUT_ROTATION] = radii
+    out[OUT_ROTATION:OUT_SF_CENTER] = R.ravel()
+    radius = sphere_center_radius(state, p0, scale, out[OUT_SF_CENTER:OUT_SIZE]) if sf_ok else np.nan
+    return ASCAN_ABSORBED, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius

@@ -1,14 +1,17 @@
 """The adaptive eye model: a sphere at first, an ellipsoid once the data supports it."""
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import numpy as np
 
+from models._kernels import (
+    ASCAN_ABSORBED, ASCAN_NONFINITE, FIT_STATUS, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE, OUT_STATE,
+    OUT_V_EF, OUT_V_SF, ascan_update, fit_summary,
+)
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
-from models.ellipsoid_fit import LENGTH_SCALE_MM, IncrementalEllipsoidFit, taubin_residual
+from models.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, IncrementalEllipsoidFit
 from models.outlier_gate import GateState, OutlierGate
 from models.scan_range import ScanRange
 from models.sphere import Sphere
@@ -81,7 +84,8 @@ class AdaptiveEyeModel:
         self._ef = IncrementalEllipsoidFit()
         self._range = ScanRange()
         self._memory = self.criteria.initial_state()
-        self._prev_radii: np.ndarray | None = None
+        self._prev_radii = np.zeros(3)  # sorted semi-axes of the previous fit (mm), valid when _has_prev
+        self._has_prev = False
         self.kind = "sphere"
         self.transition_index: int | None = None
         self.n_rejected_nonfinite = 0
@@ -116,19 +120,15 @@ class AdaptiveEyeModel:
     def update(self, P) -> ModelUpdate | None:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
         no entry, if no point was finite and passed the gate)."""
-        if isinstance(P, np.ndarray) and P.shape in ((3,), (1, 3)) and P.dtype == np.float64:
-            P = P.reshape(1, 3)  # one A-scan's point: the per-A-scan path, checked in floats
-            self.n_received += 1
-            if not all(map(math.isfinite, P[0].tolist())):
-                self.n_rejected_nonfinite += 1
-                P = P[:0]
-        else:
-            P = as_points(P, "P", allow_nonfinite=True)
-            self.n_received += len(P)
-            finite = np.isfinite(P).all(axis=1)
-            if not finite.all():
-                self.n_rejected_nonfinite += int((~finite).sum())
-                P = P[finite]
+        if (isinstance(P, np.ndarray) and P.shape in ((3,), (1, 3)) and P.dtype == np.float64
+                and self._ef.p0 is not None):
+            return self._update_one(P.reshape(1, 3))
+        P = as_points(P, "P", allow_nonfinite=True)
+        self.n_received += len(P)
+        finite = np.isfinite(P).all(axis=1)
+        if not finite.all():
+            self.n_rejected_nonfinite += int((~finite).sum())
+            P = P[finite]
         if self._gate is not None:
             P = self._gate.admit(P, self._current, self._ef.p0, self.n_points)
         self.last_accepted = P
@@ -137,38 +137,60 @@ class AdaptiveEyeModel:
         self._sf.absorb(P)
         self._ef.add(P)
         self._range.add(P)
-        entry = self._evaluate(self._ef.fit())
-        self.history.append(entry)
-        return entry
+        fit = self._ef.fit()
+        sf_ok = self._sf.state is not None
+        v_sf = np.empty(10)
+        sf_res, ef_res, axis_change = fit_summary(
+            self._ef.S, self._sf.state if sf_ok else _NO_STATE, sf_ok, fit.v if fit.ok else _NO_QUADRIC, fit.ok,
+            fit.radii if fit.ok else _NO_RADII, self._prev_radii, fit.ok and self._has_prev, v_sf, LENGTH_SCALE_MM)
+        return self._evaluate(fit, v_sf if sf_ok else None, self._sf.center_radius, sf_res, ef_res, axis_change)
 
-    def _evaluate(self, fit) -> ModelUpdate:
-        sf = self._sf.center_radius
-        S = self._ef.S
-        sf_res = ef_res = axis_change = np.nan
-        v_sf = None
-        V = np.empty((2, 10))  # the sphere's and the ellipsoid's quadrics, for one residual call
-        if sf is not None:
-            # the Kalman state [c, r^2 - |c|^2] is already in the fits' scaled coordinates
-            # (both take the first point as origin): the sphere's quadric without a round trip
-            cx, cy, cz, k = self._sf.state.tolist()
-            V[0] = (1.0, 1.0, 1.0, 0.0, 0.0, 0.0, -cx, -cy, -cz, -k)
-            v_sf = V[0]
-        if fit.ok:
-            if v_sf is None:
-                ef_res = LENGTH_SCALE_MM * taubin_residual(S, fit.v)
-            else:
-                V[1] = fit.v
-                sf_res, ef_res = (LENGTH_SCALE_MM * taubin_residual(S, V)).tolist()
-            radii = sorted(fit.radii.tolist())
-            if self._prev_radii is not None:
-                axis_change = max(abs(a - b) / b for a, b in zip(radii, self._prev_radii))
-            self._prev_radii = radii
+    def _update_one(self, P1: np.ndarray) -> ModelUpdate | None:
+        """`update` by one A-scan's point P1 (1, 3) float mm, once the model has its first
+        point: the batch path's kernels in one compiled call (models._kernels.ascan_update).
+        The sphere filter, the ellipsoid fit and the scan range all took the first point as
+        their origin: ef.p0 stands for the three."""
+        self.n_received += 1
+        sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
+        n = sf.n_points
+        scan.reserve_one()
+        check = ef.spread_check_due(n + 1)
+        g = _NO_GATE if gate is None else gate
+        current = self._current
+        out = np.empty(OUT_SIZE)
+        outcome, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = ascan_update(
+            P1, n, ef.p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
+            g.params, g.counts, g.last, g.residual, g.recent, sf.information, sf.information_vector, ef.S, check,
+            scan.X, scan.block_r, scan.diameter_mm, self._prev_radii, self._has_prev, LENGTH_SCALE_MM, out)
+        if outcome != ASCAN_ABSORBED:
+            if outcome == ASCAN_NONFINITE:
+                self.n_rejected_nonfinite += 1
+            self.last_accepted = P1[:0]
+            return None
+        self.last_accepted = P1
+        sf.n_points = n + 1
+        sf.state = out[OUT_STATE:OUT_V_SF] if sf_ok else None
+        ef.took(1)
+        scan.took_one(diameter)
+        if code:
+            fit = EllipsoidFit(FIT_STATUS[code])
         else:
-            if v_sf is not None:
-                sf_res = LENGTH_SCALE_MM * taubin_residual(S, v_sf)
-            self._prev_radii = None
+            fit = EllipsoidFit("ok", out[OUT_CENTER:OUT_RADII], out[OUT_RADII:OUT_ROTATION],
+                               out[OUT_ROTATION:OUT_SF_CENTER].reshape(3, 3), out[OUT_V_EF:OUT_CENTER])
+        ef.record(fit, check)
+        if sf_ok:
+            return self._evaluate(fit, out[OUT_V_SF:OUT_V_EF], (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res,
+                                  axis_change)
+        return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
+
+    def _evaluate(self, fit, v_sf, sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
+        """The criteria, the transition and the history entry of an update whose fits are
+        `fit` (the ellipsoid's EllipsoidFit), v_sf (the sphere's quadric in the fits' scaled
+        coordinates) and sf (its centre mm, radius mm) (both None without a sphere), with
+        residuals (mm) and axis change from fit_summary."""
+        self._has_prev = fit.ok
         snap = FitSnapshot(
-            self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, S, v_sf,
+            self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, self._ef.S, v_sf,
             fit.v if fit.ok else None, sf, (fit.center, fit.radii, fit.rotation) if fit.ok else None, self._ef.p0,
         )
         criteria, self._memory = self.criteria.evaluate(snap, self._memory)
@@ -180,19 +202,17 @@ class AdaptiveEyeModel:
             self.transition_index = None
         last = self._ef.last_ok
         self._current = last.v if self.kind == "ellipsoid" and last is not None else v_sf
-        return ModelUpdate(
-            n_points=self.n_points,
-            kind=self.kind,
-            scan_range_mm=snap.scan_range_mm,
-            sf_residual_mm=sf_res,
-            ef_residual_mm=ef_res,
-            axis_change=axis_change,
-            criteria=criteria,
-            ef_status=fit.status,
-            sphere_center=None if sf is None else sf[0],
-            sphere_radius=np.nan if sf is None else sf[1],
-            ellipsoid_center=None if last is None else last.center,
-            ellipsoid_radii=None if last is None else last.radii,
-            ellipsoid_rotation=None if last is None else last.rotation,
-            n_received=self.n_received,
+        entry = ModelUpdate(
+            self.n_points, self.kind, snap.scan_range_mm, sf_res, ef_res, axis_change, criteria, fit.status,
+            None if sf is None else sf[0], np.nan if sf is None else sf[1],
+            None if last is None else last.center, None if last is None else last.radii,
+            None if last is None else last.rotation, self.n_received,
         )
+        self.history.append(entry)
+        return entry
+
+
+_NO_GATE = GateState(OutlierGate())  # fills the compiled update's gate arguments when the gate is off (unread)
+_NO_QUADRIC = np.zeros(10)  # stands for an absent quadric in compiled calls (read only with its flag)
+_NO_STATE = np.zeros(4)
+_NO_RADII = np.zeros(3)

@@ -18,14 +18,6 @@ from models.ellipsoid import Ellipsoid
 LENGTH_SCALE_MM = 10.0  # scaled coordinates are O(1) for an eye
 
 
-def design_rows(X: np.ndarray) -> np.ndarray:
-    """(N, 10) design rows m(x) for scaled, centred points X (N, 3)."""
-    x, y, z = X.T
-    return np.column_stack(
-        [x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, np.ones(len(X))]
-    )
-
-
 class EllipsoidFit:
     """Outcome of one ellipsoid fit.
 
@@ -121,17 +113,30 @@ class IncrementalEllipsoidFit:
         add_design_rows(self.S, P, self.p0, LENGTH_SCALE_MM)
         self._n += len(P)
 
+    def took(self, k: int) -> None:
+        """Count k points that a compiled caller has added to S itself (add_design_rows
+        about p0 with LENGTH_SCALE_MM)."""
+        self._n += k
+
     def fit(self) -> EllipsoidFit:
         """Refit from all points so far; keeps `last_ok` on failure."""
         if self.p0 is None:
             return EllipsoidFit("too_few_points")
-        # Adding points only widens a cloud's scatter about its mean, so once spread in
-        # 3-D it stays so; the ratio test is still repeated every SPREAD_RECHECK points.
-        n = self.n_points
-        check = not self._spread_checked_at or n - self._spread_checked_at >= self.SPREAD_RECHECK
-        result = fit_scatter(self.S, self.p0, check_spread=check)
-        if check:
-            self._spread_checked_at = n if result.status not in ("collinear", "coplanar", "too_few_points") else 0
+        check = self.spread_check_due(self.n_points)
+        return self.record(fit_scatter(self.S, self.p0, check_spread=check), check)
+
+    def spread_check_due(self, n: int) -> bool:
+        """Whether the fit of n points must run the collinear/coplanar test. Adding points
+        only widens a cloud's scatter about its mean, so once spread in 3-D it stays so;
+        the ratio test is still repeated every SPREAD_RECHECK points."""
+        return not self._spread_checked_at or n - self._spread_checked_at >= self.SPREAD_RECHECK
+
+    def record(self, result: EllipsoidFit, checked: bool) -> EllipsoidFit:
+        """Take in the fit `result` of all points so far (`checked`: with the spread test):
+        `last_ok` and the spread test's schedule; returns the result. For a caller that
+        ran the fit kernel itself (the per-A-scan update, models.adaptive)."""
+        if checked:
+            self._spread_checked_at = self._n if result.status not in ("collinear", "coplanar", "too_few_points") else 0
         if result.ok:
             self.last_ok = result
         return result

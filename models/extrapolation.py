@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.ellipsoid_fit import design_rows
+from models._kernels import sampson_distances
 from models.sampling import unit_sphere_grid
 
 _DIRECTIONS = unit_sphere_grid(12, 24)  # 288 directions over the whole surface
@@ -21,7 +21,6 @@ def global_surface_points(center, radii, rotation, anterior_dir, crop) -> np.nda
 
 
 def sampson_distance(v: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """(K,) first-order distance |Q(x)| / |grad Q(x)| of points X (K, 3) from quadric v (10,)."""
-    A = np.array([[v[0], v[5], v[4]], [v[5], v[1], v[3]], [v[4], v[3], v[2]]])
-    grad = 2.0 * (X @ A + v[6:9])
-    return np.abs(design_rows(X) @ v) / np.linalg.norm(grad, axis=1)
+    """(K,) first-order distance |Q(x)| / |grad Q(x)| of points X (K, 3) from quadric v (10,)
+    (inf where the gradient vanishes); the compiled one the outlier gate uses."""
+    return sampson_distances(v, X)

@@ -10,11 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models._kernels import G_N_REJECTED, RESIDUAL_REFRESH, gate_points
 from models._validation import check_count, check_positive
 from models.ellipsoid_fit import LENGTH_SCALE_MM
-from models.extrapolation import sampson_distance
 
-RESIDUAL_REFRESH = 16  # accepted points between refreshes of the robust residual (a median)
+__all__ = ["RESIDUAL_REFRESH", "GateState", "OutlierGate"]  # RESIDUAL_REFRESH: the gate's, defined with its kernel
 
 
 @dataclass(frozen=True)
@@ -46,92 +46,42 @@ class OutlierGate:
         check_count(self, "min_points", "max_consecutive")
         check_count(self, "window", minimum=1)
 
-    def accept(self, distance_mm, points, last, residual_mm: float, n_model_points: int, run: int):
-        """(keep flags, new count of consecutive rejections, last kept point) for points
-        (sequence of [x, y, z] mm, in A-scan order) at `distance_mm` from a model with
-        robust residual `residual_mm`; each point's jump is measured from the last point
-        KEPT before it (`last` on entry), so a rejected floater never counts as the
-        reference for the next A-scan. While more than `max_consecutive` far points have
-        come in a row, the gate stays open: that is retina, not a floater."""
-        use_model = n_model_points >= self.min_points and residual_mm < float("inf")
-        gate = max(self.min_gate_mm, self.k_residual * residual_mm) if use_model else float("inf")
-        keep = []
-        lx, ly, lz = last
-        for d, (px, py, pz) in zip(distance_mm, points):
-            jump = ((px - lx) ** 2 + (py - ly) ** 2 + (pz - lz) ** 2) ** 0.5
-            near = jump <= self.max_jump_mm and d <= gate
-            run = 0 if near else run + 1
-            k = near or run > self.max_consecutive
-            if k:
-                lx, ly, lz = px, py, pz
-            keep.append(k)
-        return keep, run, [lx, ly, lz]
-
-
-def _median(x: np.ndarray) -> float:
-    """The median of x (inf when empty), by partition: a fifth of np.median's overhead on
-    the gate's 64-value window."""
-    n = len(x)
-    if n == 0:
-        return float("inf")
-    k = n // 2
-    part = np.partition(x, (k - 1, k) if n % 2 == 0 else k)
-    return float(part[k]) if n % 2 else 0.5 * (float(part[k - 1]) + float(part[k]))
-
-
-def _sampson_one(v: list, x: float, y: float, z: float) -> float:
-    """|Q| / |grad Q| of one point (scaled coordinates) for quadric coefficients v, in floats."""
-    a, b, c, f, g, h, p, q, r, d = v
-    Q = a * x * x + b * y * y + c * z * z + 2 * (f * y * z + g * x * z + h * x * y + p * x + q * y + r * z) + d
-    gx, gy, gz = a * x + h * y + g * z + p, h * x + b * y + f * z + q, g * x + f * y + c * z + r
-    grad = 2.0 * (gx * gx + gy * gy + gz * gz) ** 0.5
-    return abs(Q) / grad if grad > 0 else float("inf")
-
 
 class GateState:
     """One model's gate: `admit(P, quadric, p0, n_model_points)` returns the points of P
     (N, 3) mm to keep and counts the others in `n_rejected`. `quadric` (10,) is the current
-    model in the fits' scaled coordinates about `p0` (None before a model exists)."""
+    model in the fits' scaled coordinates about `p0` (None before a model exists).
+
+    The state lives in arrays that the compiled gate (models._kernels.gate_points)
+    updates in place, so that the per-A-scan update can run it inside one compiled call:
+    `params` the gate's numbers, `counts` its counters (indices G_* of models._kernels),
+    `last` the last kept point (mm), `residual` (1,) the robust residual (mm), `recent`
+    the distances (mm) of the last `window` accepted points.
+    """
 
     def __init__(self, gate: OutlierGate):
         self.gate = gate
-        self.n_rejected = 0
-        self._run = 0
-        self._last: list | None = None
-        self._recent = np.empty(gate.window)  # |distance| of recently accepted points, mm
-        self._n_recent = 0
-        self._refresh_at = 0  # count of accepted points at which the residual is next refreshed
-        self._residual = np.inf
+        self.params = np.array([gate.k_residual, gate.min_gate_mm, gate.min_points, gate.max_consecutive,
+                                gate.max_jump_mm], dtype=float)
+        self.counts = np.zeros(5, dtype=np.int64)
+        self.last = np.zeros(3)
+        self.residual = np.array([np.inf])
+        self.recent = np.empty(gate.window)
 
-    @staticmethod
-    def _distances(P: np.ndarray, quadric, p0) -> list:
-        """Distance (mm) of each point of P to the model (0 before a model exists)."""
-        if quadric is None:
-            return [0.0] * len(P)
-        if len(P) == 1:  # the per-A-scan path, in plain floats
-            px, py, pz = P[0].tolist()
-            ox, oy, oz = p0.tolist()
-            L = LENGTH_SCALE_MM
-            return [L * _sampson_one(quadric.tolist(), (px - ox) / L, (py - oy) / L, (pz - oz) / L)]
-        return (LENGTH_SCALE_MM * sampson_distance(quadric, (P - p0) / LENGTH_SCALE_MM)).tolist()
+    @property
+    def n_rejected(self) -> int:
+        return int(self.counts[G_N_REJECTED])
 
     def admit(self, P: np.ndarray, quadric, p0, n_model_points: int) -> np.ndarray:
         if len(P) == 0:
             return P
-        first = self._last is None
-        if first:  # nothing to compare the very first point with: it becomes the reference
-            self._last = P[0].tolist()
-        d = self._distances(P, quadric, p0)
-        if self._n_recent >= self._refresh_at:  # the median is refreshed every REFRESH points, not per point
-            self._residual = 1.4826 * _median(self._recent[: min(self._n_recent, len(self._recent))])
-            self._refresh_at = self._n_recent + RESIDUAL_REFRESH
-        keep, self._run, self._last = self.gate.accept(d, P.tolist(), self._last, self._residual, n_model_points,
-                                                       self._run)
-        for di, k in zip(d, keep):
-            if k:
-                self._recent[self._n_recent % len(self._recent)] = di
-                self._n_recent += 1
-        if all(keep):
-            return P
-        self.n_rejected += keep.count(False)
-        return P[np.array(keep)]
+        keep = np.empty(len(P), dtype=bool)
+        has_quadric = quadric is not None
+        n_kept = gate_points(P, keep, quadric if has_quadric else _NO_QUADRIC, has_quadric,
+                             _NO_ORIGIN if p0 is None else p0, LENGTH_SCALE_MM, n_model_points, self.params,
+                             self.counts, self.last, self.residual, self.recent)
+        return P if n_kept == len(P) else P[keep]
+
+
+_NO_QUADRIC = np.zeros(10)  # stands for "no model yet" in the compiled gate (its distances are then 0)
+_NO_ORIGIN = np.zeros(3)

@@ -15,14 +15,18 @@ class ScanRange:
     current diameter is skipped, so only the blocks across the scan from the new point
     are visited (consecutive A-scans lie close together: a block is a short arc of the
     scan). Exact, never an O(N^2) pass; coordinates centred on the first point.
+
+    State, for models._kernels.diameter_after_adding: `X` (capacity, 3) the points less
+    `p0` (the first point, mm) in its first `n_points` rows, `block_r` the blocks' radii
+    (mm), `diameter_mm`.
     """
 
     def __init__(self, capacity: int = 8192):
         capacity = max(SCAN_BLOCK, -(-capacity // SCAN_BLOCK) * SCAN_BLOCK)
-        self._X = np.empty((capacity, 3))
-        self._block_r = np.zeros(capacity // SCAN_BLOCK)
+        self.X = np.empty((capacity, 3))
+        self.block_r = np.zeros(capacity // SCAN_BLOCK)
         self._n = 0
-        self._p0: np.ndarray | None = None
+        self.p0: np.ndarray | None = None
         self.diameter_mm = 0.0
 
     @property
@@ -31,12 +35,21 @@ class ScanRange:
 
     def add(self, P: np.ndarray) -> float:
         """Add finite points P (N, 3) mm; return the updated diameter (mm)."""
-        if len(P) and self._p0 is None:
-            self._p0 = np.array(P[0], dtype=float)
+        if len(P) and self.p0 is None:
+            self.p0 = np.array(P[0], dtype=float)
         for p in P:
-            if self._n == len(self._X):
-                self._X = np.concatenate([self._X, np.empty_like(self._X)])
-                self._block_r = np.concatenate([self._block_r, np.zeros_like(self._block_r)])
-            self.diameter_mm = diameter_after_adding(self._X, self._block_r, self._n, p, self._p0, self.diameter_mm)
-            self._n += 1
+            self.reserve_one()
+            self.took_one(diameter_after_adding(self.X, self.block_r, self._n, p, self.p0, self.diameter_mm))
         return self.diameter_mm
+
+    def took_one(self, diameter_mm: float) -> None:
+        """Count the point that diameter_after_adding has stored as row `n_points` of X
+        (after reserve_one), which made the diameter `diameter_mm`."""
+        self._n += 1
+        self.diameter_mm = diameter_mm
+
+    def reserve_one(self) -> None:
+        """Make room for one more point (the capacity doubles when full)."""
+        if self._n == len(self.X):
+            self.X = np.concatenate([self.X, np.empty_like(self.X)])
+            self.block_r = np.concatenate([self.block_r, np.zeros_like(self.block_r)])

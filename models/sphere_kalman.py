@@ -9,11 +9,9 @@ on the same points at every step, with no prior to tune and no loss of precision
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from models._kernels import add_sphere_rows, sphere_state
+from models._kernels import sphere_absorb, sphere_center_radius
 from models._validation import as_points
 from models.ellipsoid_fit import LENGTH_SCALE_MM
 from models.sphere import Sphere
@@ -25,12 +23,13 @@ class SphereKalmanFilter:
     `update(P)` takes finite points (N, 3) mm in any frame; `sphere` is the current
     estimate (None until 4 non-coplanar points are in); `state` is the filter state
     [cx, cy, cz, r^2 - |c|^2] in scaled coordinates, `information` its 4x4 information
-    matrix (inverse covariance, in units of the measurement noise variance).
+    matrix (inverse covariance, in units of the measurement noise variance) and
+    `information_vector` (4,) the information-form right-hand side (models._kernels.sphere_absorb).
     """
 
     def __init__(self):
         self.information = np.zeros((4, 4))
-        self._info_vector = np.zeros(4)
+        self.information_vector = np.zeros(4)
         self.p0: np.ndarray | None = None
         self.n_points = 0
         self.state: np.ndarray | None = None
@@ -45,22 +44,17 @@ class SphereKalmanFilter:
             return
         if self.p0 is None:
             self.p0 = P[0].copy()
-        add_sphere_rows(self.information, self._info_vector, P, self.p0, LENGTH_SCALE_MM)
         self.n_points += len(P)
-        self.state = None
-        if self.n_points >= 4:
-            x, ok = sphere_state(self.information, self._info_vector)
-            if ok:
-                self.state = x
+        x, ok = sphere_absorb(self.information, self.information_vector, P, self.p0, LENGTH_SCALE_MM, self.n_points)
+        self.state = x if ok else None
 
     @property
     def center_radius(self) -> tuple[np.ndarray, float] | None:
         """(center (3,) mm, radius mm) of the current estimate, or None."""
         if self.state is None:
             return None
-        (cx, cy, cz, k), (ox, oy, oz) = self.state.tolist(), self.p0.tolist()  # floats: called per A-scan
-        L = LENGTH_SCALE_MM
-        return np.array([ox + L * cx, oy + L * cy, oz + L * cz]), L * math.sqrt(k + cx * cx + cy * cy + cz * cz)
+        center = np.empty(3)
+        return center, sphere_center_radius(self.state, self.p0, LENGTH_SCALE_MM, center)
 
     @property
     def sphere(self) -> Sphere | None:

@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from scipy.spatial.distance import pdist
 
 from models import AdaptiveEyeModel, PaperCriteria, Sphere
+from models.transition import PredictiveCriteria
 from models.eyes import make_eye
 from models.metrics import mae_exact, mmae_exact
 from models.paper_scan import paper_scan
@@ -208,3 +209,27 @@ def test_scan_range_is_the_largest_pairwise_distance(n, spread, seed, data):
         entry = model.update(chunk)
     np.testing.assert_allclose(model.scan_range_mm, pdist(P).max(), rtol=0, atol=1e-9)
     assert entry.scan_range_mm == model.scan_range_mm
+
+
+@pytest.mark.parametrize("criteria", [PaperCriteria(), PredictiveCriteria()], ids=["paper", "predictive"])
+def test_the_compiled_per_a_scan_update_equals_the_general_path(criteria):
+    """One A-scan as a float (3,) array takes the compiled per-A-scan path; the same point
+    as a list takes the general (batch) path. On a spiral with floaters (gated) and
+    non-finite A-scans, every history entry, the transition and the counters agree exactly."""
+    scan = paper_scan(make_eye("emmetropic"), noise_um=SIGMA_UM, seed=3)
+    rng = np.random.default_rng(3)
+    P = scan.points.copy()
+    floater = rng.random(len(P)) < 0.03
+    P[floater] = scan.p_WT[floater] + scan.beam_W[floater] * (0.5 * scan.distance_mm[floater])[:, None]
+    P[rng.random(len(P)) < 0.01] = np.nan
+    fast, general = AdaptiveEyeModel(criteria), AdaptiveEyeModel(criteria)
+    for p in P:
+        a, b = fast.update(p), general.update(p.tolist())
+        assert (a is None) == (b is None)
+        np.testing.assert_array_equal(fast.last_accepted, general.last_accepted)
+    assert fast.n_rejected_outliers == general.n_rejected_outliers > 0
+    assert fast.n_rejected_nonfinite == general.n_rejected_nonfinite > 0
+    assert fast.transition_index == general.transition_index is not None
+    assert len(fast.history) == len(general.history)
+    for a, b in zip(fast.history, general.history):
+        np.testing.assert_equal(a._asdict(), b._asdict())

@@ -8,6 +8,7 @@ from models import AdaptiveEyeModel
 from models.eyes import make_eye
 from models.metrics import mae_exact
 from models.ellipsoid_fit import LENGTH_SCALE_MM
+from models._kernels import G_N_RECENT, G_REFRESH_AT
 from models.outlier_gate import RESIDUAL_REFRESH, GateState, OutlierGate
 from models.paper_scan import paper_scan
 
@@ -91,8 +92,8 @@ def test_the_robust_residual_follows_the_data_whatever_the_batch_size(batch):
         P = (LENGTH_SCALE_MM - d_mm)[:, None] * u + 0.01 * np.arange(batch)[:, None] * np.array([1.0, 0.0, 0.0])
         state.admit(P, sphere, np.zeros(3), 1000)
         # the residual in use reflects the accepted distances of at most REFRESH + batch points ago
-        assert state._n_recent - (state._refresh_at - RESIDUAL_REFRESH) < RESIDUAL_REFRESH + batch
-    assert state._residual < 0.05 and state.n_rejected > 0  # the near points set it, not the floaters
+        assert state.counts[G_N_RECENT] - (state.counts[G_REFRESH_AT] - RESIDUAL_REFRESH) < RESIDUAL_REFRESH + batch
+    assert state.residual[0] < 0.05 and state.n_rejected > 0  # the near points set it, not the floaters
 
 
 def test_in_a_batch_each_jump_is_measured_from_the_last_kept_point():
