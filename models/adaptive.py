@@ -10,6 +10,7 @@ from models._validation import as_points
 from models.ellipsoid import Ellipsoid
 from models.ellipsoid_fit import LENGTH_SCALE_MM, IncrementalEllipsoidFit, taubin_residual
 from models.outlier_gate import GateState, OutlierGate
+from models.robust_fit import RobustEllipsoidFit, RobustFitConfig
 from models.scan_range import ScanRange
 from models.sphere import Sphere
 from models.sphere_kalman import SphereKalmanFilter
@@ -68,17 +69,19 @@ class AdaptiveEyeModel:
     (K, 3) mm the last call took in (finite and past the gate).
     """
 
-    def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate()):
+    def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate(), robust: RobustFitConfig | None = None):
         """`criteria`: PaperCriteria (default, the paper's) or PredictiveCriteria, or any
         object with the same `initial_state`/`evaluate` interface (models.transition);
-        `gate`: the innovation gate against outliers (None: accept every finite point)."""
+        `gate`: the innovation gate against outliers (None: accept every finite point);
+        `robust`: None for the paper's least-squares ellipsoid, or the settings of the
+        robust one that down-weights pathological patches (models.robust_fit)."""
         self.criteria = PaperCriteria() if criteria is None else criteria
         self.gate = gate
         self._gate = None if gate is None else GateState(gate)
         self._current = None  # quadric of the current model, in the fits' scaled coordinates
         self.n_received = 0
         self._sf = SphereKalmanFilter()
-        self._ef = IncrementalEllipsoidFit()
+        self._ef = IncrementalEllipsoidFit() if robust is None else RobustEllipsoidFit(robust)
         self._range = ScanRange()
         self._memory = self.criteria.initial_state()
         self._prev_radii: np.ndarray | None = None
