@@ -81,7 +81,8 @@ class AdaptiveEyeModel:
         self._current = None  # quadric of the current model, in the fits' scaled coordinates
         self.n_received = 0
         self._sf = SphereKalmanFilter()
-        self._ef = IncrementalEllipsoidFit() if robust is None else RobustEllipsoidFit(robust)
+        self._robust = robust is not None
+        self._ef = RobustEllipsoidFit(robust) if self._robust else IncrementalEllipsoidFit()
         self._range = ScanRange()
         self._memory = self.criteria.initial_state()
         self._prev_radii: np.ndarray | None = None
@@ -173,6 +174,7 @@ class AdaptiveEyeModel:
         snap = FitSnapshot(
             self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, S, v_sf,
             fit.v if fit.ok else None, sf, (fit.center, fit.radii, fit.rotation) if fit.ok else None, self._ef.p0,
+            self._ef.restarted_at, self._robust,
         )
         criteria, self._memory = self.criteria.evaluate(snap, self._memory)
         if self.kind == "sphere" and fit.ok and all(met for _, met in criteria.values()):

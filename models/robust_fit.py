@@ -20,6 +20,14 @@ but they come geometrically rarer, so the amortised cost per point is O(1): abou
 iterations x (1 + 1 / refit_growth) design rows. Memory: the points, N x 3 floats.
 Coordinates as in models.ellipsoid_fit: origin at the first point, lengths divided by
 LENGTH_SCALE_MM.
+
+What the transition criteria see (models.transition): `S` is the scatter matrix of the
+points weighted as they arrived, by the fit of that moment (prequential: a point the
+ellipsoid did not predict is left out of the criteria's residuals and windows for good,
+and S[9, 9] over the number of points is the share it predicted); `restarted_at` is the
+point count of the last restart from the plain fit, where the fit's history begins anew
+(a scan that starts on a pathology first fits the pathology, and the fit jumps to the
+healthy globe once that is the larger part of the data).
 """
 from __future__ import annotations
 
@@ -46,7 +54,7 @@ class RobustFitConfig:
     tukey_factor: float = 4.685
     refit_growth: float = 0.05
     min_refit_points: int = 25
-    iterations: int = 3
+    iterations: int = 10
     min_inlier_fraction: float = 0.5
 
     def __post_init__(self):
@@ -70,7 +78,7 @@ def biweight(d_mm: np.ndarray, cutoff_mm: float) -> np.ndarray:
 
 @njit(cache=True)
 def _add_weighted_rows(S, S_w, X, v, cutoff, w_out):
-    """For scaled points X (N, 3): S += sum m m^T and S_w += sum w m m^T in place, with
+    """For scaled points X (N, 3): S += sum w m m^T and S_w += sum w m m^T in place, with
     w the biweight of the Sampson distance from quadric v (10,) (cut-off `cutoff`, scaled
     units; an all-zero v gives every point weight 1); the weights go to w_out (N,)."""
     m = np.empty(10)
@@ -93,23 +101,23 @@ def _add_weighted_rows(S, S_w, X, v, cutoff, w_out):
         w_out[n] = w
         for i in range(10):
             for j in range(i, 10):
-                p = m[i] * m[j]
+                p = w * m[i] * m[j]
                 S[i, j] += p
-                S_w[i, j] += w * p
+                S_w[i, j] += p
                 if j != i:
                     S[j, i] += p
-                    S_w[j, i] += w * p
+                    S_w[j, i] += p
 
 
 class RobustEllipsoidFit:
     """Drop-in for IncrementalEllipsoidFit (`add`, `fit`, `S`, `p0`, `last_ok`,
     `n_points`) with biweight-reweighted points (module doc).
 
-    `S` is the plain scatter matrix of all points (as IncrementalEllipsoidFit's: the
-    transition criteria's residuals and windows are over every point), `S_weighted`
-    the weighted one S_w that the fit minimises (scaled coordinates); `weights` (N,) the
-    current weight in [0, 1] of every point received; `n_reweightings` how many full
-    reweightings have run.
+    `S` is the scatter matrix of the points weighted as they arrived (module doc: what
+    the criteria see), `S_weighted` the one with the current weights, S_w, that the fit
+    minimises (scaled coordinates); `weights` (N,) the current weight in [0, 1] of every
+    point received; `n_reweightings` how many full reweightings have run; `restarted_at`
+    the point count at the last restart from the plain fit (0: none).
     """
 
     def __init__(self, config: RobustFitConfig | None = None):
@@ -119,6 +127,7 @@ class RobustEllipsoidFit:
         self.p0: np.ndarray | None = None
         self.last_ok: EllipsoidFit | None = None
         self.n_reweightings = 0
+        self.restarted_at = 0
         self._X = np.empty((256, 3))  # scaled points, grown by doubling
         self._w = np.empty(256)
         self._n = 0
@@ -161,6 +170,7 @@ class RobustEllipsoidFit:
                 w[:] = biweight(LENGTH_SCALE_MM * sampson_distance(self.last_ok.v, X), self.config.cutoff_mm)
             if i == 0 and np.count_nonzero(w) < self.config.min_inlier_fraction * self._n:
                 w[:] = 1.0  # the warm start explains too few points: restart from the plain fit
+                self.restarted_at = self._n
             self.S_weighted = (M * w[:, None]).T @ M
             result = fit_scatter(self.S_weighted, self.p0)
             if not result.ok:

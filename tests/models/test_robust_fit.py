@@ -90,6 +90,24 @@ def test_staphyloma_beats_sphere_and_least_squares(pose):
     assert 2 * mae < mae_exact(sphere, T).mean < mae_exact(plain, T).mean
 
 
+BIWEIGHT_MEAN = 1 - 2 / 4.685**2 + 3 / 4.685**4  # E[(1 - (d/c)^2)^2], d ~ N(0, sigma), c = 4.685 sigma
+
+
+@pytest.mark.parametrize("pose", POSES)
+def test_what_the_criteria_see(pose):
+    """S holds the points weighted as they arrived: on a regular eye S[9, 9] / N is the
+    biweight's mean under the noise (0.915 at normal incidence; the first ~1 % of the
+    points, which a fit of a few dozen points cannot predict, take it down a little);
+    a staphyloma at the start of the scan is fitted first, and the fit restarts from the
+    plain one when the healthy wall becomes the larger part (40-50 % of the spiral)."""
+    _, P, regular, _, _ = _fits("myopic", pose)
+    assert abs(regular.S[9, 9] / len(P) - BIWEIGHT_MEAN) < 0.02
+    assert regular.restarted_at < 0.02 * len(P)
+    _, P, staph, _, _ = _fits("staphyloma", pose)
+    assert 0.4 * len(P) < staph.restarted_at < 0.5 * len(P)
+    assert staph.S[9, 9] / len(P) < 0.7  # the pouch, then the wall, each went unpredicted for a while
+
+
 def test_reweightings_grow_geometrically():
     """Amortised O(1): steps of min_refit_points up to n* = min_refit_points / growth
     points (1 / growth of them), then one reweighting per growth factor (1 + growth):
