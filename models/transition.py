@@ -121,9 +121,10 @@ class PredictiveCriteria:
       by more than the ellipsoid is still changing, so the sphere is the one that is
       off (the ellipsoid fitted to a small patch is biased by the noise, and that bias
       shows as drift long before it shows in any residual);
-    - prediction: the fits made when `lag_fraction` of the points were in predict the
-      newest `window_fraction` of the points, which they never saw, and the ellipsoid's
-      RMS error is the smaller (prequential validation, from windowed scatter matrices).
+    - prediction: the fits made when `lag_fraction` of the points were in (counted as
+      for convergence) predict the newest `window_fraction` of the points, which they
+      never saw, and the ellipsoid's RMS error is the smaller (prequential validation,
+      from windowed scatter matrices).
     The model switches to the ellipsoid when all hold for `min_stable_checks`
     consecutive checkpoints, and back to the sphere when the fit condition fails for as
     many. Every check is O(1) in the number of points.
