@@ -10,13 +10,14 @@ from bench.timing import summary_us, time_calls_us
 from models import AdaptiveEyeModel, Ellipsoid, fit_ellipsoid, fit_sphere
 from models.eyes import make_eye
 from models.paper_scan import paper_scan
+from models.robust_fit import RobustFitConfig
 from models.transition import PredictiveCriteria
 
 RADII = np.array([11.455, 11.365, 10.148])
 
 
-def _update_times(points, criteria, batch: int) -> np.ndarray:
-    m = AdaptiveEyeModel(criteria)
+def _update_times(points, criteria, batch: int, robust: RobustFitConfig | None = None) -> np.ndarray:
+    m = AdaptiveEyeModel(criteria, robust=robust)
     chunks = [points[i:i + batch] for i in range(0, len(points), batch)]
     return time_calls_us(lambda i: m.update(chunks[i]), len(chunks)) / batch
 
@@ -47,10 +48,13 @@ def run() -> None:
     eye = make_eye("emmetropic")
     points = paper_scan(eye, seed=0).points
     _update_times(points[:500], None, 1)  # warm-up: loads the compiled kernels (models._kernels) once
-    for name, criteria in (("paper criteria", None), ("predictive criteria", PredictiveCriteria())):
-        passes = np.array([_update_times(points, criteria, 1) for _ in range(3)])
+    _update_times(points[:500], PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.robust_fit
+    variants = (("paper criteria", None, None), ("predictive criteria", PredictiveCriteria(), None),
+                ("predictive, robust EF", PredictiveCriteria(), RobustFitConfig()))
+    for name, criteria, robust in variants:
+        passes = np.array([_update_times(points, criteria, 1, robust) for _ in range(3)])
         for t in passes:
-            print(f"  AdaptiveEyeModel.update, one A-scan per call, {name:19s}: {summary_us(t)}")
+            print(f"  AdaptiveEyeModel.update, one A-scan per call, {name:21s}: {summary_us(t)}   mean {t.mean():6.1f} us")
         # the same update in each pass does the same work: its fastest pass is that work
         # without the machine's interruptions (a shared VM's p99 is ~2.7 x its median)
         print(f"    the same, per update the fastest of the 3 passes (work alone):    {summary_us(passes.min(axis=0))}")

@@ -11,8 +11,10 @@ from eval.paper_experiment import ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_T
 from eval.paper_figures import fig5
 from eval.progress import Progress
 from models.eyes import EYE_SHAPES, EyePose
+from models.robust_fit import RobustFitConfig
 from models.transition import CRITERIA
 
+FITS = ("least-squares", "robust")  # --fit: the paper's ellipsoid fit, or models.robust_fit
 # table2.json key -> (which fit, which PaperMetrics field)
 METRIC_KEYS = {"mmae": ("ef", "mmae"), "sf_fmae": ("sf", "fmae"), "sf_mae": ("sf", "mae"), "ef_fmae": ("ef", "fmae"), "ef_mae": ("ef", "mae")}
 
@@ -25,6 +27,8 @@ def register(sub) -> None:
     p.add_argument("--noise-um", type=float, default=20.0, help="SD of the distance noise, um (>= 0)")
     p.add_argument("--criterion", choices=sorted(CRITERIA), default="predictive", help="transition criterion that drives the model")
     p.add_argument("--pose", choices=["nominal", "anatomical"], default="nominal", help="eye placement: on the scan axis, or tilted 11 deg and decentred")
+    p.add_argument("--fit", choices=list(FITS), default="least-squares",
+                   help="ellipsoid fit: the paper's least squares, or ours, robust to pathological patches (models.robust_fit)")
     p.add_argument("--stride", type=int, default=1, help="use every k-th A-scan (1: all 5,093)")
     p.add_argument("--grid", type=int, default=500, help="n x n sampling of the surfaces for Table 2 (paper: 500)")
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
@@ -45,14 +49,17 @@ def _validate(args) -> None:
         raise UsageError(f"--grid must be >= 10, got {args.grid}")
     if args.jobs < 1:
         raise UsageError(f"--jobs must be >= 1, got {args.jobs}")
+    if args.fit == "robust" and args.noise_um <= 0:
+        raise UsageError("--fit robust needs --noise-um > 0: its cut-off is 4.685 noise SDs")
 
 
 def _mean_or_none(values):
     return None if any(v is None for v in values) else float(np.mean(values))
 
 
-def aggregate(runs, criterion: str) -> dict:
-    """table2.json entry for one shape from its runs (one per seed)."""
+def aggregate(runs, criterion: str, ellipsoid_fit: str) -> dict:
+    """table2.json entry for one shape from its runs (one per seed) with `ellipsoid_fit`
+    (one of FITS)."""
     out, spread = {}, {}
     for key, (fit, field) in METRIC_KEYS.items():
         for suffix in ("", "_sampled"):
@@ -81,6 +88,7 @@ def aggregate(runs, criterion: str) -> dict:
         decision_right=chosen["decision_right"],
         timely=chosen["timely"],
         criterion=criterion,
+        ellipsoid_fit=ellipsoid_fit,
         criteria=per_criterion,
         seed_spread=spread,
         meets_required_accuracy={"sf": out["sf_mae"][0] < ACCURACY_REQUIRED_MM, "ef": out["ef_mae"][0] < ACCURACY_REQUIRED_MM},
@@ -103,6 +111,7 @@ def table_markdown(results: dict, args) -> str:
     lines = [
         "# Table 2 (simulation): ours vs the paper\n",
         f"Noise {args.noise_um:g} um, {args.seeds} seed(s), every {args.stride}. A-scan, eye pose {args.pose}, "
+        f"ellipsoid fit {args.fit}, "
         f"{args.grid} x {args.grid} sampling. mm, mean (SD). *exact*: each distance computed exactly; "
         f"*sampled*: the paper's nearest-sample distances between {args.grid} x {args.grid} clouds (adds discretisation error).\n",
         "| shape | form | MMAE | SF FMAE | SF MAE | EF FMAE | EF MAE |",
@@ -151,7 +160,8 @@ def table_markdown(results: dict, args) -> str:
 def _task(job):
     shape, seed, args_dict = job
     pose = EyePose.anatomical() if args_dict["pose"] == "anatomical" else EyePose()
-    return run_shape(shape, seed, args_dict["noise_um"], pose, args_dict["stride"], grid=args_dict["grid"])
+    robust = RobustFitConfig(noise_sd_mm=1e-3 * args_dict["noise_um"]) if args_dict["fit"] == "robust" else None
+    return run_shape(shape, seed, args_dict["noise_um"], pose, args_dict["stride"], grid=args_dict["grid"], robust=robust)
 
 
 def main(args) -> int:
@@ -164,7 +174,7 @@ def main(args) -> int:
         for (shape, seed, _), run in zip(jobs, pool.map(_task, jobs)):
             runs.setdefault(shape, []).append(run)
             progress.step(f"{shape} seed {seed}")
-    results = {shape: aggregate(rs, args.criterion) for shape, rs in runs.items()}
+    results = {shape: aggregate(rs, args.criterion, args.fit) for shape, rs in runs.items()}
     figures = {}
     for shape, r in results.items():
         fractions, sf_curve, ef_curve = r.pop("_curves")

@@ -15,6 +15,7 @@ from models.eyes import EyePose, make_eye
 from models.metrics import PaperMetrics, mae_exact, paper_metrics
 from models.outlier_gate import OutlierGate
 from models.paper_scan import paper_scan
+from models.robust_fit import RobustFitConfig
 from models.transition import CRITERIA, PaperCriteria
 
 # Table 2 of the paper (simulation), mm: mean, SD.
@@ -72,20 +73,23 @@ def run_shape(
     grid: int = 500,
     criteria: tuple[str, ...] = ("paper", "predictive"),
     keep_history: bool = False,
+    robust: RobustFitConfig | None = None,
 ) -> ShapeRun:
     """Scan `shape` along the paper's spiral (every `stride`-th A-scan), fit with each
     transition criterion in `criteria`, and measure Table 2 and the Fig. 5 curves.
 
     `n_curve` MAE points along the spiral (each on a 60 x 60 ground-truth sampling);
     `grid` x `grid` sampling for the final Table 2 metrics (the paper: 500).
-    `keep_history` keeps the model history (of the first criterion) in the result.
+    `keep_history` keeps the model history (of the first criterion) in the result;
+    `robust`: None for the paper's least-squares ellipsoid, else the robust fit's
+    settings (models.robust_fit).
     """
     eye = make_eye(shape, pose)
     points = paper_scan(eye, noise_um=noise_um, seed=seed).points[:: int(stride)]
     n = len(points)
     # consecutive points of a thinned scan lie `stride` times further apart
     gate = OutlierGate(max_jump_mm=OutlierGate().max_jump_mm * stride)
-    models = {name: AdaptiveEyeModel(CRITERIA[name](), gate) for name in criteria}
+    models = {name: AdaptiveEyeModel(CRITERIA[name](), gate, robust) for name in criteria}
     for p in points:
         for m in models.values():
             m.update(p)

@@ -13,6 +13,7 @@ from models._validation import as_points
 from models.ellipsoid import Ellipsoid
 from models.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, IncrementalEllipsoidFit
 from models.outlier_gate import GateState, OutlierGate
+from models.robust_fit import RobustEllipsoidFit, RobustFitConfig
 from models.scan_range import ScanRange
 from models.sphere import Sphere
 from models.sphere_kalman import SphereKalmanFilter
@@ -71,17 +72,20 @@ class AdaptiveEyeModel:
     (K, 3) mm the last call took in (finite and past the gate).
     """
 
-    def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate()):
+    def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate(), robust: RobustFitConfig | None = None):
         """`criteria`: PaperCriteria (default, the paper's) or PredictiveCriteria, or any
         object with the same `initial_state`/`evaluate` interface (models.transition);
-        `gate`: the innovation gate against outliers (None: accept every finite point)."""
+        `gate`: the innovation gate against outliers (None: accept every finite point);
+        `robust`: None for the paper's least-squares ellipsoid, or the settings of the
+        robust one that down-weights pathological patches (models.robust_fit)."""
         self.criteria = PaperCriteria() if criteria is None else criteria
         self.gate = gate
         self._gate = None if gate is None else GateState(gate)
         self._current = None  # quadric of the current model, in the fits' scaled coordinates
         self.n_received = 0
         self._sf = SphereKalmanFilter()
-        self._ef = IncrementalEllipsoidFit()
+        self._robust = robust is not None
+        self._ef = RobustEllipsoidFit(robust) if self._robust else IncrementalEllipsoidFit()
         self._range = ScanRange()
         self._memory = self.criteria.initial_state()
         self._prev_radii = np.zeros(3)  # sorted semi-axes of the previous fit (mm), valid when _has_prev
@@ -192,6 +196,7 @@ class AdaptiveEyeModel:
         snap = FitSnapshot(
             self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, self._ef.S, v_sf,
             fit.v if fit.ok else None, sf, (fit.center, fit.radii, fit.rotation) if fit.ok else None, self._ef.p0,
+            self._ef.restarted_at, self._robust,
         )
         criteria, self._memory = self.criteria.evaluate(snap, self._memory)
         if self.kind == "sphere" and fit.ok and all(met for _, met in criteria.values()):

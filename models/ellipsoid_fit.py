@@ -92,6 +92,7 @@ class IncrementalEllipsoidFit:
     """
 
     SPREAD_RECHECK = 64  # points between re-checks of a cloud already found spread in 3-D
+    restarted_at = 0  # the fit's history begins with the first point (cf. models.robust_fit)
 
     def __init__(self):
         self.S = np.zeros((10, 10))

@@ -24,7 +24,11 @@ class FitSnapshot(NamedTuple):
     matrix in the fits' scaled coordinates (read-only view); `v_sf`, `v_ef`: the
     sphere's and ellipsoid's quadric coefficients in those coordinates (None if absent);
     `sf` (center, radius) and `ef` (center, radii, rotation): the fits in mm (or None);
-    `p0`: the origin of the scaled coordinates (mm).
+    `p0`: the origin of the scaled coordinates (mm); `fit_since`: the point count where
+    the ellipsoid fit's history begins (0, or a robust fit's last restart); `robust`:
+    whether the ellipsoid is a robust fit (models.robust_fit) or the least-squares one.
+    S[9, 9] is the (weighted) number of points in S: n_points for the least-squares fit,
+    the share of points it predicted times n_points for a robust one (models.robust_fit).
     """
 
     n_points: int
@@ -38,6 +42,8 @@ class FitSnapshot(NamedTuple):
     sf: tuple | None = None
     ef: tuple | None = None
     p0: np.ndarray | None = None
+    fit_since: int = 0
+    robust: bool = False
 
 
 @dataclass(frozen=True)
@@ -101,18 +107,24 @@ class PredictiveCriteria:
     The model must answer for retina the fibre has not seen, so every condition is
     about extrapolation. At each checkpoint (every `check_every` points):
     - scan range > `min_scan_range_mm` (too small a patch says nothing about shape);
-    - fit: the ellipsoid's residual < `fit_factor` x `noise_sd_mm`, i.e. it explains
-      the data to the noise level (a staphyloma or a detachment does not look like an
-      ellipsoid once scanned across, and then its extrapolation cannot be trusted);
+    - fit: the least-squares ellipsoid's residual < `fit_factor` x `noise_sd_mm`, i.e.
+      it explains the data to the noise level (a staphyloma or a detachment does not
+      look like an ellipsoid once scanned across, and then its extrapolation cannot be
+      trusted); a robust ellipsoid leaves such patches out by design, and must instead
+      have predicted at least `min_explained_fraction` of the newest `window_fraction`
+      of the points (S[9, 9]'s share of them), so that it has not locked onto a
+      pathology the scan is leaving;
     - convergence: over the retina (anterior `crop_mm` excluded), the ellipsoid has
-      moved since the fit of `lag_fraction` of the points by less than
+      moved since the fit of `lag_fraction` of the points (counted from `fit_since`,
+      where a robust fit's history begins anew) by less than
       `convergence_factor` x its mean distance from the sphere: the two models disagree
       by more than the ellipsoid is still changing, so the sphere is the one that is
       off (the ellipsoid fitted to a small patch is biased by the noise, and that bias
       shows as drift long before it shows in any residual);
-    - prediction: the fits made when `lag_fraction` of the points were in predict the
-      newest `window_fraction` of the points, which they never saw, and the ellipsoid's
-      RMS error is the smaller (prequential validation, from windowed scatter matrices).
+    - prediction: the fits made when `lag_fraction` of the points were in (counted as
+      for convergence) predict the newest `window_fraction` of the points, which they
+      never saw, and the ellipsoid's RMS error is the smaller (prequential validation,
+      from windowed scatter matrices).
     The model switches to the ellipsoid when all hold for `min_stable_checks`
     consecutive checkpoints, and back to the sphere when the fit condition fails for as
     many. Every check is O(1) in the number of points.
@@ -127,6 +139,7 @@ class PredictiveCriteria:
     window_fraction: float = 0.1
     check_every: int = 25
     min_stable_checks: int = 6
+    min_explained_fraction: float = 0.5
 
     names = ("scan_range", "fit", "convergence", "prediction", "stable")
     reversible = True
@@ -134,7 +147,7 @@ class PredictiveCriteria:
     def __post_init__(self):
         check_positive(self, "noise_sd_mm", "fit_factor", "convergence_factor")
         check_positive(self, "min_scan_range_mm", "crop_mm", allow_zero=True)
-        for name in ("lag_fraction", "window_fraction"):
+        for name in ("lag_fraction", "window_fraction", "min_explained_fraction"):
             v = getattr(self, name)
             if not (np.isfinite(v) and 0.0 < v < 1.0):
                 raise ValueError(f"{name} must be in (0, 1), got {v}")
@@ -175,12 +188,18 @@ class PredictiveCriteria:
         if snap.v_ef is None or snap.sf is None:
             mem.last = {name: (np.nan, False) for name in mem.last}
             return
-        fit_ratio = snap.ef_residual_mm / self.noise_sd_mm
-        mem.last["fit"] = (fit_ratio, bool(fit_ratio < self.fit_factor))
-        j = self._at_most(mem, self.lag_fraction * snap.n_points)
+        w = self._at_most(mem, (1.0 - self.window_fraction) * snap.n_points)
+        if not snap.robust:
+            fit_ratio = snap.ef_residual_mm / self.noise_sd_mm
+            mem.last["fit"] = (fit_ratio, bool(fit_ratio < self.fit_factor))
+        elif w is not None and w < len(mem.n) - 1:
+            explained = float(snap.S[9, 9] - mem.S[w][9, 9]) / (snap.n_points - mem.n[w])
+            mem.last["fit"] = (explained, bool(explained >= self.min_explained_fraction))
+        else:
+            mem.last["fit"] = (np.nan, False)
+        j = self._at_most(mem, snap.fit_since + self.lag_fraction * (snap.n_points - snap.fit_since))
         old_ef = None if j is None else mem.v_ef[j]
         mem.last["convergence"] = (np.nan, False) if old_ef is None else self._convergence(snap, old_ef)
-        w = self._at_most(mem, (1.0 - self.window_fraction) * snap.n_points)
         gain, better = np.nan, False
         if j is not None and w is not None and w < len(mem.n) - 1 and mem.v_sf[j] is not None and mem.v_ef[j] is not None:
             S_new = snap.S - mem.S[w]
