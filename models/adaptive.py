@@ -125,7 +125,7 @@ class AdaptiveEyeModel:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
         no entry, if no point was finite and passed the gate)."""
         if (isinstance(P, np.ndarray) and P.shape in ((3,), (1, 3)) and P.dtype == np.float64
-                and self._ef.p0 is not None):
+                and self._ef.p0 is not None and not self._robust):  # the robust fit reweights: general path
             return self._update_one(P.reshape(1, 3))
         P = as_points(P, "P", allow_nonfinite=True)
         self.n_received += len(P)
