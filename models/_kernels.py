@@ -74,15 +74,24 @@ def _dot(a, b):
 def add_design_rows(S, P, p0, scale):
     """S (10, 10) += sum m m^T over the design rows m of the points P (N, 3) mm, taken in
     the scaled coordinates (p - p0) / scale; in place."""
+    add_weighted_design_rows(S, P, p0, scale, np.ones(P.shape[0]))
+
+
+@njit(cache=True)
+def add_weighted_design_rows(S, P, p0, scale, w):
+    """S (10, 10) += sum w_n m_n m_n^T (add_design_rows with a weight w (N,) per point; a
+    weight of 1 gives add_design_rows' sums exactly); in place."""
     m = np.empty(10)
     U = np.zeros((10, 10))  # the upper triangle of the sum, mirrored once at the end
     for n in range(P.shape[0]):
         x, y, z = (P[n, 0] - p0[0]) / scale, (P[n, 1] - p0[1]) / scale, (P[n, 2] - p0[2]) / scale
         m[0], m[1], m[2], m[3], m[4] = x * x, y * y, z * z, 2 * y * z, 2 * x * z
         m[5], m[6], m[7], m[8], m[9] = 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0
+        wn = w[n]
         for i in range(10):
+            a = wn * m[i]
             for j in range(i, 10):
-                U[i, j] += m[i] * m[j]
+                U[i, j] += a * m[j]
     for i in range(10):
         for j in range(i, 10):
             S[i, j] += U[i, j]

@@ -12,8 +12,8 @@ pathology (millimetres off) not at all: the fit minimises v^T S_w v over the wei
 scatter matrix S_w = sum w m m^T (models.ellipsoid_fit) by iteratively reweighted least
 squares (IRLS).
 
-Cost: a new point gets its weight from the current fit and joins S_w (O(1), one compiled
-call); all weights are recomputed from the stored points, `iterations` IRLS steps
+Cost: a new point gets its weight from the current fit and joins S_w (O(1), the compiled
+Sampson distance and weighted design-row accumulation of models._kernels); all weights are recomputed from the stored points, `iterations` IRLS steps
 warm-started from the current fit, whenever the point count has grown by `refit_growth`
 since the last reweighting (and by at least `min_refit_points`). A reweighting costs O(N)
 but they come geometrically rarer, so the amortised cost per point is O(1): about
@@ -34,11 +34,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
+from models._kernels import add_weighted_design_rows
 from models._validation import check_count, check_positive
 from models.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, design_rows, fit_scatter
 from models.extrapolation import sampson_distance
+
+_ORIGIN = np.zeros(3)
 
 
 @dataclass(frozen=True)
@@ -76,39 +78,6 @@ def biweight(d_mm: np.ndarray, cutoff_mm: float) -> np.ndarray:
     return (1.0 - u * u) ** 2
 
 
-@njit(cache=True)
-def _add_weighted_rows(S, S_w, X, v, cutoff, w_out):
-    """For scaled points X (N, 3): S += sum w m m^T and S_w += sum w m m^T in place, with
-    w the biweight of the Sampson distance from quadric v (10,) (cut-off `cutoff`, scaled
-    units; an all-zero v gives every point weight 1); the weights go to w_out (N,)."""
-    m = np.empty(10)
-    has_fit = np.any(v != 0.0)
-    for n in range(X.shape[0]):
-        x, y, z = X[n, 0], X[n, 1], X[n, 2]
-        m[0], m[1], m[2], m[3], m[4] = x * x, y * y, z * z, 2 * y * z, 2 * x * z
-        m[5], m[6], m[7], m[8], m[9] = 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0
-        w = 1.0
-        if has_fit:
-            q = 0.0
-            for i in range(10):
-                q += m[i] * v[i]
-            gx = 2.0 * (v[0] * x + v[5] * y + v[4] * z + v[6])
-            gy = 2.0 * (v[5] * x + v[1] * y + v[3] * z + v[7])
-            gz = 2.0 * (v[4] * x + v[3] * y + v[2] * z + v[8])
-            g = np.sqrt(gx * gx + gy * gy + gz * gz)
-            u = min(abs(q) / g / cutoff, 1.0) if g > 0.0 else 1.0
-            w = (1.0 - u * u) ** 2
-        w_out[n] = w
-        for i in range(10):
-            for j in range(i, 10):
-                p = w * m[i] * m[j]
-                S[i, j] += p
-                S_w[i, j] += p
-                if j != i:
-                    S[j, i] += p
-                    S_w[j, i] += p
-
-
 class RobustEllipsoidFit:
     """Drop-in for IncrementalEllipsoidFit (`add`, `fit`, `S`, `p0`, `last_ok`,
     `n_points`) with biweight-reweighted points (module doc).
@@ -132,7 +101,6 @@ class RobustEllipsoidFit:
         self._w = np.empty(256)
         self._n = 0
         self._reweighted_at = 0  # point count at the last full reweighting
-        self._cutoff = self.config.cutoff_mm / LENGTH_SCALE_MM
 
     @property
     def n_points(self) -> int:
@@ -153,11 +121,18 @@ class RobustEllipsoidFit:
             size = max(n, 2 * len(self._X))
             self._X = np.concatenate([self._X[: self._n], np.empty((size - self._n, 3))])
             self._w = np.concatenate([self._w[: self._n], np.empty(size - self._n)])
-        X = self._X[self._n : n]
+        X, w = self._X[self._n : n], self._w[self._n : n]
         X[:] = (P - self.p0) / LENGTH_SCALE_MM
-        v = np.zeros(10) if self.last_ok is None else self.last_ok.v
-        _add_weighted_rows(self.S, self.S_weighted, X, v, self._cutoff, self._w[self._n : n])
+        w[:] = 1.0 if self.last_ok is None else self._weights(X)
+        dS = np.zeros((10, 10))
+        add_weighted_design_rows(dS, X, _ORIGIN, 1.0, w)  # X is already scaled
+        self.S += dS
+        self.S_weighted += dS
         self._n = n
+
+    def _weights(self, X: np.ndarray) -> np.ndarray:
+        """Biweights of scaled points X (N, 3) from the current fit's Sampson distances."""
+        return biweight(LENGTH_SCALE_MM * sampson_distance(self.last_ok.v, X), self.config.cutoff_mm)
 
     def _reweight(self) -> None:
         """IRLS over all stored points, warm-started from the current fit."""
@@ -167,7 +142,7 @@ class RobustEllipsoidFit:
         self.n_reweightings += 1
         for i in range(self.config.iterations):
             if self.last_ok is not None:
-                w[:] = biweight(LENGTH_SCALE_MM * sampson_distance(self.last_ok.v, X), self.config.cutoff_mm)
+                w[:] = self._weights(X)
             if i == 0 and np.count_nonzero(w) < self.config.min_inlier_fraction * self._n:
                 w[:] = 1.0  # the warm start explains too few points: restart from the plain fit
                 self.restarted_at = self._n

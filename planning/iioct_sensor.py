@@ -111,12 +111,12 @@ def extractor_error_model(engine: OctEngine = OctEngine(), samples: int = 24, se
 
 
 def _joint_rows(Q, m: int) -> np.ndarray:
-    """Q as an (m, 6) float array of joint angles (rad); a row of the wrong size, or an
-    array of the wrong shape, becomes NaN rows (reported per sample as bad joint states)."""
+    """Q as an (m, 6) float array of joint angles (rad): a row that is not 6 numbers, or
+    an array of another shape, becomes a NaN row (reported per sample as a bad joint state)."""
     try:
         A = np.asarray(Q, dtype=float)
-    except (TypeError, ValueError):  # ragged rows: check each
-        return np.array([_joint_rows([q], 1)[0] for q in Q]).reshape(m, 6)
+    except (TypeError, ValueError):  # ragged rows
+        A = np.array([np.asarray(q, dtype=float) if np.shape(q) == (6,) else np.full(6, np.nan) for q in Q])
     return A if A.shape == (m, 6) else np.full((m, 6), np.nan)
 
 
@@ -197,8 +197,9 @@ class IioctSensor:
         nan3 = np.full(3, np.nan)
         out: list = [None] * len(T_s)
         Qt, Qr = _joint_rows(Q_true, len(T_s)), _joint_rows(Q_reported, len(T_s))
-        good = np.flatnonzero(np.isfinite(Qt).all(axis=1) & np.isfinite(Qr).all(axis=1))
-        for k in set(range(len(T_s))) - set(good.tolist()):
+        finite = np.isfinite(Qt).all(axis=1) & np.isfinite(Qr).all(axis=1)
+        good = np.flatnonzero(finite)
+        for k in np.flatnonzero(~finite).tolist():
             out[k] = SensorSample(float(T_s[k]), float("nan"), False, 0.0,
                                   "bad_joint_state: q must be 6 finite angles (rad)", nan3, nan3, nan3)
         if not len(good):

@@ -161,11 +161,11 @@ class Robot:
         material shaft point at the trocar moves only along the shaft (its velocity along
         the shaft's y and z axes is zero), and its lateral error e (mm) decays as
         de/dt = -gain_per_s e (drift correction)."""
-        R, p = self.pose("I", q)
+        R, p, J_I = self.pose_and_spatial_jacobian("I", q)  # one evaluation of the chain
         d = np.asarray(p_WC, dtype=float) - p
         lam = float(R[:, 0] @ d)  # shaft coordinate of the trocar, mm
         N = R[:, 1:].T  # the two lateral directions of the shaft, rows
-        J = self.jacobian("I", [lam, 0.0, 0.0], q)
+        J = rigid_points(R, p, J_I, np.array([[lam, 0.0, 0.0]]))[1][0]
         return N @ J, gain_per_s * (N @ d)
 
     def joint_margin_rad(self, q) -> np.ndarray:
