@@ -99,13 +99,31 @@ def _screen(H, c, lb, ub, G, h, A, b, tol):
     return _OPTIMAL, x
 
 
-def _solve_daqp(qp: DenseQP) -> np.ndarray | None:
-    n, m, p = len(qp.c), len(qp.h), len(qp.b)
-    upper = np.concatenate([np.minimum(qp.ub, _DAQP_INF), qp.h, qp.b])
-    lower = np.concatenate([np.maximum(qp.lb, -_DAQP_INF), np.full(m, -_DAQP_INF), qp.b])
+@njit(cache=True)
+def _daqp_data(lb, ub, G, h, A, b):
+    """DAQP's form of the QP's constraints: (rows [G; A], upper, lower, sense): the bounds
+    first (+-inf as DAQP's 1e30), then G's rows (no lower bound), then A's as equalities."""
+    n, m, p = lb.shape[0], h.shape[0], b.shape[0]
+    rows = np.empty((m + p, n))
+    rows[:m] = G
+    rows[m:] = A
+    upper = np.empty(n + m + p)
+    lower = np.empty(n + m + p)
     sense = np.zeros(n + m + p, dtype=np.intc)
-    sense[n + m:] = _DAQP_EQUALITY
-    x, _, exitflag, _ = daqp.solve(qp.H, qp.c, np.vstack([qp.G, qp.A]), upper, lower, sense)
+    for i in range(n):
+        upper[i] = min(ub[i], _DAQP_INF)
+        lower[i] = max(lb[i], -_DAQP_INF)
+    for i in range(m):
+        upper[n + i] = h[i]
+        lower[n + i] = -_DAQP_INF
+    for i in range(p):
+        upper[n + m + i] = lower[n + m + i] = b[i]
+        sense[n + m + i] = _DAQP_EQUALITY
+    return rows, upper, lower, sense
+
+
+def _solve_daqp(qp: DenseQP) -> np.ndarray | None:
+    x, _, exitflag, _ = daqp.solve(qp.H, qp.c, *_daqp_data(qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b))
     return x if exitflag > 0 else None
 
 
@@ -137,6 +155,13 @@ def solve(qp: DenseQP, solver: str = "daqp", active_tol: float = 1e-6) -> QPResu
         return QPResult(None, "infeasible: bounds cross", (), 1e6 * (time.perf_counter() - t0))
     if code == _OPTIMAL:
         return QPResult(x, "ok", (), 1e6 * (time.perf_counter() - t0))
+    return solve_by_solver(qp, solver, active_tol, t0)
+
+
+def solve_by_solver(qp: DenseQP, solver: str = "daqp", active_tol: float = 1e-6, t0: float | None = None) -> QPResult:
+    """`solve` without the screen: the solver's answer (for a QP whose screen said it needs
+    one); the same failures as values; solve_us counted from t0 (perf_counter s, default now)."""
+    t0 = time.perf_counter() if t0 is None else t0
     try:
         x = _solve_daqp(qp) if solver == "daqp" else _solve_qpsolvers(qp, solver)
     except Exception as exc:  # a solver error must not escape the control loop
