@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 from safety import constraints
 from safety.qp import solve
@@ -98,14 +100,14 @@ class FilterInputs:
     fallback: object = None
 
 
-@dataclass(frozen=True, eq=False)
-class FilterOutput:
+class FilterOutput(NamedTuple):
     """`qdot` (n,) rad/s to command (zeros on a fault); `ok` False on a fault, with
     `reason`; `active`: names of the constraints at their bound; `min_clearance_mm`: the
     smallest model clearance of the boundary points minus d_safe-free (mm);
     `cutter_allowed`: the port's clearance exceeds the interlock threshold;
     `intervened`: the output departs from the command (an active constraint, or a tip
-    velocity off the command by more than 1 %)."""
+    velocity off the command by more than 1 %). A NamedTuple: one is made per control
+    step, so it must be cheap."""
 
     qdot: np.ndarray
     ok: bool
@@ -115,6 +117,19 @@ class FilterOutput:
     cutter_allowed: bool = False
     intervened: bool = True
     solve_us: float = 0.0
+
+
+@njit(cache=True)
+def _off_command(J_tip, qdot, v_cmd) -> bool:
+    """The tip velocity J_tip qdot (mm/s) is off the command v_cmd by more than 1 % of its speed."""
+    err2, speed2 = 0.0, 0.0
+    for r in range(3):
+        v = 0.0
+        for j in range(qdot.shape[0]):
+            v += J_tip[r, j] * qdot[j]
+        err2 += (v - v_cmd[r]) ** 2
+        speed2 += v_cmd[r] ** 2
+    return np.sqrt(err2) > 0.01 * max(np.sqrt(speed2), 1e-9)
 
 
 def _distance_and_gradient(shape, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -180,9 +195,7 @@ class SafetyFilter:
         Jacobian (3, n) mm/rad and command (3,) mm/s, the smallest clearance (mm) and the
         port's (mm, None without a port) for the cutter interlock."""
         cutter = port_clearance_mm is not None and bool(port_clearance_mm > self.config.cutter_clearance_mm)
-        v_out = J_tip @ result.x
-        speed = np.linalg.norm(v_cmd_W)
-        off = np.linalg.norm(v_out - v_cmd_W) > 0.01 * max(speed, 1e-9)
+        off = _off_command(np.asarray(J_tip, dtype=float), result.x, np.asarray(v_cmd_W, dtype=float))
         intervened = bool(off or any(a.startswith(("boundary", "lens", "tip_speed")) for a in result.active))
         return FilterOutput(result.x, True, "ok", result.active, clearance, cutter, intervened, result.solve_us)
 
