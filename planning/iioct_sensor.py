@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -28,21 +29,23 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
+from planning.chain import _apply, chain_kinematics
 from planning.robot import Robot
 
 DEFAULT_MAX_INCIDENCE_RAD = np.radians(55.0)
 DISTANCE_MODE_CONFIDENCE = 0.9  # of a valid "distance" mode sample
 
 
-@dataclass(frozen=True, eq=False)
-class SensorSample:
+class SensorSample(NamedTuple):
     """One iiOCT sample: OCT time stamp `t_s`; extracted `distance_mm` (NaN when
     invalid); `valid`, `confidence`, `reason` ("" when valid, else a models.iioct
     REASONS entry, "incidence", "no_retina" or "bad_joint_state"); the reconstructed
     retinal point `p_W` (NaN when invalid); the reported (calibrated) beam
     `beam_origin_W`, `beam_dir_W`; the raw `ascan` (None in "distance" mode); the true
     distance along the true beam (what evaluation compares with; nothing in the loop
-    reads it)."""
+    reads it). A named tuple (the loop builds 2,000 a second: a tenth of a frozen
+    dataclass's cost), compared by identity like an object (its arrays have no truth
+    value), immutable by contract (its arrays too)."""
 
     t_s: float
     distance_mm: float
@@ -54,6 +57,10 @@ class SensorSample:
     beam_dir_W: np.ndarray
     ascan: np.ndarray | None = None
     true_distance_mm: float = float("nan")  # simulation ground truth, for evaluation only
+
+    __eq__ = object.__eq__
+    __ne__ = object.__ne__
+    __hash__ = object.__hash__
 
     def __deepcopy__(self, memo) -> SensorSample:
         return self  # immutable by contract: Drake copies abstract state values often
@@ -78,6 +85,17 @@ def bilinear(D, A, tables, d, a):
         out[m] = ((1 - u) * (1 - v) * tables[i, j] + u * (1 - v) * tables[i + 1, j]
                   + (1 - u) * v * tables[i, j + 1] + u * v * tables[i + 1, j + 1])
     return out
+
+
+@numba.njit(cache=True)
+def _draw(D, A, tables, d, a, uniform, normal):
+    """((M,) extracted distances mm, NaN where invalid; (M,) valid): sample m is invalid
+    where uniform[m] < p_invalid, else d + bias + sd normal[m] (tables as in `bilinear`:
+    p_invalid, bias, sd)."""
+    stats = bilinear(D, A, tables, d, a)
+    valid = uniform >= stats[:, 0]
+    out = np.where(valid, d + stats[:, 1] + stats[:, 2] * normal, np.nan)
+    return out, valid
 
 
 @dataclass(frozen=True)
@@ -111,10 +129,9 @@ class ExtractorErrorModel:
         """((M,) extracted distances mm, NaN where invalid; (M,) valid) for M true distances
         (mm) and incidences (rad): one uniform (invalid with probability p_invalid) and one
         standard normal per sample, drawn in two batches from `rng`."""
-        p_invalid, bias, sd = self.interpolate(distances_mm, incidences_rad).T
-        valid = rng.random(len(p_invalid)) >= p_invalid
-        d = distances_mm + bias + sd * rng.standard_normal(len(p_invalid))
-        return np.where(valid, d, np.nan), valid
+        D, A, tables = self._grid
+        d, a = np.ascontiguousarray(distances_mm, dtype=float), np.ascontiguousarray(incidences_rad, dtype=float)
+        return _draw(D, A, tables, d, a, rng.random(len(d)), rng.standard_normal(len(d)))
 
 
 @lru_cache(maxsize=4)
@@ -176,6 +193,35 @@ def ellipsoid_hits(O_W, U_W, p_WE, R_WE, radii):
     return d, incidence
 
 
+@numba.njit(cache=True)
+def sensor_beams(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal):
+    """(O_true, U_true, O_cal, U_cal), each (M, 3) in W: the origins (mm) and z axes of
+    the chain's (planning.chain) frames with home poses (R_true, p_true) at the rows of
+    Q_true and (R_cal, p_cal) at the rows of Q_reported (M, n) rad: the true and the
+    calibrated beam. One chain evaluation per row where the two rows are equal."""
+    M, n = Q_true.shape
+    O_true, U_true, O_cal, U_cal = np.empty((M, 3)), np.empty((M, 3)), np.empty((M, 3)), np.empty((M, 3))
+    for m in range(M):
+        R, p, _ = chain_kinematics(S, Q_true[m])
+        R_WF, p_WF = _apply(R, p, R_true, p_true)
+        O_true[m], U_true[m] = p_WF, R_WF[:, 2]
+        for i in range(n):
+            if Q_reported[m, i] != Q_true[m, i]:
+                R, p, _ = chain_kinematics(S, Q_reported[m])
+                break
+        R_WF, p_WF = _apply(R, p, R_cal, p_cal)
+        O_cal[m], U_cal[m] = p_WF, R_WF[:, 2]
+    return O_true, U_true, O_cal, U_cal
+
+
+def _finite_rows(Q) -> np.ndarray:
+    """Q as an (M, 6) float array of finite joint angles (rad); ValueError otherwise."""
+    A = np.asarray(Q, dtype=float)
+    if A.ndim != 2 or A.shape[1] != 6 or not np.all(np.isfinite(A)):
+        raise ValueError(f"Q must be finite joint angles of shape (M, 6) in rad, got shape {A.shape}")
+    return A
+
+
 def _joint_rows(Q, m: int) -> np.ndarray:
     """Q as an (m, 6) float array of joint angles (rad): a row that is not 6 numbers, or
     an array of another shape, becomes a NaN row (reported per sample as a bad joint state)."""
@@ -221,7 +267,8 @@ class IioctSensor:
         self.extractor = DistanceExtractor(self.engine) if extractor is None else extractor
         self.error_model = extractor_error_model(self.engine) if mode == "distance" else None
         R, p = (np.eye(3), np.zeros(3)) if X_S_Scal is None else X_S_Scal
-        self._R_S_Scal, self._p_S_Scal = np.asarray(R, dtype=float), np.asarray(p, dtype=float)
+        R_S, p_S = robot.chain.homes["S"]  # the calibrated frame's home pose: S's composed with X_S_Scal
+        self._home_Scal = (np.ascontiguousarray(R_S @ np.asarray(R, dtype=float)), R_S @ np.asarray(p, dtype=float) + p_S)
         self.encoder_noise_rad = float(encoder_noise_rad)
         self.max_incidence_rad = float(max_incidence_rad)
         self.floater_rate = float(floater_rate)
@@ -232,24 +279,30 @@ class IioctSensor:
         """(origins (M, 3) mm, unit directions (M, 3)) in W of the calibrated beam at the
         reported joint angles Q_reported (M, 6) rad, finite (plus the encoder noise, drawn
         per sample)."""
-        return self._reported_beams(Q_reported, self.robot.poses)
+        Q = self._with_encoder_noise(_finite_rows(Q_reported))
+        return self._beams(Q, Q)[2:]
 
     def true_geometry(self, Q_true) -> tuple[np.ndarray, np.ndarray]:
         """((M,) true distances mm along the true beams at Q_true (M, 6) rad, finite, to
         the retina, NaN where there is none; (M,) incidences rad, NaN without a hit)."""
-        return self._true_geometry(Q_true, self.robot.poses)
+        Q = _finite_rows(Q_true)
+        return self._hits(*self._beams(Q, Q)[:2])
 
-    def _reported_beams(self, Q, poses) -> tuple[np.ndarray, np.ndarray]:
-        """reported_beams with `poses`: Robot.poses, or Chain.poses for rows checked already."""
+    def _with_encoder_noise(self, Q: np.ndarray) -> np.ndarray:
         if self.encoder_noise_rad > 0:
-            Q = Q + self.encoder_noise_rad * self._rng.standard_normal((len(Q), 6))
-        R_WS, p_WS = poses("S", Q)
-        return p_WS + R_WS @ self._p_S_Scal, R_WS @ self._R_S_Scal[:, 2]
+            return Q + self.encoder_noise_rad * self._rng.standard_normal((len(Q), 6))
+        return Q
 
-    def _true_geometry(self, Q, poses) -> tuple[np.ndarray, np.ndarray]:
-        """true_geometry with `poses`: Robot.poses, or Chain.poses for rows checked already."""
-        R, O = poses("S_true", Q)
-        U = np.ascontiguousarray(R[:, :, 2])
+    def _beams(self, Q_true: np.ndarray, Q_reported: np.ndarray) -> tuple:
+        """(O_true, U_true, O_cal, U_cal) (M, 3): the true beams at Q_true and the
+        calibrated ones at Q_reported, finite (M, 6) rad (sensor_beams)."""
+        chain = self.robot.chain
+        return sensor_beams(chain.S, np.ascontiguousarray(Q_true), np.ascontiguousarray(Q_reported),
+                            *chain.homes["S_true"], *self._home_Scal)
+
+    def _hits(self, O: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) distances mm to the true retina along the beams (O, U) (M, 3) in W, NaN
+        where there is none; (M,) incidences rad, NaN without a hit)."""
         if self.eye.is_ellipsoid:
             return ellipsoid_hits(O, U, self.eye.pose.p_WE, self.eye.pose.R_WE, self.eye.radii)
         d = np.asarray(self.eye.ray_cast(O, U), dtype=float)
@@ -274,9 +327,9 @@ class IioctSensor:
         M = len(T_s)
         T = np.asarray(T_s, dtype=float).reshape(M)
         Qt, Qr = _joint_rows(Q_true, M), _joint_rows(Q_reported, M)
-        finite = np.isfinite(Qt).all(axis=1) & np.isfinite(Qr).all(axis=1)
-        if finite.all():
+        if np.isfinite(Qt.sum() + Qr.sum()):  # all finite (a sum of angles cannot overflow)
             return self._measure(T, Qt, Qr, model)
+        finite = np.isfinite(Qt).all(axis=1) & np.isfinite(Qr).all(axis=1)
         nan3 = np.full(3, np.nan)
         out = [SensorSample(t, float("nan"), False, 0.0, "bad_joint_state: q must be 6 finite angles (rad)",
                             nan3, nan3, nan3) for t in T.tolist()]
@@ -288,8 +341,8 @@ class IioctSensor:
 
     def _measure(self, T: np.ndarray, Qt: np.ndarray, Qr: np.ndarray, model) -> list[SensorSample]:
         """The samples at times T (M,) s from finite joint angles Qt, Qr (M, 6) rad."""
-        O, U = self._reported_beams(Qr, self.robot.chain.poses)
-        d_true, incidence = self._true_geometry(Qt, self.robot.chain.poses)
+        O_true, U_true, O, U = self._beams(Qt, self._with_encoder_noise(Qr))
+        d_true, incidence = self._hits(O_true, U_true)
         M = len(T)
         live = d_true <= self.max_distance_mm  # False where the beam meets no retina (NaN)
         reasons = ["" if ok else "no_retina" for ok in live.tolist()]
@@ -298,16 +351,20 @@ class IioctSensor:
             live[oblique] = False
             for k in oblique.tolist():
                 reasons[k] = "incidence"
-        d, valid, confidence = np.full(M, np.nan), np.zeros(M, dtype=bool), np.zeros(M)
         ascans = [None] * M
-        rows = np.flatnonzero(live)
         if self.mode == "distance":
-            d[rows], valid[rows] = self._distance_draws(d_true[rows], incidence[rows])
-            confidence[rows] = np.where(valid[rows], DISTANCE_MODE_CONFIDENCE, 0.0)
-            for k in rows[~valid[rows]].tolist():
-                reasons[k] = "low_confidence"
+            if live.all():  # the loop's usual packet: no masks
+                d, valid = self._distance_draws(d_true, incidence)
+            else:
+                d, valid = np.full(M, np.nan), np.zeros(M, dtype=bool)
+                d[live], valid[live] = self._distance_draws(d_true[live], incidence[live])
+            confidence = DISTANCE_MODE_CONFIDENCE * valid
+            if not valid.all():
+                for k in np.flatnonzero(live & ~valid).tolist():
+                    reasons[k] = "low_confidence"
         else:
-            for k in rows.tolist():
+            d, valid, confidence = np.full(M, np.nan), np.zeros(M, dtype=bool), np.zeros(M)
+            for k in np.flatnonzero(live).tolist():
                 ascans[k], m = self._ascan_one(float(d_true[k]), float(incidence[k]))
                 d[k], valid[k], confidence[k], reasons[k] = m.distance_mm, m.valid, m.confidence, "" if m.valid else m.reason
             d[~valid] = np.nan
