@@ -278,6 +278,7 @@ class FilterSystem(LeafSystem):
 
     def reset(self, logger=None) -> None:
         self.logger, self.record = logger, StepRecord()
+        self.compiled.reset()
 
     def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
         """(FilterInputs, InstrumentPoints) of one step; ValueError on bad joint angles."""

@@ -10,9 +10,11 @@ from hypothesis import strategies as st
 from eval.boundary_experiment import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
 from eval.commands import AdversarialCommand
-from eval.control_step import _chord
+from eval.control_step import ACTIVE_TOL, N_IDS, N_TIP_ROWS, _chord, remember_active, row_ids, warm_solution
 from models.coverage import _nearest_and_worst, fibonacci_directions
 from planning import SurgeryScenario
+from safety import constraints
+from safety.qp import solve
 from test_closed_loop import State, model_from_spiral_beams
 
 QDOT_TOL = 1e-9  # rad/s: the same kernels on the same numbers; only the QP solver's own rounding differs
@@ -120,3 +122,54 @@ def test_trust_angle_180_trusts_everything(setup):
     out, _ = wide.filter.compiled.step(0.001, starts[0], np.array([1.0, 0.0, 0.0, 0.0]), snaps["ellipsoid"], 0.0)
     ref = wide.filter.filter(wide.filter.inputs(0.001, starts[0], np.array([1.0, 0.0, 0.0, 0.0]), snaps["ellipsoid"], 0.0)[0])
     assert_same(out, ref)
+
+
+def random_qp(seed: int, clearance_mm: float, v_cmd):
+    """A filter-sized QP (6 joints, the tip speed polytope, 8 barrier rows at clearance_mm
+    above a 0.5 mm h_min, 2 RCM rows) and its DAQP solution."""
+    rng = np.random.default_rng(seed)
+    n, k = 6, 8
+    g = rng.normal(size=(k, 3))
+    qp = constraints.filter_qp(
+        50.0 * rng.normal(size=(3, n)), np.asarray(v_cmd, dtype=float), 1e-3, rng.normal(size=(1, n)), 0.1,
+        rng.uniform(-0.1, 0.1, n), -np.ones(n), np.ones(n), 3 * np.ones(n), 10.0, 0.03, 20.0,
+        tuple(f"boundary:b{i}" for i in range(k)), np.full(k, clearance_mm), g / np.linalg.norm(g, axis=1, keepdims=True),
+        50.0 * rng.normal(size=(k, 3, n)), np.full(k, 0.5), 20.0, 5.0, rng.normal(size=(2, n)), np.zeros(2))
+    return qp, solve(qp, "daqp")
+
+
+def warm(qp, active_ids):
+    ids = row_ids(np.arange(len(qp.h) - N_TIP_ROWS), len(qp.h) - N_TIP_ROWS)
+    return warm_solution(qp.H, qp.c, qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b, ids, active_ids, ACTIVE_TOL), ids
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), clearance=st.floats(0.3, 3.0), v=st.lists(st.floats(-40, 40), min_size=3, max_size=3),
+       guess=st.lists(st.booleans(), min_size=N_IDS, max_size=N_IDS))
+def test_a_certified_warm_solution_is_the_solution(seed, clearance, v, guess):
+    # whatever active set is guessed, a certified answer is the QP's unique solution (DAQP's,
+    # to its rounding: 1e-9 rad/s); an uncertified one goes to the solver
+    qp, ref = random_qp(seed, clearance, v)
+    (certified, x), _ = warm(qp, np.array(guess))
+    if certified:
+        assert ref.ok
+        np.testing.assert_allclose(x, ref.x, rtol=0, atol=1e-9)
+
+
+def test_the_previous_active_set_certifies_the_solution():
+    # the true active set (remembered from DAQP's solution) certifies it on nearly every QP
+    # that needs a solver (not on the degenerate ones, with dependent active rows)
+    tried = certified_count = 0
+    for seed in range(60):
+        qp, ref = random_qp(seed, 0.6, (15.0, -10.0, 8.0))
+        if not ref.ok or not ref.active:
+            continue
+        tried += 1
+        active_ids = np.zeros(N_IDS, dtype=bool)
+        ids = row_ids(np.arange(len(qp.h) - N_TIP_ROWS), len(qp.h) - N_TIP_ROWS)
+        remember_active(active_ids, ids, qp.G, qp.h, qp.lb, qp.ub, ref.x, ACTIVE_TOL)
+        (certified, x), _ = warm(qp, active_ids)
+        if certified:
+            certified_count += 1
+            np.testing.assert_allclose(x, ref.x, rtol=0, atol=1e-9)
+    assert tried >= 30 and certified_count >= 0.9 * tried
