@@ -271,6 +271,12 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
     return (out, x, H, c, lb, ub, G, hv, rcm_A, rcm_b, rows, k, k_used, m, P, J_tip, rcm_error, clearance, h[1], at_bound)
 
 
+def _writeable(a) -> np.ndarray:
+    """A C-contiguous, writeable float copy of `a` (the model's frozen arrays are read-only,
+    which numba would compile for separately)."""
+    return np.array(a, dtype=float, order="C")
+
+
 def _chord(angle_deg: float) -> float:
     """The chord of an angle on the unit sphere, a hair long (rounding): the z band that
     holds every direction within the angle (models.coverage._nearest_and_worst)."""
@@ -296,9 +302,9 @@ class CompiledStep:
         f = config.filter
         self._kin = kinematics_arguments(robot, robot.p_WC, config.points)
         lens = robot.scenario.lens_W
-        self._tail = (np.asarray(prior.center, dtype=float), np.full(3, float(prior.radius)),
-                      np.asarray(lens.center, dtype=float), np.asarray(lens.rotation, dtype=float),
-                      np.asarray(lens.radii, dtype=float), robot.q_lower, robot.q_upper, robot.qdot_max,
+        w = _writeable
+        self._tail = (w(prior.center), np.full(3, float(prior.radius)), w(lens.center), w(lens.rotation), w(lens.radii),
+                      w(robot.q_lower), w(robot.q_upper), w(robot.qdot_max),
                       np.array([f.d_safe_mm, f.gain_per_s, f.lens_margin_mm, f.joint_gain_per_s, f.joint_margin_rad,
                                 f.max_tip_speed_mm_s, f.max_command_speed_mm_s, f.damping, f.max_model_age_s,
                                 f.max_sensor_age_s, f.max_recovery_mm_s, np.radians(config.trust_angle_deg),
@@ -327,9 +333,9 @@ class CompiledStep:
             else:
                 dirs, cov_center = cov._dirs, np.asarray(cov.center_W, dtype=float)
                 misfit = np.zeros(len(dirs)) if cov._misfit is None else cov._misfit
-            self._model = (kind, np.asarray(center, dtype=float), np.asarray(rotation, dtype=float),
-                           np.asarray(radii, dtype=float), float(snap.margin_mm(self._margins)), prior_center,
-                           prior_radii, has_coverage, cov_center, dirs, misfit)
+            w = _writeable  # one array type for every snapshot: one compiled specialisation
+            self._model = (kind, w(center), w(rotation), w(radii), float(snap.margin_mm(self._margins)), prior_center,
+                           prior_radii, has_coverage, w(cov_center), w(dirs), w(misfit))
             self._snap = snap
         return self._model
 
