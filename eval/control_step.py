@@ -272,8 +272,10 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
 
 
 def _writeable(a) -> np.ndarray:
-    """A C-contiguous, writeable float copy of `a` (the model's frozen arrays are read-only,
-    which numba would compile for separately)."""
+    """`a` as a C-contiguous, writeable float array, copied only when it is not one (the
+    model's frozen arrays are read-only, which numba would compile for separately)."""
+    if isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
     return np.array(a, dtype=float, order="C")
 
 
