@@ -214,16 +214,19 @@ class _Recorder(LeafSystem):
         self.rows.append((context.get_time(), np.array(self._q.Eval(context))))
 
 
-def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup):
+@pytest.mark.parametrize("offset_s", [0.0, 0.0013])
+def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup, offset_s):
     """q changing at every sample (a 2 kHz integrator): each packet appears once, 10
     samples with the reference's time stamps (bit for bit) and beams at the reference's
     joint angles; with the same seed the samples equal the sensor's on the reference
-    packets, field by field."""
+    packets, field by field. With a time offset (2.6 samples: the first packets' points
+    from before the first sample, held at it) the reported angles are the reference's
+    history interpolated at t - offset."""
     scenario, robot, q = setup
     b = DiagramBuilder()
     src = b.AddSystem(ConstantVectorSource(np.array([0.05, -0.03, 0.02, 0.0, 0.04, 0.1])))
     integ = b.AddSystem(DiscreteTimeIntegrator(6, 5e-4))
-    sensor = b.AddSystem(IioctSensorSystem(IioctSensor(robot, mode="distance", seed=0), 2000.0, packet=10))
+    sensor = b.AddSystem(IioctSensorSystem(IioctSensor(robot, mode="distance", seed=0), 2000.0, offset_s, packet=10))
     rec = b.AddSystem(_Recorder(2000.0))
     b.Connect(src.get_output_port(), integ.get_input_port())
     for sink in (sensor.GetInputPort("q"), rec.get_input_port()):
@@ -241,7 +244,9 @@ def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup):
         Q = np.array([qq for _, qq in rec.rows[10 * n:10 * n + 10]])
         assert len(packet) == 10 and [s.t_s for s in packet] == T.tolist()
         assert len(set(map(tuple, Q))) == 10  # q really changes at every sample
-        for s, r in zip(packet, reference.samples(Q, Q, T)):
+        t_all, q_all = np.array([t for t, _ in rec.rows]), np.array([qq for _, qq in rec.rows])
+        Q_reported = np.column_stack([np.interp(T - offset_s, t_all, q_all[:, i]) for i in range(6)])
+        for s, r in zip(packet, reference.samples(Q, Q_reported, T)):
             np.testing.assert_equal((s.distance_mm, s.valid, s.reason, s.true_distance_mm),
                                     (r.distance_mm, r.valid, r.reason, r.true_distance_mm))
             np.testing.assert_array_equal(s.beam_origin_W, r.beam_origin_W)
