@@ -251,3 +251,21 @@ def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup, off
                                     (r.distance_mm, r.valid, r.reason, r.true_distance_mm))
             np.testing.assert_array_equal(s.beam_origin_W, r.beam_origin_W)
             np.testing.assert_array_equal(s.p_W, r.p_W)
+
+
+def test_a_run_started_late_packs_only_the_samples_recorded_since_its_start(setup):
+    """A simulation starting at 3.1 ms: its first packet (processed at 4.625 ms) holds the
+    samples at 3.5, 4.0 and 4.5 ms only (k x 0.5 ms, Drake's sample times), none of the
+    register's unrecorded rows; with a 1.3 ms offset their points come from the first
+    sample's joint angles (the history starts there)."""
+    scenario, robot, q = setup
+    qdot = np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0])  # rad/s
+    sim, sensor = _moving_diagram(robot, q, qdot, 0.0013)
+    sim.get_mutable_context().SetTime(0.0031)
+    sim.Initialize()
+    sim.AdvanceTo(0.0049)
+    packet = sensor.GetOutputPort("samples").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
+    assert [s.t_s for s in packet] == (np.arange(7, 10) * 5e-4).tolist()
+    first = IioctSensor(robot, mode="distance").reported_beams(np.array([q]))[0][0]  # q at 3.5 ms: the integral's start
+    for s in packet:
+        np.testing.assert_array_equal(s.beam_origin_W, first)
