@@ -419,9 +419,9 @@ class _Packet:
 
 
 def _shift_selector(rows: int) -> Selector:
-    """A Selector giving the shift register's next value (7 `rows`,) from its inputs
-    "register" (7 `rows`,): `rows` rows of [recorded flag, q (6) rad], oldest first),
-    "one" (1,) and "q" (6,) rad: the register without its oldest row, then [1, q]."""
+    """A Selector giving the shift register's next value from its inputs "register"
+    (`rows` rows of [recorded flag, q (6) rad], oldest first, flattened), "one" (1,) and
+    "q" (6,) rad: the register without its oldest row, then [1, q]."""
     S = SelectorParams
     kept = [S.OutputSelection(input_port_index=0, input_offset=i) for i in range(7, 7 * rows)]
     new = [S.OutputSelection(input_port_index=1, input_offset=0)]
@@ -468,6 +468,8 @@ class _PacketProcessor(LeafSystem):
 
     def _process(self, context, state) -> None:
         T_all, Q_all = self._recorded(context)
+        if not len(T_all):  # a run started after this packet's last sample: keep the previous packet
+            return
         T, Q = T_all[-self.packet:], Q_all[-self.packet:]
         packet = tuple(self.sensor.samples(Q, self._reported(T, T_all, Q_all), T))
         state.get_mutable_abstract_state(self._packet).set_value(_Packet(packet))

@@ -269,3 +269,20 @@ def test_a_run_started_late_packs_only_the_samples_recorded_since_its_start(setu
     first = IioctSensor(robot, mode="distance").reported_beams(np.array([q]))[0][0]  # q at 3.5 ms: the integral's start
     for s in packet:
         np.testing.assert_array_equal(s.beam_origin_W, first)
+
+
+def test_a_run_started_after_a_packets_last_sample_has_no_packet_until_the_next(setup):
+    """Started at 4.6 ms, between the last sample of the first packet (4.5 ms) and its
+    event (4.625 ms): no sample yet at 4.9 ms (measurement t_s = -inf, not valid); at
+    9.9 ms the packet of 5.0-9.5 ms."""
+    scenario, robot, q = setup
+    sim, sensor = _moving_diagram(robot, q, np.zeros(6), 0.0)
+    sim.get_mutable_context().SetTime(0.0046)
+    sim.Initialize()
+    sim.AdvanceTo(0.0049)
+    ctx = sensor.GetMyContextFromRoot(sim.get_context())
+    m = sensor.GetOutputPort("measurement").Eval(ctx)
+    assert m[3] == -np.inf and m[1] == 0.0
+    sim.AdvanceTo(0.0099)
+    packet = sensor.GetOutputPort("samples").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
+    assert [s.t_s for s in packet] == (np.arange(10, 20) * 5e-4).tolist()
