@@ -116,8 +116,9 @@ def run() -> None:
     print(f"sensor packet of 10 (distance mode):     {summary_us(packet_us)}")
     ms = _sensor_ms_per_simulated_s(loop, qs[0])
     rate, per_packet = loop.config.sensor_rate_hz, loop.config.sensor_packet
-    record_us = 1e3 * (ms - 1e-3 * np.median(packet_us) * rate / per_packet) / rate
+    sample_us = 1e3 * (ms - 1e-3 * np.median(packet_us) * rate / per_packet) / rate
     print(f"sensor block in a diagram, 1 s at {rate:.0f} Hz: {ms:.1f} ms per simulated s (target <= 15); "
-          f"per recording event (Drake's dispatch included, the packets' median taken off) {record_us:.1f} us")
+          f"per sample (the C++ shift register's step and the packet event's dispatch, the packets' median "
+          f"taken off) {sample_us:.1f} us")
     upd = np.concatenate([r.model_update_us for r in c.runs])
     print(f"model update per A-scan (packets of 10): {summary_us(upd)}")

@@ -26,7 +26,8 @@ from typing import NamedTuple
 import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import ConstantVectorSource, Selector, SelectorParams, ZeroOrderHold
 
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
 from planning.chain import _apply, chain_kinematics
@@ -408,8 +409,8 @@ def _model_incidences(model, O: np.ndarray, U: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class _Packet:
-    """The block's abstract state: the latest packet, a tuple of SensorSample. Immutable:
-    Drake copies state values often."""
+    """The packet processor's abstract state: the latest packet, a tuple of
+    SensorSample. Immutable: Drake copies state values often."""
 
     samples: tuple
 
@@ -417,55 +418,35 @@ class _Packet:
         return self
 
 
-class IioctSensorSystem(LeafSystem):
-    """The sensor as a Drake block, sampling at `rate_hz` (default 2 kHz).
+def _shift_selector(rows: int) -> Selector:
+    """A Selector giving the shift register's next value from its inputs "register"
+    (`rows` rows of [recorded flag, q (6) rad], oldest first, flattened), "one" (1,) and
+    "q" (6,) rad: the register without its oldest row, then [1, q]."""
+    S = SelectorParams
+    kept = [S.OutputSelection(input_port_index=0, input_offset=i) for i in range(7, 7 * rows)]
+    new = [S.OutputSelection(input_port_index=1, input_offset=0)]
+    new += [S.OutputSelection(input_port_index=2, input_offset=i) for i in range(6)]
+    return Selector(S(inputs=[S.InputPortParams(name="register", size=7 * rows), S.InputPortParams(name="one", size=1),
+                              S.InputPortParams(name="q", size=6)],
+                      outputs=[S.OutputPortParams(name="shifted", selections=kept + new)]))
 
-    Input "q" (6,) rad: the robot's joint angles. The OCT engine streams its A-scans in
-    packets of `packet` samples (default 10, i.e. 5 ms at 2 kHz): the joint angles are
-    recorded at every sample time and the packet is processed when its last sample is
-    recorded (vectorised geometry). Outputs: "samples" (the latest packet, a tuple of
-    SensorSample), "sample" (its last sample), "p_W" (3,) mm of that sample (NaN when
-    invalid), "measurement" (4,) [distance_mm, valid 0/1, confidence, t_s] (t_s = -inf
-    before the first packet). With `time_offset_s` > 0 the points are reconstructed from
-    the joint angles of `time_offset_s` earlier (the paper's OCT-robot synchronisation
-    error, up to 2.6 ms), interpolated linearly in the recorded history.
 
-    Events: a discrete update at every sample time k / rate_hz records (t, q) in a ring
-    (a vector state: the newest `packet` samples, the offset's history before them, and
-    the count recorded; about 2 us of Drake a sample against 8 us for an abstract-state
-    update); an unrestricted update at the packet rate, a quarter of a sample period
-    after each packet's last sample (`packet_offset_s`), turns the ring's newest `packet`
-    samples into the packet. Not at the last sample's own time: Drake computes each
-    periodic series' times on its own (offset + k period), the two series' coinciding
-    times then differ by rounding now and then, and a packet event a few ulps after a
-    recording step is skipped (seen in the closed loop: one packet in 20 lost). A reader
-    at the same time as the packet event sees the previous packet (events at one time
-    see the state before them); the closed loop's model reads at half a sample period
-    after the last sample, the filter at whole control periods.
-    """
+class _PacketProcessor(LeafSystem):
+    """Turns the shift register's newest `packet` samples into the packet, in one
+    unrestricted update at the packet rate, a quarter of a sample period after each
+    packet's last sample (IioctSensorSystem); input "register" (7 `slots`,): rows of
+    [recorded flag, q (6) rad], oldest first; outputs as IioctSensorSystem's."""
 
-    def __init__(self, sensor: IioctSensor, rate_hz: float = 2000.0, time_offset_s: float = 0.0, packet: int = 10):
+    def __init__(self, sensor: IioctSensor, rate_hz: float, time_offset_s: float, packet: int, slots: int):
         super().__init__()
-        if not (np.isfinite(rate_hz) and rate_hz > 0):
-            raise ValueError(f"rate_hz must be > 0 Hz, got {rate_hz}")
-        if not (np.isfinite(time_offset_s) and 0 <= time_offset_s <= 0.1):
-            raise ValueError(f"time_offset_s must be in [0, 0.1] s, got {time_offset_s}")
-        if not (isinstance(packet, int) and 1 <= packet <= 1000):
-            raise ValueError(f"packet must be an int in [1, 1000] samples, got {packet}")
-        self.sensor, self.rate_hz, self.time_offset_s, self.packet = sensor, float(rate_hz), float(time_offset_s), packet
-        self._period_s = 1.0 / self.rate_hz
-        # samples recorded before the packet's, kept for the offset's interpolation
-        history = int(np.ceil(time_offset_s * rate_hz)) + 1 if time_offset_s > 0 else 0
-        self._slots = packet + history
-        self._q = self.DeclareVectorInputPort("q", 6)
+        self.sensor, self.time_offset_s, self.packet, self._slots = sensor, time_offset_s, packet, slots
+        self._period_s = 1.0 / rate_hz  # the register's period, s: sample k is at k * period (Drake's event time)
+        self._register = self.DeclareVectorInputPort("register", 7 * slots)
         nan3 = np.full(3, np.nan)
         first = SensorSample(-np.inf, np.nan, False, 0.0, "no_sample_yet", nan3, nan3, nan3)
-        # ring: slot k mod slots holds [t_s, q (6)] of sample k; the last entry counts the samples recorded
-        self._ring = self.DeclareDiscreteState(7 * self._slots + 1)
         self._packet = self.DeclareAbstractState(AbstractValue.Make(_Packet((first,))))
-        self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, 0.0, self._record)
-        self.packet_offset_s = (packet - 0.75) * self._period_s  # the packet event's first time, s
-        self.DeclarePeriodicUnrestrictedUpdateEvent(packet * self._period_s, self.packet_offset_s, self._process)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(packet * self._period_s, (packet - 0.75) * self._period_s,
+                                                    self._process)
         packet_changed = {self.abstract_state_ticket(self._packet)}
         self.DeclareAbstractOutputPort("samples", lambda: AbstractValue.Make((first,)), self._calc_samples,
                                        prerequisites_of_calc=packet_changed)
@@ -474,32 +455,31 @@ class IioctSensorSystem(LeafSystem):
         self.DeclareVectorOutputPort("p_W", 3, self._calc_p, prerequisites_of_calc=packet_changed)
         self.DeclareVectorOutputPort("measurement", 4, self._calc_measurement, prerequisites_of_calc=packet_changed)
 
-    def _record(self, context, discrete_state) -> None:
-        x = discrete_state.get_mutable_vector(self._ring).get_mutable_value()
-        n = int(x[-1])
-        k = 7 * (n % self._slots)
-        x[k] = context.get_time()
-        x[k + 1:k + 7] = self._q.Eval(context)
-        x[-1] = n + 1
-
-    def _recorded(self, context) -> np.ndarray:
-        """(K, 7) rows [t_s, q (6) rad] of the samples in the ring, oldest first (K <=
-        packet + the offset's history)."""
-        x = context.get_discrete_state(self._ring).get_value()
-        n = int(x[-1])
-        return x[:-1].reshape(self._slots, 7)[np.arange(max(0, n - self._slots), n) % self._slots]
+    def _recorded(self, context) -> tuple[np.ndarray, np.ndarray]:
+        """((K,) time stamps s, (K, 6) joint angles rad) of the samples in the register,
+        oldest first (K <= slots). The newest is sample k = round(t / period - 1/4) at
+        the packet event's time t, stamped k * period: the time of the register's
+        update that recorded it, bit for bit."""
+        rows = self._register.Eval(context).reshape(self._slots, 7)
+        if rows[0, 0] != 1.0:  # not full yet: the recorded rows are the newest
+            rows = rows[rows[:, 0] == 1.0]
+        k_last = round(context.get_time() / self._period_s - 0.25)
+        return np.arange(k_last - len(rows) + 1, k_last + 1) * self._period_s, rows[:, 1:]
 
     def _process(self, context, state) -> None:
-        tq = self._recorded(context)
-        T, Q = tq[-self.packet:, 0], tq[-self.packet:, 1:]
-        packet = tuple(self.sensor.samples(Q, self._reported(T, tq), T))
+        T_all, Q_all = self._recorded(context)
+        if not len(T_all):  # a run started after this packet's last sample: keep the previous packet
+            return
+        T, Q = T_all[-self.packet:], Q_all[-self.packet:]
+        packet = tuple(self.sensor.samples(Q, self._reported(T, T_all, Q_all), T))
         state.get_mutable_abstract_state(self._packet).set_value(_Packet(packet))
 
-    def _reported(self, T: np.ndarray, tq: np.ndarray) -> np.ndarray:
-        """Joint angles (M, 6) at T - time_offset_s, from the recorded rows [t_s, q] tq."""
+    def _reported(self, T: np.ndarray, T_all: np.ndarray, Q_all: np.ndarray) -> np.ndarray:
+        """Joint angles (M, 6) rad at the times T - time_offset_s, from the recorded
+        samples (times T_all (K,) s, joint angles Q_all (K, 6) rad)."""
         if self.time_offset_s == 0.0:
-            return tq[-len(T):, 1:]
-        return np.column_stack([np.interp(T - self.time_offset_s, tq[:, 0], tq[:, 1 + i]) for i in range(6)])
+            return Q_all[-len(T):]
+        return np.column_stack([np.interp(T - self.time_offset_s, T_all, Q_all[:, i]) for i in range(6)])
 
     def _latest(self, context) -> SensorSample:
         return context.get_abstract_state(self._packet).get_value().samples[-1]
@@ -516,3 +496,60 @@ class IioctSensorSystem(LeafSystem):
     def _calc_measurement(self, context, output) -> None:
         s = self._latest(context)
         output.SetFromVector([s.distance_mm, float(s.valid), s.confidence, s.t_s])
+
+
+class IioctSensorSystem(Diagram):
+    """The sensor as a Drake block, sampling at `rate_hz` (default 2 kHz).
+
+    Input "q" (6,) rad: the robot's joint angles. The OCT engine streams its A-scans in
+    packets of `packet` samples (default 10, i.e. 5 ms at 2 kHz): the joint angles are
+    recorded at every sample time and the packet is processed when its last sample is
+    recorded (vectorised geometry). Outputs: "samples" (the latest packet, a tuple of
+    SensorSample), "sample" (its last sample), "p_W" (3,) mm of that sample (NaN when
+    invalid), "measurement" (4,) [distance_mm, valid 0/1, confidence, t_s] (t_s = -inf
+    before the first packet). With `time_offset_s` > 0 the points are reconstructed from
+    the joint angles of `time_offset_s` earlier (the paper's OCT-robot synchronisation
+    error, up to 2.6 ms), interpolated linearly in the recorded history.
+
+    A diagram of Drake's C++ primitives and one Python system: a shift register (a
+    ZeroOrderHold with period 1 / rate_hz, i.e. Drake's discrete update at every sample
+    time k / rate_hz, fed by a Selector from its own value, a constant 1 and "q") holds
+    rows [recorded 1, q] of the newest `packet` samples and the offset's history before
+    them; `_PacketProcessor` reads the whole register at the packet rate, a quarter of a
+    sample period after each packet's last sample, and stamps sample k with k / rate_hz
+    as Drake computes it (k x period), the register update's time bit for bit. Not at
+    the last sample's own time: there the register would not hold that sample yet
+    (events at one time see the state before them), and Drake computes each periodic
+    series' times on its own (offset + k period), so coinciding times can differ by
+    rounding and a packet event a few ulps after a register step be skipped (seen in the
+    closed loop with the former 2 kHz Python recorder: one packet in 20 lost). A reader
+    at the same time as the packet event sees the previous packet; the closed loop's
+    model reads at half a sample period after the last sample, the filter at whole
+    control periods.
+    """
+
+    def __init__(self, sensor: IioctSensor, rate_hz: float = 2000.0, time_offset_s: float = 0.0, packet: int = 10):
+        super().__init__()
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"rate_hz must be > 0 Hz, got {rate_hz}")
+        if not (np.isfinite(time_offset_s) and 0 <= time_offset_s <= 0.1):
+            raise ValueError(f"time_offset_s must be in [0, 0.1] s, got {time_offset_s}")
+        if not (isinstance(packet, int) and 1 <= packet <= 1000):
+            raise ValueError(f"packet must be an int in [1, 1000] samples, got {packet}")
+        self.sensor, self.rate_hz, self.time_offset_s, self.packet = sensor, float(rate_hz), float(time_offset_s), packet
+        # samples recorded before the packet's, kept for the offset's interpolation
+        history = int(np.ceil(time_offset_s * rate_hz)) + 1 if time_offset_s > 0 else 0
+        slots = packet + history
+        b = DiagramBuilder()
+        register = b.AddSystem(ZeroOrderHold(1.0 / self.rate_hz, 7 * slots))
+        shift = b.AddSystem(_shift_selector(slots))
+        one = b.AddSystem(ConstantVectorSource([1.0]))
+        processor = b.AddSystem(_PacketProcessor(sensor, self.rate_hz, self.time_offset_s, packet, slots))
+        b.Connect(register.get_output_port(), shift.get_input_port(0))
+        b.Connect(one.get_output_port(), shift.get_input_port(1))
+        b.Connect(shift.get_output_port(0), register.get_input_port())
+        b.Connect(register.get_output_port(), processor.GetInputPort("register"))
+        b.ExportInput(shift.get_input_port(2), "q")
+        for name in ("samples", "sample", "p_W", "measurement"):
+            b.ExportOutput(processor.GetOutputPort(name), name)
+        b.BuildInto(self)

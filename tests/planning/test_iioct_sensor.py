@@ -214,16 +214,19 @@ class _Recorder(LeafSystem):
         self.rows.append((context.get_time(), np.array(self._q.Eval(context))))
 
 
-def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup):
+@pytest.mark.parametrize("offset_s", [0.0, 0.0013])
+def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup, offset_s):
     """q changing at every sample (a 2 kHz integrator): each packet appears once, 10
     samples with the reference's time stamps (bit for bit) and beams at the reference's
     joint angles; with the same seed the samples equal the sensor's on the reference
-    packets, field by field."""
+    packets, field by field. With a time offset (2.6 samples: the first packets' points
+    from before the first sample, held at it) the reported angles are the reference's
+    history interpolated at t - offset."""
     scenario, robot, q = setup
     b = DiagramBuilder()
     src = b.AddSystem(ConstantVectorSource(np.array([0.05, -0.03, 0.02, 0.0, 0.04, 0.1])))
     integ = b.AddSystem(DiscreteTimeIntegrator(6, 5e-4))
-    sensor = b.AddSystem(IioctSensorSystem(IioctSensor(robot, mode="distance", seed=0), 2000.0, packet=10))
+    sensor = b.AddSystem(IioctSensorSystem(IioctSensor(robot, mode="distance", seed=0), 2000.0, offset_s, packet=10))
     rec = b.AddSystem(_Recorder(2000.0))
     b.Connect(src.get_output_port(), integ.get_input_port())
     for sink in (sensor.GetInputPort("q"), rec.get_input_port()):
@@ -241,8 +244,45 @@ def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup):
         Q = np.array([qq for _, qq in rec.rows[10 * n:10 * n + 10]])
         assert len(packet) == 10 and [s.t_s for s in packet] == T.tolist()
         assert len(set(map(tuple, Q))) == 10  # q really changes at every sample
-        for s, r in zip(packet, reference.samples(Q, Q, T)):
+        t_all, q_all = np.array([t for t, _ in rec.rows]), np.array([qq for _, qq in rec.rows])
+        Q_reported = np.column_stack([np.interp(T - offset_s, t_all, q_all[:, i]) for i in range(6)])
+        for s, r in zip(packet, reference.samples(Q, Q_reported, T)):
             np.testing.assert_equal((s.distance_mm, s.valid, s.reason, s.true_distance_mm),
                                     (r.distance_mm, r.valid, r.reason, r.true_distance_mm))
             np.testing.assert_array_equal(s.beam_origin_W, r.beam_origin_W)
             np.testing.assert_array_equal(s.p_W, r.p_W)
+
+
+def test_a_run_started_late_packs_only_the_samples_recorded_since_its_start(setup):
+    """A simulation starting at 3.1 ms: its first packet (processed at 4.625 ms) holds the
+    samples at 3.5, 4.0 and 4.5 ms only (k x 0.5 ms, Drake's sample times), none of the
+    register's unrecorded rows; with a 1.3 ms offset their points come from the first
+    sample's joint angles (the history starts there)."""
+    scenario, robot, q = setup
+    qdot = np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0])  # rad/s
+    sim, sensor = _moving_diagram(robot, q, qdot, 0.0013)
+    sim.get_mutable_context().SetTime(0.0031)
+    sim.Initialize()
+    sim.AdvanceTo(0.0049)
+    packet = sensor.GetOutputPort("samples").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
+    assert [s.t_s for s in packet] == (np.arange(7, 10) * 5e-4).tolist()
+    first = IioctSensor(robot, mode="distance").reported_beams(np.array([q]))[0][0]  # q at 3.5 ms: the integral's start
+    for s in packet:
+        np.testing.assert_array_equal(s.beam_origin_W, first)
+
+
+def test_a_run_started_after_a_packets_last_sample_has_no_packet_until_the_next(setup):
+    """Started at 4.6 ms, between the last sample of the first packet (4.5 ms) and its
+    event (4.625 ms): no sample yet at 4.9 ms (measurement t_s = -inf, not valid); at
+    9.9 ms the packet of 5.0-9.5 ms."""
+    scenario, robot, q = setup
+    sim, sensor = _moving_diagram(robot, q, np.zeros(6), 0.0)
+    sim.get_mutable_context().SetTime(0.0046)
+    sim.Initialize()
+    sim.AdvanceTo(0.0049)
+    ctx = sensor.GetMyContextFromRoot(sim.get_context())
+    m = sensor.GetOutputPort("measurement").Eval(ctx)
+    assert m[3] == -np.inf and m[1] == 0.0
+    sim.AdvanceTo(0.0099)
+    packet = sensor.GetOutputPort("samples").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
+    assert [s.t_s for s in packet] == (np.arange(10, 20) * 5e-4).tolist()
