@@ -19,6 +19,7 @@ Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -39,6 +40,8 @@ from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
 from safety.margins import UncertaintyMargins, conservative_prior
 
 JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
+_NAN3 = np.full(3, np.nan)
+_NAN3.setflags(write=False)  # the tip position of non-finite joint angles
 ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of the 2 kHz stream, ~0.4 MB/s
 
 
@@ -152,9 +155,12 @@ class CommandSystem(LeafSystem):
 
     def _update(self, context, discrete_state) -> None:
         q = self._q.Eval(context)
-        p_WT = self.robot.pose("T", q)[1] if np.all(np.isfinite(q)) else np.full(3, np.nan)
+        # the robot's kinematic chain without Robot.pose's argument checks: q is the
+        # integrator's (6,) float state, checked for finiteness here
+        p_WT = self.robot.chain.pose("T", q)[1] if all(map(math.isfinite, q.tolist())) else _NAN3
         v, roll = self.source(context.get_time(), p_WT, q)
-        discrete_state.set_value(np.concatenate([np.asarray(v, dtype=float).reshape(3), [float(roll)]]))
+        v = np.asarray(v, dtype=float).reshape(3)
+        discrete_state.set_value(np.array((v[0], v[1], v[2], float(roll))))
 
 
 class AdaptiveModelSystem(LeafSystem):
