@@ -4,9 +4,10 @@ An update of the adaptive model is a handful of operations on 4x4, 6x6 and 10x10
 matrices; in NumPy each costs one to three microseconds of call overhead, which at one
 update per A-scan (2 kHz) dominates the arithmetic. These kernels do the same
 arithmetic in one compiled call each. They are the only implementation (the batch fits
-use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit); one
-A-scan's whole update (gate, sphere filter, scatter matrix, scan range, refit,
-residuals) is one call of `ascan_update`, which runs the same kernels as a batch update.
+use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit); an
+update's whole work (gate, sphere filter, scatter matrix, scan range, refit,
+residuals), by one A-scan or by a packet, is one call of `packet_update`, which runs
+the same kernels as the general update path.
 
 The ellipsoid-specific fit (Li & Griffiths 2004, k = 4) minimises v^T S v subject to
 v1^T C1 v1 = 1. With the Schur complement S' = S11 - S12 S22^-1 S12^T (symmetric,
@@ -697,39 +698,61 @@ def fit_summary(S, sf_state, sf_ok, v_ef, ef_ok, radii, prev_radii, has_prev, v_
     return sf_res, ef_res, axis_change
 
 
-# ascan_update's outcomes and the layout of its output vector `out`
-ASCAN_NONFINITE, ASCAN_GATED, ASCAN_ABSORBED = range(3)
+@njit(cache=True)
+def spread_check_due(checked_at, n, recheck):
+    """Whether the fit of n points runs the collinear/coplanar test, the last passed one
+    at `checked_at` points (0: none): adding points only widens a cloud's scatter about
+    its mean, so once spread in 3-D it stays so; the test is still repeated every
+    `recheck` points (models.ellipsoid_fit.IncrementalEllipsoidFit)."""
+    return checked_at == 0 or n - checked_at >= recheck
+
+
+# the layout of packet_update's output vector `out`
 OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE = 0, 4, 14, 24, 27, 30, 39, 42
 
 
 @njit(cache=True)
-def ascan_update(P1, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
-                 Y, y, S, check_spread, X, block_r, diameter, prev_radii, has_prev, scale, out):
-    """The adaptive model's update by one A-scan's point P1 (1, 3) mm, in one call: the
-    same kernels as a batch update of one point, in the same order. A model of n >= 1
-    points (the batch path takes the first, p0 (mm): the origin of every part) gates P1
-    (gate_points, when `gate_on`; `quadric` the current model about p0) and absorbs it
-    into the sphere filter (Y, y), the scatter matrix S and the scan range (X, block_r,
-    `diameter` mm), refits the ellipsoid (`check_spread`: with the spread test) and
-    summarises the fits (fit_summary), all state updated in place.
+def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
+                  Y, y, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, out):
+    """The adaptive model's update by the points P (N, 3) mm (one A-scan's or a packet's), in
+    one call: the kernels of the batch update, in its order. A model of n >= 1 points (the
+    batch path takes the first, p0 (mm): the origin of every part) skips the non-finite
+    rows of P, gates the others (gate_points, when `gate_on`; `quadric` the current model
+    about p0) and copies those it keeps to kept[:K] (kept: (N, 3)); if K > 0 it absorbs
+    them into the sphere filter (Y, y), the scatter matrix S and the scan range (X with
+    room for K more rows, block_r, `diameter` mm), refits the ellipsoid (with the spread
+    test when spread_check_due(checked_at, n + K, recheck)) and summarises the fits
+    (fit_summary), all state updated in place.
 
-    Returns (outcome: ASCAN_NONFINITE / ASCAN_GATED (nothing changed but the gate's state)
-    / ASCAN_ABSORBED, sphere ok, fit status code, diameter mm, sphere residual mm,
-    ellipsoid residual mm, axis change, sphere radius mm); `out` (OUT_SIZE,) receives the
-    sphere state, the sphere's quadric, the fit's quadric, centre, semi-axes and rotation
-    (row-major), and the sphere's centre (mm).
+    Returns (non-finite count, K, spread test run, sphere ok, fit status code, diameter mm,
+    sphere residual mm, ellipsoid residual mm, axis change, sphere radius mm); with K > 0,
+    `out` (OUT_SIZE,) receives the sphere state, the sphere's quadric, the fit's quadric,
+    centre, semi-axes and rotation (row-major), and the sphere's centre (mm).
     """
-    if not (np.isfinite(P1[0, 0]) and np.isfinite(P1[0, 1]) and np.isfinite(P1[0, 2])):
-        return ASCAN_NONFINITE, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
-    if gate_on:
-        keep = np.empty(1, np.bool_)
-        if gate_points(P1, keep, quadric, has_quadric, p0, scale, n, g_params, g_counts, g_last, g_residual,
-                       g_recent) == 0:
-            return ASCAN_GATED, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
-    state, sf_ok = sphere_absorb(Y, y, P1, p0, scale, n + 1)
-    add_design_rows(S, P1, p0, scale)
-    diameter = diameter_after_adding(X, block_r, n, P1[0], p0, diameter)
-    code, v, center, radii, R = fit_ellipsoid_scatter(S, p0, scale, check_spread)
+    m = 0
+    for i in range(P.shape[0]):
+        if np.isfinite(P[i, 0]) and np.isfinite(P[i, 1]) and np.isfinite(P[i, 2]):
+            kept[m, 0], kept[m, 1], kept[m, 2] = P[i, 0], P[i, 1], P[i, 2]
+            m += 1
+    n_nonfinite, k = P.shape[0] - m, m
+    if gate_on and m > 0:
+        keep = np.empty(m, np.bool_)
+        gate_points(kept[:m], keep, quadric, has_quadric, p0, scale, n, g_params, g_counts, g_last, g_residual,
+                    g_recent)
+        k = 0
+        for i in range(m):
+            if keep[i]:
+                kept[k, 0], kept[k, 1], kept[k, 2] = kept[i, 0], kept[i, 1], kept[i, 2]
+                k += 1
+    if k == 0:
+        return n_nonfinite, 0, False, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
+    A = kept[:k]
+    state, sf_ok = sphere_absorb(Y, y, A, p0, scale, n + k)
+    add_design_rows(S, A, p0, scale)
+    for i in range(k):
+        diameter = diameter_after_adding(X, block_r, n + i, A[i], p0, diameter)
+    check = spread_check_due(checked_at, n + k, recheck)
+    code, v, center, radii, R = fit_ellipsoid_scatter(S, p0, scale, check)
     v_sf = out[OUT_V_SF:OUT_V_EF]
     sf_res, ef_res, axis_change = fit_summary(S, state, sf_ok, v, code == 0, radii, prev_radii, has_prev, v_sf, scale)
     out[OUT_STATE:OUT_V_SF] = state
@@ -738,4 +761,4 @@ def ascan_update(P1, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g
     out[OUT_RADII:OUT_ROTATION] = radii
     out[OUT_ROTATION:OUT_SF_CENTER] = R.ravel()
     radius = sphere_center_radius(state, p0, scale, out[OUT_SF_CENTER:OUT_SIZE]) if sf_ok else np.nan
-    return ASCAN_ABSORBED, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius
+    return n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius

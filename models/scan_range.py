@@ -38,18 +38,18 @@ class ScanRange:
         if len(P) and self.p0 is None:
             self.p0 = np.array(P[0], dtype=float)
         for p in P:
-            self.reserve_one()
-            self.took_one(diameter_after_adding(self.X, self.block_r, self._n, p, self.p0, self.diameter_mm))
+            self.reserve(1)
+            self.took(1, diameter_after_adding(self.X, self.block_r, self._n, p, self.p0, self.diameter_mm))
         return self.diameter_mm
 
-    def took_one(self, diameter_mm: float) -> None:
-        """Count the point that diameter_after_adding has stored as row `n_points` of X
-        (after reserve_one), which made the diameter `diameter_mm`."""
-        self._n += 1
+    def took(self, k: int, diameter_mm: float) -> None:
+        """Count the k points that diameter_after_adding has stored as rows n_points.. of X
+        (after reserve(k)), which made the diameter `diameter_mm`."""
+        self._n += k
         self.diameter_mm = diameter_mm
 
-    def reserve_one(self) -> None:
-        """Make room for one more point (the capacity doubles when full)."""
-        if self._n == len(self.X):
+    def reserve(self, k: int) -> None:
+        """Make room for k more points (the capacity doubles until they fit)."""
+        while self._n + k > len(self.X):
             self.X = np.concatenate([self.X, np.empty_like(self.X)])
             self.block_r = np.concatenate([self.block_r, np.zeros_like(self.block_r)])
