@@ -114,6 +114,9 @@ class ModelSnapshot(NamedTuple):
         return margins.margin_mm(None if self.shape is None else self.kind, self.residual_mm)
 
 
+_PRIOR_AT_0 = ModelSnapshot("prior", None, 0.0, np.nan, 0)
+
+
 def semi_axes_mm(shape) -> np.ndarray:
     """The semi-axes (mm) of a Sphere (its radius, once) or an Ellipsoid."""
     return np.atleast_1d(getattr(shape, "radii", getattr(shape, "radius", np.nan)))
@@ -129,16 +132,19 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     def prior() -> ModelSnapshot:  # made only when returned: a view of another kind is a rebuild
         return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
 
-    if model.shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
+    shape = model.shape
+    if shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
         return prior()
-    last = model.history[-1]
-    candidates = [(model.kind, model.shape, last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm)]
-    if model.kind == "ellipsoid" and model.sphere is not None:
-        candidates.append(("sphere", model.sphere, last.sf_residual_mm))
-    for kind, shape, residual_mm in candidates:
-        radii = semi_axes_mm(shape)
-        if radius_range_mm[0] <= radii.min() and radii.max() <= radius_range_mm[1]:
-            return ModelSnapshot(kind, shape, t_s, float(residual_mm), model.n_points, coverage.view(shape))
+    last, lo, hi = model.history[-1], radius_range_mm[0], radius_range_mm[1]
+    if model.kind == "ellipsoid":
+        radii = shape.radii.tolist()
+        if lo <= min(radii) and max(radii) <= hi:
+            return ModelSnapshot("ellipsoid", shape, t_s, float(last.ef_residual_mm), model.n_points, coverage.view(shape))
+        shape = model.sphere  # the ellipsoid is no eye's: its sphere fit, if that one is
+        if shape is None:
+            return prior()
+    if lo <= shape.radius <= hi:
+        return ModelSnapshot("sphere", shape, t_s, float(last.sf_residual_mm), model.n_points, coverage.view(shape))
     return prior()
 
 
@@ -174,7 +180,7 @@ class AdaptiveModelSystem(LeafSystem):
         super().__init__()
         self._trust = (min_points, min_scan_range_mm, radius_range_mm)
         self._samples = self.DeclareAbstractInputPort("samples", AbstractValue.Make(()))
-        self._snap = self.DeclareAbstractState(AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
+        self._snap = self.DeclareAbstractState(AbstractValue.Make(_PRIOR_AT_0))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
         self.DeclareStateOutputPort("snapshot", self._snap)
         self.reset(AdaptiveEyeModel(), DirectionCoverage(np.zeros(3)))
@@ -182,6 +188,7 @@ class AdaptiveModelSystem(LeafSystem):
     def reset(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, logger=None) -> None:
         self.model, self.coverage, self.logger = model, coverage, logger
         self._last_t = -np.inf
+        self._written = _PRIOR_AT_0  # the declared state's value, until initial_snapshot
         self.update_us: list[float] = []
         self.errors_mm: list[float] = []  # extracted - true distance of the valid samples (evaluation)
         self.n_samples = 0
@@ -197,39 +204,44 @@ class AdaptiveModelSystem(LeafSystem):
         return snapshot_of(model, coverage, t_s, *self._trust)
 
     def initial_snapshot(self) -> ModelSnapshot:
-        snap = self.snapshot_for(self.model, self.coverage, 0.0)
-        self._mark_epoch(snap)
-        return snap
+        """The snapshot the run starts from (ClosedLoop.run puts it in the context's state)."""
+        self._written = self.snapshot_for(self.model, self.coverage, 0.0)
+        self._mark_epoch(self._written)
+        return self._written
 
     def _update(self, context, state) -> None:
-        packet = [s for s in self._samples.Eval(context) if s.t_s > self._last_t]
+        last_t = self._last_t
+        packet = [s for s in self._samples.Eval(context) if s.t_s > last_t]
         if not packet:
             return
         self._last_t = packet[-1].t_s
         first = self.n_samples
         self.n_samples += len(packet)
-        self.n_invalid += sum(not s.valid for s in packet)
-        self.errors_mm.extend(s.distance_mm - s.true_distance_mm for s in packet if s.valid)
+        valid = [s for s in packet if s.valid]
+        self.n_invalid += len(packet) - len(valid)
+        self.errors_mm.extend([s.distance_mm - s.true_distance_mm for s in valid])
         if self.logger is not None:
             for k, s in enumerate(packet, first):
                 self.logger.log_distance(s.t_s, s.distance_mm, s.valid, s.confidence)
                 if s.ascan is not None and k % ASCAN_LOG_EVERY == 0:
                     self.logger.log_ascan(s.t_s, s.ascan, s.valid, s.reason)
-        points = [s.p_W for s in packet if s.valid]
         entry = None
-        if points:
+        if valid:
             t0 = time.perf_counter()
-            entry = self.model.update(np.array(points))
+            entry = self.model.update(np.array([s.p_W for s in valid]))
             # only what the model took in: a floater the gate turned away must not count as
             # retina measured deep inside the model (it would become every nearby point's margin)
             self.coverage.add(self.model.last_accepted)
-            self.update_us.append(1e6 * (time.perf_counter() - t0) / len(points))
+            self.update_us.append(1e6 * (time.perf_counter() - t0) / len(valid))
             if entry is not None and self.logger is not None:
                 self.logger.log_model_update(self._last_t, entry)
-        snap = state.get_abstract_state(0).get_value()
-        new = self.snapshot_for(self.model, self.coverage, self._last_t) if entry is not None or snap.shape is None else snap._replace(t_s=self._last_t)
-        state.get_mutable_abstract_state(0).set_value(new)
-        self._mark_epoch(new)
+        # the state is what this system last wrote (or the initial snapshot): kept at hand
+        if entry is not None or self._written.shape is None:
+            self._written = self.snapshot_for(self.model, self.coverage, self._last_t)
+        else:
+            self._written = self._written._replace(t_s=self._last_t)
+        state.get_mutable_abstract_state(0).set_value(self._written)
+        self._mark_epoch(self._written)
 
 
 @dataclass

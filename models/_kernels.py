@@ -545,33 +545,58 @@ SCAN_BLOCK = 16  # points per bounding ball of models.scan_range (16: ~1 us per 
 
 
 @njit(cache=True)
-def diameter_after_adding(X, block_r, n, p, p0, diameter):
-    """The diameter (mm) of the first n rows of X (cap, 3) and x = p - p0 (3,), given theirs
-    (`diameter`); x is stored as row n and its block's radius updated, in place. Block k
-    holds rows [k B, (k + 1) B) with B = SCAN_BLOCK, its ball centred on row k B with
-    radius block_r[k]; a block with |x - centre| + radius <= the largest distance found
-    so far (at first `diameter`) is skipped."""
-    x = p - p0
+def diameter_after_adding(X, block_r, n, P, p0, diameter):
+    """The diameter (mm) of the first n rows of X (cap, 3) and the rows x = p - p0 of the
+    points P (k, 3) mm, given theirs (`diameter`); the x are stored as rows n.. n + k - 1
+    and their blocks updated, in place. Block b holds rows [b B, (b + 1) B) with B =
+    SCAN_BLOCK, its ball centred on row b B with radius block_r[b]. A block is skipped for
+    the whole batch when the new points' ball (about the first, radius rho) cannot reach
+    past the largest distance so far: |x_0 - centre| + rho + radius <= `diameter`; the
+    others are skipped per point as |x - centre| + radius <= the largest distance found
+    so far. The new points are compared with each other directly."""
+    k = P.shape[0]
+    for i in range(k):
+        X[n + i, 0], X[n + i, 1], X[n + i, 2] = P[i, 0] - p0[0], P[i, 1] - p0[1], P[i, 2] - p0[2]
+    m0, m1, m2 = X[n, 0], X[n, 1], X[n, 2]
+    rho = 0.0
+    for i in range(1, k):
+        rho = max(rho, np.sqrt((X[n + i, 0] - m0) ** 2 + (X[n + i, 1] - m1) ** 2 + (X[n + i, 2] - m2) ** 2))
+    n_blocks = (n + SCAN_BLOCK - 1) // SCAN_BLOCK
+    candidates = np.empty(n_blocks, np.int64)
+    n_cand = 0
+    for b in range(n_blocks):
+        c = b * SCAN_BLOCK
+        slack = diameter - block_r[b] - rho
+        if not (slack >= 0.0 and (m0 - X[c, 0]) ** 2 + (m1 - X[c, 1]) ** 2 + (m2 - X[c, 2]) ** 2 <= slack * slack):
+            candidates[n_cand] = b
+            n_cand += 1
     best, best2 = diameter, diameter * diameter
-    for k in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
-        c0, c1, c2 = X[k * SCAN_BLOCK, 0], X[k * SCAN_BLOCK, 1], X[k * SCAN_BLOCK, 2]
-        slack = best - block_r[k]  # |x - centre| + radius <= best, without a square root
-        if slack >= 0.0 and (x[0] - c0) ** 2 + (x[1] - c1) ** 2 + (x[2] - c2) ** 2 <= slack * slack:
-            continue
-        for i in range(k * SCAN_BLOCK, min(n, (k + 1) * SCAN_BLOCK)):
-            d2 = (x[0] - X[i, 0]) ** 2 + (x[1] - X[i, 1]) ** 2 + (x[2] - X[i, 2]) ** 2
+    for i in range(k):
+        x0, x1, x2 = X[n + i, 0], X[n + i, 1], X[n + i, 2]
+        for q in range(n_cand):
+            b = candidates[q]
+            c = b * SCAN_BLOCK
+            slack = best - block_r[b]  # |x - centre| + radius <= best, without a square root
+            if slack >= 0.0 and (x0 - X[c, 0]) ** 2 + (x1 - X[c, 1]) ** 2 + (x2 - X[c, 2]) ** 2 <= slack * slack:
+                continue
+            for j in range(c, min(n, c + SCAN_BLOCK)):
+                d2 = (x0 - X[j, 0]) ** 2 + (x1 - X[j, 1]) ** 2 + (x2 - X[j, 2]) ** 2
+                if d2 > best2:
+                    best2 = d2
+        for j in range(n, n + i):
+            d2 = (x0 - X[j, 0]) ** 2 + (x1 - X[j, 1]) ** 2 + (x2 - X[j, 2]) ** 2
             if d2 > best2:
                 best2 = d2
         best = np.sqrt(best2)
-    X[n, 0], X[n, 1], X[n, 2] = x[0], x[1], x[2]
-    k = n // SCAN_BLOCK
-    if n % SCAN_BLOCK == 0:
-        block_r[k] = 0.0
-    else:
-        r = np.sqrt((x[0] - X[k * SCAN_BLOCK, 0]) ** 2 + (x[1] - X[k * SCAN_BLOCK, 1]) ** 2
-                    + (x[2] - X[k * SCAN_BLOCK, 2]) ** 2)
-        if r > block_r[k]:
-            block_r[k] = r
+    for j in range(n, n + k):
+        b = j // SCAN_BLOCK
+        if j % SCAN_BLOCK == 0:
+            block_r[b] = 0.0
+        else:
+            c = b * SCAN_BLOCK
+            r = np.sqrt((X[j, 0] - X[c, 0]) ** 2 + (X[j, 1] - X[c, 1]) ** 2 + (X[j, 2] - X[c, 2]) ** 2)
+            if r > block_r[b]:
+                block_r[b] = r
     return np.sqrt(best2)
 
 
@@ -749,8 +774,7 @@ def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g
     A = kept[:k]
     state, sf_ok = sphere_absorb(Y, y, A, p0, scale, n + k)
     add_design_rows(S, A, p0, scale)
-    for i in range(k):
-        diameter = diameter_after_adding(X, block_r, n + i, A[i], p0, diameter)
+    diameter = diameter_after_adding(X, block_r, n, A, p0, diameter)
     check = spread_check_due(checked_at, n + k, recheck)
     code, v, center, radii, R = fit_ellipsoid_scatter(S, p0, scale, check)
     v_sf = out[OUT_V_SF:OUT_V_EF]

@@ -14,7 +14,8 @@ class ScanRange:
     ball about its first point; a block whose bound |p - c| + r cannot exceed the
     current diameter is skipped, so only the blocks across the scan from the new point
     are visited (consecutive A-scans lie close together: a block is a short arc of the
-    scan). Exact, never an O(N^2) pass; coordinates centred on the first point.
+    scan); a batch's points first rule out blocks together, by their bounding ball.
+    Exact, never an O(N^2) pass; coordinates centred on the first point.
 
     State, for models._kernels.diameter_after_adding: `X` (capacity, 3) the points less
     `p0` (the first point, mm) in its first `n_points` rows, `block_r` the blocks' radii
@@ -37,9 +38,9 @@ class ScanRange:
         """Add finite points P (N, 3) mm; return the updated diameter (mm)."""
         if len(P) and self.p0 is None:
             self.p0 = np.array(P[0], dtype=float)
-        for p in P:
-            self.reserve(1)
-            self.took(1, diameter_after_adding(self.X, self.block_r, self._n, p, self.p0, self.diameter_mm))
+        if len(P):
+            self.reserve(len(P))
+            self.took(len(P), diameter_after_adding(self.X, self.block_r, self._n, P, self.p0, self.diameter_mm))
         return self.diameter_mm
 
     def took(self, k: int, diameter_mm: float) -> None:
