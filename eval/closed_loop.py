@@ -154,12 +154,14 @@ class CommandSystem(LeafSystem):
     def __init__(self, robot: Robot, rate_hz: float):
         super().__init__()
         self.robot, self.source = robot, None
+        self.wall_s = 0.0  # wall time (s) of its steps since the last ClosedLoop.run began
         self._q = self.DeclareVectorInputPort("q", 6)
         state = self.DeclareDiscreteState(4)
         self.DeclarePeriodicDiscreteUpdateEvent(1.0 / rate_hz, 0.0, self._update)
         self.DeclareStateOutputPort("command", state)
 
     def _update(self, context, discrete_state) -> None:
+        t0 = time.perf_counter()
         q = self._q.Eval(context)
         # the robot's kinematic chain without Robot.pose's argument checks: q is the
         # integrator's (6,) float state, checked for finiteness here
@@ -167,6 +169,7 @@ class CommandSystem(LeafSystem):
         v, roll = self.source(context.get_time(), p_WT, q)
         v = np.asarray(v, dtype=float).reshape(3)
         discrete_state.set_value(np.array((v[0], v[1], v[2], float(roll))))
+        self.wall_s += time.perf_counter() - t0
 
 
 class AdaptiveModelSystem(LeafSystem):
@@ -189,6 +192,7 @@ class AdaptiveModelSystem(LeafSystem):
         self.model, self.coverage, self.logger = model, coverage, logger
         self._last_t = -np.inf
         self._written = _PRIOR_AT_0  # the declared state's value, until initial_snapshot
+        self.wall_s = 0.0  # wall time (s) of its updates since the reset
         self.update_us: list[float] = []
         self.errors_mm: list[float] = []  # extracted - true distance of the valid samples (evaluation)
         self.n_samples = 0
@@ -210,6 +214,11 @@ class AdaptiveModelSystem(LeafSystem):
         return self._written
 
     def _update(self, context, state) -> None:
+        t0 = time.perf_counter()
+        self._absorb(context, state)
+        self.wall_s += time.perf_counter() - t0
+
+    def _absorb(self, context, state) -> None:
         last_t = self._last_t
         packet = [s for s in self._samples.Eval(context) if s.t_s > last_t]
         if not packet:
@@ -379,7 +388,9 @@ class LoopRun:
 
     `true_clearance_mm` (M,): the smallest TRUE clearance of the monitored points per
     step (ground-truth eye); `lens_clearance_mm` (M,): the shaft's lens points' smallest
-    distance outside the lens keep-out; `wall_s` the run's wall time; `model_epochs` the
+    distance outside the lens keep-out; `wall_s` the run's wall time, of which
+    `command_wall_s` in the command system and `model_wall_s` in the model system (its
+    sensor packets' hand-over, model updates and snapshots); `model_epochs` the
     model the filter used (ModelSnapshot, W) from each change of kind on (prior -> sphere
     -> ellipsoid), the first one from the start of the run."""
 
@@ -402,6 +413,8 @@ class LoopRun:
     model_update_us: np.ndarray
     wall_s: float
     model_epochs: list = field(default_factory=list)
+    command_wall_s: float = 0.0
+    model_wall_s: float = 0.0
 
     @property
     def duration_s(self) -> float:
@@ -471,7 +484,7 @@ class ClosedLoop:
             raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")
         if not (np.isfinite(duration_s) and duration_s > 0):
             raise ValueError(f"duration_s must be > 0 s, got {duration_s}")
-        self.command.source = source
+        self.command.source, self.command.wall_s = source, 0.0
         self.filter.reset(logger)
         self.model.reset(AdaptiveEyeModel() if model is None else model,
                          self.new_coverage() if coverage is None else coverage, logger)
@@ -508,5 +521,5 @@ class ClosedLoop:
             true_clearance_mm=true_clearances(r.points_W, eye) if r.points_W else np.zeros(0),
             lens_clearance_mm=lens_clear, kind=list(r.kind), rcm_error_mm=a(r.rcm_error_mm),
             drake_diffik_us=a(r.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
-            model_epochs=list(self.model.epochs),
+            model_epochs=list(self.model.epochs), command_wall_s=self.command.wall_s, model_wall_s=self.model.wall_s,
         )
