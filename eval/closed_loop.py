@@ -32,6 +32,7 @@ from pydrake.systems.primitives import DiscreteTimeIntegrator
 
 from models import AdaptiveEyeModel
 from models.coverage import DirectionCoverage
+from eval.control_step import CompiledStep
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 from planning.iioct_sensor import IioctSensor, IioctSensorSystem
@@ -273,17 +274,21 @@ class StepRecord:
     points_W: list = field(default_factory=list)
     lens_W: list = field(default_factory=list)
     drake_diffik_us: list = field(default_factory=list)
+    diffik_states: list = field(default_factory=list)  # (q, v_cmd) on which Drake's diff IK is timed
 
 
 class FilterSystem(LeafSystem):
     """The safety filter at the control rate: inputs "q", "command", "snapshot" (the
     model), "measurement" (the sensor's [distance, valid, confidence, t_s]); state and
-    output "qdot" (zero-order hold)."""
+    output "qdot" (zero-order hold). Each step runs as one compiled call
+    (eval.control_step); a fault or an unusual step goes to the reference, SafetyFilter on
+    `inputs`, which the log records and `vitreoguard replay` re-runs."""
 
     def __init__(self, robot: Robot, config: LoopConfig, prior):
         super().__init__()
         self.robot, self.config, self.prior = robot, config, prior
         self.filter = SafetyFilter(config.filter)
+        self.compiled = CompiledStep(robot, config, prior, self.filter)
         self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
         self.lens = robot.scenario.lens_W
         self._q = self.DeclareVectorInputPort("q", 6)
@@ -300,6 +305,7 @@ class FilterSystem(LeafSystem):
 
     def reset(self, logger=None) -> None:
         self.logger, self.record = logger, StepRecord()
+        self.compiled.reset()
 
     def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
         """(FilterInputs, InstrumentPoints) of one step; ValueError on bad joint angles."""
@@ -331,36 +337,52 @@ class FilterSystem(LeafSystem):
     def _update(self, context, discrete_state) -> None:
         t0 = time.perf_counter()
         t = context.get_time()
-        q = np.array(self._q.Eval(context))
-        command = np.array(self._cmd.Eval(context))
+        q = self._q.Eval(context)
+        command = self._cmd.Eval(context)
         snap = self._snap.Eval(context)
         meas = self._meas.Eval(context)
         sensor_t = float(meas[3])
         rec = self.record
-        try:
-            x, ip = self.inputs(t, q, command, snap, sensor_t)
-        except ValueError as exc:  # non-finite joint angles: nothing to filter, stay put
-            rec.t.append(t), rec.q.append(q), rec.qdot.append(np.zeros(6)), rec.v_cmd.append(command[:3])
-            rec.v_tip.append(np.zeros(3)), rec.ok.append(False), rec.reason.append(f"bad joint state: {exc}")
-            rec.intervened.append(True), rec.solve_us.append(0.0), rec.step_us.append(0.0)
-            rec.model_clearance.append(np.nan), rec.kind.append(snap.kind), rec.rcm_error_mm.append(np.nan)
-            rec.points_W.append(np.full((1, 3), np.nan)), rec.lens_W.append(np.zeros((0, 3)))
-            discrete_state.set_value(np.zeros(6))
-            return
-        out = self.filter(x)
+        out, r = self.compiled.step(t, q, command, snap, sensor_t)
+        if out is not None:  # the ordinary step, compiled: the points from its kinematics
+            k, m, P = r[11], r[13], r[14]
+            J_tip, P_W, L_W, rcm_error_mm = r[15], P[:k], P[k:k + m], float(r[16])
+            x = self.inputs(t, q, command, snap, sensor_t)[0] if self.logger is not None else None
+        else:  # a fault or an unusual step: the reference filter decides and says why
+            try:
+                x, ip = self.inputs(t, q, command, snap, sensor_t)
+            except ValueError as exc:  # non-finite joint angles: nothing to filter, stay put
+                rec.t.append(t), rec.q.append(q), rec.qdot.append(np.zeros(6)), rec.v_cmd.append(command[:3])
+                rec.v_tip.append(np.zeros(3)), rec.ok.append(False), rec.reason.append(f"bad joint state: {exc}")
+                rec.intervened.append(True), rec.solve_us.append(0.0), rec.step_us.append(0.0)
+                rec.model_clearance.append(np.nan), rec.kind.append(snap.kind), rec.rcm_error_mm.append(np.nan)
+                rec.points_W.append(np.full((1, 3), np.nan)), rec.lens_W.append(np.zeros((0, 3)))
+                discrete_state.set_value(np.zeros(6))
+                return
+            out = self.filter(x)
+            J_tip, P_W, L_W, rcm_error_mm = ip.J_tip, ip.P_W, ip.L_W, ip.rcm_error_mm
         discrete_state.set_value(out.qdot)
         rec.step_us.append(1e6 * (time.perf_counter() - t0))
         if self.config.drake_diffik_every and len(rec.t) % self.config.drake_diffik_every == 0 and out.ok:
-            t1 = time.perf_counter()
-            self.drake_diffik(q, x.v_cmd_W)
-            rec.drake_diffik_us.append(1e6 * (time.perf_counter() - t1))
-        rec.t.append(t), rec.q.append(q), rec.qdot.append(out.qdot), rec.v_cmd.append(x.v_cmd_W)
-        rec.v_tip.append(ip.J_tip @ out.qdot), rec.ok.append(out.ok), rec.reason.append(out.reason)
+            rec.diffik_states.append((q, command[:3]))  # Drake is timed on these after the run (ClosedLoop.run)
+        rec.t.append(t), rec.q.append(q), rec.qdot.append(out.qdot), rec.v_cmd.append(command[:3])
+        rec.v_tip.append(J_tip @ out.qdot), rec.ok.append(out.ok), rec.reason.append(out.reason)
         rec.intervened.append(out.intervened), rec.solve_us.append(out.solve_us)
         rec.model_clearance.append(out.min_clearance_mm), rec.kind.append(snap.kind)
-        rec.rcm_error_mm.append(ip.rcm_error_mm), rec.points_W.append(ip.P_W), rec.lens_W.append(ip.L_W)
+        rec.rcm_error_mm.append(rcm_error_mm), rec.points_W.append(P_W), rec.lens_W.append(L_W)
         if self.logger is not None:
             self._log(t, q, x, out, float(meas[0]) if meas[1] > 0 else float("nan"))
+
+    def time_drake_diffik(self) -> None:
+        """Time Drake's DoDifferentialInverseKinematics on the states recorded during the
+        run (every drake_diffik_every-th step the filter solved), into the record: the
+        same plant and states as the filter, outside the run's wall time (it is the
+        comparison, not part of the loop)."""
+        rec = self.record
+        for q, v_cmd in rec.diffik_states:
+            t1 = time.perf_counter()
+            self.drake_diffik(q, v_cmd)
+            rec.drake_diffik_us.append(1e6 * (time.perf_counter() - t1))
 
     def _log(self, t: float, q, x, out, distance_mm: float) -> None:
         """Every step's filter inputs and outputs; joint states at 100 Hz; frames and the
@@ -497,6 +519,7 @@ class ClosedLoop:
         t0 = time.perf_counter()
         self.simulator.AdvanceTo(duration_s)
         wall = time.perf_counter() - t0
+        self.filter.time_drake_diffik()
         return self._collect(wall)
 
     def new_coverage(self) -> DirectionCoverage:

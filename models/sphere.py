@@ -4,9 +4,28 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from models._validation import as_points, as_positive, as_vector3
 from models.sampling import unit_sphere_grid
+
+
+@njit(cache=True)
+def sphere_distance_and_gradient(center, radius, Q):
+    """((M,) signed distance mm, > 0 inside; (M, 3) unit gradient, the inward normal, +z
+    at the centre by convention) of points Q (M, 3) mm to the sphere (center, radius)."""
+    M = Q.shape[0]
+    d = np.empty(M)
+    g = np.empty((M, 3))
+    for m in range(M):
+        v0, v1, v2 = center[0] - Q[m, 0], center[1] - Q[m, 1], center[2] - Q[m, 2]
+        n = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        d[m] = radius - n
+        if n == 0.0:
+            g[m, 0], g[m, 1], g[m, 2] = 0.0, 0.0, 1.0
+        else:
+            g[m, 0], g[m, 1], g[m, 2] = v0 / n, v1 / n, v2 / n
+    return d, g
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,15 +60,8 @@ class Sphere:
         return self.signed_distance_and_gradient(Q)[1]
 
     def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
-        """((M,) signed distance mm, (M, 3) unit gradient): both from one pass."""
-        Q = as_points(Q, "Q")
-        v = self.center - Q
-        n = np.sqrt(np.einsum("ij,ij->i", v, v))
-        at_center = n == 0.0
-        g = v / np.where(at_center, 1.0, n)[:, None]
-        if at_center.any():
-            g[at_center] = (0.0, 0.0, 1.0)
-        return self.radius - n, g
+        """((M,) signed distance mm, (M, 3) unit gradient): both from one compiled pass."""
+        return sphere_distance_and_gradient(self.center, float(self.radius), as_points(Q, "Q"))
 
     def ray_cast(self, origins, dirs) -> np.ndarray:
         """(M,) distance (mm) along unit rays to the sphere: first hit from inside, first

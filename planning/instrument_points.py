@@ -13,8 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
-from planning.chain import rigid_points
+from planning.chain import frame_pose_and_jacobian, rigid_points
 from planning.robot import RCM_GAIN_PER_S, Robot
 
 PORT_I_MM = np.array([91.7, -0.25, 0.0])  # cutter port in I (meca500.urdf "port_frame")
@@ -77,29 +78,75 @@ class InstrumentPoints:
     rcm_error_mm: float
 
 
+@njit(cache=True)
+def instrument_kinematics(S, R_home_I, p_home_I, q, p_WC, tip_x, port_I, shaft_spacing, n_shaft, min_depth, lens_offsets,
+                          rcm_gain):
+    """One posture's monitored points in one compiled pass: (P_W (k + m + 1, 3) mm, J_W
+    (k + m + 1, 3, n) mm/rad: tip, port, the k - 2 shaft points kept, the m lens points,
+    then the shaft's point at the trocar; k, m; J_roll (n,) rad/rad; rcm_A (2, n) mm/rad;
+    rcm_b (2,) mm/s; rcm_error_mm; R_WI, p_WI mm). Chain (S, home pose of I) as
+    planning.chain; q (n,) rad; p_WC (3,) mm; the rest as MonitoredPointsConfig, mm."""
+    R_WI, p_WI, J = frame_pose_and_jacobian(S, q, R_home_I, p_home_I)
+    d = np.empty(3)
+    lam = 0.0
+    for r in range(3):
+        d[r] = p_WC[r] - p_WI[r]
+        lam += R_WI[r, 0] * d[r]  # the trocar's shaft coordinate, mm
+    n_lens = lens_offsets.shape[0]
+    x = np.empty(2 + n_shaft + n_lens + 1)
+    k = 2
+    for i in range(1, n_shaft + 1):
+        s = tip_x - i * shaft_spacing
+        if s >= lam + min_depth:
+            x[k] = s
+            k += 1
+    m = 0
+    for o in lens_offsets:
+        if lam + o <= tip_x:
+            x[k + m] = lam + o
+            m += 1
+    P_I = np.zeros((k + m + 1, 3))
+    for i in range(2, k + m):
+        P_I[i, 0] = x[i]
+    P_I[0, 0] = tip_x
+    P_I[1, 0], P_I[1, 1], P_I[1, 2] = port_I[0], port_I[1], port_I[2]
+    P_I[k + m, 0] = lam
+    P_W, J_W = rigid_points(R_WI, p_WI, J, P_I)
+    n = q.shape[0]
+    J_roll = np.zeros(n)
+    rcm_A = np.zeros((2, n))
+    rcm_b = np.zeros(2)
+    err2 = 0.0
+    for a in range(2):  # the shaft's two lateral directions: columns 1 and 2 of R_WI
+        e = R_WI[0, a + 1] * d[0] + R_WI[1, a + 1] * d[1] + R_WI[2, a + 1] * d[2]
+        rcm_b[a] = rcm_gain * e
+        err2 += e * e
+        for j in range(n):
+            rcm_A[a, j] = (R_WI[0, a + 1] * J_W[k + m, 0, j] + R_WI[1, a + 1] * J_W[k + m, 1, j]
+                           + R_WI[2, a + 1] * J_W[k + m, 2, j])
+    for j in range(n):
+        J_roll[j] = R_WI[0, 0] * J[0, j] + R_WI[1, 0] * J[1, j] + R_WI[2, 0] * J[2, j]
+    return P_W, J_W, k, m, J_roll, rcm_A, rcm_b, np.sqrt(err2), R_WI, p_WI
+
+
+def kinematics_arguments(robot: Robot, p_WC, config: MonitoredPointsConfig, rcm_gain_per_s: float = RCM_GAIN_PER_S) -> tuple:
+    """instrument_kinematics' arguments but q, in its order around q: (S, R_home_I,
+    p_home_I) and (p_WC, tip_x, port_I, spacing, n_shaft, min_depth, lens offsets, gain)."""
+    R_h, p_h = robot.chain.homes["I"]
+    head = (robot.chain.S, R_h, p_h)
+    tail = (np.asarray(p_WC, dtype=float), float(robot.tip_offset_mm), PORT_I_MM, float(config.shaft_spacing_mm),
+            int(config.n_shaft), float(config.min_depth_past_trocar_mm),
+            np.asarray(config.lens_offsets_mm, dtype=float).reshape(-1), float(rcm_gain_per_s))
+    return head, tail
+
+
 def instrument_points(robot: Robot, q, p_WC, config: MonitoredPointsConfig = MonitoredPointsConfig(),
                       rcm_gain_per_s: float = RCM_GAIN_PER_S) -> InstrumentPoints:
     """The monitored points, their Jacobians and the RCM rows at q (6,) rad, trocar p_WC (3,) mm."""
-    R_WI, p_WI, J = robot.pose_and_spatial_jacobian("I", q)
-    u = R_WI[:, 0]
-    tip_x = robot.tip_offset_mm
-    d = np.asarray(p_WC, dtype=float) - p_WI
-    lam = float(u @ d)  # the trocar's shaft coordinate, mm
-    shaft_x = [tip_x - k * config.shaft_spacing_mm for k in range(1, config.n_shaft + 1)]
-    shaft_x = [x for x in shaft_x if x >= lam + config.min_depth_past_trocar_mm]
-    lens_x = [lam + o for o in config.lens_offsets_mm if lam + o <= tip_x]
-    k, m = 2 + len(shaft_x), len(lens_x)
-    names = _NAMES[:k]
-    lens_names = _LENS_NAMES[:m]
-    P_I = np.zeros((k + m + 1, 3))  # tip, port, shaft points, lens points, the trocar's shaft point
-    P_I[:, 0] = [tip_x, 0.0, *shaft_x, *lens_x, lam]
-    P_I[1] = PORT_I_MM
-    P_all, J_all = rigid_points(R_WI, p_WI, J, P_I)
-    P_W, J_W, L_W, J_L, J_Q = P_all[:k], J_all[:k], P_all[k:k + m], J_all[k:k + m], J_all[-1]
-    N = R_WI[:, 1:].T  # the shaft's two lateral directions
-    e = N @ d
+    q = robot._checked(q)
+    head, tail = kinematics_arguments(robot, p_WC, config, rcm_gain_per_s)
+    P, J, k, m, J_roll, rcm_A, rcm_b, err, R_WI, p_WI = instrument_kinematics(*head, q, *tail)
     return InstrumentPoints(
-        names=names, P_W=P_W, J_W=J_W, lens_names=lens_names, L_W=L_W, J_L=J_L,
-        J_tip=J_W[0], J_roll=(u @ J[:3])[None, :], rcm_A=N @ J_Q, rcm_b=rcm_gain_per_s * e,
-        p_WI=p_WI, u_W=u, rcm_error_mm=float(np.linalg.norm(e)),
+        names=_NAMES[:k], P_W=P[:k], J_W=J[:k], lens_names=_LENS_NAMES[:m], L_W=P[k:k + m], J_L=J[k:k + m],
+        J_tip=J[0], J_roll=J_roll[None, :], rcm_A=rcm_A, rcm_b=rcm_b, p_WI=p_WI, u_W=R_WI[:, 0], rcm_error_mm=float(err),
     )

@@ -29,18 +29,69 @@ TIP_SPEED_ROWS = ("tip_speed",) * len(_D)
 
 
 @njit(cache=True)
+def barrier_rows(h_model, g_model, h_fallback, g_fallback, point_margin, margin, d_safe, always, h_lens, g_lens,
+                 lens_margin, reach_mm):
+    """The barrier rows of one step: (h (k + m,) mm, grad (k + m, 3), h_min (k + m,) mm,
+    keep (k + m,) bool, finite). Boundary point i's clearance is the tighter of the
+    model's h_model[i] (gradient g_model[i]) and the fallback's h_fallback[i] (+inf where
+    the point is trusted); it must stay above d_safe + margin + point_margin[i]. The m lens
+    points (h_lens: their signed distance to the lens keep-out, > 0 inside it) must stay
+    outside it by lens_margin. A row further from its bound than reach_mm (what the
+    speed limit can close at the barrier rate in one step's horizon) cannot become
+    active and is left out, except the points marked `always` (tip and port: the
+    clearance and the cutter interlock). `finite`: every value and gradient is."""
+    k, m = h_model.shape[0], h_lens.shape[0]
+    h = np.empty(k + m)
+    grad = np.empty((k + m, 3))
+    h_min = np.empty(k + m)
+    keep = np.zeros(k + m, dtype=np.bool_)
+    finite = True
+    for i in range(k + m):
+        if i < k:
+            tighter = h_fallback[i] < h_model[i]
+            h[i] = h_fallback[i] if tighter else h_model[i]
+            for r in range(3):
+                grad[i, r] = g_fallback[i, r] if tighter else g_model[i, r]
+            h_min[i] = d_safe + margin + point_margin[i]
+        else:
+            h[i] = -h_lens[i - k]
+            for r in range(3):
+                grad[i, r] = -g_lens[i - k, r]
+            h_min[i] = lens_margin
+        keep[i] = h[i] - h_min[i] <= reach_mm or (i < k and always[i])
+        if not (np.isfinite(h[i]) and np.isfinite(grad[i, 0]) and np.isfinite(grad[i, 1])
+                          and np.isfinite(grad[i, 2])):
+            finite = False
+    return h, grad, h_min, keep, finite
+
+
+@njit(cache=True)
 def _filter_qp(J_tip, v_cmd, damping, J_roll, roll_cmd, q, q_min, q_max, qdot_max, joint_gain, joint_margin,
                max_tip_speed, D, reach, h_pts, grad_pts, J_pts, h_min_pts, gain, max_recovery):
     n = q.shape[0]
-    H = 2.0 * (J_tip.T @ J_tip + J_roll.T @ J_roll + damping * np.eye(n))
-    c = -2.0 * (J_tip.T @ v_cmd + J_roll.T @ roll_cmd)
-    lb = np.maximum(-qdot_max, -joint_gain * (q - (q_min + joint_margin)))
-    ub = np.minimum(qdot_max, joint_gain * ((q_max - joint_margin) - q))
+    H = np.empty((n, n))
+    c = np.empty(n)
+    lb = np.empty(n)
+    ub = np.empty(n)
+    for a in range(n):  # written out: for 3 x 6 factors a BLAS call costs more than its work
+        for b in range(n):
+            s = J_tip[0, a] * J_tip[0, b] + J_tip[1, a] * J_tip[1, b] + J_tip[2, a] * J_tip[2, b]
+            for r in range(J_roll.shape[0]):
+                s += J_roll[r, a] * J_roll[r, b]
+            H[a, b] = 2.0 * (s + (damping if a == b else 0.0))
+        s = J_tip[0, a] * v_cmd[0] + J_tip[1, a] * v_cmd[1] + J_tip[2, a] * v_cmd[2]
+        for r in range(J_roll.shape[0]):
+            s += J_roll[r, a] * roll_cmd[r]
+        c[a] = -2.0 * s
+        lb[a] = max(-qdot_max[a], -joint_gain * (q[a] - (q_min[a] + joint_margin)))
+        ub[a] = min(qdot_max[a], joint_gain * ((q_max[a] - joint_margin) - q[a]))
     k, m = D.shape[0], h_pts.shape[0]
     G = np.empty((k + m, n))
     h = np.empty(k + m)
-    G[:k] = D @ J_tip
-    h[:k] = max_tip_speed / reach
+    for i in range(k):
+        for j in range(n):
+            G[i, j] = D[i, 0] * J_tip[0, j] + D[i, 1] * J_tip[1, j] + D[i, 2] * J_tip[2, j]
+        h[i] = max_tip_speed / reach
     for i in range(m):  # -(grad . J) qdot <= gain (h - h_min), the recovery below h_min capped
         for j in range(n):
             G[k + i, j] = -(grad_pts[i, 0] * J_pts[i, 0, j] + grad_pts[i, 1] * J_pts[i, 1, j] + grad_pts[i, 2] * J_pts[i, 2, j])

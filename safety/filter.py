@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 from safety import constraints
 from safety.qp import solve
@@ -98,14 +100,14 @@ class FilterInputs:
     fallback: object = None
 
 
-@dataclass(frozen=True, eq=False)
-class FilterOutput:
+class FilterOutput(NamedTuple):
     """`qdot` (n,) rad/s to command (zeros on a fault); `ok` False on a fault, with
     `reason`; `active`: names of the constraints at their bound; `min_clearance_mm`: the
     smallest model clearance of the boundary points minus d_safe-free (mm);
     `cutter_allowed`: the port's clearance exceeds the interlock threshold;
     `intervened`: the output departs from the command (an active constraint, or a tip
-    velocity off the command by more than 1 %)."""
+    velocity off the command by more than 1 %). A NamedTuple: one is made per control
+    step, so it must be cheap."""
 
     qdot: np.ndarray
     ok: bool
@@ -115,6 +117,19 @@ class FilterOutput:
     cutter_allowed: bool = False
     intervened: bool = True
     solve_us: float = 0.0
+
+
+@njit(cache=True)
+def _off_command(J_tip, qdot, v_cmd) -> bool:
+    """The tip velocity J_tip qdot (mm/s) is off the command v_cmd by more than 1 % of its speed."""
+    err2, speed2 = 0.0, 0.0
+    for r in range(3):
+        v = 0.0
+        for j in range(qdot.shape[0]):
+            v += J_tip[r, j] * qdot[j]
+        err2 += (v - v_cmd[r]) ** 2
+        speed2 += v_cmd[r] ** 2
+    return np.sqrt(err2) > 0.01 * max(np.sqrt(speed2), 1e-9)
 
 
 def _distance_and_gradient(shape, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -150,27 +165,20 @@ class SafetyFilter:
             bad = next(p for p in pts + lens_pts if not (np.all(np.isfinite(p.p_W)) and np.all(np.isfinite(p.J_W))))
             return self._stop(n, f"non-finite kinematics of {bad.name}")
         k = len(pts)
-        h, grad = _distance_and_gradient(x.model, P[:k])
+        h_model, g_model = _distance_and_gradient(x.model, P[:k])
+        h_fallback, g_fallback = np.full(k, np.inf), np.zeros((k, 3))
         untrusted = [i for i, p in enumerate(pts) if not p.trusted]
         if untrusted and x.fallback is not None:  # the tighter of the model and the fallback
-            h_f, g_f = _distance_and_gradient(x.fallback, P[untrusted])
-            tighter = h_f < h[untrusted]
-            idx = np.array(untrusted)[tighter]
-            h[idx], grad[idx] = h_f[tighter], g_f[tighter]
-        if not (np.all(np.isfinite(h)) and np.all(np.isfinite(grad))):
+            h_fallback[untrusted], g_fallback[untrusted] = _distance_and_gradient(x.fallback, P[untrusted])
+        h_lens, g_lens = _distance_and_gradient(x.lens, P[k:]) if lens_pts else (np.zeros(0), np.zeros((0, 3)))
+        h, grad, h_min, keep, finite = constraints.barrier_rows(
+            h_model, g_model, h_fallback, g_fallback, np.array([p.margin_mm for p in pts], dtype=float),
+            float(x.margin_mm), cfg.d_safe_mm, np.array([p.name in ("tip", "port") for p in pts]), h_lens, g_lens,
+            cfg.lens_margin_mm, cfg.max_tip_speed_mm_s / cfg.gain_per_s)
+        if not finite:
             return self._stop(n, "model returned non-finite distance or gradient")
-        clearance = float(h.min())
-        h_min = cfg.d_safe_mm + x.margin_mm + np.array([p.margin_mm for p in pts])
-        names = [f"boundary:{p.name}" for p in pts]
-        if lens_pts:
-            h_lens, g_lens = _distance_and_gradient(x.lens, P[k:])
-            h, grad = np.concatenate([h, -h_lens]), np.vstack([grad, -g_lens])  # > 0 outside the lens
-            h_min = np.concatenate([h_min, np.full(len(lens_pts), cfg.lens_margin_mm)])
-            names += [f"lens:{p.name}" for p in lens_pts]
-        # a row further from its bound than the speed limit can close at the barrier rate
-        # cannot be active: left out (tip and port stay, for the clearance and the interlock)
-        keep = h - h_min <= cfg.max_tip_speed_mm_s / cfg.gain_per_s
-        keep[:k] |= [p.name in ("tip", "port") for p in pts]
+        clearance = float(h[:k].min())
+        names = [f"boundary:{p.name}" for p in pts] + [f"lens:{p.name}" for p in lens_pts]
         rows = np.flatnonzero(keep)
         qp = constraints.filter_qp(
             x.J_tip, x.v_cmd_W, cfg.damping, x.J_roll, x.roll_rate_cmd, x.q, x.q_min, x.q_max, x.qdot_max,
@@ -180,10 +188,14 @@ class SafetyFilter:
         if not result.ok:
             return self._stop(n, f"QP: {result.reason}", clearance)
         port = [hi for p, hi in zip(pts, h) if p.name == "port"]
-        cutter = bool(port) and bool(port[0] > cfg.cutter_clearance_mm)
-        v_out = x.J_tip @ result.x
-        speed = np.linalg.norm(x.v_cmd_W)
-        off = np.linalg.norm(v_out - x.v_cmd_W) > 0.01 * max(speed, 1e-9)
+        return self.output(result, x.J_tip, x.v_cmd_W, clearance, port[0] if port else None)
+
+    def output(self, result, J_tip, v_cmd_W, clearance: float, port_clearance_mm: float | None) -> FilterOutput:
+        """The FilterOutput of a solved step: `result` (safety.qp.QPResult, ok), the tip
+        Jacobian (3, n) mm/rad and command (3,) mm/s, the smallest clearance (mm) and the
+        port's (mm, None without a port) for the cutter interlock."""
+        cutter = port_clearance_mm is not None and bool(port_clearance_mm > self.config.cutter_clearance_mm)
+        off = _off_command(np.asarray(J_tip, dtype=float), result.x, np.asarray(v_cmd_W, dtype=float))
         intervened = bool(off or any(a.startswith(("boundary", "lens", "tip_speed")) for a in result.active))
         return FilterOutput(result.x, True, "ok", result.active, clearance, cutter, intervened, result.solve_us)
 

@@ -20,6 +20,8 @@ import qpsolvers
 from numba import njit
 from scipy import sparse
 
+from models._kernels import _solve
+
 SPARSE_SOLVERS = {"clarabel", "osqp", "scs", "piqp", "highs"}  # take CSC matrices natively
 _DAQP_INF = 1e30  # DAQP's "no bound"
 _DAQP_EQUALITY = 5  # sense flags: active (1) and immutable (4)
@@ -65,6 +67,21 @@ def _finite(a) -> bool:
 
 
 @njit(cache=True)
+def _solves(K, z, rhs) -> bool:
+    """K z = rhs to rounding: |K z - rhs| <= 1e-9 (|rhs| + |K| |z|) row by row (a zero
+    pivot, from a singular K, leaves z far from that or not finite)."""
+    for i in range(K.shape[0]):
+        r = -rhs[i]
+        scale = abs(rhs[i])
+        for j in range(K.shape[1]):
+            r += K[i, j] * z[j]
+            scale += abs(K[i, j] * z[j])
+        if not abs(r) <= 1e-9 * scale + 1e-300:
+            return False
+    return True
+
+
+@njit(cache=True)
 def _screen(H, c, lb, ub, G, h, A, b, tol):
     """(code, x): _NONFINITE data, _CROSSED bounds, _OPTIMAL with x the minimiser under
     the equalities that also satisfies every inequality and bound (then it is the convex
@@ -86,12 +103,15 @@ def _screen(H, c, lb, ub, G, h, A, b, tol):
     K[n:, :n] = A
     rhs[:n] = -c
     rhs[n:] = b
-    x = np.linalg.solve(K, rhs)[:n]  # raises LinAlgError when K is singular
-    if not _finite(x):
+    z = _solve(K.copy(), rhs, 1e-300)  # Gaussian elimination, partial pivoting (a singular K fails _solves)
+    x = z[:n].copy()
+    if not (_finite(z) and _solves(K, z, rhs)):
         return _NEEDS_SOLVER, x
-    r = G @ x
     for i in range(h.shape[0]):
-        if r[i] > h[i] + tol * (1.0 + abs(h[i])):
+        r = 0.0
+        for j in range(n):
+            r += G[i, j] * x[j]
+        if r > h[i] + tol * (1.0 + abs(h[i])):
             return _NEEDS_SOLVER, x
     for i in range(n):
         if x[i] < lb[i] - tol * (1.0 + abs(lb[i])) or x[i] > ub[i] + tol * (1.0 + abs(ub[i])):
@@ -99,13 +119,32 @@ def _screen(H, c, lb, ub, G, h, A, b, tol):
     return _OPTIMAL, x
 
 
-def _solve_daqp(qp: DenseQP) -> np.ndarray | None:
-    n, m, p = len(qp.c), len(qp.h), len(qp.b)
-    upper = np.concatenate([np.minimum(qp.ub, _DAQP_INF), qp.h, qp.b])
-    lower = np.concatenate([np.maximum(qp.lb, -_DAQP_INF), np.full(m, -_DAQP_INF), qp.b])
+@njit(cache=True)
+def _daqp_data(lb, ub, G, h, A, b):
+    """DAQP's form of the QP's constraints: (rows [G; A], upper, lower, sense): the bounds
+    first (+-inf as DAQP's 1e30), then G's rows (no lower bound), then A's as equalities."""
+    n, m, p = lb.shape[0], h.shape[0], b.shape[0]
+    rows = np.empty((m + p, n))
+    rows[:m] = G
+    rows[m:] = A
+    upper = np.empty(n + m + p)
+    lower = np.empty(n + m + p)
     sense = np.zeros(n + m + p, dtype=np.intc)
-    sense[n + m:] = _DAQP_EQUALITY
-    x, _, exitflag, _ = daqp.solve(qp.H, qp.c, np.vstack([qp.G, qp.A]), upper, lower, sense)
+    for i in range(n):
+        upper[i] = min(ub[i], _DAQP_INF)
+        lower[i] = max(lb[i], -_DAQP_INF)
+    for i in range(m):
+        upper[n + i] = h[i]
+        lower[n + i] = -_DAQP_INF
+    for i in range(p):
+        upper[n + m + i] = lower[n + m + i] = b[i]
+        sense[n + m + i] = _DAQP_EQUALITY
+    return rows, upper, lower, sense
+
+
+def _solve_daqp(qp: DenseQP) -> np.ndarray | None:
+    rows, upper, lower, sense = _daqp_data(qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b)
+    x, _, exitflag, _ = daqp.solve(qp.H, qp.c, rows, upper, lower, sense)
     return x if exitflag > 0 else None
 
 
@@ -127,23 +166,41 @@ def solve(qp: DenseQP, solver: str = "daqp", active_tol: float = 1e-6) -> QPResu
     inequality is active the equality-constrained optimum is returned without a solver
     (it is every solver's answer up to that solver's tolerance)."""
     t0 = time.perf_counter()
-    try:
-        code, x = _screen(qp.H, qp.c, qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b, active_tol)
-    except np.linalg.LinAlgError:  # singular KKT system: the solver decides
-        code = _NEEDS_SOLVER
+    code, x = _screen(qp.H, qp.c, qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b, active_tol)
     if code == _NONFINITE:
         return QPResult(None, "non-finite QP data", (), 1e6 * (time.perf_counter() - t0))
     if code == _CROSSED:
         return QPResult(None, "infeasible: bounds cross", (), 1e6 * (time.perf_counter() - t0))
     if code == _OPTIMAL:
         return QPResult(x, "ok", (), 1e6 * (time.perf_counter() - t0))
+    return solve_by_solver(qp, solver, active_tol, t0)
+
+
+def solve_by_solver(qp: DenseQP, solver: str = "daqp", active_tol: float = 1e-6, t0: float | None = None) -> QPResult:
+    """`solve` without the screen: the solver's answer (for a QP whose screen said it needs
+    one); the same failures as values; solve_us counted from t0 (perf_counter s, default now)."""
+    t0 = time.perf_counter() if t0 is None else t0
     try:
         x = _solve_daqp(qp) if solver == "daqp" else _solve_qpsolvers(qp, solver)
     except Exception as exc:  # a solver error must not escape the control loop
         return QPResult(None, f"solver error: {type(exc).__name__}: {exc}", (), 1e6 * (time.perf_counter() - t0))
     dt = 1e6 * (time.perf_counter() - t0)
-    if x is None or not np.all(np.isfinite(x)):
+    if x is None or not _finite(x):
         return QPResult(None, "infeasible or not solved", (), dt)
-    slack = qp.h - qp.G @ x
-    at_bound = np.flatnonzero(slack <= active_tol * (1.0 + np.abs(slack)))
-    return QPResult(x, "ok", tuple(sorted({qp.row_names[i] for i in at_bound})), dt)
+    at_bound = _rows_at_bound(qp.G, qp.h, x, active_tol)
+    return QPResult(x, "ok", tuple(sorted({qp.row_names[i] for i in at_bound})) if len(at_bound) else (), dt)
+
+
+@njit(cache=True)
+def _rows_at_bound(G, h, x, tol):
+    """Indices of the rows of G x <= h within tol (relative) of their bound."""
+    out = np.empty(h.shape[0], dtype=np.int64)
+    n = 0
+    for i in range(h.shape[0]):
+        slack = h[i]
+        for j in range(x.shape[0]):
+            slack -= G[i, j] * x[j]
+        if slack <= tol * (1.0 + abs(slack)):
+            out[n] = i
+            n += 1
+    return out[:n]

@@ -3,7 +3,6 @@
 and nothing is written."""
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 
@@ -84,7 +83,7 @@ def tampered_log(path, edit_step: int, **changes):
         for k in range(40):
             x = toy_inputs(p, [1.0, 2.0, -8.0], k * DT)
             out = filt(x)
-            logged = dataclasses.replace(out, **{key: f(out) for key, f in changes.items()}) if k == edit_step else out
+            logged = out._replace(**{key: f(out) for key, f in changes.items()}) if k == edit_step else out
             log.log_filter_step(x, logged)
             p = p + DT * out.qdot
     return path

@@ -9,7 +9,13 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, DiscreteTimeIntegrator
 
-from planning.iioct_sensor import IioctSensor, IioctSensorSystem, extractor_error_model
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pydrake.systems.framework import LeafSystem
+
+from models import Ellipsoid
+from models.eyes import EyePose, make_eye
+from planning.iioct_sensor import IioctSensor, IioctSensorSystem, ellipsoid_hits, extractor_error_model
 
 
 def test_the_beam_comes_from_the_true_sensor_and_the_point_from_the_calibrated_one(setup):
@@ -37,16 +43,20 @@ def test_a_wrong_calibration_shifts_the_points_as_predicted(setup):
 
 def test_distance_mode_matches_the_full_chain_statistically(setup):
     """Same geometry, 150 samples each: bias within 10 um and SD within a factor 2 (the
-    error model is tabulated from the extractor with 24 scans per cell)."""
+    error model is tabulated from the extractor with 24 scans per cell); valid counts
+    within 4 binomial SDs below the tabulated invalid fraction's expectation (at this
+    beam, ~7.7 mm at ~19 deg: p_invalid ~7 %, 139 +- 3 valid)."""
     scenario, robot, q = setup
-    stats = {}
+    n, stats = 150, {}
     for mode in ("ascan", "distance"):
         s = IioctSensor(robot, mode=mode, seed=7)
-        d = np.array([x.distance_mm for x in s.samples([q] * 150, [q] * 150, np.arange(150) * 5e-4) if x.valid])
+        d = np.array([x.distance_mm for x in s.samples([q] * n, [q] * n, np.arange(n) * 5e-4) if x.valid])
         stats[mode] = (np.median(d), np.std(d), len(d))
     assert abs(stats["ascan"][0] - stats["distance"][0]) < 0.010
     assert 0.5 < stats["distance"][1] / stats["ascan"][1] < 2.0
-    assert stats["ascan"][2] >= 140 and stats["distance"][2] >= 140
+    p = extractor_error_model().interpolate(*s.true_geometry(np.array([q])))[0, 0]
+    assert stats["ascan"][2] >= n * (1 - p) - 4 * np.sqrt(n * p * (1 - p))
+    assert stats["distance"][2] >= n * (1 - p) - 4 * np.sqrt(n * p * (1 - p))
 
 
 def test_the_error_model_is_tabulated_from_the_extractor():
@@ -110,3 +120,129 @@ def test_the_block_samples_at_2_khz_in_packets_and_the_time_offset_moves_the_poi
     lag = np.linalg.norm(out[0.002].beam_origin_W - out[0.0].beam_origin_W)
     v = np.linalg.norm(robot.jacobian("S", np.zeros(3), q) @ qdot)
     assert abs(lag - v * 0.002) < 0.05 * v * 0.002
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), tilt_deg=st.floats(-20.0, 20.0))
+def test_the_compiled_ray_cast_matches_the_eye_model(seed, tilt_deg):
+    """ellipsoid_hits against Ellipsoid.ray_cast and Eye.surface_normal on a tilted,
+    decentred eye: rays from inside and outside, some missing; the same roots and normals
+    to rounding (1e-9 mm, 1e-7 rad: arccos near 0 amplifies a 1e-16 cosine error)."""
+    rng = np.random.default_rng(seed)
+    eye = make_eye("myopic", EyePose.anatomical(tilt_deg, 0.5, 0.2))
+    O = eye.pose.p_WE + rng.uniform(-16.0, 16.0, (200, 3))
+    U = rng.standard_normal((200, 3))
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    d, incidence = ellipsoid_hits(O, U, eye.pose.p_WE, eye.pose.R_WE, eye.radii)
+    ref = eye.ellipsoid.ray_cast(O, U)
+    ref = np.where(ref > 0, ref, np.nan)
+    np.testing.assert_array_equal(np.isnan(d), np.isnan(ref))
+    hit = np.isfinite(ref)
+    np.testing.assert_allclose(d[hit], ref[hit], atol=1e-9)
+    N = eye.surface_normal(O[hit] + ref[hit, None] * U[hit])
+    cos = np.minimum(1.0, np.abs(np.einsum("ij,ij->i", N, U[hit])))
+    np.testing.assert_allclose(incidence[hit], np.arccos(cos), atol=1e-7)
+    assert np.isnan(incidence[~hit]).all()
+
+
+def test_the_batched_draws_have_the_error_models_bias_sd_and_invalid_fraction():
+    """20,000 draws at an off-grid cell point (6.3 mm, 30 deg): the invalid fraction, the
+    mean error and the SD within 4 standard errors of the interpolated table values."""
+    m = extractor_error_model()
+    n, d0, a0 = 20_000, 6.3, np.radians(30.0)
+    p, bias, sd = m.interpolate(np.array([d0]), np.array([a0]))[0]
+    d, valid = m.draws(np.full(n, d0), np.full(n, a0), np.random.default_rng(3))
+    assert abs((1.0 - valid.mean()) - p) < 4.0 * np.sqrt(max(p * (1.0 - p), 1.0 / n) / n)
+    assert np.isnan(d[~valid]).all() and np.isfinite(d[valid]).all()
+    err = d[valid] - d0
+    assert abs(err.mean() - bias) < 4.0 * sd / np.sqrt(valid.sum())
+    assert abs(err.std(ddof=1) / sd - 1.0) < 4.0 / np.sqrt(2.0 * (valid.sum() - 1))
+
+
+def test_the_table_interpolation_is_bilinear_and_clamped():
+    """At the grid nodes the table values; at a cell's centre the mean of its corners;
+    outside the grid the value at its edge."""
+    m = extractor_error_model()
+    D, A = np.array(m.distances_mm), np.array(m.incidences_rad)
+    tables = np.stack([m.p_invalid, m.bias, m.sd], axis=-1)
+    dd, aa = np.meshgrid(D, A, indexing="ij")
+    np.testing.assert_allclose(m.interpolate(dd.ravel(), aa.ravel()), tables.reshape(-1, 3), atol=1e-15)
+    centre = m.interpolate(np.array([0.5 * (D[2] + D[3])]), np.array([0.5 * (A[1] + A[2])]))[0]
+    np.testing.assert_allclose(centre, tables[2:4, 1:3].mean(axis=(0, 1)), atol=1e-15)
+    outside = m.interpolate(np.array([100.0, 0.1]), np.array([2.0, -1.0]))
+    np.testing.assert_allclose(outside, [tables[-1, -1], tables[0, 0]], atol=1e-15)
+
+
+def test_a_seed_reproduces_the_samples_and_floaters_and_rejections_keep_their_reasons(setup):
+    scenario, robot, q = setup
+    Q = q + np.linspace(0.0, 0.02, 40)[:, None] * np.array([1.0, -0.5, 0.3, 0.0, 0.2, 0.0])
+    T = np.arange(40) * 5e-4
+    runs = [IioctSensor(robot, mode="distance", floater_rate=0.3, seed=s).samples(Q, Q, T) for s in (5, 5, 6)]
+    fields = lambda xs: [(x.t_s, x.distance_mm, x.valid, x.reason, *x.p_W) for x in xs]  # noqa: E731
+    np.testing.assert_equal(fields(runs[0]), fields(runs[1]))  # NaN equal to NaN
+    assert [x.distance_mm for x in runs[0]] != [x.distance_mm for x in runs[2]]
+    # floaters: confident wrong distances well short of the retina (30 % of 40 samples)
+    short = [x for x in runs[0] if x.valid and x.distance_mm < x.true_distance_mm - 0.2]
+    assert 3 <= len(short) <= 25 and all(x.confidence > 0 for x in short)
+    # a model the beam meets more obliquely than allowed: every sample rejected as "incidence"
+    oblique = IioctSensor(robot, mode="distance", max_incidence_rad=1e-3).samples(Q, Q, T, model=scenario.eye.ellipsoid)
+    assert all(not x.valid and x.reason == "incidence" and np.isnan(x.p_W).all() for x in oblique)
+    # no retina within the engine's depth: "no_retina"
+    short_range = IioctSensor(robot, mode="distance")
+    short_range.max_distance_mm = 1.0
+    assert all(x.reason == "no_retina" and not x.valid for x in short_range.samples(Q[:5], Q[:5], T[:5]))
+    # a bad row among good ones: only that sample is invalid
+    Qbad = Q[:5].copy()
+    Qbad[2, 3] = np.nan
+    mixed = IioctSensor(robot, mode="distance").samples(Qbad, Q[:5], T[:5])
+    assert [x.reason.startswith("bad_joint_state") for x in mixed] == [False, False, True, False, False]
+    assert [x.t_s for x in mixed] == T[:5].tolist()
+
+
+class _Recorder(LeafSystem):
+    """Brute-force reference: records (t, q) at every sample time with a discrete update
+    at 2 kHz (the phase in which the sensor's q is read) into a Python list."""
+
+    def __init__(self, rate_hz: float):
+        super().__init__()
+        self.rows: list = []
+        self._q = self.DeclareVectorInputPort("q", 6)
+        self.DeclareDiscreteState(1)
+        self.DeclarePeriodicDiscreteUpdateEvent(1.0 / rate_hz, 0.0, self._record)
+
+    def _record(self, context, discrete_state) -> None:
+        self.rows.append((context.get_time(), np.array(self._q.Eval(context))))
+
+
+def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup):
+    """q changing at every sample (a 2 kHz integrator): each packet appears once, 10
+    samples with the reference's time stamps (bit for bit) and beams at the reference's
+    joint angles; with the same seed the samples equal the sensor's on the reference
+    packets, field by field."""
+    scenario, robot, q = setup
+    b = DiagramBuilder()
+    src = b.AddSystem(ConstantVectorSource(np.array([0.05, -0.03, 0.02, 0.0, 0.04, 0.1])))
+    integ = b.AddSystem(DiscreteTimeIntegrator(6, 5e-4))
+    sensor = b.AddSystem(IioctSensorSystem(IioctSensor(robot, mode="distance", seed=0), 2000.0, packet=10))
+    rec = b.AddSystem(_Recorder(2000.0))
+    b.Connect(src.get_output_port(), integ.get_input_port())
+    for sink in (sensor.GetInputPort("q"), rec.get_input_port()):
+        b.Connect(integ.get_output_port(), sink)
+    sim = Simulator(b.Build())
+    integ.set_integral_value(integ.GetMyMutableContextFromRoot(sim.get_mutable_context()), q)
+    packets = []
+    for n in range(12):  # read between each packet event (t_last + 0.125 ms) and the next sample
+        sim.AdvanceTo(n * 5e-3 + 4.8e-3)
+        packets.append(sensor.GetOutputPort("samples").Eval(sensor.GetMyContextFromRoot(sim.get_context())))
+    assert len({p[0].t_s for p in packets}) == 12
+    reference = IioctSensor(robot, mode="distance", seed=0)
+    for n, packet in enumerate(packets):
+        T = np.array([t for t, _ in rec.rows[10 * n:10 * n + 10]])
+        Q = np.array([qq for _, qq in rec.rows[10 * n:10 * n + 10]])
+        assert len(packet) == 10 and [s.t_s for s in packet] == T.tolist()
+        assert len(set(map(tuple, Q))) == 10  # q really changes at every sample
+        for s, r in zip(packet, reference.samples(Q, Q, T)):
+            np.testing.assert_equal((s.distance_mm, s.valid, s.reason, s.true_distance_mm),
+                                    (r.distance_mm, r.valid, r.reason, r.true_distance_mm))
+            np.testing.assert_array_equal(s.beam_origin_W, r.beam_origin_W)
+            np.testing.assert_array_equal(s.p_W, r.p_W)

@@ -1,0 +1,361 @@
+"""The closed loop's control step as one compiled call.
+
+At 1 kHz a step is a few microseconds of arithmetic spread over some thirty small
+calls: the instrument's points and Jacobians (planning.instrument_points), the model's
+and the prior's distances and gradients, the coverage queries that decide which
+points the model is trusted for, the barrier rows, the QP's assembly and its screen
+(safety). Each of those is compiled already; between them, Python objects
+(FilterInputs, PointKinematics, argument checks) cost most of the step. `control_step`
+runs the same kernels in the same order from plain arrays, so the ordinary step is one
+call, plus DAQP when an inequality is near its bound.
+
+The reference stays safety.SafetyFilter on eval.closed_loop.FilterSystem.inputs: what
+the run logs hold and `vitreoguard replay` re-runs. Whatever is not the ordinary path
+(any fault, a point on the plane of the model ellipsoid's smallest axis, a QP the
+screen finds non-finite or with crossed bounds, a solver failure) comes back as REFERENCE, and the caller
+runs the reference filter, which also says why. Tests hold the two equal.
+
+Units: mm, s, rad; frame W.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numba import njit
+
+from models._eberly import generic_distance_and_gradient
+from models.coverage import _nearest_and_worst
+from models.sphere import sphere_distance_and_gradient
+from planning.instrument_points import _LENS_NAMES, _NAMES, instrument_kinematics, kinematics_arguments
+from safety.constraints import _D, _POLYTOPE_REACH, TIP_SPEED_ROWS, _filter_qp, barrier_rows
+from models._kernels import _solve
+from safety.qp import (
+    _NEEDS_SOLVER, _OPTIMAL, DenseQP, QPResult, _finite, _rows_at_bound, _screen, _solves, solve_by_solver,
+)
+
+OPTIMAL, NEEDS_SOLVER, REFERENCE = 0, 1, 2  # control_step's codes
+PRIOR, SPHERE, ELLIPSOID = 0, 1, 2  # the model the filter uses
+ACTIVE_TOL = 1e-6  # safety.qp.solve's default: a row within this (relative) of its bound is active
+_ROW_NAMES = tuple(f"boundary:{n}" for n in _NAMES), tuple(f"lens:{n}" for n in _LENS_NAMES)
+
+
+@njit(cache=True)
+def _shape_distance(kind, center, rotation, radii, P):
+    """(h (M,) mm, grad (M, 3), generic): the signed distance and gradient of the sphere
+    (kind SPHERE or PRIOR: radius radii[0]) or ellipsoid at P (M, 3); generic False when a
+    point lies on the ellipsoid's smallest axis's plane (left to the reference)."""
+    if kind == ELLIPSOID:
+        h, g, generic = generic_distance_and_gradient(center, rotation, radii, P)
+        ok = True
+        for i in range(generic.shape[0]):
+            ok = ok and generic[i]
+        return h, g, ok
+    h, g = sphere_distance_and_gradient(center, radii[0], P)
+    return h, g, True
+
+
+@njit(cache=True)
+def _unit_directions(P, center):
+    """(M, 3) unit directions of P (M, 3) mm from center (models.coverage.CoverageView)."""
+    V = np.empty(P.shape)
+    for i in range(P.shape[0]):
+        v0, v1, v2 = P[i, 0] - center[0], P[i, 1] - center[1], P[i, 2] - center[2]
+        n = max(np.sqrt(v0 * v0 + v1 * v1 + v2 * v2), 1e-12)
+        V[i, 0], V[i, 1], V[i, 2] = v0 / n, v1 / n, v2 / n
+    return V
+
+
+@njit(cache=True)
+def _all_finite(a) -> bool:
+    for v in a.ravel():
+        if not np.isfinite(v):
+            return False
+    return True
+
+
+N_TIP_ROWS = _D.shape[0]
+N_IDS = N_TIP_ROWS + len(_NAMES) + len(_LENS_NAMES) + 12  # tip speed rows, points, lens points, joint bounds
+
+
+@njit(cache=True)
+def row_ids(rows, k_used):
+    """The identity (0..N_IDS) of each row of the filter QP's G: the tip speed polytope's
+    faces, then the kept barrier rows `rows` by their point (boundary points below k_used,
+    then lens points): an identity survives the rows left out or kept between steps."""
+    ids = np.empty(N_TIP_ROWS + rows.shape[0], dtype=np.int64)
+    for i in range(N_TIP_ROWS):
+        ids[i] = i
+    for r in range(rows.shape[0]):
+        j = rows[r]
+        ids[N_TIP_ROWS + r] = N_TIP_ROWS + j if j < k_used else N_TIP_ROWS + len(_NAMES) + j - k_used
+    return ids
+
+
+@njit(cache=True)
+def remember_active(active_ids, ids, G, h, lb, ub, x, tol):
+    """Set active_ids to the constraints at their bound at x (G's rows by `ids`, then the
+    joint bounds: lower j at N_IDS - 12 + j, upper at N_IDS - 6 + j); the rows of G at
+    their bound (relative tol, as safety.qp reports them)."""
+    active_ids[:] = False
+    at_bound = _rows_at_bound(G, h, x, tol)
+    for i in at_bound:
+        active_ids[ids[i]] = True
+    n = x.shape[0]
+    for j in range(n):
+        active_ids[N_IDS - 2 * n + j] = x[j] <= lb[j] + tol * (1.0 + abs(lb[j]))
+        active_ids[N_IDS - n + j] = x[j] >= ub[j] - tol * (1.0 + abs(ub[j]))
+    return at_bound
+
+
+@njit(cache=True)
+def warm_solution(H, c, lb, ub, G, h, A, b, ids, active_ids, tol):
+    """(certified, x): the QP's solution if the constraints of active_ids (the previous
+    step's active set) are this step's: x solves the KKT system with them held as
+    equalities, satisfies every constraint (relative tol) and has non-negative
+    multipliers on them. That is the optimality certificate of the convex QP (H positive
+    definite: the solution is unique, the solver's to its rounding); anything else
+    (another active set, dependent rows) is not certified and goes to the solver."""
+    n, p = c.shape[0], b.shape[0]
+    rows = np.empty(G.shape[0] + 2 * n, dtype=np.int64)  # G's rows, then bounds as -(j + 1) / n + j
+    a = 0
+    for i in range(G.shape[0]):
+        if active_ids[ids[i]]:
+            rows[a] = i
+            a += 1
+    for j in range(n):
+        if active_ids[N_IDS - 2 * n + j]:
+            rows[a] = -(j + 1)
+            a += 1
+        if active_ids[N_IDS - n + j]:
+            rows[a] = G.shape[0] + j
+            a += 1
+    if a == 0 or a + p > n:
+        return False, np.zeros(n)
+    N = n + p + a
+    K = np.zeros((N, N))
+    rhs = np.zeros(N)
+    K[:n, :n] = H
+    rhs[:n] = -c
+    for i in range(p):
+        K[n + i, :n] = A[i]
+        K[:n, n + i] = A[i]
+        rhs[n + i] = b[i]
+    for r in range(a):
+        i = rows[r]
+        if i >= G.shape[0]:  # upper bound x_j <= ub_j
+            K[n + p + r, i - G.shape[0]] = K[i - G.shape[0], n + p + r] = 1.0
+            rhs[n + p + r] = ub[i - G.shape[0]]
+        elif i < 0:  # lower bound -x_j <= -lb_j
+            K[n + p + r, -i - 1] = K[-i - 1, n + p + r] = -1.0
+            rhs[n + p + r] = -lb[-i - 1]
+        else:
+            for j in range(n):
+                K[n + p + r, j] = K[j, n + p + r] = G[i, j]
+            rhs[n + p + r] = h[i]
+    z = _solve(K.copy(), rhs, 1e-300)
+    x = z[:n].copy()
+    if not (_finite(z) and _solves(K, z, rhs)):
+        return False, x
+    scale = 1.0
+    for r in range(N - n):
+        scale = max(scale, abs(z[n + r]))
+    for r in range(a):  # dual feasibility: the multipliers of the held inequalities
+        if z[n + p + r] < -1e-9 * scale:
+            return False, x
+    for i in range(G.shape[0]):  # primal feasibility, as the screen checks it
+        s = 0.0
+        for j in range(n):
+            s += G[i, j] * x[j]
+        if s > h[i] + tol * (1.0 + abs(h[i])):
+            return False, x
+    for j in range(n):
+        if x[j] < lb[j] - tol * (1.0 + abs(lb[j])) or x[j] > ub[j] + tol * (1.0 + abs(ub[j])):
+            return False, x
+    return True, x
+
+
+@njit(cache=True)
+def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x, port_I, spacing, n_shaft, min_depth,
+                 lens_offsets, rcm_gain, kind, center, rotation, radii, model_t_s, margin, prior_center, prior_radii,
+                 has_coverage, cov_center, cov_dirs, cov_misfit, lens_center, lens_rotation, lens_radii, q_min, q_max,
+                 qdot_max, cfg, active_ids):
+    """One filter step (FilterSystem.inputs + SafetyFilter), compiled.
+
+    q (6,) rad; command (4,): tip velocity (3,) mm/s in W and roll rate rad/s; t_s and
+    sensor_t_s (s): now and the last sensor sample. Kinematics: planning.instrument_points'
+    kinematics_arguments. The model: `kind` (PRIOR, SPHERE, ELLIPSOID) with (center (3,)
+    mm, rotation (3, 3), radii (3,) mm; a sphere's radius in radii[0]), its time
+    model_t_s (s) and uncertainty margin (mm); the prior sphere (prior_center, prior_radii[0]);
+    the coverage: its centre, covered directions (N, 3) and their misfit (N,) mm (zeros
+    without a model misfit). The lens keep-out ellipsoid; joint limits (rad, rad/s).
+    cfg: the filter's and the loop's parameters (CompiledStep builds it). active_ids
+    (N_IDS,) bool: the constraints active at the previous step's solution (row_ids),
+    the guess tried when the equality optimum is not feasible; updated in place.
+
+    Returns (code, x (6,) rad/s when OPTIMAL, the QP's (H, c, lb, ub, G, h, A, b) and its
+    kept rows (indices into the k_used boundary points, then the lens points), k (all
+    boundary points), k_used (those against the model), m (lens points), P_W (k + m + 1,
+    3) mm, J_tip (3, 6), rcm_error_mm, clearance_mm, port_clearance_mm, and the rows of G
+    at their bound (none when the equality optimum holds, as safety.qp.solve reports))."""
+    d_safe, gain, lens_margin, joint_gain, joint_margin = cfg[0], cfg[1], cfg[2], cfg[3], cfg[4]
+    max_tip_speed, max_command_speed, damping, max_model_age, max_sensor_age = cfg[5], cfg[6], cfg[7], cfg[8], cfg[9]
+    max_recovery, trust_rad, cos_misfit, chord_trust, chord_misfit = cfg[10], cfg[11], cfg[12], cfg[13], cfg[14]
+    P, J, k, m, J_roll, rcm_A, rcm_b, rcm_error, _, _ = instrument_kinematics(
+        S, R_home_I, p_home_I, q, p_WC, tip_x, port_I, spacing, n_shaft, min_depth, lens_offsets, rcm_gain)
+    J_tip = J[0].copy()
+    k_used = 2 if kind == PRIOR else k
+    x = np.zeros(6)
+    empty = np.zeros((0, 6))
+    none = np.zeros(0)
+    no_qp = (np.zeros((6, 6)), x, x, x, empty, none, empty, none, np.zeros(0, dtype=np.int64))
+    speed = np.sqrt(command[0] ** 2 + command[1] ** 2 + command[2] ** 2)
+    fault = not (_all_finite(q) and _all_finite(command[:3]) and _all_finite(P) and _all_finite(J)
+                 and speed <= max_command_speed and t_s - model_t_s <= max_model_age
+                 and t_s - sensor_t_s <= max_sensor_age and np.isfinite(margin) and margin >= 0.0)
+    no_rows = np.zeros(0, dtype=np.int64)
+    if fault:
+        active_ids[:] = False
+        return (REFERENCE, x) + no_qp + (k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, no_rows)
+    # which points the model is trusted for, and its measured misfit near them (CoverageView)
+    trusted = np.ones(k_used, dtype=np.bool_)
+    misfit = np.zeros(k_used)
+    if kind != PRIOR and has_coverage:  # without covered directions: no point is trusted (angle pi)
+        V = _unit_directions(P[:k_used], cov_center)
+        # (a direction beyond an angle's chord in z is beyond the angle: the band decides alike)
+        best, _ = _nearest_and_worst(V[:2], cov_dirs, cov_misfit, 2.0, chord_trust)
+        for i in range(2):
+            trusted[i] = np.arccos(min(max(best[i], -1.0), 1.0)) <= trust_rad
+        misfit = _nearest_and_worst(V, cov_dirs, cov_misfit, cos_misfit, chord_misfit)[1]
+    h_model, g_model, generic = _shape_distance(kind, center, rotation, radii, P[:k_used])
+    h_fallback = np.full(k_used, np.inf)
+    g_fallback = np.zeros((k_used, 3))
+    if kind != PRIOR:  # the prior as fallback where the model is not trusted
+        h_p, g_p, _ = _shape_distance(SPHERE, prior_center, rotation, prior_radii, P[:k_used])
+        for i in range(k_used):
+            if not trusted[i]:
+                h_fallback[i] = h_p[i]
+                g_fallback[i] = g_p[i]
+    h_lens, g_lens, lens_generic = _shape_distance(ELLIPSOID, lens_center, lens_rotation, lens_radii, P[k:k + m])
+    if not (generic and lens_generic):
+        active_ids[:] = False
+        return (REFERENCE, x) + no_qp + (k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, no_rows)
+    always = np.zeros(k_used, dtype=np.bool_)
+    always[:2] = True
+    h, grad, h_min, keep, finite = barrier_rows(h_model, g_model, h_fallback, g_fallback, misfit, margin, d_safe, always,
+                                                h_lens, g_lens, lens_margin, max_tip_speed / gain)
+    if not finite:
+        active_ids[:] = False
+        return (REFERENCE, x) + no_qp + (k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, no_rows)
+    clearance = h[:k_used].min()
+    rows = np.flatnonzero(keep)
+    J_pts = np.empty((rows.shape[0], 3, 6))
+    for r in range(rows.shape[0]):
+        J_pts[r] = J[rows[r]] if rows[r] < k_used else J[k + rows[r] - k_used]
+    H, c, lb, ub, G, hv = _filter_qp(J_tip, command[:3].copy(), damping, J_roll.reshape(1, 6), np.full(1, command[3]), q,
+                                     q_min, q_max, qdot_max, joint_gain, joint_margin, max_tip_speed, _D, _POLYTOPE_REACH,
+                                     h[rows], grad[rows], J_pts, h_min[rows], gain, max_recovery)
+    code, x = _screen(H, c, lb, ub, G, hv, rcm_A, rcm_b, ACTIVE_TOL)
+    at_bound = no_rows
+    if code == _OPTIMAL:
+        active_ids[:] = False
+    elif code == _NEEDS_SOLVER:
+        ids = row_ids(rows, k_used)
+        certified, x_w = warm_solution(H, c, lb, ub, G, hv, rcm_A, rcm_b, ids, active_ids, ACTIVE_TOL)
+        if certified:
+            code, x = _OPTIMAL, x_w
+            at_bound = remember_active(active_ids, ids, G, hv, lb, ub, x, ACTIVE_TOL)
+    else:
+        active_ids[:] = False
+    out = OPTIMAL if code == _OPTIMAL else (NEEDS_SOLVER if code == _NEEDS_SOLVER else REFERENCE)
+    return (out, x, H, c, lb, ub, G, hv, rcm_A, rcm_b, rows, k, k_used, m, P, J_tip, rcm_error, clearance, h[1], at_bound)
+
+
+def _chord(angle_deg: float) -> float:
+    """The chord of an angle on the unit sphere, a hair long (rounding): the z band that
+    holds every direction within the angle (models.coverage._nearest_and_worst)."""
+    return 2.0 * np.sin(np.radians(angle_deg) / 2.0) * (1.0 + 1e-12) + 1e-15
+
+
+def row_names(rows: np.ndarray, k_used: int) -> tuple:
+    """The QP's inequality row names: the tip speed polytope's, then the kept barrier rows
+    (indices below k_used: boundary points; the rest: lens points), as SafetyFilter names them."""
+    boundary, lens = _ROW_NAMES
+    return TIP_SPEED_ROWS + tuple(boundary[i] if i < k_used else lens[i - k_used] for i in rows.tolist())
+
+
+class CompiledStep:
+    """`step(t_s, q, command, snap, sensor_t_s)` -> (FilterOutput or None, the kernel's
+    tuple): control_step with this loop's robot, configuration and prior; None where the
+    reference filter must decide (REFERENCE, or a solver failure). `snap` is an
+    eval.closed_loop.ModelSnapshot: its arrays are unpacked once per snapshot. It keeps
+    the last step's active set as the next step's guess: `reset` between runs."""
+
+    def __init__(self, robot, config, prior, safety_filter):
+        self.filter, self.solver = safety_filter, config.filter.solver
+        f = config.filter
+        self._kin = kinematics_arguments(robot, robot.p_WC, config.points)
+        lens = robot.scenario.lens_W
+        self._tail = (np.asarray(prior.center, dtype=float), np.full(3, float(prior.radius)),
+                      np.asarray(lens.center, dtype=float), np.asarray(lens.rotation, dtype=float),
+                      np.asarray(lens.radii, dtype=float), robot.q_lower, robot.q_upper, robot.qdot_max,
+                      np.array([f.d_safe_mm, f.gain_per_s, f.lens_margin_mm, f.joint_gain_per_s, f.joint_margin_rad,
+                                f.max_tip_speed_mm_s, f.max_command_speed_mm_s, f.damping, f.max_model_age_s,
+                                f.max_sensor_age_s, f.max_recovery_mm_s, np.radians(config.trust_angle_deg),
+                                np.cos(np.radians(config.misfit_angle_deg)), _chord(config.trust_angle_deg),
+                                _chord(config.misfit_angle_deg)]))
+        self._margins = config.margins
+        self._snap, self._model = None, None
+        self._active = np.zeros(N_IDS, dtype=np.bool_)  # control_step's active_ids
+
+    def _model_arguments(self, snap) -> tuple:
+        """control_step's model arguments of a snapshot (kind, center, rotation, radii,
+        margin, the prior, the coverage), all but the model time, which changes every packet."""
+        if snap is not self._snap:
+            shape = snap.shape
+            prior_center, prior_radii = self._tail[0], self._tail[1]
+            if shape is None:
+                kind, center, rotation, radii = PRIOR, prior_center, np.eye(3), prior_radii
+            elif hasattr(shape, "radii"):
+                kind, center, rotation, radii = ELLIPSOID, shape.center, shape.rotation, shape.radii
+            else:
+                kind, center, rotation, radii = SPHERE, shape.center, np.eye(3), np.full(3, float(shape.radius))
+            cov = snap.coverage
+            has_coverage = cov is not None and shape is not None
+            if not has_coverage:
+                dirs, misfit, cov_center = np.zeros((0, 3)), np.zeros(0), np.zeros(3)
+            else:
+                dirs, cov_center = cov._dirs, np.asarray(cov.center_W, dtype=float)
+                misfit = np.zeros(len(dirs)) if cov._misfit is None else cov._misfit
+            self._model = (kind, np.asarray(center, dtype=float), np.asarray(rotation, dtype=float),
+                           np.asarray(radii, dtype=float), float(snap.margin_mm(self._margins)), prior_center,
+                           prior_radii, has_coverage, cov_center, dirs, misfit)
+            self._snap = snap
+        return self._model
+
+    def reset(self) -> None:
+        """Forget the previous step's active set (a new run)."""
+        self._active[:] = False
+
+    def step(self, t_s: float, q: np.ndarray, command: np.ndarray, snap, sensor_t_s: float):
+        t0 = time.perf_counter()
+        kind, center, rotation, radii, margin, prior_c, prior_r, has_cov, cov_c, dirs, misfit = self._model_arguments(snap)
+        model_t_s = t_s if kind == PRIOR else snap.t_s
+        head, tail = self._kin
+        r = control_step(q, command, t_s, sensor_t_s, *head, *tail, kind, center, rotation, radii, model_t_s, margin,
+                         prior_c, prior_r, has_cov, cov_c, dirs, misfit, *self._tail[2:], self._active)
+        code = r[0]
+        if code == REFERENCE:
+            return None, r
+        if code == OPTIMAL:
+            at_bound = r[19]
+            names = row_names(r[10], r[12]) if len(at_bound) else ()
+            result = QPResult(r[1], "ok", tuple(sorted({names[i] for i in at_bound})), 1e6 * (time.perf_counter() - t0))
+        else:
+            qp = DenseQP(*r[2:10], row_names(r[10], r[12]))
+            result = solve_by_solver(qp, self.solver, ACTIVE_TOL, t0)
+            if not result.ok:
+                self.reset()
+                return None, r
+            remember_active(self._active, row_ids(r[10], r[12]), qp.G, qp.h, qp.lb, qp.ub, result.x, ACTIVE_TOL)
+        return self.filter.output(result, r[15], command[:3], float(r[17]), float(r[18])), r
