@@ -740,9 +740,9 @@ OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTE
 def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
                   Y, y, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, out):
     """The adaptive model's update by the points P (N, 3) mm (one A-scan's or a packet's), in
-    one call: the kernels of the batch update, in its order. A model of n >= 1 points (the
-    batch path takes the first, p0 (mm): the origin of every part) skips the non-finite
-    rows of P, gates the others (gate_points, when `gate_on`; `quadric` the current model
+    one call: the kernels of the batch update, in its order. A model of n points, p0 (mm)
+    the origin of every part (its first point; when n = 0 the first point kept here is
+    written to p0), skips the non-finite rows of P, gates the others (gate_points, when `gate_on`; `quadric` the current model
     about p0) and copies those it keeps to kept[:K] (kept: (N, 3)); if K > 0 it absorbs
     them into the sphere filter (Y, y), the scatter matrix S and the scan range (X with
     room for K more rows, block_r, `diameter` mm), refits the ellipsoid (with the spread
@@ -772,6 +772,8 @@ def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g
     if k == 0:
         return n_nonfinite, 0, False, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
     A = kept[:k]
+    if n == 0:
+        p0[0], p0[1], p0[2] = A[0, 0], A[0, 1], A[0, 2]
     state, sf_ok = sphere_absorb(Y, y, A, p0, scale, n + k)
     add_design_rows(S, A, p0, scale)
     diameter = diameter_after_adding(X, block_r, n, A, p0, diameter)

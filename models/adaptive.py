@@ -130,7 +130,7 @@ class AdaptiveEyeModel:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
         no entry, if no point was finite and passed the gate)."""
         if (isinstance(P, np.ndarray) and P.dtype == np.float64 and P.ndim in (1, 2) and P.shape[-1] == 3
-                and self._ef.p0 is not None and not self._robust):  # the robust fit reweights: general path
+                and not self._robust):  # the robust fit reweights: general path
             return self._update_compiled(P.reshape(-1, 3))
         P = as_points(P, "P", allow_nonfinite=True)
         self.n_received += len(P)
@@ -156,10 +156,10 @@ class AdaptiveEyeModel:
 
     def _update_compiled(self, P: np.ndarray) -> ModelUpdate | None:
         """`update` by points P (N, 3) float mm (one A-scan's or a packet's, non-finite rows
-        allowed), once the model has its first point: the general path's kernels in one
-        compiled call (models._kernels.packet_update), the same numbers. The sphere filter,
-        the ellipsoid fit and the scan range all took the first point as their origin:
-        ef.p0 stands for the three."""
+        allowed): the general path's kernels in one compiled call
+        (models._kernels.packet_update), the same numbers. The sphere filter, the ellipsoid
+        fit and the scan range all take the first point as their origin: ef.p0 stands for
+        the three (set here from the kernel's when it took the first point)."""
         self.n_received += len(P)
         sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
         n = sf.n_points
@@ -168,8 +168,9 @@ class AdaptiveEyeModel:
         current = self._current
         out = np.empty(OUT_SIZE)
         kept = np.empty((len(P), 3))
+        p0 = np.zeros(3) if ef.p0 is None else ef.p0  # without a point yet: the kernel writes the first one
         n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = packet_update(
-            P, n, ef.p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
+            P, n, p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
             g.params, g.counts, g.last, g.residual, g.recent, sf.information, sf.information_vector, ef.S,
             ef.spread_checked_at, ef.SPREAD_RECHECK, scan.X, scan.block_r, scan.diameter_mm, self._prev_radii,
             self._has_prev, LENGTH_SCALE_MM, kept, out)
@@ -177,6 +178,8 @@ class AdaptiveEyeModel:
         self.last_accepted = kept[:k]
         if k == 0:
             return None
+        if ef.p0 is None:
+            ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
         sf.n_points = n + k
         sf.state = out[OUT_STATE:OUT_V_SF] if sf_ok else None
         ef.took(k)
