@@ -742,8 +742,9 @@ def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g
     """The adaptive model's update by the points P (N, 3) mm (one A-scan's or a packet's), in
     one call: the kernels of the batch update, in its order. A model of n points, p0 (mm)
     the origin of every part (its first point; when n = 0 the first point kept here is
-    written to p0), skips the non-finite rows of P, gates the others (gate_points, when `gate_on`; `quadric` the current model
-    about p0) and copies those it keeps to kept[:K] (kept: (N, 3)); if K > 0 it absorbs
+    written to p0), skips the non-finite rows of P, gates the others (gate_points, when
+    `gate_on`; `quadric` the current model about p0) and copies those it keeps to
+    kept[:K] (kept: (N, 3)); if K > 0 it absorbs
     them into the sphere filter (Y, y), the scatter matrix S and the scan range (X with
     room for K more rows, block_r, `diameter` mm), refits the ellipsoid (with the spread
     test when spread_check_due(checked_at, n + K, recheck)) and summarises the fits
