@@ -32,11 +32,13 @@ from pydrake.systems.primitives import DiscreteTimeIntegrator
 
 from models import AdaptiveEyeModel
 from models.coverage import DirectionCoverage
+from models.transition import PredictiveCriteria
 from eval.control_step import CompiledStep
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 from planning.iioct_sensor import IioctSensor, IioctSensorSystem
 from planning.robot import Robot
+from planning.scan import start_posture
 from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
 from safety.margins import UncertaintyMargins, conservative_prior
 
@@ -187,7 +189,27 @@ class AdaptiveModelSystem(LeafSystem):
         self._snap = self.DeclareAbstractState(AbstractValue.Make(_PRIOR_AT_0))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
         self.DeclareStateOutputPort("snapshot", self._snap)
+        self._compile()
         self.reset(AdaptiveEyeModel(), DirectionCoverage(np.zeros(3)))
+
+    def _compile(self) -> None:
+        """Compile (or load from numba's cache, ~0.5 s) the model's kernels before any run, so
+        that no run's first packet holds it: a throwaway model with the predictive criteria
+        (their checkpoints' kernels too) and its coverage take packets of 10 points from an
+        eye-sized ellipsoid cap (mm) until both fits and a checkpoint's convergence test
+        have run, then the snapshot of each kind (trust limits of 0: any shape)."""
+        rng = np.random.default_rng(0)
+        u = rng.normal(size=(300, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        u[:, 2] = -np.abs(u[:, 2])  # a posterior cap
+        P = u * [11.5, 11.4, 10.1] + rng.normal(0.0, 0.02, (300, 1)) * u
+        model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), DirectionCoverage(np.zeros(3))
+        for k in range(0, len(P), 10):
+            model.update(P[k:k + 10])
+            coverage.add(model.last_accepted)
+        for shape in (None, model.sphere, model.ellipsoid):
+            coverage.view(shape)
+        snapshot_of(model, coverage, 0.0)
 
     def reset(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, logger=None) -> None:
         self.model, self.coverage, self.logger = model, coverage, logger
@@ -254,27 +276,35 @@ class AdaptiveModelSystem(LeafSystem):
         self._mark_epoch(self._written)
 
 
+class Step(NamedTuple):
+    """One control step's record: time, joints, command and result, what the filter saw
+    (mm, s, rad; W). The tip velocity done is J_tip qdot (LoopRun computes it)."""
+
+    t: float
+    q: np.ndarray
+    qdot: np.ndarray
+    v_cmd: np.ndarray
+    J_tip: np.ndarray
+    ok: bool
+    reason: str
+    intervened: bool
+    solve_us: float
+    step_us: float
+    model_clearance: float
+    kind: str
+    rcm_error_mm: float
+    points_W: np.ndarray
+    lens_W: np.ndarray
+
+
 @dataclass
 class StepRecord:
-    """Per control step: time, joints, command and result, what the filter saw."""
+    """A run's steps (one Step each: one append per control step) and the (q, v_cmd) on
+    which Drake's diff IK is timed after the run."""
 
-    t: list = field(default_factory=list)
-    q: list = field(default_factory=list)
-    qdot: list = field(default_factory=list)
-    v_cmd: list = field(default_factory=list)
-    v_tip: list = field(default_factory=list)
-    ok: list = field(default_factory=list)
-    reason: list = field(default_factory=list)
-    intervened: list = field(default_factory=list)
-    solve_us: list = field(default_factory=list)
-    step_us: list = field(default_factory=list)
-    model_clearance: list = field(default_factory=list)
-    kind: list = field(default_factory=list)
-    rcm_error_mm: list = field(default_factory=list)
-    points_W: list = field(default_factory=list)
-    lens_W: list = field(default_factory=list)
+    steps: list = field(default_factory=list)
     drake_diffik_us: list = field(default_factory=list)
-    diffik_states: list = field(default_factory=list)  # (q, v_cmd) on which Drake's diff IK is timed
+    diffik_states: list = field(default_factory=list)
 
 
 class FilterSystem(LeafSystem):
@@ -301,6 +331,17 @@ class FilterSystem(LeafSystem):
         first_s = dt * np.ceil(config.sensor_packet / config.sensor_rate_hz / dt + 0.5)
         self.DeclarePeriodicDiscreteUpdateEvent(dt, first_s, self._update)
         self.DeclareStateOutputPort("qdot", state)
+        self.reset()
+        self._compile()
+
+    def _compile(self) -> None:
+        """Compile (or load from numba's cache) every kernel of the step before any run, so
+        that no run's wall time holds a compilation: a step that holds the equality
+        optimum, one that needs DAQP, then the same with its remembered active set."""
+        scenario = self.robot.scenario
+        prior, q = ModelSnapshot("prior", None, 0.0, np.nan, 0), start_posture(self.robot, scenario.eye_pose.p_WE, self.robot.p_WC)
+        for v in (0.0, 60.0, 60.0):
+            self.compiled.step(0.0, q, np.array([v, 0.0, 0.0, 0.0]), prior, 0.0)
         self.reset()
 
     def reset(self, logger=None) -> None:
@@ -345,31 +386,26 @@ class FilterSystem(LeafSystem):
         rec = self.record
         out, r = self.compiled.step(t, q, command, snap, sensor_t)
         if out is not None:  # the ordinary step, compiled: the points from its kinematics
-            k, m, P = r[11], r[13], r[14]
-            J_tip, P_W, L_W, rcm_error_mm = r[15], P[:k], P[k:k + m], float(r[16])
+            k, m, P = r[2], r[4], r[5]
+            J_tip, P_W, L_W, rcm_error_mm = r[6], P[:k], P[k:k + m], float(r[7])
             x = self.inputs(t, q, command, snap, sensor_t)[0] if self.logger is not None else None
         else:  # a fault or an unusual step: the reference filter decides and says why
             try:
                 x, ip = self.inputs(t, q, command, snap, sensor_t)
             except ValueError as exc:  # non-finite joint angles: nothing to filter, stay put
-                rec.t.append(t), rec.q.append(q), rec.qdot.append(np.zeros(6)), rec.v_cmd.append(command[:3])
-                rec.v_tip.append(np.zeros(3)), rec.ok.append(False), rec.reason.append(f"bad joint state: {exc}")
-                rec.intervened.append(True), rec.solve_us.append(0.0), rec.step_us.append(0.0)
-                rec.model_clearance.append(np.nan), rec.kind.append(snap.kind), rec.rcm_error_mm.append(np.nan)
-                rec.points_W.append(np.full((1, 3), np.nan)), rec.lens_W.append(np.zeros((0, 3)))
+                rec.steps.append(Step(t, q, np.zeros(6), command[:3], np.zeros((3, 6)), False, f"bad joint state: {exc}",
+                                      True, 0.0, 0.0, np.nan, snap.kind, np.nan, np.full((1, 3), np.nan),
+                                      np.zeros((0, 3))))
                 discrete_state.set_value(np.zeros(6))
                 return
             out = self.filter(x)
             J_tip, P_W, L_W, rcm_error_mm = ip.J_tip, ip.P_W, ip.L_W, ip.rcm_error_mm
         discrete_state.set_value(out.qdot)
-        rec.step_us.append(1e6 * (time.perf_counter() - t0))
-        if self.config.drake_diffik_every and len(rec.t) % self.config.drake_diffik_every == 0 and out.ok:
+        step_us = 1e6 * (time.perf_counter() - t0)
+        if self.config.drake_diffik_every and len(rec.steps) % self.config.drake_diffik_every == 0 and out.ok:
             rec.diffik_states.append((q, command[:3]))  # Drake is timed on these after the run (ClosedLoop.run)
-        rec.t.append(t), rec.q.append(q), rec.qdot.append(out.qdot), rec.v_cmd.append(command[:3])
-        rec.v_tip.append(J_tip @ out.qdot), rec.ok.append(out.ok), rec.reason.append(out.reason)
-        rec.intervened.append(out.intervened), rec.solve_us.append(out.solve_us)
-        rec.model_clearance.append(out.min_clearance_mm), rec.kind.append(snap.kind)
-        rec.rcm_error_mm.append(rcm_error_mm), rec.points_W.append(P_W), rec.lens_W.append(L_W)
+        rec.steps.append(Step(t, q, out.qdot, command[:3], J_tip, out.ok, out.reason, out.intervened, out.solve_us,
+                              step_us, out.min_clearance_mm, snap.kind, rcm_error_mm, P_W, L_W))
         if self.logger is not None:
             self._log(t, q, x, out, float(meas[0]) if meas[1] > 0 else float("nan"))
 
@@ -387,7 +423,7 @@ class FilterSystem(LeafSystem):
     def _log(self, t: float, q, x, out, distance_mm: float) -> None:
         """Every step's filter inputs and outputs; joint states at 100 Hz; frames and the
         3D scene (model, lens, trocar, the beam to the last measured distance) at 20 Hz."""
-        log, k = self.logger, len(self.record.t)
+        log, k = self.logger, len(self.record.steps)
         log.log_filter_step(x, out)
         if k % 10 == 1:
             log.log_joint_states(t, q, out.qdot, JOINT_NAMES)
@@ -527,22 +563,25 @@ class ClosedLoop:
         return DirectionCoverage(self.scenario.eye_pose.p_WE)
 
     def _collect(self, wall_s: float) -> LoopRun:
-        r = self.filter.record
+        steps = self.filter.record.steps
         eye, lens = self.scenario.eye, self.scenario.lens_W
-        lens_pts = [p for p in r.lens_W if len(p)]
-        lens_counts = np.array([len(p) for p in r.lens_W])
-        lens_clear = np.full(len(r.t), np.inf)
+        col = {name: [getattr(st, name) for st in steps] for name in Step._fields}
+        lens_pts = [p for p in col["lens_W"] if len(p)]
+        lens_counts = np.array([len(p) for p in col["lens_W"]])
+        lens_clear = np.full(len(steps), np.inf)
         if lens_pts:
             d = -np.asarray(lens.signed_distance(np.vstack(lens_pts)))
             starts = np.concatenate([[0], np.cumsum(lens_counts[lens_counts > 0])[:-1]])
             lens_clear[lens_counts > 0] = np.minimum.reduceat(d, starts)
         a = lambda x, shape=None: np.array(x, dtype=float) if len(x) else np.zeros(shape or (0,))  # noqa: E731
+        qdot, J_tip = a(col["qdot"], (0, 6)), a(col["J_tip"], (0, 3, 6))
         return LoopRun(
-            t=a(r.t), q=a(r.q, (0, 6)), qdot=a(r.qdot, (0, 6)), v_cmd=a(r.v_cmd, (0, 3)), v_tip=a(r.v_tip, (0, 3)),
-            ok=np.array(r.ok, dtype=bool), reasons=list(r.reason), intervened=np.array(r.intervened, dtype=bool),
-            solve_us=a(r.solve_us), step_us=a(r.step_us), model_clearance_mm=a(r.model_clearance),
-            true_clearance_mm=true_clearances(r.points_W, eye) if r.points_W else np.zeros(0),
-            lens_clearance_mm=lens_clear, kind=list(r.kind), rcm_error_mm=a(r.rcm_error_mm),
-            drake_diffik_us=a(r.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
+            t=a(col["t"]), q=a(col["q"], (0, 6)), qdot=qdot, v_cmd=a(col["v_cmd"], (0, 3)),
+            v_tip=np.einsum("kij,kj->ki", J_tip, qdot), ok=np.array(col["ok"], dtype=bool), reasons=col["reason"],
+            intervened=np.array(col["intervened"], dtype=bool), solve_us=a(col["solve_us"]), step_us=a(col["step_us"]),
+            model_clearance_mm=a(col["model_clearance"]),
+            true_clearance_mm=true_clearances(col["points_W"], eye) if steps else np.zeros(0),
+            lens_clearance_mm=lens_clear, kind=col["kind"], rcm_error_mm=a(col["rcm_error_mm"]),
+            drake_diffik_us=a(self.filter.record.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
             model_epochs=list(self.model.epochs), command_wall_s=self.command.wall_s, model_wall_s=self.model.wall_s,
         )

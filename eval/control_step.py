@@ -76,6 +76,19 @@ def _all_finite(a) -> bool:
 
 N_TIP_ROWS = _D.shape[0]
 N_IDS = N_TIP_ROWS + len(_NAMES) + len(_LENS_NAMES) + 12  # tip speed rows, points, lens points, joint bounds
+_MAX_G = N_TIP_ROWS + len(_NAMES) + len(_LENS_NAMES)  # rows of G at most
+WORKSPACE_SIZES = (36 + 6 + 6 + 6 + 12 + 2 + 7 * _MAX_G, 2 * _MAX_G)  # floats, ints
+
+
+@njit(cache=True)
+def workspace_views(wsf, wsi):
+    """(H (6, 6), c, lb, ub (6,), A (2, 6), b (2,), G (_MAX_G, 6), h (_MAX_G,), rows (_MAX_G,),
+    at_bound (_MAX_G,)): the step's QP and row lists as views of the float and int buffers
+    wsf, wsi (WORKSPACE_SIZES), where control_step leaves them (returning them would cost
+    a Python object each, per step)."""
+    g = 68 + 6 * _MAX_G
+    return (wsf[0:36].reshape((6, 6)), wsf[36:42], wsf[42:48], wsf[48:54], wsf[54:66].reshape((2, 6)), wsf[66:68],
+            wsf[68:g].reshape((_MAX_G, 6)), wsf[g:g + _MAX_G], wsi[:_MAX_G], wsi[_MAX_G:])
 
 
 @njit(cache=True)
@@ -179,7 +192,7 @@ def warm_solution(H, c, lb, ub, G, h, A, b, ids, active_ids, tol):
 def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x, port_I, spacing, n_shaft, min_depth,
                  lens_offsets, rcm_gain, kind, center, rotation, radii, model_t_s, margin, prior_center, prior_radii,
                  has_coverage, cov_center, cov_dirs, cov_misfit, lens_center, lens_rotation, lens_radii, q_min, q_max,
-                 qdot_max, cfg, active_ids):
+                 qdot_max, cfg, active_ids, wsf, wsi):
     """One filter step (FilterSystem.inputs + SafetyFilter), compiled.
 
     q (6,) rad; command (4,): tip velocity (3,) mm/s in W and roll rate rad/s; t_s and
@@ -193,11 +206,13 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
     (N_IDS,) bool: the constraints active at the previous step's solution (row_ids),
     the guess tried when the equality optimum is not feasible; updated in place.
 
-    Returns (code, x (6,) rad/s when OPTIMAL, the QP's (H, c, lb, ub, G, h, A, b) and its
-    kept rows (indices into the k_used boundary points, then the lens points), k (all
-    boundary points), k_used (those against the model), m (lens points), P_W (k + m + 1,
-    3) mm, J_tip (3, 6), rcm_error_mm, clearance_mm, port_clearance_mm, and the rows of G
-    at their bound (none when the equality optimum holds, as safety.qp.solve reports))."""
+    Returns (code, x (6,) rad/s when OPTIMAL, k (all boundary points), k_used (those
+    against the model), m (lens points), P_W (k + m + 1, 3) mm, J_tip (3, 6),
+    rcm_error_mm, clearance_mm, port_clearance_mm, n_rows, n_at_bound) and leaves in the
+    workspace (workspace_views of wsf, wsi) the QP (its G and h: the n_rows + N_TIP_ROWS
+    first rows), its kept rows (indices into the k_used boundary points, then the lens
+    points) and the rows of G at their bound (none when the equality optimum holds, as
+    safety.qp.solve reports)."""
     d_safe, gain, lens_margin, joint_gain, joint_margin = cfg[0], cfg[1], cfg[2], cfg[3], cfg[4]
     max_tip_speed, max_command_speed, damping, max_model_age, max_sensor_age = cfg[5], cfg[6], cfg[7], cfg[8], cfg[9]
     max_recovery, trust_rad, cos_misfit, chord_trust, chord_misfit = cfg[10], cfg[11], cfg[12], cfg[13], cfg[14]
@@ -206,17 +221,13 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
     J_tip = J[0].copy()
     k_used = 2 if kind == PRIOR else k
     x = np.zeros(6)
-    empty = np.zeros((0, 6))
-    none = np.zeros(0)
-    no_qp = (np.zeros((6, 6)), x, x, x, empty, none, empty, none, np.zeros(0, dtype=np.int64))
     speed = np.sqrt(command[0] ** 2 + command[1] ** 2 + command[2] ** 2)
     fault = not (_all_finite(q) and _all_finite(command[:3]) and _all_finite(P) and _all_finite(J)
                  and speed <= max_command_speed and t_s - model_t_s <= max_model_age
                  and t_s - sensor_t_s <= max_sensor_age and np.isfinite(margin) and margin >= 0.0)
-    no_rows = np.zeros(0, dtype=np.int64)
     if fault:
         active_ids[:] = False
-        return (REFERENCE, x) + no_qp + (k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, no_rows)
+        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0
     # which points the model is trusted for, and its measured misfit near them (CoverageView)
     trusted = np.ones(k_used, dtype=np.bool_)
     misfit = np.zeros(k_used)
@@ -239,14 +250,14 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
     h_lens, g_lens, lens_generic = _shape_distance(ELLIPSOID, lens_center, lens_rotation, lens_radii, P[k:k + m])
     if not (generic and lens_generic):
         active_ids[:] = False
-        return (REFERENCE, x) + no_qp + (k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, no_rows)
+        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0
     always = np.zeros(k_used, dtype=np.bool_)
     always[:2] = True
     h, grad, h_min, keep, finite = barrier_rows(h_model, g_model, h_fallback, g_fallback, misfit, margin, d_safe, always,
                                                 h_lens, g_lens, lens_margin, max_tip_speed / gain)
     if not finite:
         active_ids[:] = False
-        return (REFERENCE, x) + no_qp + (k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, no_rows)
+        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0
     clearance = h[:k_used].min()
     rows = np.flatnonzero(keep)
     J_pts = np.empty((rows.shape[0], 3, 6))
@@ -256,7 +267,7 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
                                      q_min, q_max, qdot_max, joint_gain, joint_margin, max_tip_speed, _D, _POLYTOPE_REACH,
                                      h[rows], grad[rows], J_pts, h_min[rows], gain, max_recovery)
     code, x = _screen(H, c, lb, ub, G, hv, rcm_A, rcm_b, ACTIVE_TOL)
-    at_bound = no_rows
+    at_bound = np.zeros(0, dtype=np.int64)
     if code == _OPTIMAL:
         active_ids[:] = False
     elif code == _NEEDS_SOLVER:
@@ -267,8 +278,19 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
             at_bound = remember_active(active_ids, ids, G, hv, lb, ub, x, ACTIVE_TOL)
     else:
         active_ids[:] = False
+    H_w, c_w, lb_w, ub_w, A_w, b_w, G_w, h_w, rows_w, bound_w = workspace_views(wsf, wsi)
+    H_w[:], c_w[:], lb_w[:], ub_w[:], A_w[:], b_w[:] = H, c, lb, ub, rcm_A, rcm_b
+    G_w[:G.shape[0]], h_w[:G.shape[0]], rows_w[:rows.shape[0]], bound_w[:at_bound.shape[0]] = G, hv, rows, at_bound
     out = OPTIMAL if code == _OPTIMAL else (NEEDS_SOLVER if code == _NEEDS_SOLVER else REFERENCE)
-    return (out, x, H, c, lb, ub, G, hv, rcm_A, rcm_b, rows, k, k_used, m, P, J_tip, rcm_error, clearance, h[1], at_bound)
+    return out, x, k, k_used, m, P, J_tip, rcm_error, clearance, h[1], rows.shape[0], at_bound.shape[0]
+
+
+def _writeable(a) -> np.ndarray:
+    """`a` as a C-contiguous, writeable float array, copied only when it is not one (the
+    model's frozen arrays are read-only, which numba would compile for separately)."""
+    if isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous and a.flags.writeable:
+        return a
+    return np.array(a, dtype=float, order="C")
 
 
 def _chord(angle_deg: float) -> float:
@@ -296,9 +318,9 @@ class CompiledStep:
         f = config.filter
         self._kin = kinematics_arguments(robot, robot.p_WC, config.points)
         lens = robot.scenario.lens_W
-        self._tail = (np.asarray(prior.center, dtype=float), np.full(3, float(prior.radius)),
-                      np.asarray(lens.center, dtype=float), np.asarray(lens.rotation, dtype=float),
-                      np.asarray(lens.radii, dtype=float), robot.q_lower, robot.q_upper, robot.qdot_max,
+        w = _writeable
+        self._tail = (w(prior.center), np.full(3, float(prior.radius)), w(lens.center), w(lens.rotation), w(lens.radii),
+                      w(robot.q_lower), w(robot.q_upper), w(robot.qdot_max),
                       np.array([f.d_safe_mm, f.gain_per_s, f.lens_margin_mm, f.joint_gain_per_s, f.joint_margin_rad,
                                 f.max_tip_speed_mm_s, f.max_command_speed_mm_s, f.damping, f.max_model_age_s,
                                 f.max_sensor_age_s, f.max_recovery_mm_s, np.radians(config.trust_angle_deg),
@@ -307,6 +329,8 @@ class CompiledStep:
         self._margins = config.margins
         self._snap, self._model = None, None
         self._active = np.zeros(N_IDS, dtype=np.bool_)  # control_step's active_ids
+        self._wsf, self._wsi = np.zeros(WORKSPACE_SIZES[0]), np.zeros(WORKSPACE_SIZES[1], dtype=np.int64)
+        self._ws = workspace_views(self._wsf, self._wsi)
 
     def _model_arguments(self, snap) -> tuple:
         """control_step's model arguments of a snapshot (kind, center, rotation, radii,
@@ -327,9 +351,9 @@ class CompiledStep:
             else:
                 dirs, cov_center = cov._dirs, np.asarray(cov.center_W, dtype=float)
                 misfit = np.zeros(len(dirs)) if cov._misfit is None else cov._misfit
-            self._model = (kind, np.asarray(center, dtype=float), np.asarray(rotation, dtype=float),
-                           np.asarray(radii, dtype=float), float(snap.margin_mm(self._margins)), prior_center,
-                           prior_radii, has_coverage, cov_center, dirs, misfit)
+            w = _writeable  # one array type for every snapshot: one compiled specialisation
+            self._model = (kind, w(center), w(rotation), w(radii), float(snap.margin_mm(self._margins)), prior_center,
+                           prior_radii, has_coverage, w(cov_center), w(dirs), w(misfit))
             self._snap = snap
         return self._model
 
@@ -343,19 +367,21 @@ class CompiledStep:
         model_t_s = t_s if kind == PRIOR else snap.t_s
         head, tail = self._kin
         r = control_step(q, command, t_s, sensor_t_s, *head, *tail, kind, center, rotation, radii, model_t_s, margin,
-                         prior_c, prior_r, has_cov, cov_c, dirs, misfit, *self._tail[2:], self._active)
-        code = r[0]
+                         prior_c, prior_r, has_cov, cov_c, dirs, misfit, *self._tail[2:], self._active, self._wsf, self._wsi)
+        code, x, k_used, n_rows, n_bound = r[0], r[1], r[3], r[10], r[11]
         if code == REFERENCE:
             return None, r
+        H, c, lb, ub, A, b, G, h, rows, at_bound = self._ws
         if code == OPTIMAL:
-            at_bound = r[19]
-            names = row_names(r[10], r[12]) if len(at_bound) else ()
-            result = QPResult(r[1], "ok", tuple(sorted({names[i] for i in at_bound})), 1e6 * (time.perf_counter() - t0))
+            names = row_names(rows[:n_rows], k_used) if n_bound else ()
+            result = QPResult(x, "ok", tuple(sorted({names[i] for i in at_bound[:n_bound]})), 1e6 * (time.perf_counter() - t0))
         else:
-            qp = DenseQP(*r[2:10], row_names(r[10], r[12]))
+            m = N_TIP_ROWS + n_rows
+            qp = DenseQP(H.copy(), c.copy(), lb.copy(), ub.copy(), G[:m].copy(), h[:m].copy(), A.copy(), b.copy(),
+                         row_names(rows[:n_rows], k_used))
             result = solve_by_solver(qp, self.solver, ACTIVE_TOL, t0)
             if not result.ok:
                 self.reset()
                 return None, r
-            remember_active(self._active, row_ids(r[10], r[12]), qp.G, qp.h, qp.lb, qp.ub, result.x, ACTIVE_TOL)
-        return self.filter.output(result, r[15], command[:3], float(r[17]), float(r[18])), r
+            remember_active(self._active, row_ids(rows[:n_rows], k_used), qp.G, qp.h, qp.lb, qp.ub, result.x, ACTIVE_TOL)
+        return self.filter.output(result, r[6], command[:3], float(r[8]), float(r[9])), r
