@@ -170,8 +170,9 @@ class CommandSystem(LeafSystem):
         # integrator's (6,) float state, checked for finiteness here
         p_WT = self.robot.chain.pose("T", q)[1] if all(map(math.isfinite, q.tolist())) else _NAN3
         v, roll = self.source(context.get_time(), p_WT, q)
-        v = np.asarray(v, dtype=float).reshape(3)
-        discrete_state.set_value(np.array((v[0], v[1], v[2], float(roll))))
+        state = np.empty(4)
+        state[:3], state[3] = v, roll  # ValueError unless v holds 3 numbers
+        discrete_state.set_value(state)
         self.wall_s += time.perf_counter() - t0
 
 
