@@ -19,6 +19,7 @@ Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -31,6 +32,7 @@ from pydrake.systems.primitives import DiscreteTimeIntegrator
 
 from models import AdaptiveEyeModel
 from models.coverage import DirectionCoverage
+from models.transition import PredictiveCriteria
 from eval.control_step import CompiledStep
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
@@ -41,6 +43,8 @@ from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
 from safety.margins import UncertaintyMargins, conservative_prior
 
 JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
+_NAN3 = np.full(3, np.nan)
+_NAN3.setflags(write=False)  # the tip position of non-finite joint angles
 ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of the 2 kHz stream, ~0.4 MB/s
 
 
@@ -113,6 +117,9 @@ class ModelSnapshot(NamedTuple):
         return margins.margin_mm(None if self.shape is None else self.kind, self.residual_mm)
 
 
+_PRIOR_AT_0 = ModelSnapshot("prior", None, 0.0, np.nan, 0)
+
+
 def semi_axes_mm(shape) -> np.ndarray:
     """The semi-axes (mm) of a Sphere (its radius, once) or an Ellipsoid."""
     return np.atleast_1d(getattr(shape, "radii", getattr(shape, "radius", np.nan)))
@@ -128,16 +135,19 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     def prior() -> ModelSnapshot:  # made only when returned: a view of another kind is a rebuild
         return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
 
-    if model.shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
+    shape = model.shape
+    if shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
         return prior()
-    last = model.history[-1]
-    candidates = [(model.kind, model.shape, last.ef_residual_mm if model.kind == "ellipsoid" else last.sf_residual_mm)]
-    if model.kind == "ellipsoid" and model.sphere is not None:
-        candidates.append(("sphere", model.sphere, last.sf_residual_mm))
-    for kind, shape, residual_mm in candidates:
-        radii = semi_axes_mm(shape)
-        if radius_range_mm[0] <= radii.min() and radii.max() <= radius_range_mm[1]:
-            return ModelSnapshot(kind, shape, t_s, float(residual_mm), model.n_points, coverage.view(shape))
+    last, lo, hi = model.history[-1], radius_range_mm[0], radius_range_mm[1]
+    if model.kind == "ellipsoid":
+        radii = shape.radii.tolist()
+        if lo <= min(radii) and max(radii) <= hi:
+            return ModelSnapshot("ellipsoid", shape, t_s, float(last.ef_residual_mm), model.n_points, coverage.view(shape))
+        shape = model.sphere  # the ellipsoid is no eye's: its sphere fit, if that one is
+        if shape is None:
+            return prior()
+    if lo <= shape.radius <= hi:
+        return ModelSnapshot("sphere", shape, t_s, float(last.sf_residual_mm), model.n_points, coverage.view(shape))
     return prior()
 
 
@@ -147,16 +157,23 @@ class CommandSystem(LeafSystem):
     def __init__(self, robot: Robot, rate_hz: float):
         super().__init__()
         self.robot, self.source = robot, None
+        self.wall_s = 0.0  # wall time (s) of its steps since the last ClosedLoop.run began
         self._q = self.DeclareVectorInputPort("q", 6)
         state = self.DeclareDiscreteState(4)
         self.DeclarePeriodicDiscreteUpdateEvent(1.0 / rate_hz, 0.0, self._update)
         self.DeclareStateOutputPort("command", state)
 
     def _update(self, context, discrete_state) -> None:
+        t0 = time.perf_counter()
         q = self._q.Eval(context)
-        p_WT = self.robot.pose("T", q)[1] if np.all(np.isfinite(q)) else np.full(3, np.nan)
+        # the robot's kinematic chain without Robot.pose's argument checks: q is the
+        # integrator's (6,) float state, checked for finiteness here
+        p_WT = self.robot.chain.pose("T", q)[1] if all(map(math.isfinite, q.tolist())) else _NAN3
         v, roll = self.source(context.get_time(), p_WT, q)
-        discrete_state.set_value(np.concatenate([np.asarray(v, dtype=float).reshape(3), [float(roll)]]))
+        state = np.empty(4)
+        state[:3], state[3] = v, roll  # ValueError unless v holds 3 numbers
+        discrete_state.set_value(state)
+        self.wall_s += time.perf_counter() - t0
 
 
 class AdaptiveModelSystem(LeafSystem):
@@ -170,14 +187,36 @@ class AdaptiveModelSystem(LeafSystem):
         super().__init__()
         self._trust = (min_points, min_scan_range_mm, radius_range_mm)
         self._samples = self.DeclareAbstractInputPort("samples", AbstractValue.Make(()))
-        self._snap = self.DeclareAbstractState(AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
+        self._snap = self.DeclareAbstractState(AbstractValue.Make(_PRIOR_AT_0))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
         self.DeclareStateOutputPort("snapshot", self._snap)
+        self._compile()
         self.reset(AdaptiveEyeModel(), DirectionCoverage(np.zeros(3)))
+
+    def _compile(self) -> None:
+        """Compile (or load from numba's cache, ~0.5 s) the model's kernels before any run, so
+        that no run's first packet holds it: a throwaway model with the predictive criteria
+        (their checkpoints' kernels too) and its coverage take packets of 10 points from an
+        eye-sized ellipsoid cap (mm) until both fits and a checkpoint's convergence test
+        have run, then the snapshot of each kind (trust limits of 0: any shape)."""
+        rng = np.random.default_rng(0)
+        u = rng.normal(size=(300, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        u[:, 2] = -np.abs(u[:, 2])  # a posterior cap
+        P = u * [11.5, 11.4, 10.1] + rng.normal(0.0, 0.02, (300, 1)) * u
+        model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), DirectionCoverage(np.zeros(3))
+        for k in range(0, len(P), 10):
+            model.update(P[k:k + 10])
+            coverage.add(model.last_accepted)
+        for shape in (None, model.sphere, model.ellipsoid):
+            coverage.view(shape)
+        snapshot_of(model, coverage, 0.0)
 
     def reset(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, logger=None) -> None:
         self.model, self.coverage, self.logger = model, coverage, logger
         self._last_t = -np.inf
+        self._written = _PRIOR_AT_0  # the declared state's value, until initial_snapshot
+        self.wall_s = 0.0  # wall time (s) of its updates since the reset
         self.update_us: list[float] = []
         self.errors_mm: list[float] = []  # extracted - true distance of the valid samples (evaluation)
         self.n_samples = 0
@@ -193,39 +232,49 @@ class AdaptiveModelSystem(LeafSystem):
         return snapshot_of(model, coverage, t_s, *self._trust)
 
     def initial_snapshot(self) -> ModelSnapshot:
-        snap = self.snapshot_for(self.model, self.coverage, 0.0)
-        self._mark_epoch(snap)
-        return snap
+        """The snapshot the run starts from (ClosedLoop.run puts it in the context's state)."""
+        self._written = self.snapshot_for(self.model, self.coverage, 0.0)
+        self._mark_epoch(self._written)
+        return self._written
 
     def _update(self, context, state) -> None:
-        packet = [s for s in self._samples.Eval(context) if s.t_s > self._last_t]
+        t0 = time.perf_counter()
+        self._absorb(context, state)
+        self.wall_s += time.perf_counter() - t0
+
+    def _absorb(self, context, state) -> None:
+        last_t = self._last_t
+        packet = [s for s in self._samples.Eval(context) if s.t_s > last_t]
         if not packet:
             return
         self._last_t = packet[-1].t_s
         first = self.n_samples
         self.n_samples += len(packet)
-        self.n_invalid += sum(not s.valid for s in packet)
-        self.errors_mm.extend(s.distance_mm - s.true_distance_mm for s in packet if s.valid)
+        valid = [s for s in packet if s.valid]
+        self.n_invalid += len(packet) - len(valid)
+        self.errors_mm.extend([s.distance_mm - s.true_distance_mm for s in valid])
         if self.logger is not None:
             for k, s in enumerate(packet, first):
                 self.logger.log_distance(s.t_s, s.distance_mm, s.valid, s.confidence)
                 if s.ascan is not None and k % ASCAN_LOG_EVERY == 0:
                     self.logger.log_ascan(s.t_s, s.ascan, s.valid, s.reason)
-        points = [s.p_W for s in packet if s.valid]
         entry = None
-        if points:
+        if valid:
             t0 = time.perf_counter()
-            entry = self.model.update(np.array(points))
+            entry = self.model.update(np.array([s.p_W for s in valid]))
             # only what the model took in: a floater the gate turned away must not count as
             # retina measured deep inside the model (it would become every nearby point's margin)
             self.coverage.add(self.model.last_accepted)
-            self.update_us.append(1e6 * (time.perf_counter() - t0) / len(points))
+            self.update_us.append(1e6 * (time.perf_counter() - t0) / len(valid))
             if entry is not None and self.logger is not None:
                 self.logger.log_model_update(self._last_t, entry)
-        snap = state.get_abstract_state(0).get_value()
-        new = self.snapshot_for(self.model, self.coverage, self._last_t) if entry is not None or snap.shape is None else snap._replace(t_s=self._last_t)
-        state.get_mutable_abstract_state(0).set_value(new)
-        self._mark_epoch(new)
+        # the state is what this system last wrote (or the initial snapshot): kept at hand
+        if entry is not None or self._written.shape is None:
+            self._written = self.snapshot_for(self.model, self.coverage, self._last_t)
+        else:
+            self._written = self._written._replace(t_s=self._last_t)
+        state.get_mutable_abstract_state(0).set_value(self._written)
+        self._mark_epoch(self._written)
 
 
 class Step(NamedTuple):
@@ -398,7 +447,9 @@ class LoopRun:
 
     `true_clearance_mm` (M,): the smallest TRUE clearance of the monitored points per
     step (ground-truth eye); `lens_clearance_mm` (M,): the shaft's lens points' smallest
-    distance outside the lens keep-out; `wall_s` the run's wall time; `model_epochs` the
+    distance outside the lens keep-out; `wall_s` the run's wall time, of which
+    `command_wall_s` in the command system and `model_wall_s` in the model system (its
+    sensor packets' hand-over, model updates and snapshots); `model_epochs` the
     model the filter used (ModelSnapshot, W) from each change of kind on (prior -> sphere
     -> ellipsoid), the first one from the start of the run."""
 
@@ -421,6 +472,8 @@ class LoopRun:
     model_update_us: np.ndarray
     wall_s: float
     model_epochs: list = field(default_factory=list)
+    command_wall_s: float = 0.0
+    model_wall_s: float = 0.0
 
     @property
     def duration_s(self) -> float:
@@ -490,7 +543,7 @@ class ClosedLoop:
             raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")
         if not (np.isfinite(duration_s) and duration_s > 0):
             raise ValueError(f"duration_s must be > 0 s, got {duration_s}")
-        self.command.source = source
+        self.command.source, self.command.wall_s = source, 0.0
         self.filter.reset(logger)
         self.model.reset(AdaptiveEyeModel() if model is None else model,
                          self.new_coverage() if coverage is None else coverage, logger)
@@ -531,5 +584,5 @@ class ClosedLoop:
             true_clearance_mm=true_clearances(col["points_W"], eye) if steps else np.zeros(0),
             lens_clearance_mm=lens_clear, kind=col["kind"], rcm_error_mm=a(col["rcm_error_mm"]),
             drake_diffik_us=a(self.filter.record.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
-            model_epochs=list(self.model.epochs),
+            model_epochs=list(self.model.epochs), command_wall_s=self.command.wall_s, model_wall_s=self.model.wall_s,
         )

@@ -13,6 +13,9 @@ p_WT (mm, W) and joint angles q (rad). The safety filter decides what is actuall
 """
 from __future__ import annotations
 
+import math
+from bisect import bisect_right
+
 import numpy as np
 
 from models._validation import as_points, as_positive, as_vector3
@@ -48,6 +51,9 @@ class TipPathCommand:
             if roll.shape != t.shape or not np.all(np.isfinite(roll)):
                 raise ValueError(f"roll_rad must be finite with the shape of times_s {t.shape}, got {roll.shape}")
             self._roll_rate = np.diff(roll) / np.diff(t)
+        # the same numbers as Python floats: one control step's arithmetic is scalar
+        self._t, self._P = t.tolist(), [tuple(p) for p in P.tolist()]
+        self._Vl, self._roll_l = [tuple(v) for v in self._V.tolist()], self._roll_rate.tolist()
 
     @property
     def duration_s(self) -> float:
@@ -55,19 +61,37 @@ class TipPathCommand:
 
     def reference(self, t_s: float) -> np.ndarray:
         """p_des (3,) mm at t_s (clamped to the path's ends)."""
-        return np.array([np.interp(t_s, self.times_s, self.P_WT[:, i]) for i in range(3)])
+        return np.array(self._reference(float(t_s), self._segment(t_s)))
+
+    def _segment(self, t_s: float) -> int:
+        """Index k of the segment [t_k, t_k+1) holding t_s: -1 before the path, M - 1 after."""
+        return bisect_right(self._t, t_s) - 1
+
+    def _reference(self, t_s: float, k: int) -> tuple[float, float, float]:
+        """p_des (mm) at t_s on segment k: P_k + V_k (t_s - t_k), the path's ends outside."""
+        if k < 0:
+            return self._P[0]
+        if k >= len(self._Vl):
+            return self._P[-1]
+        (x, y, z), (vx, vy, vz), dt = self._P[k], self._Vl[k], t_s - self._t[k]
+        return x + vx * dt, y + vy * dt, z + vz * dt
 
     def __call__(self, t_s: float, p_WT, q) -> tuple[np.ndarray, float]:
-        k = int(np.searchsorted(self.times_s, t_s, side="right")) - 1
-        if 0 <= k < len(self._V):
-            v_ff, roll = self._V[k], float(self._roll_rate[k])
-        else:
-            v_ff, roll = np.zeros(3), 0.0
-        fb = self.gain_per_s * (self.reference(t_s) - np.asarray(p_WT, dtype=float))
-        n = float(np.linalg.norm(fb))
+        """(v_W (3,) mm/s, roll rate rad/s) at t_s for the tip at p_WT (3,) mm in W: scalar
+        arithmetic on the path's precomputed segments (called at the control rate)."""
+        t_s = float(t_s)
+        k = self._segment(t_s)
+        inside = 0 <= k < len(self._Vl)
+        vx, vy, vz = self._Vl[k] if inside else (0.0, 0.0, 0.0)
+        rx, ry, rz = self._reference(t_s, k)
+        px, py, pz = p_WT
+        g = self.gain_per_s
+        fx, fy, fz = g * (rx - px), g * (ry - py), g * (rz - pz)
+        n = math.sqrt(fx * fx + fy * fy + fz * fz)
         if n > self.max_feedback_mm_s:
-            fb *= self.max_feedback_mm_s / n
-        return v_ff + fb, roll
+            s = self.max_feedback_mm_s / n
+            fx, fy, fz = fx * s, fy * s, fz * s
+        return np.array((vx + fx, vy + fy, vz + fz)), (self._roll_l[k] if inside else 0.0)
 
 
 class VelocityReplayCommand:

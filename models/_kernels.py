@@ -4,9 +4,10 @@ An update of the adaptive model is a handful of operations on 4x4, 6x6 and 10x10
 matrices; in NumPy each costs one to three microseconds of call overhead, which at one
 update per A-scan (2 kHz) dominates the arithmetic. These kernels do the same
 arithmetic in one compiled call each. They are the only implementation (the batch fits
-use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit); one
-A-scan's whole update (gate, sphere filter, scatter matrix, scan range, refit,
-residuals) is one call of `ascan_update`, which runs the same kernels as a batch update.
+use them too) and work in the fits' scaled coordinates (models.ellipsoid_fit); an
+update's whole work (gate, sphere filter, scatter matrix, scan range, refit,
+residuals), by one A-scan or by a packet, is one call of `packet_update`, which runs
+the same kernels as the general update path.
 
 The ellipsoid-specific fit (Li & Griffiths 2004, k = 4) minimises v^T S v subject to
 v1^T C1 v1 = 1. With the Schur complement S' = S11 - S12 S22^-1 S12^T (symmetric,
@@ -544,33 +545,58 @@ SCAN_BLOCK = 16  # points per bounding ball of models.scan_range (16: ~1 us per 
 
 
 @njit(cache=True)
-def diameter_after_adding(X, block_r, n, p, p0, diameter):
-    """The diameter (mm) of the first n rows of X (cap, 3) and x = p - p0 (3,), given theirs
-    (`diameter`); x is stored as row n and its block's radius updated, in place. Block k
-    holds rows [k B, (k + 1) B) with B = SCAN_BLOCK, its ball centred on row k B with
-    radius block_r[k]; a block with |x - centre| + radius <= the largest distance found
-    so far (at first `diameter`) is skipped."""
-    x = p - p0
+def diameter_after_adding(X, block_r, n, P, p0, diameter):
+    """The diameter (mm) of the first n rows of X (cap, 3) and the rows x = p - p0 of the
+    points P (k, 3) mm, given theirs (`diameter`); the x are stored as rows n.. n + k - 1
+    and their blocks updated, in place. Block b holds rows [b B, (b + 1) B) with B =
+    SCAN_BLOCK, its ball centred on row b B with radius block_r[b]. A block is skipped for
+    the whole batch when the new points' ball (about the first, radius rho) cannot reach
+    past the largest distance so far: |x_0 - centre| + rho + radius <= `diameter`; the
+    others are skipped per point as |x - centre| + radius <= the largest distance found
+    so far. The new points are compared with each other directly."""
+    k = P.shape[0]
+    for i in range(k):
+        X[n + i, 0], X[n + i, 1], X[n + i, 2] = P[i, 0] - p0[0], P[i, 1] - p0[1], P[i, 2] - p0[2]
+    m0, m1, m2 = X[n, 0], X[n, 1], X[n, 2]
+    rho = 0.0
+    for i in range(1, k):
+        rho = max(rho, np.sqrt((X[n + i, 0] - m0) ** 2 + (X[n + i, 1] - m1) ** 2 + (X[n + i, 2] - m2) ** 2))
+    n_blocks = (n + SCAN_BLOCK - 1) // SCAN_BLOCK
+    candidates = np.empty(n_blocks, np.int64)
+    n_cand = 0
+    for b in range(n_blocks):
+        c = b * SCAN_BLOCK
+        slack = diameter - block_r[b] - rho
+        if not (slack >= 0.0 and (m0 - X[c, 0]) ** 2 + (m1 - X[c, 1]) ** 2 + (m2 - X[c, 2]) ** 2 <= slack * slack):
+            candidates[n_cand] = b
+            n_cand += 1
     best, best2 = diameter, diameter * diameter
-    for k in range((n + SCAN_BLOCK - 1) // SCAN_BLOCK):
-        c0, c1, c2 = X[k * SCAN_BLOCK, 0], X[k * SCAN_BLOCK, 1], X[k * SCAN_BLOCK, 2]
-        slack = best - block_r[k]  # |x - centre| + radius <= best, without a square root
-        if slack >= 0.0 and (x[0] - c0) ** 2 + (x[1] - c1) ** 2 + (x[2] - c2) ** 2 <= slack * slack:
-            continue
-        for i in range(k * SCAN_BLOCK, min(n, (k + 1) * SCAN_BLOCK)):
-            d2 = (x[0] - X[i, 0]) ** 2 + (x[1] - X[i, 1]) ** 2 + (x[2] - X[i, 2]) ** 2
+    for i in range(k):
+        x0, x1, x2 = X[n + i, 0], X[n + i, 1], X[n + i, 2]
+        for q in range(n_cand):
+            b = candidates[q]
+            c = b * SCAN_BLOCK
+            slack = best - block_r[b]  # |x - centre| + radius <= best, without a square root
+            if slack >= 0.0 and (x0 - X[c, 0]) ** 2 + (x1 - X[c, 1]) ** 2 + (x2 - X[c, 2]) ** 2 <= slack * slack:
+                continue
+            for j in range(c, min(n, c + SCAN_BLOCK)):
+                d2 = (x0 - X[j, 0]) ** 2 + (x1 - X[j, 1]) ** 2 + (x2 - X[j, 2]) ** 2
+                if d2 > best2:
+                    best2 = d2
+        for j in range(n, n + i):
+            d2 = (x0 - X[j, 0]) ** 2 + (x1 - X[j, 1]) ** 2 + (x2 - X[j, 2]) ** 2
             if d2 > best2:
                 best2 = d2
         best = np.sqrt(best2)
-    X[n, 0], X[n, 1], X[n, 2] = x[0], x[1], x[2]
-    k = n // SCAN_BLOCK
-    if n % SCAN_BLOCK == 0:
-        block_r[k] = 0.0
-    else:
-        r = np.sqrt((x[0] - X[k * SCAN_BLOCK, 0]) ** 2 + (x[1] - X[k * SCAN_BLOCK, 1]) ** 2
-                    + (x[2] - X[k * SCAN_BLOCK, 2]) ** 2)
-        if r > block_r[k]:
-            block_r[k] = r
+    for j in range(n, n + k):
+        b = j // SCAN_BLOCK
+        if j % SCAN_BLOCK == 0:
+            block_r[b] = 0.0
+        else:
+            c = b * SCAN_BLOCK
+            r = np.sqrt((X[j, 0] - X[c, 0]) ** 2 + (X[j, 1] - X[c, 1]) ** 2 + (X[j, 2] - X[c, 2]) ** 2)
+            if r > block_r[b]:
+                block_r[b] = r
     return np.sqrt(best2)
 
 
@@ -697,39 +723,63 @@ def fit_summary(S, sf_state, sf_ok, v_ef, ef_ok, radii, prev_radii, has_prev, v_
     return sf_res, ef_res, axis_change
 
 
-# ascan_update's outcomes and the layout of its output vector `out`
-ASCAN_NONFINITE, ASCAN_GATED, ASCAN_ABSORBED = range(3)
+@njit(cache=True)
+def spread_check_due(checked_at, n, recheck):
+    """Whether the fit of n points runs the collinear/coplanar test, the last passed one
+    at `checked_at` points (0: none): adding points only widens a cloud's scatter about
+    its mean, so once spread in 3-D it stays so; the test is still repeated every
+    `recheck` points (models.ellipsoid_fit.IncrementalEllipsoidFit)."""
+    return checked_at == 0 or n - checked_at >= recheck
+
+
+# the layout of packet_update's output vector `out`
 OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE = 0, 4, 14, 24, 27, 30, 39, 42
 
 
 @njit(cache=True)
-def ascan_update(P1, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
-                 Y, y, S, check_spread, X, block_r, diameter, prev_radii, has_prev, scale, out):
-    """The adaptive model's update by one A-scan's point P1 (1, 3) mm, in one call: the
-    same kernels as a batch update of one point, in the same order. A model of n >= 1
-    points (the batch path takes the first, p0 (mm): the origin of every part) gates P1
-    (gate_points, when `gate_on`; `quadric` the current model about p0) and absorbs it
-    into the sphere filter (Y, y), the scatter matrix S and the scan range (X, block_r,
-    `diameter` mm), refits the ellipsoid (`check_spread`: with the spread test) and
-    summarises the fits (fit_summary), all state updated in place.
+def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_residual, g_recent,
+                  Y, y, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, out):
+    """The adaptive model's update by the points P (N, 3) mm (one A-scan's or a packet's), in
+    one call: the kernels of the batch update, in its order. A model of n points, p0 (mm)
+    the origin of every part (its first point; when n = 0 the first point kept here is
+    written to p0), skips the non-finite rows of P, gates the others (gate_points, when
+    `gate_on`; `quadric` the current model about p0) and copies those it keeps to
+    kept[:K] (kept: (N, 3)); if K > 0 it absorbs
+    them into the sphere filter (Y, y), the scatter matrix S and the scan range (X with
+    room for K more rows, block_r, `diameter` mm), refits the ellipsoid (with the spread
+    test when spread_check_due(checked_at, n + K, recheck)) and summarises the fits
+    (fit_summary), all state updated in place.
 
-    Returns (outcome: ASCAN_NONFINITE / ASCAN_GATED (nothing changed but the gate's state)
-    / ASCAN_ABSORBED, sphere ok, fit status code, diameter mm, sphere residual mm,
-    ellipsoid residual mm, axis change, sphere radius mm); `out` (OUT_SIZE,) receives the
-    sphere state, the sphere's quadric, the fit's quadric, centre, semi-axes and rotation
-    (row-major), and the sphere's centre (mm).
+    Returns (non-finite count, K, spread test run, sphere ok, fit status code, diameter mm,
+    sphere residual mm, ellipsoid residual mm, axis change, sphere radius mm); with K > 0,
+    `out` (OUT_SIZE,) receives the sphere state, the sphere's quadric, the fit's quadric,
+    centre, semi-axes and rotation (row-major), and the sphere's centre (mm).
     """
-    if not (np.isfinite(P1[0, 0]) and np.isfinite(P1[0, 1]) and np.isfinite(P1[0, 2])):
-        return ASCAN_NONFINITE, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
-    if gate_on:
-        keep = np.empty(1, np.bool_)
-        if gate_points(P1, keep, quadric, has_quadric, p0, scale, n, g_params, g_counts, g_last, g_residual,
-                       g_recent) == 0:
-            return ASCAN_GATED, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
-    state, sf_ok = sphere_absorb(Y, y, P1, p0, scale, n + 1)
-    add_design_rows(S, P1, p0, scale)
-    diameter = diameter_after_adding(X, block_r, n, P1[0], p0, diameter)
-    code, v, center, radii, R = fit_ellipsoid_scatter(S, p0, scale, check_spread)
+    m = 0
+    for i in range(P.shape[0]):
+        if np.isfinite(P[i, 0]) and np.isfinite(P[i, 1]) and np.isfinite(P[i, 2]):
+            kept[m, 0], kept[m, 1], kept[m, 2] = P[i, 0], P[i, 1], P[i, 2]
+            m += 1
+    n_nonfinite, k = P.shape[0] - m, m
+    if gate_on and m > 0:
+        keep = np.empty(m, np.bool_)
+        gate_points(kept[:m], keep, quadric, has_quadric, p0, scale, n, g_params, g_counts, g_last, g_residual,
+                    g_recent)
+        k = 0
+        for i in range(m):
+            if keep[i]:
+                kept[k, 0], kept[k, 1], kept[k, 2] = kept[i, 0], kept[i, 1], kept[i, 2]
+                k += 1
+    if k == 0:
+        return n_nonfinite, 0, False, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
+    A = kept[:k]
+    if n == 0:
+        p0[0], p0[1], p0[2] = A[0, 0], A[0, 1], A[0, 2]
+    state, sf_ok = sphere_absorb(Y, y, A, p0, scale, n + k)
+    add_design_rows(S, A, p0, scale)
+    diameter = diameter_after_adding(X, block_r, n, A, p0, diameter)
+    check = spread_check_due(checked_at, n + k, recheck)
+    code, v, center, radii, R = fit_ellipsoid_scatter(S, p0, scale, check)
     v_sf = out[OUT_V_SF:OUT_V_EF]
     sf_res, ef_res, axis_change = fit_summary(S, state, sf_ok, v, code == 0, radii, prev_radii, has_prev, v_sf, scale)
     out[OUT_STATE:OUT_V_SF] = state
@@ -738,4 +788,4 @@ def ascan_update(P1, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g
     out[OUT_RADII:OUT_ROTATION] = radii
     out[OUT_ROTATION:OUT_SF_CENTER] = R.ravel()
     radius = sphere_center_radius(state, p0, scale, out[OUT_SF_CENTER:OUT_SIZE]) if sf_ok else np.nan
-    return ASCAN_ABSORBED, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius
+    return n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius

@@ -1,7 +1,29 @@
 """Argument checks shared by the models package: clear ValueErrors, never silent coercion."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
+
+
+def _all_finite(a: np.ndarray) -> bool:
+    """Whether every entry of the float array `a` is finite (for small arrays: scalar
+    checks, cheaper than np.isfinite's temporary)."""
+    return all(map(math.isfinite, a.ravel().tolist()))
+
+
+@njit(cache=True)
+def _orthonormality_error_and_det(A):
+    """(max |A^T A - I|, det A) of a (3, 3) matrix."""
+    err = 0.0
+    for i in range(3):
+        for j in range(3):
+            g = A[0, i] * A[0, j] + A[1, i] * A[1, j] + A[2, i] * A[2, j] - (1.0 if i == j else 0.0)
+            err = max(err, abs(g))
+    det = (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+           + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
+    return err, det
 
 
 def as_points(P, name: str = "P", *, allow_nonfinite: bool = False) -> np.ndarray:
@@ -31,7 +53,7 @@ def as_vector3(v, name: str) -> np.ndarray:
         raise ValueError(f"{name} must be a (3,) vector of numbers, got {type(v).__name__}") from None
     if a.shape != (3,):
         raise ValueError(f"{name} must have shape (3,), got {a.shape}")
-    if not np.all(np.isfinite(a)):
+    if not _all_finite(a):
         raise ValueError(f"{name} must be finite, got {a}")
     return a
 
@@ -52,12 +74,12 @@ def as_rotation(R, name: str = "rotation", tol: float = 1e-9) -> np.ndarray:
     A = np.asarray(R, dtype=float)
     if A.shape != (3, 3):
         raise ValueError(f"{name} must be a (3, 3) rotation matrix, got shape {A.shape}")
-    if not np.all(np.isfinite(A)):
+    if not _all_finite(A):
         raise ValueError(f"{name} must be finite")
-    err = np.max(np.abs(A.T @ A - np.eye(3)))
+    err, det = _orthonormality_error_and_det(np.ascontiguousarray(A))
     if err > tol:
         raise ValueError(f"{name} is not orthonormal: max |R^T R - I| = {err:.3g} > {tol:g}")
-    if np.linalg.det(A) < 0:
+    if det < 0:
         raise ValueError(f"{name} is a reflection (det = -1); a proper rotation has det = +1")
     return A
 

@@ -6,8 +6,8 @@ from typing import NamedTuple
 import numpy as np
 
 from models._kernels import (
-    ASCAN_ABSORBED, ASCAN_NONFINITE, FIT_STATUS, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE, OUT_STATE,
-    OUT_V_EF, OUT_V_SF, ascan_update, fit_summary,
+    FIT_STATUS, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE, OUT_STATE, OUT_V_EF, OUT_V_SF, fit_summary,
+    packet_update,
 )
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
@@ -84,6 +84,7 @@ class AdaptiveEyeModel:
         self._current = None  # quadric of the current model, in the fits' scaled coordinates
         self.n_received = 0
         self._sf = SphereKalmanFilter()
+        self._sphere = (0, None)  # (the filter's point count, its Sphere then)
         self._robust = robust is not None
         self._ef = RobustEllipsoidFit(robust) if self._robust else IncrementalEllipsoidFit()
         self._range = ScanRange()
@@ -102,7 +103,11 @@ class AdaptiveEyeModel:
 
     @property
     def sphere(self) -> Sphere | None:
-        return self._sf.sphere
+        """The sphere fit (mm, frame of the points), made once per change of the filter
+        (which changes only when it takes points)."""
+        if self._sphere[0] != self._sf.n_points:
+            self._sphere = (self._sf.n_points, self._sf.sphere)
+        return self._sphere[1]
 
     @property
     def ellipsoid(self) -> Ellipsoid | None:
@@ -124,9 +129,9 @@ class AdaptiveEyeModel:
     def update(self, P) -> ModelUpdate | None:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
         no entry, if no point was finite and passed the gate)."""
-        if (isinstance(P, np.ndarray) and P.shape in ((3,), (1, 3)) and P.dtype == np.float64
-                and self._ef.p0 is not None and not self._robust):  # the robust fit reweights: general path
-            return self._update_one(P.reshape(1, 3))
+        if (isinstance(P, np.ndarray) and P.dtype == np.float64 and P.ndim in (1, 2) and P.shape[-1] == 3
+                and not self._robust):  # the robust fit reweights: general path
+            return self._update_compiled(P.reshape(-1, 3))
         P = as_points(P, "P", allow_nonfinite=True)
         self.n_received += len(P)
         finite = np.isfinite(P).all(axis=1)
@@ -149,33 +154,36 @@ class AdaptiveEyeModel:
             fit.radii if fit.ok else _NO_RADII, self._prev_radii, fit.ok and self._has_prev, v_sf, LENGTH_SCALE_MM)
         return self._evaluate(fit, v_sf if sf_ok else None, self._sf.center_radius, sf_res, ef_res, axis_change)
 
-    def _update_one(self, P1: np.ndarray) -> ModelUpdate | None:
-        """`update` by one A-scan's point P1 (1, 3) float mm, once the model has its first
-        point: the batch path's kernels in one compiled call (models._kernels.ascan_update).
-        The sphere filter, the ellipsoid fit and the scan range all took the first point as
-        their origin: ef.p0 stands for the three."""
-        self.n_received += 1
+    def _update_compiled(self, P: np.ndarray) -> ModelUpdate | None:
+        """`update` by points P (N, 3) float mm (one A-scan's or a packet's, non-finite rows
+        allowed): the general path's kernels in one compiled call
+        (models._kernels.packet_update), the same numbers. The sphere filter, the ellipsoid
+        fit and the scan range all take the first point as their origin: ef.p0 stands for
+        the three (set here from the kernel's when it took the first point)."""
+        self.n_received += len(P)
         sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
         n = sf.n_points
-        scan.reserve_one()
-        check = ef.spread_check_due(n + 1)
+        scan.reserve(len(P))
         g = _NO_GATE if gate is None else gate
         current = self._current
         out = np.empty(OUT_SIZE)
-        outcome, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = ascan_update(
-            P1, n, ef.p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
-            g.params, g.counts, g.last, g.residual, g.recent, sf.information, sf.information_vector, ef.S, check,
-            scan.X, scan.block_r, scan.diameter_mm, self._prev_radii, self._has_prev, LENGTH_SCALE_MM, out)
-        if outcome != ASCAN_ABSORBED:
-            if outcome == ASCAN_NONFINITE:
-                self.n_rejected_nonfinite += 1
-            self.last_accepted = P1[:0]
+        kept = np.empty((len(P), 3))
+        p0 = np.zeros(3) if ef.p0 is None else ef.p0  # without a point yet: the kernel writes the first one
+        n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = packet_update(
+            P, n, p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
+            g.params, g.counts, g.last, g.residual, g.recent, sf.information, sf.information_vector, ef.S,
+            ef.spread_checked_at, ef.SPREAD_RECHECK, scan.X, scan.block_r, scan.diameter_mm, self._prev_radii,
+            self._has_prev, LENGTH_SCALE_MM, kept, out)
+        self.n_rejected_nonfinite += n_nonfinite
+        self.last_accepted = kept[:k]
+        if k == 0:
             return None
-        self.last_accepted = P1
-        sf.n_points = n + 1
+        if ef.p0 is None:
+            ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
+        sf.n_points = n + k
         sf.state = out[OUT_STATE:OUT_V_SF] if sf_ok else None
-        ef.took(1)
-        scan.took_one(diameter)
+        ef.took(k)
+        scan.took(k, diameter)
         if code:
             fit = EllipsoidFit(FIT_STATUS[code])
         else:

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from models._validation import as_points, as_vector3
 
@@ -63,6 +62,57 @@ def _nearest_and_worst(V, dirs, misfit, cos_angle, chord=2.0):
     return best, worst
 
 
+@njit(cache=True)
+def nearest_fibonacci(u0, u1, u2, dirs):
+    """Index of the row of `dirs` (n, 3), fibonacci_directions(n), nearest (Euclidean) to
+    the direction (u0, u1, u2): an exact search over the rows sorted by z. The rows'
+    z = 1 - 2 (k + 1/2) / n fall with k, and a row whose z differs from u2 by more than
+    the best distance so far cannot be nearer, so the scan widens from the row of
+    nearest z until both sides are past that bound (a few hundred rows for 2 deg bins)."""
+    n = dirs.shape[0]
+    k0 = min(max(int(round(0.5 * n * (1.0 - u2) - 0.5)), 0), n - 1)
+    best, best_d = k0, np.inf
+    lo, hi = k0, k0 + 1  # next rows to visit below (decreasing k) and above
+    while lo >= 0 or hi < n:
+        for k in (lo, hi):
+            if 0 <= k < n:
+                d0, d1, d2 = dirs[k, 0] - u0, dirs[k, 1] - u1, dirs[k, 2] - u2
+                d = d0 * d0 + d1 * d1 + d2 * d2
+                if d < best_d or (d == best_d and k < best):
+                    best, best_d = k, d
+        if lo >= 0:
+            dz = dirs[lo, 2] - u2
+            lo = lo - 1 if dz * dz <= best_d else -1
+        if hi < n:
+            dz = dirs[hi, 2] - u2
+            hi = hi + 1 if dz * dz <= best_d else n
+    return best
+
+
+@njit(cache=True)
+def _add_points(P, center, dirs, covered, inner, inner_r):
+    """Mark the bins (nearest_fibonacci of their direction from `center`) of the finite
+    rows of P (N, 3) mm as covered, and keep per bin the point nearest the centre
+    (`inner`, its distance `inner_r` mm; of equally near points the last). Returns the
+    number of bins newly covered."""
+    new = 0
+    for i in range(P.shape[0]):
+        x, y, z = P[i, 0], P[i, 1], P[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            continue
+        v0, v1, v2 = x - center[0], y - center[1], z - center[2]
+        r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        s = max(r, 1e-12)
+        b = nearest_fibonacci(v0 / s, v1 / s, v2 / s, dirs)
+        if not covered[b]:
+            covered[b] = True
+            new += 1
+        if r <= inner_r[b]:
+            inner_r[b] = r
+            inner[b, 0], inner[b, 1], inner[b, 2] = x, y, z
+    return new
+
+
 class CoverageView:
     """An immutable snapshot of the covered directions: `angle_from_data_rad(Q)`, and,
     when made for a model shape, `local_misfit_mm(Q, angle)`: how far inside that shape
@@ -102,8 +152,9 @@ class CoverageView:
 
 class DirectionCoverage:
     """Covered directions from `center_W` (3,) mm, bins about `bin_deg` apart. `add(P)`
-    marks the bins of measured points; `view()` the current CoverageView (rebuilt only
-    when the covered set grew by `rebuild_growth`, so calling it at 1 kHz is cheap)."""
+    marks the bins of measured points (the nearest Fibonacci direction, found by a
+    compiled exact search); `view()` the current CoverageView (rebuilt only when the
+    covered set grew by `rebuild_growth`, so calling it at 1 kHz is cheap)."""
 
     def __init__(self, center_W, bin_deg: float = 2.0, rebuild_growth: float = 0.02):
         if not (np.isfinite(bin_deg) and 0.2 <= bin_deg <= 30.0):
@@ -111,8 +162,8 @@ class DirectionCoverage:
         self.center_W = as_vector3(center_W, "center_W")
         n = int(np.ceil(4.0 * np.pi / np.radians(bin_deg) ** 2))
         self._dirs = fibonacci_directions(n)
-        self._bins = cKDTree(self._dirs)
         self._covered = np.zeros(n, dtype=bool)
+        self._n_covered = 0
         self._inner = np.full((n, 3), np.nan)  # per bin: the measured point nearest the centre
         self._inner_r = np.full(n, np.inf)
         self._growth = float(rebuild_growth)
@@ -121,25 +172,15 @@ class DirectionCoverage:
 
     def add(self, P) -> None:
         """Mark the bins of the measured points P (N, 3) mm (non-finite rows ignored)."""
-        P = as_points(P, "P", allow_nonfinite=True)
-        P = P[np.isfinite(P).all(axis=1)]
-        if not len(P):
-            return
-        V = P - self.center_W
-        V /= np.maximum(np.linalg.norm(V, axis=1, keepdims=True), 1e-12)
-        r = np.linalg.norm(P - self.center_W, axis=1)
-        _, idx = self._bins.query(V)
-        self._covered[idx] = True
-        np.minimum.at(self._inner_r, idx, r)
-        hit = r == self._inner_r[idx]
-        self._inner[idx[hit]] = P[hit]
+        P = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True))
+        self._n_covered += _add_points(P, self.center_W, self._dirs, self._covered, self._inner, self._inner_r)
 
     def view(self, shape=None) -> CoverageView:
         """The current CoverageView; with a model `shape` (Sphere or Ellipsoid) it also
         holds each covered bin's misfit: how deep inside `shape` the innermost measured
         point of the bin lies (an upper bound, mm). Rebuilt when the covered set grew by
         `rebuild_growth` or the shape's kind changed (the misfit is of the shape then)."""
-        n = int(self._covered.sum())
+        n = self._n_covered
         kind = None if shape is None else type(shape).__name__
         if n > self._view.n_covered * (1.0 + self._growth) or kind != self._view_shape:
             misfit = None if shape is None else inside_depth_upper_mm(shape, self._inner[self._covered])

@@ -26,7 +26,7 @@ class Ellipsoid:
     def __post_init__(self):
         c = as_vector3(self.center, "center")
         r = as_vector3(self.radii, "radii")
-        if np.any(r <= 0.0):
+        if min(r.tolist()) <= 0.0:  # finite (as_vector3): plain floats, cheaper than NumPy's any
             raise ValueError(f"radii must all be > 0 mm, got {r}")
         R = as_rotation(self.rotation, "rotation", tol=1e-8)
         for name, a in (("center", c), ("radii", r), ("rotation", R)):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models._kernels import FIT_STATUS, add_design_rows, fit_ellipsoid_scatter, taubin_residuals
+from models._kernels import FIT_STATUS, add_design_rows, fit_ellipsoid_scatter, spread_check_due, taubin_residuals
 from models._validation import as_points
 from models.ellipsoid import Ellipsoid
 
@@ -124,7 +124,7 @@ class IncrementalEllipsoidFit:
 
     def took(self, k: int) -> None:
         """Count k points that a compiled caller has added to S itself (add_design_rows
-        about p0 with LENGTH_SCALE_MM)."""
+        about p0 with LENGTH_SCALE_MM: models._kernels.packet_update)."""
         self._n += k
 
     def fit(self) -> EllipsoidFit:
@@ -138,7 +138,12 @@ class IncrementalEllipsoidFit:
         """Whether the fit of n points must run the collinear/coplanar test. Adding points
         only widens a cloud's scatter about its mean, so once spread in 3-D it stays so;
         the ratio test is still repeated every SPREAD_RECHECK points."""
-        return not self._spread_checked_at or n - self._spread_checked_at >= self.SPREAD_RECHECK
+        return spread_check_due(self._spread_checked_at, n, self.SPREAD_RECHECK)
+
+    @property
+    def spread_checked_at(self) -> int:
+        """The point count at the last passed spread test (0: none)."""
+        return self._spread_checked_at
 
     def record(self, result: EllipsoidFit, checked: bool) -> EllipsoidFit:
         """Take in the fit `result` of all points so far (`checked`: with the spread test):

@@ -14,7 +14,8 @@ class ScanRange:
     ball about its first point; a block whose bound |p - c| + r cannot exceed the
     current diameter is skipped, so only the blocks across the scan from the new point
     are visited (consecutive A-scans lie close together: a block is a short arc of the
-    scan). Exact, never an O(N^2) pass; coordinates centred on the first point.
+    scan); a batch's points first rule out blocks together, by their bounding ball.
+    Exact, never an O(N^2) pass; coordinates centred on the first point.
 
     State, for models._kernels.diameter_after_adding: `X` (capacity, 3) the points less
     `p0` (the first point, mm) in its first `n_points` rows, `block_r` the blocks' radii
@@ -37,19 +38,19 @@ class ScanRange:
         """Add finite points P (N, 3) mm; return the updated diameter (mm)."""
         if len(P) and self.p0 is None:
             self.p0 = np.array(P[0], dtype=float)
-        for p in P:
-            self.reserve_one()
-            self.took_one(diameter_after_adding(self.X, self.block_r, self._n, p, self.p0, self.diameter_mm))
+        if len(P):
+            self.reserve(len(P))
+            self.took(len(P), diameter_after_adding(self.X, self.block_r, self._n, P, self.p0, self.diameter_mm))
         return self.diameter_mm
 
-    def took_one(self, diameter_mm: float) -> None:
-        """Count the point that diameter_after_adding has stored as row `n_points` of X
-        (after reserve_one), which made the diameter `diameter_mm`."""
-        self._n += 1
+    def took(self, k: int, diameter_mm: float) -> None:
+        """Count the k points that diameter_after_adding has stored as rows n_points.. of X
+        (after reserve(k)), which made the diameter `diameter_mm`."""
+        self._n += k
         self.diameter_mm = diameter_mm
 
-    def reserve_one(self) -> None:
-        """Make room for one more point (the capacity doubles when full)."""
-        if self._n == len(self.X):
+    def reserve(self, k: int) -> None:
+        """Make room for k more points (the capacity doubles until they fit)."""
+        while self._n + k > len(self.X):
             self.X = np.concatenate([self.X, np.empty_like(self.X)])
             self.block_r = np.concatenate([self.block_r, np.zeros_like(self.block_r)])

@@ -6,6 +6,7 @@ switches once, at the first update where every criterion it reports is met.
 """
 from __future__ import annotations
 
+from bisect import bisect_right
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -13,7 +14,7 @@ import numpy as np
 
 from models._validation import check_count, check_positive
 from models.ellipsoid_fit import LENGTH_SCALE_MM, taubin_residual
-from models.extrapolation import global_surface_points, sampson_distance
+from models.extrapolation import drift_and_gap
 
 
 class FitSnapshot(NamedTuple):
@@ -160,7 +161,7 @@ class PredictiveCriteria:
     @staticmethod
     def _at_most(mem: _PredictiveMemory, n: float) -> int | None:
         """Index of the last checkpoint with at most n points, or None."""
-        i = int(np.searchsorted(mem.n, n, side="right")) - 1
+        i = bisect_right(mem.n, n) - 1
         return i if i >= 0 else None
 
     def _convergence(self, snap: FitSnapshot, v_ef_old: np.ndarray):
@@ -171,12 +172,10 @@ class PredictiveCriteria:
         centroid = snap.S[6:9, 9] / (2.0 * snap.S[9, 9])
         anterior = c - centroid  # the scanned retina lies opposite the front of the eye
         anterior /= np.linalg.norm(anterior)
-        X = global_surface_points(c, r_ef / L, R_ef, anterior, self.crop_mm / L)
-        if not len(X):  # an early, tiny ellipsoid lies wholly in the cropped front: not converged
+        drift, gap, k = drift_and_gap(c, r_ef / L, R_ef, anterior, self.crop_mm / L, v_ef_old,
+                                      (snap.sf[0] - snap.p0) / L, snap.sf[1] / L)
+        if not k:  # an early, tiny ellipsoid lies wholly in the cropped front: not converged
             return np.inf, False
-        drift = float(sampson_distance(v_ef_old, X).mean())
-        c_sf = (snap.sf[0] - snap.p0) / L
-        gap = float(np.abs(np.linalg.norm(X - c_sf, axis=1) - snap.sf[1] / L).mean())
         ratio = drift / gap if gap > 0 else np.inf
         return ratio, bool(ratio < self.convergence_factor)
 

@@ -97,6 +97,8 @@ def test_a_tip_path_is_followed(emmetropic):
     run = loop.run(path, q0, 0.4, **model.kw())
     p_end = loop.robot.pose("T", run.q[-1])[1]
     assert np.linalg.norm(p_end - (p0 + [1.5, 0.0, 0.0])) < 0.05  # position feedback closes the 1-step latency
+    # the command and model systems' own time is part of the run's, and counted afresh per run
+    assert 0.0 < run.command_wall_s and 0.0 < run.model_wall_s and run.command_wall_s + run.model_wall_s < run.wall_s
 
 
 def test_nan_commands_stop_the_robot_where_it_is(emmetropic):

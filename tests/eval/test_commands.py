@@ -52,3 +52,35 @@ def test_adversary_bad_arguments():
     with pytest.raises(ValueError, match="segment_s"):
         AdversarialCommand(0, C, LENS, segment_s=(0.2, 0.1))
     assert set(ADVERSARY_MODES) == {"push", "along", "port_side", "lens", "random"}
+
+
+def _tip_path_reference(cmd: TipPathCommand, roll_rad: np.ndarray, t_s: float, p_WT) -> tuple[np.ndarray, float]:
+    """The tip path's command written straight from its definition, in NumPy: the segment's
+    velocity (zero outside the path) plus the capped feedback to np.interp's reference."""
+    t, P = cmd.times_s, cmd.P_WT
+    k = int(np.searchsorted(t, t_s, side="right")) - 1
+    inside = 0 <= k < len(t) - 1
+    v_ff = (P[k + 1] - P[k]) / (t[k + 1] - t[k]) if inside else np.zeros(3)
+    roll = (roll_rad[k + 1] - roll_rad[k]) / (t[k + 1] - t[k]) if inside else 0.0
+    fb = cmd.gain_per_s * (np.array([np.interp(t_s, t, P[:, i]) for i in range(3)]) - p_WT)
+    n = np.linalg.norm(fb)
+    return v_ff + (fb if n <= cmd.max_feedback_mm_s else fb * cmd.max_feedback_mm_s / n), roll
+
+
+@given(st.integers(0, 10_000))
+def test_the_tip_path_command_matches_its_numpy_reference_at_random_times(seed):
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(2, 40))
+    t = np.cumsum(rng.uniform(0.01, 0.2, m)) - 0.1
+    P = 100.0 + rng.normal(0.0, 2.0, (m, 3))  # segments below ~1,000 mm/s
+    roll = rng.uniform(-3.0, 3.0, m)
+    cmd = TipPathCommand(t, P, roll_rad=roll, gain_per_s=rng.uniform(1.0, 50.0), max_feedback_mm_s=rng.uniform(0.5, 20.0))
+    times = np.concatenate([rng.uniform(t[0] - 0.5, t[-1] + 0.5, 50), t])  # the knots themselves too
+    for t_s in times:
+        p = P[rng.integers(m)] + rng.normal(0.0, rng.choice([1e-3, 0.1, 2.0]), 3)
+        v, r = cmd(t_s, p, None)
+        v_ref, r_ref = _tip_path_reference(cmd, roll, t_s, p)
+        # the same arithmetic up to rounding: |v| < ~1,000 mm/s, whose ulp is 1.1e-13 mm/s
+        np.testing.assert_allclose(v, v_ref, rtol=0.0, atol=1e-12)
+        assert abs(r - r_ref) <= 1e-12
+        np.testing.assert_allclose(cmd.reference(t_s), [np.interp(t_s, t, P[:, i]) for i in range(3)], rtol=0, atol=1e-12)

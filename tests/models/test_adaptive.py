@@ -211,10 +211,12 @@ def test_scan_range_is_the_largest_pairwise_distance(n, spread, seed, data):
     assert entry.scan_range_mm == model.scan_range_mm
 
 
+@pytest.mark.parametrize("packet", [1, 10, "random"])
 @pytest.mark.parametrize("criteria", [PaperCriteria(), PredictiveCriteria()], ids=["paper", "predictive"])
-def test_the_compiled_per_a_scan_update_equals_the_general_path(criteria):
-    """One A-scan as a float (3,) array takes the compiled per-A-scan path; the same point
-    as a list takes the general (batch) path. On a spiral with floaters (gated) and
+def test_the_compiled_update_equals_the_general_path(criteria, packet):
+    """Points as a float array take the compiled path (models._kernels.packet_update); the
+    same points as a list take the general path. One A-scan at a time, in the loop's
+    packets of 10 and in random packets of 1-30, on a spiral with floaters (gated) and
     non-finite A-scans, every history entry, the transition and the counters agree exactly."""
     scan = paper_scan(make_eye("emmetropic"), noise_um=SIGMA_UM, seed=3)
     rng = np.random.default_rng(3)
@@ -222,14 +224,67 @@ def test_the_compiled_per_a_scan_update_equals_the_general_path(criteria):
     floater = rng.random(len(P)) < 0.03
     P[floater] = scan.p_WT[floater] + scan.beam_W[floater] * (0.5 * scan.distance_mm[floater])[:, None]
     P[rng.random(len(P)) < 0.01] = np.nan
+    P[200:203] = np.nan  # a whole packet of 1 or 3 non-finite A-scans
+    sizes = rng.integers(1, 31, len(P)) if packet == "random" else np.full(len(P), packet)
+    cuts = np.cumsum(sizes)
     fast, general = AdaptiveEyeModel(criteria), AdaptiveEyeModel(criteria)
-    for p in P:
-        a, b = fast.update(p), general.update(p.tolist())
+    for chunk in np.split(P, cuts[cuts < len(P)]):
+        a, b = fast.update(chunk[0] if packet == 1 else chunk), general.update(chunk.tolist())
         assert (a is None) == (b is None)
         np.testing.assert_array_equal(fast.last_accepted, general.last_accepted)
     assert fast.n_rejected_outliers == general.n_rejected_outliers > 0
     assert fast.n_rejected_nonfinite == general.n_rejected_nonfinite > 0
+    assert fast.n_received == general.n_received == len(P)
     assert fast.transition_index == general.transition_index is not None
     assert len(fast.history) == len(general.history)
     for a, b in zip(fast.history, general.history):
         np.testing.assert_equal(a._asdict(), b._asdict())
+
+
+class _NumPyConvergence(PredictiveCriteria):
+    """PredictiveCriteria with its convergence test written straight in NumPy (the
+    reference for the compiled one, models.extrapolation.drift_and_gap): the ellipsoid's
+    points over 288 equal-area directions, the anterior cap cut off, their mean Sampson
+    distance from the old ellipsoid over their mean distance from the sphere."""
+
+    def _convergence(self, snap, v_ef_old):
+        from models._kernels import sampson_distances
+        from models.ellipsoid_fit import LENGTH_SCALE_MM as L
+        from models.sampling import unit_sphere_grid
+
+        c_ef, r_ef, R_ef = snap.ef
+        c = (c_ef - snap.p0) / L
+        anterior = c - snap.S[6:9, 9] / (2.0 * snap.S[9, 9])
+        anterior /= np.linalg.norm(anterior)
+        X = c + (unit_sphere_grid(12, 24) * (r_ef / L)) @ R_ef.T
+        h = (X - c) @ anterior
+        X = X[h <= h.max() - self.crop_mm / L]
+        if not len(X):
+            return np.inf, False
+        drift = sampson_distances(v_ef_old, X).mean()
+        gap = np.abs(np.linalg.norm(X - (snap.sf[0] - snap.p0) / L, axis=1) - snap.sf[1] / L).mean()
+        ratio = drift / gap if gap > 0 else np.inf
+        return ratio, bool(ratio < self.convergence_factor)
+
+
+@pytest.mark.parametrize("name", ["emmetropic", "pointed"])
+@pytest.mark.parametrize("packet", [1, 10, 37])
+def test_the_predictive_transition_is_the_numpy_references_in_any_packet_schedule(name, packet):
+    """The predictive criteria's checkpoints, whether the spiral comes one A-scan at a time,
+    in the loop's packets of 10 or in packets of 37, decide exactly as the NumPy reference
+    does on the same schedule: the same transition point and every criterion met at the
+    same updates. The convergence ratio is a mean Sampson distance (~1e-3 scaled units
+    and up) over a mean gap of unit-size distances, each summed in another order: they
+    agree to 1e-10 relative (rounding of ~1e-16 amplified by at most the ~1e-3 gap)."""
+    scan = paper_scan(make_eye(name), noise_um=SIGMA_UM, seed=1)
+    fast, ref = AdaptiveEyeModel(PredictiveCriteria()), AdaptiveEyeModel(_NumPyConvergence())
+    for k in range(0, len(scan.points), packet):
+        fast.update(scan.points[k:k + packet])
+        ref.update(scan.points[k:k + packet])
+    assert fast.transition_index == ref.transition_index is not None
+    assert len(fast.history) == len(ref.history)
+    for a, b in zip(fast.history, ref.history):
+        assert a.kind == b.kind
+        for c, (value, met) in a.criteria.items():
+            assert met == b.criteria[c][1]
+            np.testing.assert_allclose(value, b.criteria[c][0], rtol=1e-10)

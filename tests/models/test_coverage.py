@@ -62,3 +62,40 @@ def test_queries_equal_a_k_d_tree_reference(seed, angle_deg):
     r = 2.0 * np.sin(0.5 * np.radians(angle_deg))
     ref = [max((view._misfit[j] for j in idx), default=0.0) for idx in tree.query_ball_point(U, r)]
     np.testing.assert_allclose(view.local_misfit_mm(Q, np.radians(angle_deg)), ref, atol=1e-12)
+
+
+@settings(deadline=None, max_examples=60)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0.5, 2.0, 7.0, 30.0]))
+def test_the_bin_search_equals_a_k_d_tree_on_the_fibonacci_sphere(seed, bin_deg):
+    """The compiled nearest-direction search finds the k-d tree's bin for random directions,
+    directions next to bins (within 1e-9) and the poles; and `add` keeps the same bins and
+    innermost points as the k-d tree version did (scipy, vectorised)."""
+    from scipy.spatial import cKDTree
+
+    from models.coverage import nearest_fibonacci
+
+    rng = np.random.default_rng(seed)
+    c = rng.normal(0.0, 3.0, 3)
+    cov = DirectionCoverage(c, bin_deg=bin_deg)
+    dirs = cov._dirs
+    U = rng.normal(size=(200, 3))
+    U = np.vstack([U, dirs[rng.integers(len(dirs), size=50)] + rng.normal(0.0, 1e-9, (50, 3)), [[0, 0, 1], [0, 0, -1]]])
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    tree = cKDTree(dirs)
+    _, idx = tree.query(U)
+    assert [nearest_fibonacci(u[0], u[1], u[2], dirs) for u in U] == idx.tolist()
+
+    P = c + rng.uniform(8.0, 13.0, (len(U), 1)) * U
+    P[rng.integers(len(P), size=5)] = np.nan
+    for batch in np.array_split(P, 7):
+        cov.add(batch)
+    fin = P[np.isfinite(P).all(axis=1)]
+    r = np.linalg.norm(fin - c, axis=1)
+    _, bins = tree.query((fin - c) / r[:, None])
+    inner_r = np.full(len(dirs), np.inf)
+    np.minimum.at(inner_r, bins, r)
+    assert np.flatnonzero(cov._covered).tolist() == np.unique(bins).tolist() == np.flatnonzero(np.isfinite(inner_r)).tolist()
+    assert cov._n_covered == len(np.unique(bins))
+    np.testing.assert_array_equal(cov._inner_r, inner_r)
+    hit = np.isfinite(inner_r)
+    np.testing.assert_allclose(np.linalg.norm(cov._inner[hit] - c, axis=1), inner_r[hit], rtol=0, atol=0)
