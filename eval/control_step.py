@@ -25,13 +25,14 @@ import numpy as np
 from numba import njit
 
 from models._eberly import generic_distance_and_gradient
+from models._kernels import _solve
 from models.coverage import _nearest_and_worst
 from models.sphere import sphere_distance_and_gradient
 from planning.instrument_points import _LENS_NAMES, _NAMES, instrument_kinematics, kinematics_arguments
 from safety.constraints import _D, _POLYTOPE_REACH, TIP_SPEED_ROWS, _filter_qp, barrier_rows
-from models._kernels import _solve
+from safety.filter import FilterOutput, _off_command
 from safety.qp import (
-    _NEEDS_SOLVER, _OPTIMAL, DenseQP, QPResult, _finite, _rows_at_bound, _screen, _solves, solve_by_solver,
+    _NEEDS_SOLVER, _OPTIMAL, DenseQP, _finite, _rows_at_bound, _screen, _solves, solve_by_solver,
 )
 
 OPTIMAL, NEEDS_SOLVER, REFERENCE = 0, 1, 2  # control_step's codes
@@ -189,17 +190,17 @@ def warm_solution(H, c, lb, ub, G, h, A, b, ids, active_ids, tol):
 
 
 @njit(cache=True)
-def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x, port_I, spacing, n_shaft, min_depth,
-                 lens_offsets, rcm_gain, kind, center, rotation, radii, model_t_s, margin, prior_center, prior_radii,
+def control_step(q, command, t_s, sensor_t_s, model_t_s, S, R_home_I, p_home_I, p_WC, tip_x, port_I, spacing, n_shaft,
+                 min_depth, lens_offsets, rcm_gain, kind, center, rotation, radii, margin, prior_center, prior_radii,
                  has_coverage, cov_center, cov_dirs, cov_misfit, lens_center, lens_rotation, lens_radii, q_min, q_max,
                  qdot_max, cfg, active_ids, wsf, wsi):
     """One filter step (FilterSystem.inputs + SafetyFilter), compiled.
 
-    q (6,) rad; command (4,): tip velocity (3,) mm/s in W and roll rate rad/s; t_s and
-    sensor_t_s (s): now and the last sensor sample. Kinematics: planning.instrument_points'
+    q (6,) rad; command (4,): tip velocity (3,) mm/s in W and roll rate rad/s; t_s,
+    sensor_t_s and model_t_s (s): now, the last sensor sample, the model's time. Kinematics: planning.instrument_points'
     kinematics_arguments. The model: `kind` (PRIOR, SPHERE, ELLIPSOID) with (center (3,)
-    mm, rotation (3, 3), radii (3,) mm; a sphere's radius in radii[0]), its time
-    model_t_s (s) and uncertainty margin (mm); the prior sphere (prior_center, prior_radii[0]);
+    mm, rotation (3, 3), radii (3,) mm; a sphere's radius in radii[0]) and its
+    uncertainty margin (mm); the prior sphere (prior_center, prior_radii[0]);
     the coverage: its centre, covered directions (N, 3) and their misfit (N,) mm (zeros
     without a model misfit). The lens keep-out ellipsoid; joint limits (rad, rad/s).
     cfg: the filter's and the loop's parameters (CompiledStep builds it). active_ids
@@ -208,7 +209,8 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
 
     Returns (code, x (6,) rad/s when OPTIMAL, k (all boundary points), k_used (those
     against the model), m (lens points), P_W (k + m + 1, 3) mm, J_tip (3, 6),
-    rcm_error_mm, clearance_mm, port_clearance_mm, n_rows, n_at_bound) and leaves in the
+    rcm_error_mm, clearance_mm, port_clearance_mm, n_rows, n_at_bound, whether the tip
+    velocity J_tip x is off the command by > 1 % (safety.filter._off_command)) and leaves in the
     workspace (workspace_views of wsf, wsi) the QP (its G and h: the n_rows + N_TIP_ROWS
     first rows), its kept rows (indices into the k_used boundary points, then the lens
     points) and the rows of G at their bound (none when the equality optimum holds, as
@@ -227,7 +229,7 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
                  and t_s - sensor_t_s <= max_sensor_age and np.isfinite(margin) and margin >= 0.0)
     if fault:
         active_ids[:] = False
-        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0
+        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True
     # which points the model is trusted for, and its measured misfit near them (CoverageView)
     trusted = np.ones(k_used, dtype=np.bool_)
     misfit = np.zeros(k_used)
@@ -250,14 +252,14 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
     h_lens, g_lens, lens_generic = _shape_distance(ELLIPSOID, lens_center, lens_rotation, lens_radii, P[k:k + m])
     if not (generic and lens_generic):
         active_ids[:] = False
-        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0
+        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True
     always = np.zeros(k_used, dtype=np.bool_)
     always[:2] = True
     h, grad, h_min, keep, finite = barrier_rows(h_model, g_model, h_fallback, g_fallback, misfit, margin, d_safe, always,
                                                 h_lens, g_lens, lens_margin, max_tip_speed / gain)
     if not finite:
         active_ids[:] = False
-        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0
+        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True
     clearance = h[:k_used].min()
     rows = np.flatnonzero(keep)
     J_pts = np.empty((rows.shape[0], 3, 6))
@@ -282,7 +284,8 @@ def control_step(q, command, t_s, sensor_t_s, S, R_home_I, p_home_I, p_WC, tip_x
     H_w[:], c_w[:], lb_w[:], ub_w[:], A_w[:], b_w[:] = H, c, lb, ub, rcm_A, rcm_b
     G_w[:G.shape[0]], h_w[:G.shape[0]], rows_w[:rows.shape[0]], bound_w[:at_bound.shape[0]] = G, hv, rows, at_bound
     out = OPTIMAL if code == _OPTIMAL else (NEEDS_SOLVER if code == _NEEDS_SOLVER else REFERENCE)
-    return out, x, k, k_used, m, P, J_tip, rcm_error, clearance, h[1], rows.shape[0], at_bound.shape[0]
+    return (out, x, k, k_used, m, P, J_tip, rcm_error, clearance, h[1], rows.shape[0], at_bound.shape[0],
+            _off_command(J_tip, x, command))
 
 
 def _writeable(a) -> np.ndarray:
@@ -327,14 +330,15 @@ class CompiledStep:
                                 np.cos(np.radians(config.misfit_angle_deg)), _chord(config.trust_angle_deg),
                                 _chord(config.misfit_angle_deg)]))
         self._margins = config.margins
-        self._snap, self._model = None, None
+        self._snap, self._args, self._prior = None, (), True
         self._active = np.zeros(N_IDS, dtype=np.bool_)  # control_step's active_ids
         self._wsf, self._wsi = np.zeros(WORKSPACE_SIZES[0]), np.zeros(WORKSPACE_SIZES[1], dtype=np.int64)
         self._ws = workspace_views(self._wsf, self._wsi)
 
-    def _model_arguments(self, snap) -> tuple:
-        """control_step's model arguments of a snapshot (kind, center, rotation, radii,
-        margin, the prior, the coverage), all but the model time, which changes every packet."""
+    def _arguments(self, snap) -> tuple:
+        """control_step's arguments after the times: the kinematics, the snapshot's model
+        (kind, center, rotation, radii, margin), the prior, the coverage, the lens, the
+        limits, the parameters and the workspace; made once per snapshot."""
         if snap is not self._snap:
             shape = snap.shape
             prior_center, prior_radii = self._tail[0], self._tail[1]
@@ -352,10 +356,12 @@ class CompiledStep:
                 dirs, cov_center = cov._dirs, np.asarray(cov.center_W, dtype=float)
                 misfit = np.zeros(len(dirs)) if cov._misfit is None else cov._misfit
             w = _writeable  # one array type for every snapshot: one compiled specialisation
-            self._model = (kind, w(center), w(rotation), w(radii), float(snap.margin_mm(self._margins)), prior_center,
-                           prior_radii, has_coverage, w(cov_center), w(dirs), w(misfit))
-            self._snap = snap
-        return self._model
+            head, tail = self._kin
+            self._args = (*head, *tail, kind, w(center), w(rotation), w(radii), float(snap.margin_mm(self._margins)),
+                          prior_center, prior_radii, has_coverage, w(cov_center), w(dirs), w(misfit), *self._tail[2:],
+                          self._active, self._wsf, self._wsi)
+            self._snap, self._prior = snap, kind == PRIOR
+        return self._args
 
     def reset(self) -> None:
         """Forget the previous step's active set (a new run)."""
@@ -363,25 +369,26 @@ class CompiledStep:
 
     def step(self, t_s: float, q: np.ndarray, command: np.ndarray, snap, sensor_t_s: float):
         t0 = time.perf_counter()
-        kind, center, rotation, radii, margin, prior_c, prior_r, has_cov, cov_c, dirs, misfit = self._model_arguments(snap)
-        model_t_s = t_s if kind == PRIOR else snap.t_s
-        head, tail = self._kin
-        r = control_step(q, command, t_s, sensor_t_s, *head, *tail, kind, center, rotation, radii, model_t_s, margin,
-                         prior_c, prior_r, has_cov, cov_c, dirs, misfit, *self._tail[2:], self._active, self._wsf, self._wsi)
+        args = self._arguments(snap)
+        r = control_step(q, command, t_s, sensor_t_s, t_s if self._prior else snap.t_s, *args)
         code, x, k_used, n_rows, n_bound = r[0], r[1], r[3], r[10], r[11]
         if code == REFERENCE:
             return None, r
         H, c, lb, ub, A, b, G, h, rows, at_bound = self._ws
         if code == OPTIMAL:
-            names = row_names(rows[:n_rows], k_used) if n_bound else ()
-            result = QPResult(x, "ok", tuple(sorted({names[i] for i in at_bound[:n_bound]})), 1e6 * (time.perf_counter() - t0))
-        else:
-            m = N_TIP_ROWS + n_rows
-            qp = DenseQP(H.copy(), c.copy(), lb.copy(), ub.copy(), G[:m].copy(), h[:m].copy(), A.copy(), b.copy(),
-                         row_names(rows[:n_rows], k_used))
-            result = solve_by_solver(qp, self.solver, ACTIVE_TOL, t0)
-            if not result.ok:
-                self.reset()
-                return None, r
-            remember_active(self._active, row_ids(rows[:n_rows], k_used), qp.G, qp.h, qp.lb, qp.ub, result.x, ACTIVE_TOL)
+            active = ()
+            if n_bound:
+                names = row_names(rows[:n_rows], k_used)
+                active = tuple(sorted({names[i] for i in at_bound[:n_bound]}))
+            cutter = bool(r[9] > self.filter.config.cutter_clearance_mm)
+            return FilterOutput(x, True, "ok", active, float(r[8]), cutter, bool(r[12] or n_bound),
+                                1e6 * (time.perf_counter() - t0)), r
+        m = N_TIP_ROWS + n_rows
+        qp = DenseQP(H.copy(), c.copy(), lb.copy(), ub.copy(), G[:m].copy(), h[:m].copy(), A.copy(), b.copy(),
+                     row_names(rows[:n_rows], k_used))
+        result = solve_by_solver(qp, self.solver, ACTIVE_TOL, t0)
+        if not result.ok:
+            self.reset()
+            return None, r
+        remember_active(self._active, row_ids(rows[:n_rows], k_used), qp.G, qp.h, qp.lb, qp.ub, result.x, ACTIVE_TOL)
         return self.filter.output(result, r[6], command[:3], float(r[8]), float(r[9])), r

@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 from mcap.writer import Writer
-from test_mcap_log import DT, EYE, toy_inputs, write_toy_run
+from test_mcap_log import DT, toy_inputs, write_toy_run
 
 from eval.cli import main
 from eval.mcap_log import RunLogger, read_log

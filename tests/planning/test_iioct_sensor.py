@@ -13,7 +13,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydrake.systems.framework import LeafSystem
 
-from models import Ellipsoid
 from models.eyes import EyePose, make_eye
 from planning.iioct_sensor import IioctSensor, IioctSensorSystem, ellipsoid_hits, extractor_error_model
 
