@@ -347,6 +347,7 @@ class FilterSystem(LeafSystem):
 
     def reset(self, logger=None) -> None:
         self.logger, self.record = logger, StepRecord()
+        self.wall_s = 0.0  # wall time (s) of its steps since the reset, records and log included
         self.compiled.reset()
 
     def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
@@ -378,6 +379,10 @@ class FilterSystem(LeafSystem):
 
     def _update(self, context, discrete_state) -> None:
         t0 = time.perf_counter()
+        self._step(context, discrete_state, t0)
+        self.wall_s += time.perf_counter() - t0
+
+    def _step(self, context, discrete_state, t0: float) -> None:
         t = context.get_time()
         q = self._q.Eval(context)
         command = self._cmd.Eval(context)
@@ -448,8 +453,9 @@ class LoopRun:
     `true_clearance_mm` (M,): the smallest TRUE clearance of the monitored points per
     step (ground-truth eye); `lens_clearance_mm` (M,): the shaft's lens points' smallest
     distance outside the lens keep-out; `wall_s` the run's wall time, of which
-    `command_wall_s` in the command system and `model_wall_s` in the model system (its
-    sensor packets' hand-over, model updates and snapshots); `model_epochs` the
+    `command_wall_s` in the command system, `model_wall_s` in the model system (its
+    sensor packets' hand-over, model updates and snapshots) and `filter_wall_s` in the
+    filter system (the step, its record and log); `model_epochs` the
     model the filter used (ModelSnapshot, W) from each change of kind on (prior -> sphere
     -> ellipsoid), the first one from the start of the run."""
 
@@ -474,6 +480,7 @@ class LoopRun:
     model_epochs: list = field(default_factory=list)
     command_wall_s: float = 0.0
     model_wall_s: float = 0.0
+    filter_wall_s: float = 0.0
 
     @property
     def duration_s(self) -> float:
@@ -585,4 +592,5 @@ class ClosedLoop:
             lens_clearance_mm=lens_clear, kind=col["kind"], rcm_error_mm=a(col["rcm_error_mm"]),
             drake_diffik_us=a(self.filter.record.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
             model_epochs=list(self.model.epochs), command_wall_s=self.command.wall_s, model_wall_s=self.model.wall_s,
+            filter_wall_s=self.filter.wall_s,
         )
