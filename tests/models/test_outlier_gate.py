@@ -108,3 +108,31 @@ def test_in_a_batch_each_jump_is_measured_from_the_last_kept_point():
     assert state.n_rejected == 1
     more = retina + [0.05, 0.0, 0.0]
     np.testing.assert_array_equal(state.admit(more, None, np.zeros(3), 0), more[[0, 1, 3, 4]])
+
+
+def test_the_first_point_waits_until_the_next_one_confirms_it():
+    """The very first point has no kept point to be compared with: it is held back (neither
+    kept nor rejected) and comes in with the next point that lies within the jump limit."""
+    state = GateState(OutlierGate())
+    first, second = np.array([[0.0, 0.0, -10.0]]), np.array([[0.01, 0.0, -10.0]])
+    assert len(state.admit(first, None, np.zeros(3), 0)) == 0 and state.n_rejected == 0
+    np.testing.assert_array_equal(state.admit(second, None, np.zeros(3), 0), np.vstack([first, second]))
+    assert state.n_rejected == 0
+
+
+@pytest.mark.parametrize("batch", [1, 10])
+def test_a_floater_on_the_very_first_a_scan_stays_out_of_the_model(batch):
+    """A floater 3 mm in front of the retina on the first A-scan (one scan in twenty at a 5 %
+    floater rate) was once kept unchecked: as the reference it pushed the next ten
+    retinal A-scans out, and in the model it outweighed thousands of retinal points (the
+    loop's ellipsoid: 226 um EF MAE against 39 um). Now it is rejected and the model holds
+    the retina alone, the same points as a scan without it."""
+    scan = paper_scan(make_eye("emmetropic"), seed=1)
+    P = scan.points[:200].copy()
+    P[0] = scan.p_WT[0] + (scan.distance_mm[0] - 3.0) * scan.beam_W[0]
+    dirty, clean = AdaptiveEyeModel(), AdaptiveEyeModel()
+    for k in range(0, len(P), batch):
+        dirty.update(P[k:k + batch])
+        clean.update(P[max(k, 1):k + batch])
+    assert dirty.n_rejected_outliers == 1 and dirty.n_points == clean.n_points == len(P) - 1
+    np.testing.assert_allclose(dirty.sphere.center, clean.sphere.center, atol=1e-9)
