@@ -93,7 +93,7 @@ def test_the_robust_residual_follows_the_data_whatever_the_batch_size(batch):
         state.admit(P, sphere, np.zeros(3), 1000)
         # the residual in use reflects the accepted distances of at most REFRESH + batch points ago
         assert state.counts[G_N_RECENT] - (state.counts[G_REFRESH_AT] - RESIDUAL_REFRESH) < RESIDUAL_REFRESH + batch
-    assert state.residual[0] < 0.05 and state.n_rejected > 0  # the near points set it, not the floaters
+    assert state.scales[0] < 0.05 and state.n_rejected > 0  # the near points set it, not the floaters
 
 
 def test_in_a_batch_each_jump_is_measured_from_the_last_kept_point():
