@@ -712,37 +712,32 @@ def gate_points(P, keep, quadric, has_quadric, p0, scale, n_model_points, params
     for n in range(P.shape[0]):
         px, py, pz = P[n, 0], P[n, 1], P[n, 2]
         jump = np.sqrt((px - last[0]) ** 2 + (py - last[1]) ** 2 + (pz - last[2]) ** 2)
+        d = _model_distance(quadric, has_quadric, p0, scale, px, py, pz)
         if counts[G_REFERENCE] != REF_KEPT:  # no point kept yet: only a confirmed pair gets in
             keep[n] = counts[G_REFERENCE] == REF_PENDING and jump <= max_jump
-            if keep[n]:
-                _remember(counts, last, recent, last[0], last[1], last[2],
-                          _model_distance(quadric, has_quadric, p0, scale, last[0], last[1], last[2]), jump)
-                if pending_at >= 0:
-                    keep[pending_at] = True
-                    n_kept += 1
-                else:
-                    took_pending = True
-                _remember(counts, last, recent, px, py, pz, _model_distance(quadric, has_quadric, p0, scale, px, py, pz),
-                          jump)
-                counts[G_REFERENCE] = REF_KEPT
-                n_kept += 1
-            else:
-                if counts[G_REFERENCE] == REF_PENDING:  # the previous first point had no confirmation
-                    counts[G_N_REJECTED] += 1
+            if not keep[n]:
+                counts[G_N_REJECTED] += counts[G_REFERENCE] == REF_PENDING  # the previous first point: unconfirmed
                 last[0], last[1], last[2] = px, py, pz
                 counts[G_REFERENCE] = REF_PENDING
                 pending_at = n
-            continue
-        d = _model_distance(quadric, has_quadric, p0, scale, px, py, pz)
-        near = jump <= max_jump and d <= gate
-        counts[G_RUN] = 0 if near else counts[G_RUN] + 1
-        k = near or counts[G_RUN] > params[G_MAX_CONSECUTIVE]  # a long run of far points is retina
-        keep[n] = k
-        if k:
-            _remember(counts, last, recent, px, py, pz, d, jump)
-            n_kept += 1
+                continue
+            _remember(counts, last, recent, last[0], last[1], last[2],
+                      _model_distance(quadric, has_quadric, p0, scale, last[0], last[1], last[2]), jump)
+            if pending_at >= 0:
+                keep[pending_at] = True
+                n_kept += 1
+            else:
+                took_pending = True
+            counts[G_REFERENCE] = REF_KEPT
         else:
-            counts[G_N_REJECTED] += 1
+            near = jump <= max_jump and d <= gate
+            counts[G_RUN] = 0 if near else counts[G_RUN] + 1
+            keep[n] = near or counts[G_RUN] > params[G_MAX_CONSECUTIVE]  # a long run of far points is retina
+            if not keep[n]:
+                counts[G_N_REJECTED] += 1
+                continue
+        _remember(counts, last, recent, px, py, pz, d, jump)
+        n_kept += 1
     return n_kept, took_pending
 
 

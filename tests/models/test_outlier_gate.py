@@ -39,7 +39,8 @@ def emmetropic_runs():
 
 def test_floaters_are_rejected_and_counted(emmetropic_runs):
     models, hit = emmetropic_runs
-    assert models["clean"].n_rejected_outliers == 0  # 20 um noise never trips a 1 mm / 6-sigma gate
+    # 20 um noise never trips the ~1 mm jump limit (6 x the spiral's 0.16 mm step) or the 6-sigma gate
+    assert models["clean"].n_rejected_outliers == 0
     assert models["dirty"].n_rejected_outliers == hit.sum()
     assert models["dirty"].n_points == len(hit) - hit.sum()
 
@@ -136,3 +137,20 @@ def test_a_floater_on_the_very_first_a_scan_stays_out_of_the_model(batch):
         clean.update(P[max(k, 1):k + batch])
     assert dirty.n_rejected_outliers == 1 and dirty.n_points == clean.n_points == len(P) - 1
     np.testing.assert_allclose(dirty.sphere.center, clean.sphere.center, atol=1e-9)
+
+
+@pytest.mark.parametrize("step_mm, limit_mm", [(0.02, 0.15), (0.3, 1.0)])
+def test_the_jump_limit_follows_the_scan_step(step_mm, limit_mm):
+    """The jump limit is k_residual (6) x the median step between accepted points, within
+    [min_gate_mm, max_jump_mm]. The loop's 2 kHz scan puts consecutive retinal points ~20
+    um apart: its limit is the 0.15 mm floor, and a floater 0.6 mm in front of the retina
+    (inside the 1 mm max_jump_mm) is turned away even before any model exists. On a scan
+    sampled 0.3 mm apart the limit stays 1 mm and the same excursion is let in (only a
+    model can judge it there)."""
+    state = GateState(OutlierGate())
+    P = np.column_stack([step_mm * np.arange(200), np.zeros(200), np.full(200, -10.0)])
+    P[150, 2] += 0.6  # towards the instrument above the retina
+    kept = np.vstack([state.admit(P[k:k + 10], None, np.zeros(3), 0) for k in range(0, 200, 10)])
+    assert state.scales[1] == pytest.approx(limit_mm)
+    floater_out = int(limit_mm < np.hypot(step_mm, 0.6))
+    assert state.n_rejected == floater_out and len(kept) == 200 - floater_out
