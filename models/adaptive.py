@@ -163,15 +163,15 @@ class AdaptiveEyeModel:
         self.n_received += len(P)
         sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
         n = sf.n_points
-        scan.reserve(len(P))
+        scan.reserve(len(P) + 1)  # the gate may add its pending first point
         g = _NO_GATE if gate is None else gate
         current = self._current
         out = np.empty(OUT_SIZE)
-        kept = np.empty((len(P), 3))
+        kept = np.empty((len(P) + 1, 3))
         p0 = np.zeros(3) if ef.p0 is None else ef.p0  # without a point yet: the kernel writes the first one
         n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = packet_update(
             P, n, p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
-            g.params, g.counts, g.last, g.residual, g.recent, sf.information, sf.information_vector, ef.S,
+            g.params, g.counts, g.last, g.scales, g.recent, sf.information, sf.information_vector, ef.S,
             ef.spread_checked_at, ef.SPREAD_RECHECK, scan.X, scan.block_r, scan.diameter_mm, self._prev_radii,
             self._has_prev, LENGTH_SCALE_MM, kept, out)
         self.n_rejected_nonfinite += n_nonfinite

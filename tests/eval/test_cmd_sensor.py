@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from eval.cli import main
@@ -55,14 +56,30 @@ def test_bad_arguments_exit_2(argv, message, tmp_path, capsys):
     assert not (tmp_path / "never").exists()
 
 
-def test_confident_wrong_distances_on_5_percent_of_the_samples_leave_the_loop_model_intact(tmp_path):
+# Clean "distance"-mode runs of this spiral (5 turns, 17 mm/s) over seeds 0-5 end at EF MAE
+# 41.3, 40.0, 40.6, 40.6, 40.6, 40.5 um: seed-to-seed SD 0.40 um, at most 0.84 um at 95 %
+# confidence (chi-square, 5 degrees of freedom). A dirty run draws its noise from another
+# stream than the clean one (the floater draws come in between), so the two differ like
+# two seeds: SD sqrt(2) x 0.84 um; 4 of those is the tolerance.
+SEED_TO_SEED_TOLERANCE_UM = 4.0 * np.sqrt(2.0) * 0.84
+
+
+@pytest.fixture(scope="module")
+def clean_distance_run(tmp_path_factory):
+    return run(tmp_path_factory.mktemp("clean_distance"), "--mode", "distance")[0]
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_confident_wrong_distances_on_5_percent_of_the_samples_leave_the_loop_model_intact(
+        clean_distance_run, seed, tmp_path):
     """The worst case beyond the issue: in "distance" mode a floater is a CONFIDENT wrong
     distance (0.5 mm to the retina's), which only the model's gate can turn away. The
     gated points alone may mark the measured directions: a turned-away floater once
     counted as retina measured 8.6 mm inside the model, that misfit became the tip's
-    margin, and the filter stopped the spiral (EF MAE 1.4 mm)."""
-    clean, _ = run(tmp_path / "c", "--mode", "distance")
-    dirty, _ = run(tmp_path / "d", "--mode", "distance", "--outliers", "0.05")
-    assert clean["kind_final"] == dirty["kind_final"] == "ellipsoid"
+    margin, and the filter stopped the spiral (EF MAE 1.4 mm). Seed 3 (and 0) put a
+    floater on the very first A-scan, which the gate once kept unchecked (EF MAE 226 /
+    56 um); on seed 0 the claim once held by luck at 10 %."""
+    dirty, _ = run(tmp_path, "--mode", "distance", "--outliers", "0.05", "--seed", str(seed))
+    assert clean_distance_run["kind_final"] == dirty["kind_final"] == "ellipsoid"
     assert dirty["outliers_rejected"] > 0
-    assert abs(dirty["ef_mae_um"] - clean["ef_mae_um"]) <= 0.10 * clean["ef_mae_um"]
+    assert abs(dirty["ef_mae_um"] - clean_distance_run["ef_mae_um"]) <= SEED_TO_SEED_TOLERANCE_UM
