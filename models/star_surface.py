@@ -18,13 +18,14 @@ from typing import NamedTuple
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from models.sampling import unit_sphere_grid
 
 RADIAL_KINDS = ("ellipsoid", "pointed", "staphyloma", "detached")
 _ELLIPSOID, _POINTED, _STAPHYLOMA, _DETACHED = range(len(RADIAL_KINDS))
 CLIP_MM = 1e-6  # a ray's excursion across the surface shallower than this may go unseen (1 nm)
+COARSE_STEP = 8  # the closest-point search scans every 8th row and column of the cloud first
+SEED_TIE_MM = 0.05  # cloud minima this close to the best are all refined (_seeds)
 SLOPE_SAFETY = 2.0  # the sampled slope of rho times this bounds the true one (see _march_constants)
 
 
@@ -211,59 +212,64 @@ def _ray_hits(kind, p, O, D, r_in, r_out, lip, step, t_max):
 
 
 @njit(cache=True)
-def _tangent_basis(u):
-    """Two unit vectors (3,) orthogonal to the unit u (3,) and to each other."""
-    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(u, helper)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(u, e1)
+def _tangent_basis(ux, uy, uz):
+    """Two unit vectors (tuples) orthogonal to the unit (ux, uy, uz) and to each other."""
+    hx, hy = (1.0, 0.0) if abs(ux) < 0.9 else (0.0, 1.0)  # helper (hx, hy, 0)
+    e1x, e1y, e1z = -uz * hy, uz * hx, ux * hy - uy * hx  # u x helper
+    n = np.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+    e1x, e1y, e1z = e1x / n, e1y / n, e1z / n
+    return (e1x, e1y, e1z), (uy * e1z - uz * e1y, uz * e1x - ux * e1z, ux * e1y - uy * e1x)
 
 
 @njit(cache=True)
-def _surface_at(kind, p, u0, e1, e2, a, b):
-    """The surface point (3,) mm in the direction normalise(u0 + a e1 + b e2)."""
-    u = u0 + a * e1 + b * e2
-    u /= np.linalg.norm(u)
-    return _rho(kind, p, u[0], u[1], u[2]) * u
+def _surface_at(kind, p, u, e1, e2, a, b):
+    """The surface point (tuple, mm) in the direction normalise(u + a e1 + b e2)."""
+    x, y, z = u[0] + a * e1[0] + b * e2[0], u[1] + a * e1[1] + b * e2[1], u[2] + a * e1[2] + b * e2[2]
+    n = np.sqrt(x * x + y * y + z * z)
+    x, y, z = x / n, y / n, z / n
+    r = _rho(kind, p, x, y, z)
+    return r * x, r * y, r * z
 
 
 @njit(cache=True)
 def _closest_point(kind, p, q, u0, iterations):
-    """The closest surface point (3,) mm to q (3,) mm from the seed direction u0:
-    Levenberg-Marquardt on (a, b) -> surface point in normalise(u0 + a e1 + b e2),
+    """The closest surface point (tuple, mm) to q (3,) mm from the seed direction u0
+    (tuple): Levenberg-Marquardt on (a, b) -> surface point in normalise(u0 + a e1 + b e2),
     finite-difference Jacobian, steps accepted only if they reduce the distance."""
-    e1, e2 = _tangent_basis(u0)
+    e1, e2 = _tangent_basis(u0[0], u0[1], u0[2])
     a, b, lam, h = 0.0, 0.0, 1e-3, 1e-7
     X = _surface_at(kind, p, u0, e1, e2, a, b)
-    cost = np.sum((X - q) ** 2)
+    cost = (X[0] - q[0]) ** 2 + (X[1] - q[1]) ** 2 + (X[2] - q[2]) ** 2
     for _ in range(iterations):
-        Ja = (_surface_at(kind, p, u0, e1, e2, a + h, b) - X) / h
-        Jb = (_surface_at(kind, p, u0, e1, e2, a, b + h) - X) / h
-        r = X - q
-        jaa, jab, jbb = Ja @ Ja, Ja @ Jb, Jb @ Jb
-        ga, gb = Ja @ r, Jb @ r
-        damp = lam * (jaa + jbb)
+        Xa = _surface_at(kind, p, u0, e1, e2, a + h, b)
+        Xb = _surface_at(kind, p, u0, e1, e2, a, b + h)
+        jaa, jab, jbb, ga, gb = 0.0, 0.0, 0.0, 0.0, 0.0
+        for k in range(3):
+            ja, jb, r = (Xa[k] - X[k]) / h, (Xb[k] - X[k]) / h, X[k] - q[k]
+            jaa, jab, jbb, ga, gb = jaa + ja * ja, jab + ja * jb, jbb + jb * jb, ga + ja * r, gb + jb * r
+        damp = lam * (jaa + jbb)  # lam (trace I + 1e-12), as a fraction of the curvature
         A00, A01, A11 = jaa + damp + lam * 1e-12, jab + lam * 1e-12, jbb + damp + lam * 1e-12
         det = A00 * A11 - A01 * A01
         step_a, step_b = -(A11 * ga - A01 * gb) / det, -(A00 * gb - A01 * ga) / det
         X_trial = _surface_at(kind, p, u0, e1, e2, a + step_a, b + step_b)
-        cost_trial = np.sum((X_trial - q) ** 2)
+        cost_trial = (X_trial[0] - q[0]) ** 2 + (X_trial[1] - q[1]) ** 2 + (X_trial[2] - q[2]) ** 2
         if cost_trial < cost:
             a, b, X, cost, lam = a + step_a, b + step_b, X_trial, cost_trial, lam * 0.3
         else:
             lam *= 10.0
         if max(abs(step_a), abs(step_b)) < 1e-12:
             break
-    return X
+    return X, cost
 
 
 @njit(cache=True)
 def _normal_inward(kind, p, u):
-    """The unit inward normal (3,) at the surface point in the unit direction u (3,)
+    """The unit inward normal (3,) at the surface point in the unit direction u (tuple)
     (finite differences of the parametrisation, 1e-6 rad)."""
-    e1, e2 = _tangent_basis(u)
-    X = _surface_at(kind, p, u, e1, e2, 0.0, 0.0)
-    n = np.cross(_surface_at(kind, p, u, e1, e2, 1e-6, 0.0) - X, _surface_at(kind, p, u, e1, e2, 0.0, 1e-6) - X)
+    e1, e2 = _tangent_basis(u[0], u[1], u[2])
+    X = np.array(_surface_at(kind, p, u, e1, e2, 0.0, 0.0))
+    n = np.cross(np.array(_surface_at(kind, p, u, e1, e2, 1e-6, 0.0)) - X,
+                 np.array(_surface_at(kind, p, u, e1, e2, 0.0, 1e-6)) - X)
     n /= np.linalg.norm(n)
     return -n if n @ X > 0.0 else n
 
@@ -272,36 +278,111 @@ def _normal_inward(kind, p, u):
 def _normals_batch(kind, p, U):
     N = np.empty_like(U)
     for m in range(U.shape[0]):
-        N[m] = _normal_inward(kind, p, U[m])
+        N[m] = _normal_inward(kind, p, (U[m, 0], U[m, 1], U[m, 2]))
     return N
 
 
 @njit(cache=True)
-def _closest_batch(kind, p, Q, U0, iterations):
+def _dist2(P, i, j, q):
+    return (P[i, j, 0] - q[0]) ** 2 + (P[i, j, 1] - q[1]) ** 2 + (P[i, j, 2] - q[2]) ** 2
+
+
+@njit(cache=True)
+def _descend(P, q, i, j):
+    """(i, j, squared distance mm^2): steepest descent of the distance to q over the cloud
+    grid P (n_theta, n_phi, 3) from the sample (i, j), 8 neighbours, periodic in phi."""
+    best = _dist2(P, i, j, q)
+    while True:
+        bi, bj = i, j
+        for ii in range(max(i - 1, 0), min(i + 2, P.shape[0])):
+            for dj in range(-1, 2):
+                jj = (j + dj) % P.shape[1]
+                d2 = _dist2(P, ii, jj, q)
+                if d2 < best:
+                    best, bi, bj = d2, ii, jj
+        if bi == i and bj == j:
+            return i, j, best
+        i, j = bi, bj
+
+
+@njit(cache=True)
+def _seeds(P, q, k, eta_coarse, eta_fine, seeds):
+    """Fill `seeds` (S, 2) with cloud indices from which to search the closest point to q;
+    return how many. The k-th rows and columns of the cloud grid P form a coarse grid
+    whose every sample lies within eta_coarse (mm) of the cloud samples it stands for:
+    each coarse local minimum (8 neighbours) within eta_coarse of the coarse minimum
+    descends on the full grid (_descend), and the grid minima within eta_fine (mm) of the
+    best are the seeds (at most S, the nearest)."""
+    n_i, n_j = P.shape[0] // k, P.shape[1] // k
+    D = np.empty((n_i, n_j))
+    for a in range(n_i):
+        for b in range(n_j):
+            D[a, b] = _dist2(P, k * a + k // 2, k * b + k // 2, q)
+    limit = (np.sqrt(D.min()) + eta_coarse) ** 2
+    minima = np.empty((n_i * n_j, 3))  # (value, a, b) of the coarse local minima under the limit
+    n = 0
+    for a in range(n_i):
+        for b in range(n_j):
+            if D[a, b] > limit:
+                continue
+            local_min = True
+            for aa in range(max(a - 1, 0), min(a + 2, n_i)):
+                for db in range(-1, 2):
+                    local_min &= D[aa, (b + db) % n_j] >= D[a, b]
+            if local_min:
+                minima[n, 0], minima[n, 1], minima[n, 2] = D[a, b], a, b
+                n += 1
+    found = np.empty((min(n, 4 * seeds.shape[0]), 3))  # (i, j, squared distance) on the full grid
+    for c, o in enumerate(np.argsort(minima[:n, 0])[:found.shape[0]]):
+        a, b = int(minima[o, 1]), int(minima[o, 2])
+        found[c, 0], found[c, 1], found[c, 2] = _descend(P, q, k * a + k // 2, k * b + k // 2)
+    n = found.shape[0]
+    order = np.argsort(found[:n, 2])
+    best = np.sqrt(found[order[0], 2])
+    count = 0
+    for o in order[:seeds.shape[0]]:
+        if np.sqrt(found[o, 2]) <= best + eta_fine:
+            seeds[count, 0], seeds[count, 1] = int(found[o, 0]), int(found[o, 1])
+            count += 1
+    return count
+
+
+@njit(cache=True)
+def _closest_batch(kind, p, Q, P, U, k, eta_coarse, eta_fine, iterations):
+    """(M, 3) closest surface points (mm) to Q (M, 3) mm: Levenberg-Marquardt from each
+    seed of `_seeds` on the cloud P (n_theta, n_phi, 3) mm in the directions U (same
+    shape), the nearest result."""
     X = np.empty_like(Q)
+    seeds = np.empty((4, 2), dtype=np.int64)
     for m in range(Q.shape[0]):
-        X[m] = _closest_point(kind, p, Q[m], U0[m], iterations)
+        q = Q[m]
+        best = np.inf
+        for s in range(_seeds(P, q, k, eta_coarse, eta_fine, seeds)):
+            u = U[seeds[s, 0], seeds[s, 1]]
+            Xs, cost = _closest_point(kind, p, q, (u[0], u[1], u[2]), iterations)
+            if cost < best:
+                best = cost
+                X[m, 0], X[m, 1], X[m, 2] = Xs
     return X
 
 
 @njit(cache=True)
-def _distance_and_gradient(kind, p, Q, U0):
+def _distance_and_gradient(kind, p, Q, X):
     """((M,) signed distance mm, > 0 inside; (M, 3) unit gradient, inward) of Q (M, 3) mm
-    from the closest points seeded in the directions U0 (M, 3); within 1e-6 mm of the
-    surface the gradient is the normal there."""
+    with closest surface points X (M, 3) mm; within 1e-6 mm of the surface the gradient
+    is the normal there."""
     sd, G = np.empty(Q.shape[0]), np.empty_like(Q)
     for m in range(Q.shape[0]):
-        q = Q[m]
-        X = _closest_point(kind, p, q, U0[m], 30)
-        V = q - X
+        V = Q[m] - X[m]
         dist = np.sqrt(V @ V)
-        sign = 1.0 if _inside_value(kind, p, q[0], q[1], q[2]) < 0.0 else -1.0
+        sign = 1.0 if _inside_value(kind, p, Q[m, 0], Q[m, 1], Q[m, 2]) < 0.0 else -1.0
         sd[m] = sign * dist
         if dist > 1e-6:
             G[m] = sign * V / dist
         else:
-            r = np.sqrt(X @ X)
-            G[m] = _normal_inward(kind, p, X / r if r > 0.0 else np.array([0.0, 0.0, -1.0]))
+            r = np.sqrt(X[m] @ X[m])
+            u = (X[m, 0] / r, X[m, 1] / r, X[m, 2] / r) if r > 0.0 else (0.0, 0.0, -1.0)
+            G[m] = _normal_inward(kind, p, u)
     return sd, G
 
 
@@ -318,8 +399,7 @@ class StarSurface:
             raise ValueError(f"rho must be a RadialFunction (one of {', '.join(RADIAL_KINDS)}), got {type(rho).__name__}")
         self.rho = rho
         self._cloud_shape = cloud_shape
-        self._tree: cKDTree | None = None
-        self._cloud_dirs: np.ndarray | None = None
+        self._grid: tuple[np.ndarray, np.ndarray, float] | None = None
         self._constants: tuple[float, float, float] | None = None
 
     def points(self, U: np.ndarray) -> np.ndarray:
@@ -378,23 +458,33 @@ class StarSurface:
             self._constants = (r_in, r_out, float(np.sqrt(1.0 + (S / r_in) ** 2)))
         return self._constants
 
-    def _seed_directions(self, Q: np.ndarray) -> np.ndarray:
-        if self._tree is None:
-            self._cloud_dirs = unit_sphere_grid(*self._cloud_shape)
-            self._tree = cKDTree(self.points(self._cloud_dirs))
-        _, i = self._tree.query(Q)
-        return self._cloud_dirs[i]
+    def _cloud(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """(P, U, eta_coarse): the cloud's surface points P (n_theta, n_phi, 3) mm in the
+        directions U (same shape) and how far (mm) a sample of its COARSE_STEP-th rows and
+        columns can lie from the samples of its block (the block's diameter)."""
+        if self._grid is None:
+            n_theta, n_phi = self._cloud_shape
+            U = unit_sphere_grid(n_theta, n_phi).reshape(n_theta, n_phi, 3)
+            P = self.points(U.reshape(-1, 3)).reshape(U.shape)
+            k = COARSE_STEP
+            blocks = P[: n_theta // k * k, : n_phi // k * k].reshape(n_theta // k, k, n_phi // k, k, 3)
+            centre = blocks[:, k // 2, :, k // 2][:, None, :, None]
+            eta = float(np.linalg.norm(blocks - centre, axis=-1).max())
+            self._grid = (P, U, 2.0 * eta)
+        return self._grid
 
     def closest_point(self, Q: np.ndarray, iterations: int = 30) -> np.ndarray:
         """(M, 3) closest surface points (mm) to Q (M, 3) mm.
 
-        Seeds from the nearest cloud point, then minimises |x(a, b) - q|^2 over the local
-        parametrisation x(a, b) = rho(u) u, u = normalise(u0 + a e1 + b e2), with
-        Levenberg-Marquardt steps (finite-difference Jacobian, accepted only if they
-        reduce the distance), so the result is never worse than the seed.
+        Seeds from the cloud's local minima of the distance (`_seeds`), then minimises
+        |x(a, b) - q|^2 over the local parametrisation x(a, b) = rho(u) u,
+        u = normalise(u0 + a e1 + b e2), with Levenberg-Marquardt steps (finite-difference
+        Jacobian, accepted only if they reduce the distance), so the result is never
+        worse than the seed.
         """
-        Q = np.ascontiguousarray(Q, dtype=float)
-        return _closest_batch(self.rho.kind, self.rho.params, Q, self._seed_directions(Q), int(iterations))
+        P, U, eta = self._cloud()
+        return _closest_batch(self.rho.kind, self.rho.params, np.ascontiguousarray(Q, dtype=float), P, U,
+                              COARSE_STEP, eta, SEED_TIE_MM, int(iterations))
 
     def normals_inward(self, U: np.ndarray) -> np.ndarray:
         """(M, 3) unit inward normals at the surface points in directions U (finite differences)."""
@@ -403,4 +493,4 @@ class StarSurface:
     def signed_distance_and_gradient(self, Q: np.ndarray):
         """((M,) signed distance mm, > 0 inside; (M, 3) unit gradient, pointing inward)."""
         Q = np.ascontiguousarray(Q, dtype=float)
-        return _distance_and_gradient(self.rho.kind, self.rho.params, Q, self._seed_directions(Q))
+        return _distance_and_gradient(self.rho.kind, self.rho.params, Q, self.closest_point(Q))
