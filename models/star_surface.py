@@ -23,7 +23,7 @@ from models.sampling import unit_sphere_grid
 
 RADIAL_KINDS = ("ellipsoid", "pointed", "staphyloma", "detached")
 _ELLIPSOID, _POINTED, _STAPHYLOMA, _DETACHED = range(len(RADIAL_KINDS))
-CLIP_MM = 1e-6  # a ray's excursion across the surface shallower than this may go unseen (1 nm)
+CLIP_MM = 1e-5  # a ray's excursion across the surface shallower than this may go unseen (10 nm)
 COARSE_STEP = 8  # the closest-point search scans every 8th row and column of the cloud first
 SEED_TIE_MM = 0.05  # cloud minima this close to the best are all refined (_seeds)
 SLOPE_SAFETY = 2.0  # the sampled slope of rho times this bounds the true one (see _march_constants)
