@@ -25,6 +25,7 @@ RADIAL_KINDS = ("ellipsoid", "pointed", "staphyloma", "detached")
 _ELLIPSOID, _POINTED, _STAPHYLOMA, _DETACHED = range(len(RADIAL_KINDS))
 CLIP_MM = 1e-5  # a ray's excursion across the surface shallower than this may go unseen (10 nm)
 COARSE_STEP = 8  # the closest-point search scans every 8th row and column of the cloud first
+MAX_COARSE_MINIMA = 8  # coarse local minima refined per query, the nearest first
 SEED_TIE_MM = 0.05  # cloud minima this close to the best are all refined (_seeds)
 SLOPE_SAFETY = 2.0  # the sampled slope of rho times this bounds the true one (see _march_constants)
 
@@ -306,22 +307,26 @@ def _descend(P, q, i, j):
 
 
 @njit(cache=True)
-def _seeds(P, q, k, eta_coarse, eta_fine, seeds):
+def _seeds(P, coarse, eta_rows, q, k, eta_fine, D, minima, seeds):
     """Fill `seeds` (S, 2) with cloud indices from which to search the closest point to q;
-    return how many. The k-th rows and columns of the cloud grid P form a coarse grid
-    whose every sample lies within eta_coarse (mm) of the cloud samples it stands for:
-    each coarse local minimum (8 neighbours) within eta_coarse of the coarse minimum
-    descends on the full grid (_descend), and the grid minima within eta_fine (mm) of the
-    best are the seeds (at most S, the nearest)."""
-    n_i, n_j = P.shape[0] // k, P.shape[1] // k
-    D = np.empty((n_i, n_j))
+    return how many. `coarse` (n_i, n_j, 3) mm: the samples (k a + k // 2, k b + k // 2)
+    of the cloud grid P, each standing for the k x k block of cloud samples around it,
+    all within eta_rows[a] (mm) of it; D (n_i, n_j) and minima (D.size, 3) are work space.
+    A block can hold a sample nearer to q than the nearest coarse sample only if
+    |coarse - q| - eta_rows[a] is below that distance: the coarse local minima (8
+    neighbours) among such blocks (the MAX_COARSE_MINIMA nearest) and their neighbours
+    descend on the full grid (_descend), and the distinct grid minima within eta_fine (mm)
+    of the best are the seeds (at most S, the nearest)."""
+    n_i, n_j = D.shape
+    lowest = np.inf
     for a in range(n_i):
         for b in range(n_j):
-            D[a, b] = _dist2(P, k * a + k // 2, k * b + k // 2, q)
-    limit = (np.sqrt(D.min()) + eta_coarse) ** 2
-    minima = np.empty((n_i * n_j, 3))  # (value, a, b) of the coarse local minima under the limit
+            D[a, b] = _dist2(coarse, a, b, q)
+            lowest = min(lowest, D[a, b])
+    lowest = np.sqrt(lowest)
     n = 0
     for a in range(n_i):
+        limit = (lowest + eta_rows[a]) ** 2
         for b in range(n_j):
             if D[a, b] > limit:
                 continue
@@ -329,35 +334,49 @@ def _seeds(P, q, k, eta_coarse, eta_fine, seeds):
             for aa in range(max(a - 1, 0), min(a + 2, n_i)):
                 for db in range(-1, 2):
                     local_min &= D[aa, (b + db) % n_j] >= D[a, b]
-            if local_min:
+            if local_min:  # (value, a, b)
                 minima[n, 0], minima[n, 1], minima[n, 2] = D[a, b], a, b
                 n += 1
-    found = np.empty((min(n, 4 * seeds.shape[0]), 3))  # (i, j, squared distance) on the full grid
-    for c, o in enumerate(np.argsort(minima[:n, 0])[:found.shape[0]]):
+    # each minimum and its coarse neighbours descend: a ridge of the distance between two
+    # coarse samples (the pointed eye's crease) leaves a basin without a coarse minimum
+    found = np.empty((9 * MAX_COARSE_MINIMA, 3))  # (i, j, squared distance) on the full grid
+    n_found = 0
+    for o in np.argsort(minima[:n, 0])[:MAX_COARSE_MINIMA]:
         a, b = int(minima[o, 1]), int(minima[o, 2])
-        found[c, 0], found[c, 1], found[c, 2] = _descend(P, q, k * a + k // 2, k * b + k // 2)
-    n = found.shape[0]
-    order = np.argsort(found[:n, 2])
+        for aa in range(max(a - 1, 0), min(a + 2, n_i)):
+            for db in range(-1, 2):
+                bb = (b + db) % n_j
+                if D[aa, bb] <= (lowest + eta_rows[aa]) ** 2:
+                    found[n_found, 0], found[n_found, 1], found[n_found, 2] = _descend(P, q, k * aa + k // 2, k * bb + k // 2)
+                    n_found += 1
+    order = np.argsort(found[:n_found, 2])
     best = np.sqrt(found[order[0], 2])
     count = 0
-    for o in order[:seeds.shape[0]]:
-        if np.sqrt(found[o, 2]) <= best + eta_fine:
+    for o in order:
+        if count == seeds.shape[0] or np.sqrt(found[o, 2]) > best + eta_fine:
+            break
+        seen = False
+        for c in range(count):
+            seen |= seeds[c, 0] == found[o, 0] and seeds[c, 1] == found[o, 1]
+        if not seen:
             seeds[count, 0], seeds[count, 1] = int(found[o, 0]), int(found[o, 1])
             count += 1
     return count
 
 
 @njit(cache=True)
-def _closest_batch(kind, p, Q, P, U, k, eta_coarse, eta_fine, iterations):
+def _closest_batch(kind, p, Q, P, U, coarse, eta_rows, k, eta_fine, iterations):
     """(M, 3) closest surface points (mm) to Q (M, 3) mm: Levenberg-Marquardt from each
     seed of `_seeds` on the cloud P (n_theta, n_phi, 3) mm in the directions U (same
     shape), the nearest result."""
     X = np.empty_like(Q)
+    D = np.empty(coarse.shape[:2])
+    minima = np.empty((D.size, 3))
     seeds = np.empty((4, 2), dtype=np.int64)
     for m in range(Q.shape[0]):
         q = Q[m]
         best = np.inf
-        for s in range(_seeds(P, q, k, eta_coarse, eta_fine, seeds)):
+        for s in range(_seeds(P, coarse, eta_rows, q, k, eta_fine, D, minima, seeds)):
             u = U[seeds[s, 0], seeds[s, 1]]
             Xs, cost = _closest_point(kind, p, q, (u[0], u[1], u[2]), iterations)
             if cost < best:
@@ -399,7 +418,7 @@ class StarSurface:
             raise ValueError(f"rho must be a RadialFunction (one of {', '.join(RADIAL_KINDS)}), got {type(rho).__name__}")
         self.rho = rho
         self._cloud_shape = cloud_shape
-        self._grid: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._constants: tuple[float, float, float] | None = None
 
     def points(self, U: np.ndarray) -> np.ndarray:
@@ -458,19 +477,20 @@ class StarSurface:
             self._constants = (r_in, r_out, float(np.sqrt(1.0 + (S / r_in) ** 2)))
         return self._constants
 
-    def _cloud(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """(P, U, eta_coarse): the cloud's surface points P (n_theta, n_phi, 3) mm in the
-        directions U (same shape) and how far (mm) a sample of its COARSE_STEP-th rows and
-        columns can lie from the samples of its block (the block's diameter)."""
+    def _cloud(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(P, U, coarse, eta_rows): the cloud's surface points P (n_theta, n_phi, 3) mm in
+        the directions U (same shape), its coarse grid (the samples at the centres of its
+        COARSE_STEP x COARSE_STEP blocks, (n_theta / k, n_phi / k, 3) mm) and, per row of
+        blocks, the farthest (mm) a block's sample lies from its centre."""
         if self._grid is None:
             n_theta, n_phi = self._cloud_shape
             U = unit_sphere_grid(n_theta, n_phi).reshape(n_theta, n_phi, 3)
             P = self.points(U.reshape(-1, 3)).reshape(U.shape)
             k = COARSE_STEP
             blocks = P[: n_theta // k * k, : n_phi // k * k].reshape(n_theta // k, k, n_phi // k, k, 3)
-            centre = blocks[:, k // 2, :, k // 2][:, None, :, None]
-            eta = float(np.linalg.norm(blocks - centre, axis=-1).max())
-            self._grid = (P, U, 2.0 * eta)
+            coarse = np.ascontiguousarray(blocks[:, k // 2, :, k // 2])
+            eta_rows = np.linalg.norm(blocks - coarse[:, None, :, None], axis=-1).max(axis=(1, 2, 3))
+            self._grid = (P, U, coarse, eta_rows)
         return self._grid
 
     def closest_point(self, Q: np.ndarray, iterations: int = 30) -> np.ndarray:
@@ -482,9 +502,8 @@ class StarSurface:
         Jacobian, accepted only if they reduce the distance), so the result is never
         worse than the seed.
         """
-        P, U, eta = self._cloud()
-        return _closest_batch(self.rho.kind, self.rho.params, np.ascontiguousarray(Q, dtype=float), P, U,
-                              COARSE_STEP, eta, SEED_TIE_MM, int(iterations))
+        return _closest_batch(self.rho.kind, self.rho.params, np.ascontiguousarray(Q, dtype=float), *self._cloud(),
+                              COARSE_STEP, SEED_TIE_MM, int(iterations))
 
     def normals_inward(self, U: np.ndarray) -> np.ndarray:
         """(M, 3) unit inward normals at the surface points in directions U (finite differences)."""
