@@ -4,9 +4,9 @@ The composite eye shapes (pointed, staphyloma, detached) are such surfaces in th
 frame E. This module answers the geometric questions for the radial functions of
 `RADIAL_KINDS` (compiled with numba: the sensor casts rays on the true retina at 2 kHz):
 first ray hits (a march whose steps are bounded by the radial function's slope, then
-regula falsi, sub-nanometre), exact signed distance (nearest sample of a dense surface
-cloud, then Levenberg-Marquardt on the surface parametrisation), normals and surface
-samples.
+regula falsi, sub-nanometre), exact signed distance (seeded from the local minima of the
+distance over a dense surface cloud, then Levenberg-Marquardt on the surface
+parametrisation), normals and surface samples.
 
 The radial functions are one compiled family (numba caches a kernel per function, not
 per closure, so the kinds share one set of kernels) with their parameters in a flat
@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from models._validation import as_positive, as_vector3
 from models.sampling import unit_sphere_grid
 
 RADIAL_KINDS = ("ellipsoid", "pointed", "staphyloma", "detached")
@@ -27,7 +28,7 @@ CLIP_MM = 1e-5  # a ray's excursion across the surface shallower than this may g
 COARSE_STEP = 8  # the closest-point search scans every 8th row and column of the cloud first
 MAX_COARSE_MINIMA = 8  # coarse local minima refined per query, the nearest first
 SEED_TIE_MM = 0.05  # cloud minima this close to the best are all refined (_seeds)
-SLOPE_SAFETY = 2.0  # the sampled slope of rho times this bounds the true one (see _march_constants)
+SLOPE_SAFETY = 2.0  # the sampled slope of rho times this bounds the true one (StarSurface.march_constants)
 
 
 @njit(cache=True)
@@ -71,7 +72,18 @@ class RadialFunction(NamedTuple):
 
 
 def _with_base(radii, *extra) -> np.ndarray:
-    return np.concatenate([1.0 / np.asarray(radii, dtype=float) ** 2, np.asarray(extra, dtype=float)])
+    """The parameters of `_rho`: 1 / radii^2 (radii (3,) mm, each > 0), then `extra`."""
+    radii = np.array([as_positive(r, "semi-axis (mm)") for r in np.ravel(radii)])
+    if radii.shape != (3,):
+        raise ValueError(f"radii must be 3 semi-axes (mm), got {radii.shape[0]}")
+    return np.concatenate([1.0 / radii**2, np.asarray(extra, dtype=float)])
+
+
+def _unit(centre_dir) -> np.ndarray:
+    u = as_vector3(centre_dir, "centre_dir")
+    if not abs(np.linalg.norm(u) - 1.0) <= 1e-9:
+        raise ValueError(f"centre_dir must be a unit vector, got norm {np.linalg.norm(u)}")
+    return u
 
 
 def ellipsoid_radial(radii) -> RadialFunction:
@@ -82,19 +94,30 @@ def ellipsoid_radial(radii) -> RadialFunction:
 def paraboloid_backed_radial(radii, depth_mm: float) -> RadialFunction:
     """The ellipsoid for z >= 0; for z < 0 the paraboloid z = -h + h (x^2/a^2 + y^2/b^2),
     h = `depth_mm`, through the ellipsoid's equator (a, b: its first two semi-axes, mm)."""
-    return RadialFunction(_POINTED, _with_base(radii, depth_mm))
+    return RadialFunction(_POINTED, _with_base(radii, as_positive(depth_mm, "depth_mm")))
 
 
 def sphere_union_radial(radii, centre_dir, centre_dist_mm: float, radius_mm: float, blend_mm: float) -> RadialFunction:
     """The ellipsoid and the sphere of radius `radius_mm` centred `centre_dist_mm` along the
-    unit `centre_dir` (3,), joined by a C1 smooth maximum of radial width `blend_mm`."""
-    return RadialFunction(_STAPHYLOMA, _with_base(radii, *centre_dir, centre_dist_mm, radius_mm, blend_mm))
+    unit `centre_dir` (3,), joined by a C1 smooth maximum of radial width `blend_mm`
+    (0 < centre_dist_mm < radius_mm: the sphere holds the centre, so it is star-shaped)."""
+    radius_mm = as_positive(radius_mm, "radius_mm")
+    if not 0.0 < centre_dist_mm < radius_mm:
+        raise ValueError(f"centre_dist_mm must lie in (0, {radius_mm}) mm, got {centre_dist_mm}")
+    return RadialFunction(_STAPHYLOMA, _with_base(radii, *_unit(centre_dir), centre_dist_mm, radius_mm,
+                                                  as_positive(blend_mm, "blend_mm")))
 
 
 def bump_radial(radii, centre_dir, half_angle_rad: float, height_mm: float) -> RadialFunction:
     """The ellipsoid lowered by height_mm (1 - t^2)^2 within `half_angle_rad` of the unit
-    `centre_dir` (3,), t the angle from it over the half-angle."""
-    return RadialFunction(_DETACHED, _with_base(radii, *centre_dir, half_angle_rad, height_mm))
+    `centre_dir` (3,), t the angle from it over the half-angle (0 < half_angle_rad <= pi,
+    0 <= height_mm below the ellipsoid's smallest semi-axis: rho stays > 0)."""
+    base = _with_base(radii, *_unit(centre_dir), as_positive(half_angle_rad, "half_angle_rad"), height_mm)
+    if half_angle_rad > np.pi:
+        raise ValueError(f"half_angle_rad must lie in (0, pi], got {half_angle_rad}")
+    if not 0.0 <= height_mm < 1.0 / np.sqrt(base[:3].max()):
+        raise ValueError(f"height_mm must lie in [0, {1.0 / np.sqrt(base[:3].max()):.3f}) mm, got {height_mm}")
+    return RadialFunction(_DETACHED, base)
 
 
 @njit(cache=True)

@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 
 from models import Ellipsoid, Sphere
 from models.eyes import detached_rho, pointed_rho, radii_for_refraction, staphyloma_rho
-from models.star_surface import CLIP_MM, StarSurface, ellipsoid_radial
+from models.star_surface import (CLIP_MM, StarSurface, bump_radial, ellipsoid_radial, paraboloid_backed_radial,
+                                 sphere_union_radial)
 
 RADII = np.array([12.0, 11.0, 10.0])
 ON_SURFACE_MM = 1e-6  # a refined hit's inside value (refined to ~1e-13 mm along the ray)
@@ -72,6 +73,21 @@ def test_ray_casts_do_not_depend_on_the_batch(n):
     whole = star.ray_cast(O, D)
     parts = np.concatenate([star.ray_cast(O[k:k + n], D[k:k + n]) for k in range(0, 21, n)])
     np.testing.assert_allclose(parts, whole, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("build, match", [
+    (lambda: ellipsoid_radial([12.0, 0.0, 10.0]), "semi-axis"),
+    (lambda: ellipsoid_radial([12.0, 10.0]), "3 semi-axes"),
+    (lambda: paraboloid_backed_radial(RADII, -1.0), "depth_mm"),
+    (lambda: sphere_union_radial(RADII, [0.0, 0.0, -1.0], 9.0, 8.4, 1.0), r"centre_dist_mm must lie in \(0, 8.4\)"),
+    (lambda: sphere_union_radial(RADII, [0.0, 0.0, -2.0], 5.0, 8.4, 1.0), "unit vector"),
+    (lambda: sphere_union_radial(RADII, [0.0, 0.0, -1.0], 5.0, 8.4, 0.0), "blend_mm"),
+    (lambda: bump_radial(RADII, [0.0, 0.0, -1.0], 4.0, 2.0), r"half_angle_rad must lie in \(0, pi\]"),
+    (lambda: bump_radial(RADII, [0.0, 0.0, -1.0], 0.4, 10.0), r"height_mm must lie in \[0, 10.000\)"),
+])
+def test_radial_functions_refuse_bad_parameters(build, match):
+    with pytest.raises(ValueError, match=match):
+        build()
 
 
 def test_bad_arguments_are_refused():
