@@ -443,6 +443,10 @@ class StarSurface:
         self._cloud_shape = cloud_shape
         self._grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._constants: tuple[float, float, float] | None = None
+        # the sensor's kernels loaded from numba's cache (compiled on a fresh checkout) now,
+        # not inside the first ray cast of a timed closed-loop run
+        self.ray_cast(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]))
+        self.normals_inward(np.array([[0.0, 0.0, -1.0]]))
 
     def points(self, U: np.ndarray) -> np.ndarray:
         """(M, 3) surface points (mm) in the directions U (M, 3), unit vectors."""
