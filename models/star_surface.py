@@ -312,11 +312,16 @@ def _dist2(P, i, j, q):
 
 
 @njit(cache=True)
-def _descend(P, q, i, j):
+def _descend(P, q, i, j, visited, stamp):
     """(i, j, squared distance mm^2): steepest descent of the distance to q over the cloud
-    grid P (n_theta, n_phi, 3) from the sample (i, j), 8 neighbours, periodic in phi."""
+    grid P (n_theta, n_phi, 3) from the sample (i, j), 8 neighbours, periodic in phi;
+    (-1, -1, inf) where it joins the path of an earlier descent for the same q (marked
+    `stamp` in `visited`, (n_theta, n_phi)), which ends at the same minimum."""
     best = _dist2(P, i, j, q)
     while True:
+        if visited[i, j] == stamp:
+            return -1, -1, np.inf
+        visited[i, j] = stamp
         bi, bj = i, j
         for ii in range(max(i - 1, 0), min(i + 2, P.shape[0])):
             for dj in range(-1, 2):
@@ -330,25 +335,31 @@ def _descend(P, q, i, j):
 
 
 @njit(cache=True)
-def _seeds(P, coarse, eta_rows, q, k, eta_fine, D, minima, seeds):
+def _seeds(P, coarse, eta_rows, z_rows, q, k, eta_fine, D, minima, seeds, visited, stamp):
     """Fill `seeds` (S, 2) with cloud indices from which to search the closest point to q;
     return how many. `coarse` (n_i, n_j, 3) mm: the samples (k a + k // 2, k b + k // 2)
     of the cloud grid P, each standing for the k x k block of cloud samples around it,
-    all within eta_rows[a] (mm) of it; D (n_i, n_j) and minima (D.size, 3) are work space.
+    all within eta_rows[a] (mm) of it and within z_rows[a] = (z_min, z_max) (mm), so that
+    rows whose z range lies farther from q than the nearest coarse sample so far are not
+    scanned; D (n_i, n_j), minima (D.size, 3) and visited (_descend) are work space.
     A block can hold a sample nearer to q than the nearest coarse sample only if
     |coarse - q| - eta_rows[a] is below that distance: the coarse local minima (8
     neighbours) among such blocks (the MAX_COARSE_MINIMA nearest) and their neighbours
     descend on the full grid (_descend), and the distinct grid minima within eta_fine (mm)
     of the best are the seeds (at most S, the nearest)."""
     n_i, n_j = D.shape
-    lowest = np.inf
-    for a in range(n_i):
-        for b in range(n_j):
-            D[a, b] = _dist2(coarse, a, b, q)
-            lowest = min(lowest, D[a, b])
+    slab = np.maximum(np.maximum(z_rows[:, 0] - q[2], q[2] - z_rows[:, 1]), 0.0)  # z gap (mm) per row
+    lowest = np.inf  # squared
+    scanned = np.zeros(n_i, dtype=np.bool_)  # rows not scanned count as infinitely far
+    for a in np.argsort(slab):
+        if slab[a] ** 2 < lowest:  # else no sample of the row's blocks lies nearer
+            scanned[a] = True
+            for b in range(n_j):
+                D[a, b] = _dist2(coarse, a, b, q)
+                lowest = min(lowest, D[a, b])
     lowest = np.sqrt(lowest)
     n = 0
-    for a in range(n_i):
+    for a in np.flatnonzero(scanned):
         limit = (lowest + eta_rows[a]) ** 2
         for b in range(n_j):
             if D[a, b] > limit:
@@ -356,7 +367,7 @@ def _seeds(P, coarse, eta_rows, q, k, eta_fine, D, minima, seeds):
             local_min = True
             for aa in range(max(a - 1, 0), min(a + 2, n_i)):
                 for db in range(-1, 2):
-                    local_min &= D[aa, (b + db) % n_j] >= D[a, b]
+                    local_min &= not scanned[aa] or D[aa, (b + db) % n_j] >= D[a, b]
             if local_min:  # (value, a, b)
                 minima[n, 0], minima[n, 1], minima[n, 2] = D[a, b], a, b
                 n += 1
@@ -369,9 +380,11 @@ def _seeds(P, coarse, eta_rows, q, k, eta_fine, D, minima, seeds):
         for aa in range(max(a - 1, 0), min(a + 2, n_i)):
             for db in range(-1, 2):
                 bb = (b + db) % n_j
-                if D[aa, bb] <= (lowest + eta_rows[aa]) ** 2:
-                    found[n_found, 0], found[n_found, 1], found[n_found, 2] = _descend(P, q, k * aa + k // 2, k * bb + k // 2)
-                    n_found += 1
+                if scanned[aa] and D[aa, bb] <= (lowest + eta_rows[aa]) ** 2:
+                    i, j, d2 = _descend(P, q, k * aa + k // 2, k * bb + k // 2, visited, stamp)
+                    if i >= 0:
+                        found[n_found, 0], found[n_found, 1], found[n_found, 2] = i, j, d2
+                        n_found += 1
     order = np.argsort(found[:n_found, 2])
     best = np.sqrt(found[order[0], 2])
     count = 0
@@ -388,7 +401,7 @@ def _seeds(P, coarse, eta_rows, q, k, eta_fine, D, minima, seeds):
 
 
 @njit(cache=True)
-def _closest_batch(kind, p, Q, P, U, coarse, eta_rows, k, eta_fine, iterations):
+def _closest_batch(kind, p, Q, P, U, coarse, eta_rows, z_rows, k, eta_fine, iterations):
     """(M, 3) closest surface points (mm) to Q (M, 3) mm: Levenberg-Marquardt from each
     seed of `_seeds` on the cloud P (n_theta, n_phi, 3) mm in the directions U (same
     shape), the nearest result."""
@@ -396,10 +409,11 @@ def _closest_batch(kind, p, Q, P, U, coarse, eta_rows, k, eta_fine, iterations):
     D = np.empty(coarse.shape[:2])
     minima = np.empty((D.size, 3))
     seeds = np.empty((4, 2), dtype=np.int64)
+    visited = np.zeros(P.shape[:2], dtype=np.int64)
     for m in range(Q.shape[0]):
         q = Q[m]
         best = np.inf
-        for s in range(_seeds(P, coarse, eta_rows, q, k, eta_fine, D, minima, seeds)):
+        for s in range(_seeds(P, coarse, eta_rows, z_rows, q, k, eta_fine, D, minima, seeds, visited, m + 1)):
             u = U[seeds[s, 0], seeds[s, 1]]
             Xs, cost = _closest_point(kind, p, q, (u[0], u[1], u[2]), iterations)
             if cost < best:
@@ -441,7 +455,7 @@ class StarSurface:
             raise ValueError(f"rho must be a RadialFunction (one of {', '.join(RADIAL_KINDS)}), got {type(rho).__name__}")
         self.rho = rho
         self._cloud_shape = cloud_shape
-        self._grid: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._grid: tuple[np.ndarray, ...] | None = None
         self._constants: tuple[float, float, float] | None = None
         # the sensor's kernels loaded from numba's cache (compiled on a fresh checkout) now,
         # not inside the first ray cast of a timed closed-loop run
@@ -504,11 +518,12 @@ class StarSurface:
             self._constants = (r_in, r_out, float(np.sqrt(1.0 + (S / r_in) ** 2)))
         return self._constants
 
-    def _cloud(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(P, U, coarse, eta_rows): the cloud's surface points P (n_theta, n_phi, 3) mm in
-        the directions U (same shape), its coarse grid (the samples at the centres of its
-        COARSE_STEP x COARSE_STEP blocks, (n_theta / k, n_phi / k, 3) mm) and, per row of
-        blocks, the farthest (mm) a block's sample lies from its centre."""
+    def _cloud(self) -> tuple[np.ndarray, ...]:
+        """(P, U, coarse, eta_rows, z_rows): the cloud's surface points P (n_theta, n_phi, 3)
+        mm in the directions U (same shape), its coarse grid (the samples at the centres of
+        its COARSE_STEP x COARSE_STEP blocks, (n_theta / k, n_phi / k, 3) mm) and, per row of
+        blocks, the farthest (mm) a block's sample lies from its centre and the range of
+        their z (min, max) mm."""
         if self._grid is None:
             n_theta, n_phi = self._cloud_shape
             U = unit_sphere_grid(n_theta, n_phi).reshape(n_theta, n_phi, 3)
@@ -517,7 +532,8 @@ class StarSurface:
             blocks = P[: n_theta // k * k, : n_phi // k * k].reshape(n_theta // k, k, n_phi // k, k, 3)
             coarse = np.ascontiguousarray(blocks[:, k // 2, :, k // 2])
             eta_rows = np.linalg.norm(blocks - coarse[:, None, :, None], axis=-1).max(axis=(1, 2, 3))
-            self._grid = (P, U, coarse, eta_rows)
+            z = blocks[..., 2].reshape(len(blocks), -1)
+            self._grid = (P, U, coarse, eta_rows, np.column_stack([z.min(axis=1), z.max(axis=1)]))
         return self._grid
 
     def closest_point(self, Q: np.ndarray, iterations: int = 30) -> np.ndarray:
