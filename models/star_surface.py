@@ -312,26 +312,32 @@ def _dist2(P, i, j, q):
 
 
 @njit(cache=True)
-def _descend(P, q, i, j, visited, stamp):
+def _descend(P, q, i, j, stride, visited, stamp):
     """(i, j, squared distance mm^2): steepest descent of the distance to q over the cloud
-    grid P (n_theta, n_phi, 3) from the sample (i, j), 8 neighbours, periodic in phi;
-    (-1, -1, inf) where it joins the path of an earlier descent for the same q (marked
-    `stamp` in `visited`, (n_theta, n_phi)), which ends at the same minimum."""
+    grid P (n_theta, n_phi, 3) from the sample (i, j), over the 8 neighbours `stride`
+    samples away, then stride // 2, ..., 1 (periodic in phi); (-1, -1, inf) where the
+    last stage joins the path of an earlier descent for the same q (marked `stamp` in
+    `visited`, (n_theta, n_phi)), which ends at the same minimum."""
     best = _dist2(P, i, j, q)
-    while True:
-        if visited[i, j] == stamp:
-            return -1, -1, np.inf
-        visited[i, j] = stamp
-        bi, bj = i, j
-        for ii in range(max(i - 1, 0), min(i + 2, P.shape[0])):
-            for dj in range(-1, 2):
-                jj = (j + dj) % P.shape[1]
-                d2 = _dist2(P, ii, jj, q)
-                if d2 < best:
-                    best, bi, bj = d2, ii, jj
-        if bi == i and bj == j:
-            return i, j, best
-        i, j = bi, bj
+    while stride >= 1:
+        while True:
+            if stride == 1:
+                if visited[i, j] == stamp:
+                    return -1, -1, np.inf
+                visited[i, j] = stamp
+            bi, bj = i, j
+            for ii in range(i - stride, i + stride + 1, stride):
+                if ii < 0 or ii >= P.shape[0]:
+                    continue
+                for jj in range(j - stride, j + stride + 1, stride):
+                    d2 = _dist2(P, ii, jj % P.shape[1], q)
+                    if d2 < best:
+                        best, bi, bj = d2, ii, jj % P.shape[1]
+            if bi == i and bj == j:
+                break
+            i, j = bi, bj
+        stride //= 2
+    return i, j, best
 
 
 @njit(cache=True)
@@ -381,7 +387,7 @@ def _seeds(P, coarse, eta_rows, z_rows, q, k, eta_fine, D, minima, seeds, visite
             for db in range(-1, 2):
                 bb = (b + db) % n_j
                 if scanned[aa] and D[aa, bb] <= (lowest + eta_rows[aa]) ** 2:
-                    i, j, d2 = _descend(P, q, k * aa + k // 2, k * bb + k // 2, visited, stamp)
+                    i, j, d2 = _descend(P, q, k * aa + k // 2, k * bb + k // 2, k // 2, visited, stamp)
                     if i >= 0:
                         found[n_found, 0], found[n_found, 1], found[n_found, 2] = i, j, d2
                         n_found += 1
