@@ -406,7 +406,7 @@ def _seeds(P, coarse, eta_rows, z_rows, q, k, eta_fine, D, minima, seeds, visite
     return count
 
 
-@njit(cache=True)
+@njit  # not cached: loaded from numba's cache it ran 4-5x slower than compiled (~2 s, once a process)
 def _closest_batch(kind, p, Q, P, U, coarse, eta_rows, z_rows, k, eta_fine, iterations):
     """(M, 3) closest surface points (mm) to Q (M, 3) mm: Levenberg-Marquardt from each
     seed of `_seeds` on the cloud P (n_theta, n_phi, 3) mm in the directions U (same
