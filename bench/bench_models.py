@@ -23,6 +23,21 @@ def _per_point_rate(fn, Q: np.ndarray) -> float:
     return len(Q) / (time.perf_counter() - t0)
 
 
+def _rays_to_the_posterior_wall(eye, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """n unit rays (origins, directions; (n, 3) each, W = E) from inside the eye, 0-25 mm
+    short of their hit on the posterior wall: the sensor's case in the closed loop."""
+    U = rng.normal(size=(n, 3))
+    U[:, 2] = -np.abs(U[:, 2]) - 0.8
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    D = U + 0.3 * rng.normal(size=(n, 3))
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    s = rng.uniform(0.0, 25.0, n)
+    P = eye.surface_points(U)
+    for _ in range(50):  # shorten until every origin lies inside
+        s = np.where(eye.signed_distance(P - s[:, None] * D) > 0, s, 0.7 * s)
+    return P - s[:, None] * D, D
+
+
 def drake_signed_distance(radii_mm: np.ndarray, Q_mm: np.ndarray) -> tuple[np.ndarray, float]:
     """Drake's signed distance (mm, converted to our convention: > 0 inside) from points Q_mm
     (M, 3) mm to an anchored Ellipsoid of semi-axes radii_mm at the world origin, and the
@@ -70,10 +85,14 @@ def run() -> None:
     rate = _per_point_rate(truth.signed_distance, Q)
     print(f"  Ellipsoid.signed_distance (exact, Eberly), 250,000 points: {rate / 1e6:.2f} M points/s "
           f"({1e6 / rate:.2f} us/point)")
-    pointed = make_eye("pointed")
-    rate = _per_point_rate(pointed.signed_distance, Q[:5000])
-    print(f"  pointed eye signed_distance (composite), 5,000 points: {rate / 1e3:.1f} k points/s "
-          f"({1e6 / rate:.1f} us/point)")
+    for name in ("pointed", "staphyloma", "detached"):
+        composite = make_eye(name)
+        O, D = _rays_to_the_posterior_wall(composite, 1000, rng)
+        ray_us = time_calls_us(lambda i: composite.ray_cast(O[10 * i:10 * i + 10], D[10 * i:10 * i + 10]), 100)
+        sd10_us = time_calls_us(lambda i: composite.signed_distance(Q[10 * i:10 * i + 10]), 100)
+        rate = _per_point_rate(composite.signed_distance, Q[:5000])
+        print(f"  {name} eye (composite): ray_cast per 10 rays from inside {summary_us(ray_us)}; "
+              f"signed_distance 10 points median {np.median(sd10_us):.0f} us, 5,000 points {5000 / rate * 1e3:.0f} ms")
 
     # Points within 5 mm of the retina, inside and outside, along the surface normals.
     X = truth.sample_surface(40, 50)

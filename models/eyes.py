@@ -14,7 +14,8 @@ import numpy as np
 
 from models._validation import as_points, as_rotation, as_vector3
 from models.ellipsoid import Ellipsoid
-from models.star_surface import StarSurface
+from models.star_surface import (RadialFunction, StarSurface, bump_radial, ellipsoid_radial,
+                                 paraboloid_backed_radial, sphere_union_radial)
 
 EYE_SHAPES = ("emmetropic", "myopic", "hyperopic", "pointed", "detached", "staphyloma")
 EMMETROPIC_RADII_MM = np.array([11.455, 11.365, 10.148])  # Atchison 2005 (gkaModelEye)
@@ -58,67 +59,32 @@ class EyePose:
         return P_E @ self.R_WE.T + self.p_WE
 
 
-def _ellipsoid_rho(radii: np.ndarray):
-    inv2 = 1.0 / radii**2
-    return lambda U: 1.0 / np.sqrt((U * U) @ inv2)
-
-
-def pointed_rho(radii: np.ndarray, apex_offset_mm: float = 2.0):
+def pointed_rho(radii: np.ndarray, apex_offset_mm: float = 2.0) -> RadialFunction:
     """Myopic anterior half (z >= 0) joined at the equator to a posterior paraboloid
     z = -h + h (x^2/a^2 + y^2/b^2), h = c + apex_offset: same rim, apex `apex_offset`
     behind the ellipsoid's posterior pole (a convex crease at the equator)."""
-    a, b, c = radii
-    h = c + apex_offset_mm
-    ell = _ellipsoid_rho(radii)
-
-    def rho(U):
-        k = U[:, 0] ** 2 / a**2 + U[:, 1] ** 2 / b**2
-        uz = U[:, 2]
-        # root of h k r^2 - uz r - h = 0 in the cancellation-free form (uz < 0 here)
-        # (the denominator vanishes on the anterior axis, uz > 0 and k = 0, where the
-        # ellipsoid answers instead)
-        den = -uz + np.sqrt(uz * uz + 4.0 * h * h * k)
-        parab = 2.0 * h / np.where(uz < 0.0, den, 1.0)
-        return np.where(uz >= 0.0, ell(U), parab)
-
-    return rho
+    return paraboloid_backed_radial(radii, float(radii[2]) + apex_offset_mm)
 
 
-def staphyloma_rho(radii, centre_dir, depth_mm=1.5, curvature_radius_mm=8.4, blend_mm=1.0):
+def staphyloma_rho(radii, centre_dir, depth_mm=1.5, curvature_radius_mm=8.4, blend_mm=1.0) -> RadialFunction:
     """The eye wall with a posterior outpouching: the union of the retinal ellipsoid and a
     sphere of radius `curvature_radius_mm` whose far wall lies `depth_mm` beyond the retina
     along `centre_dir`, joined by a C1 smooth maximum of width `blend_mm` (radial).
     With the defaults the walls meet at about 21 deg before blending."""
-    ell = _ellipsoid_rho(radii)
     u0 = centre_dir / np.linalg.norm(centre_dir)
-    D = float(ell(u0[None])[0]) + depth_mm - curvature_radius_mm
+    D = float(ellipsoid_radial(radii)(u0[None])[0]) + depth_mm - curvature_radius_mm
     if D <= 0 or D >= curvature_radius_mm:
         raise ValueError(f"staphyloma depth/curvature give a sphere centre at {D:.2f} mm; need 0 < D < radius")
-
-    def rho(U):
-        cos = U @ u0
-        r_sph = D * cos + np.sqrt(curvature_radius_mm**2 - D * D * (1.0 - cos * cos))
-        r_ell = ell(U)
-        h = np.clip(blend_mm - np.abs(r_ell - r_sph), 0.0, None) / blend_mm
-        return np.maximum(r_ell, r_sph) + 0.25 * blend_mm * h * h
-
-    return rho
+    return sphere_union_radial(radii, u0, D, curvature_radius_mm, blend_mm)
 
 
-def detached_rho(radii, centre_dir, height_mm=2.0, base_diameter_mm=10.0):
+def detached_rho(radii, centre_dir, height_mm=2.0, base_diameter_mm=10.0) -> RadialFunction:
     """The eye wall with the retina lifted towards the centre by up to `height_mm` over a
     region of `base_diameter_mm` about `centre_dir`; profile (1 - t^2)^2 in the angle
     ratio t, smooth inside and C1 at the rim."""
-    ell = _ellipsoid_rho(radii)
     u0 = centre_dir / np.linalg.norm(centre_dir)
-    alpha_b = 0.5 * base_diameter_mm / float(ell(u0[None])[0])
-
-    def rho(U):
-        t = np.arccos(np.clip(U @ u0, -1.0, 1.0)) / alpha_b
-        bump = np.where(t < 1.0, (1.0 - t * t) ** 2, 0.0)
-        return ell(U) - height_mm * bump
-
-    return rho
+    alpha_b = 0.5 * base_diameter_mm / float(ellipsoid_radial(radii)(u0[None])[0])
+    return bump_radial(radii, u0, alpha_b, height_mm)
 
 
 class Eye:
@@ -129,7 +95,7 @@ class Eye:
     ellipsoidal shapes, bisected to well under 1 um for the composite ones).
     """
 
-    def __init__(self, name: str, radii: np.ndarray, pose: EyePose, rho=None):
+    def __init__(self, name: str, radii: np.ndarray, pose: EyePose, rho: RadialFunction | None = None):
         self.name = name
         self.radii = np.asarray(radii, dtype=float)
         self.pose = pose
@@ -185,7 +151,7 @@ class Eye:
 
     def surface_points(self, U_E: np.ndarray) -> np.ndarray:
         """(M, 3) retina points in W in the E-frame unit directions U_E (M, 3) from the centre."""
-        rho = _ellipsoid_rho(self.radii) if self._star is None else self._star.rho
+        rho = ellipsoid_radial(self.radii) if self._star is None else self._star.rho
         return self.pose.to_W(rho(U_E)[:, None] * U_E)
 
     def in_reference_region(self, P_W, crop_mm: float = ANTERIOR_CROP_MM) -> np.ndarray:
