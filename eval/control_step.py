@@ -189,11 +189,52 @@ def warm_solution(H, c, lb, ub, G, h, A, b, ids, active_ids, tol):
     return True, x
 
 
+# control_step's constant arguments in one float array (one argument instead of twenty:
+# numba's dispatch costs ~0.08 us an argument, every step): sizes in this order, then the
+# lens offsets (mm) to the end
+_STATICS = ("S", 36, "R_home_I", 9, "p_home_I", 3, "p_WC", 3, "tip_x", 1, "port_I", 3, "spacing", 1, "n_shaft", 1,
+            "min_depth", 1, "rcm_gain", 1, "prior_center", 3, "prior_radii", 3, "lens_center", 3, "lens_rotation", 9,
+            "lens_radii", 3, "q_min", 6, "q_max", 6, "qdot_max", 6, "cfg", 15)
+_SO = np.concatenate([[0], np.cumsum(_STATICS[1::2])])  # offsets
+# the model's: kind, center (3), rotation (9), radii (3), margin, has_coverage, coverage centre (3)
+_MO = np.concatenate([[0], np.cumsum((1, 3, 9, 3, 1, 1, 3))])
+
+
+def pack_statics(**parts) -> np.ndarray:
+    """The float array of control_step's constants, named as in _STATICS (+ lens_offsets)."""
+    flat = [np.asarray(parts[name], dtype=float).reshape(-1) for name in _STATICS[::2]]
+    if [len(f) for f in flat] != list(_STATICS[1::2]):
+        raise ValueError(f"pack_statics: sizes {[len(f) for f in flat]}, expected {list(_STATICS[1::2])}")
+    return np.concatenate(flat + [np.asarray(parts["lens_offsets"], dtype=float).reshape(-1)])
+
+
 @njit(cache=True)
-def control_step(q, command, t_s, sensor_t_s, model_t_s, S, R_home_I, p_home_I, p_WC, tip_x, port_I, spacing, n_shaft,
-                 min_depth, lens_offsets, rcm_gain, kind, center, rotation, radii, margin, prior_center, prior_radii,
-                 has_coverage, cov_center, cov_dirs, cov_misfit, lens_center, lens_rotation, lens_radii, q_min, q_max,
-                 qdot_max, cfg, active_ids, wsf, wsi):
+def unpack_statics(st):
+    """pack_statics' parts, as views (in _STATICS' order, then the lens offsets)."""
+    o = _SO
+    return (st[o[0]:o[1]].reshape((6, 6)), st[o[1]:o[2]].reshape((3, 3)), st[o[2]:o[3]], st[o[3]:o[4]], st[o[4]],
+            st[o[5]:o[6]], st[o[6]], int(st[o[7]]), st[o[8]], st[o[9]], st[o[10]:o[11]], st[o[11]:o[12]],
+            st[o[12]:o[13]], st[o[13]:o[14]].reshape((3, 3)), st[o[14]:o[15]], st[o[15]:o[16]], st[o[16]:o[17]],
+            st[o[17]:o[18]], st[o[18]:o[19]], st[o[19]:])
+
+
+def pack_model(kind: int, center, rotation, radii, margin: float, has_coverage: bool, coverage_center) -> np.ndarray:
+    """The float array of control_step's model arguments (unpack_model)."""
+    return np.concatenate([[kind], np.asarray(center, dtype=float).reshape(3), np.asarray(rotation, dtype=float).reshape(9),
+                           np.asarray(radii, dtype=float).reshape(3), [margin, float(has_coverage)],
+                           np.asarray(coverage_center, dtype=float).reshape(3)])
+
+
+@njit(cache=True)
+def unpack_model(md):
+    """(kind, center, rotation (3, 3), radii, margin, has_coverage, coverage centre) of pack_model's array."""
+    o = _MO
+    return (int(md[0]), md[o[1]:o[2]], md[o[2]:o[3]].reshape((3, 3)), md[o[3]:o[4]], md[o[4]], md[o[5]] != 0.0,
+            md[o[6]:o[7]])
+
+
+@njit(cache=True)
+def control_step(q, command, t_s, sensor_t_s, model_t_s, statics, model, cov_dirs, cov_misfit, active_ids, wsf, wsi):
     """One filter step (FilterSystem.inputs + SafetyFilter), compiled.
 
     q (6,) rad; command (4,): tip velocity (3,) mm/s in W and roll rate rad/s; t_s,
@@ -215,6 +256,9 @@ def control_step(q, command, t_s, sensor_t_s, model_t_s, S, R_home_I, p_home_I, 
     first rows), its kept rows (indices into the k_used boundary points, then the lens
     points) and the rows of G at their bound (none when the equality optimum holds, as
     safety.qp.solve reports)."""
+    (S, R_home_I, p_home_I, p_WC, tip_x, port_I, spacing, n_shaft, min_depth, rcm_gain, prior_center, prior_radii,
+     lens_center, lens_rotation, lens_radii, q_min, q_max, qdot_max, cfg, lens_offsets) = unpack_statics(statics)
+    kind, center, rotation, radii, margin, has_coverage, cov_center = unpack_model(model)
     d_safe, gain, lens_margin, joint_gain, joint_margin = cfg[0], cfg[1], cfg[2], cfg[3], cfg[4]
     max_tip_speed, max_command_speed, damping, max_model_age, max_sensor_age = cfg[5], cfg[6], cfg[7], cfg[8], cfg[9]
     max_recovery, trust_rad, cos_misfit, chord_trust, chord_misfit = cfg[10], cfg[11], cfg[12], cfg[13], cfg[14]
@@ -319,16 +363,19 @@ class CompiledStep:
     def __init__(self, robot, config, prior, safety_filter):
         self.filter, self.solver = safety_filter, config.filter.solver
         f = config.filter
-        self._kin = kinematics_arguments(robot, robot.p_WC, config.points)
+        (S, R_home_I, p_home_I), (p_WC, tip_x, port_I, spacing, n_shaft, min_depth, lens_offsets, rcm_gain) = \
+            kinematics_arguments(robot, robot.p_WC, config.points)
         lens = robot.scenario.lens_W
-        w = _writeable
-        self._tail = (w(prior.center), np.full(3, float(prior.radius)), w(lens.center), w(lens.rotation), w(lens.radii),
-                      w(robot.q_lower), w(robot.q_upper), w(robot.qdot_max),
-                      np.array([f.d_safe_mm, f.gain_per_s, f.lens_margin_mm, f.joint_gain_per_s, f.joint_margin_rad,
-                                f.max_tip_speed_mm_s, f.max_command_speed_mm_s, f.damping, f.max_model_age_s,
-                                f.max_sensor_age_s, f.max_recovery_mm_s, np.radians(config.trust_angle_deg),
-                                np.cos(np.radians(config.misfit_angle_deg)), _chord(config.trust_angle_deg),
-                                _chord(config.misfit_angle_deg)]))
+        self._prior_center, self._prior_radii = _writeable(prior.center), np.full(3, float(prior.radius))
+        self._statics = pack_statics(
+            S=S, R_home_I=R_home_I, p_home_I=p_home_I, p_WC=p_WC, tip_x=tip_x, port_I=port_I, spacing=spacing,
+            n_shaft=n_shaft, min_depth=min_depth, rcm_gain=rcm_gain, prior_center=self._prior_center,
+            prior_radii=self._prior_radii, lens_center=lens.center, lens_rotation=lens.rotation, lens_radii=lens.radii,
+            q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max, lens_offsets=lens_offsets,
+            cfg=[f.d_safe_mm, f.gain_per_s, f.lens_margin_mm, f.joint_gain_per_s, f.joint_margin_rad, f.max_tip_speed_mm_s,
+                 f.max_command_speed_mm_s, f.damping, f.max_model_age_s, f.max_sensor_age_s, f.max_recovery_mm_s,
+                 np.radians(config.trust_angle_deg), np.cos(np.radians(config.misfit_angle_deg)),
+                 _chord(config.trust_angle_deg), _chord(config.misfit_angle_deg)])
         self._margins = config.margins
         self._snap, self._args, self._prior = None, (), True
         self._active = np.zeros(N_IDS, dtype=np.bool_)  # control_step's active_ids
@@ -336,14 +383,13 @@ class CompiledStep:
         self._ws = workspace_views(self._wsf, self._wsi)
 
     def _arguments(self, snap) -> tuple:
-        """control_step's arguments after the times: the kinematics, the snapshot's model
-        (kind, center, rotation, radii, margin), the prior, the coverage, the lens, the
-        limits, the parameters and the workspace; made once per snapshot."""
+        """control_step's arguments after the times: the constants, the snapshot's model
+        (kind, center, rotation, radii, margin, the coverage) and the step's state; made
+        once per snapshot."""
         if snap is not self._snap:
             shape = snap.shape
-            prior_center, prior_radii = self._tail[0], self._tail[1]
             if shape is None:
-                kind, center, rotation, radii = PRIOR, prior_center, np.eye(3), prior_radii
+                kind, center, rotation, radii = PRIOR, self._prior_center, np.eye(3), self._prior_radii
             elif hasattr(shape, "radii"):
                 kind, center, rotation, radii = ELLIPSOID, shape.center, shape.rotation, shape.radii
             else:
@@ -353,13 +399,11 @@ class CompiledStep:
             if not has_coverage:
                 dirs, misfit, cov_center = np.zeros((0, 3)), np.zeros(0), np.zeros(3)
             else:
-                dirs, cov_center = cov._dirs, np.asarray(cov.center_W, dtype=float)
+                dirs, cov_center = cov._dirs, cov.center_W
                 misfit = np.zeros(len(dirs)) if cov._misfit is None else cov._misfit
+            model = pack_model(kind, center, rotation, radii, float(snap.margin_mm(self._margins)), has_coverage, cov_center)
             w = _writeable  # one array type for every snapshot: one compiled specialisation
-            head, tail = self._kin
-            self._args = (*head, *tail, kind, w(center), w(rotation), w(radii), float(snap.margin_mm(self._margins)),
-                          prior_center, prior_radii, has_coverage, w(cov_center), w(dirs), w(misfit), *self._tail[2:],
-                          self._active, self._wsf, self._wsi)
+            self._args = (self._statics, model, w(dirs), w(misfit), self._active, self._wsf, self._wsi)
             self._snap, self._prior = snap, kind == PRIOR
         return self._args
 

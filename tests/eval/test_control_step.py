@@ -10,7 +10,9 @@ from hypothesis import strategies as st
 from eval.boundary_experiment import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
 from eval.commands import AdversarialCommand
-from eval.control_step import ACTIVE_TOL, N_IDS, N_TIP_ROWS, _chord, remember_active, row_ids, warm_solution
+from eval.control_step import (
+    _STATICS, ACTIVE_TOL, N_IDS, N_TIP_ROWS, _chord, pack_statics, remember_active, row_ids, unpack_statics, warm_solution,
+)
 from models.coverage import _nearest_and_worst, fibonacci_directions
 from planning import SurgeryScenario
 from safety import constraints
@@ -173,3 +175,16 @@ def test_the_previous_active_set_certifies_the_solution():
             certified_count += 1
             np.testing.assert_allclose(x, ref.x, rtol=0, atol=1e-9)
     assert tried >= 30 and certified_count >= 0.9 * tried
+
+
+def test_the_packed_constants_unpack_to_what_was_packed(setup):
+    loop = setup[0]
+    statics = loop.filter.compiled._statics
+    parts = dict(zip(_STATICS[::2], unpack_statics(statics)))
+    robot = loop.robot
+    np.testing.assert_array_equal(parts["q_max"], robot.q_upper)
+    np.testing.assert_array_equal(parts["S"], robot.chain.S)
+    assert parts["n_shaft"] == loop.config.points.n_shaft
+    np.testing.assert_array_equal(unpack_statics(statics)[-1], loop.config.points.lens_offsets_mm)
+    with pytest.raises(ValueError, match="sizes"):
+        pack_statics(**{**parts, "q_max": np.zeros(5), "lens_offsets": np.zeros(2)})
