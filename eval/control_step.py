@@ -7,13 +7,16 @@ points the model is trusted for, the barrier rows, the QP's assembly and its scr
 (safety). Each of those is compiled already; between them, Python objects
 (FilterInputs, PointKinematics, argument checks) cost most of the step. `control_step`
 runs the same kernels in the same order from plain arrays, so the ordinary step is one
-call, plus DAQP when an inequality is near its bound.
+call: when the equality optimum violates an inequality, the previous step's active
+set is tried first (safety.qp.warm_solution, certified by the KKT conditions), and DAQP
+only decides when that guess is not this step's.
 
 The reference stays safety.SafetyFilter on eval.closed_loop.FilterSystem.inputs: what
 the run logs hold and `vitreoguard replay` re-runs. Whatever is not the ordinary path
 (any fault, a point on the plane of the model ellipsoid's smallest axis, a QP the
-screen finds non-finite or with crossed bounds, a solver failure) comes back as REFERENCE, and the caller
-runs the reference filter, which also says why. Tests hold the two equal.
+screen finds non-finite or with crossed bounds, a solver failure) comes back as
+REFERENCE, and the caller runs the reference filter, which also says why. Tests hold
+the two equal.
 
 Units: mm, s, rad; frame W.
 """
@@ -25,14 +28,13 @@ import numpy as np
 from numba import njit
 
 from models._eberly import generic_distance_and_gradient
-from models._kernels import _solve
 from models.coverage import _nearest_and_worst
 from models.sphere import sphere_distance_and_gradient
 from planning.instrument_points import _LENS_NAMES, _NAMES, instrument_kinematics, kinematics_arguments
 from safety.constraints import _D, _POLYTOPE_REACH, TIP_SPEED_ROWS, _filter_qp, barrier_rows
 from safety.filter import FilterOutput, _off_command
 from safety.qp import (
-    _NEEDS_SOLVER, _OPTIMAL, DenseQP, _finite, _rows_at_bound, _screen, _solves, solve_by_solver,
+    _NEEDS_SOLVER, _OPTIMAL, DenseQP, _finite, _rows_at_bound, _screen, solve_by_solver, warm_solution,
 )
 
 OPTIMAL, NEEDS_SOLVER, REFERENCE = 0, 1, 2  # control_step's codes
@@ -65,14 +67,6 @@ def _unit_directions(P, center):
         n = max(np.sqrt(v0 * v0 + v1 * v1 + v2 * v2), 1e-12)
         V[i, 0], V[i, 1], V[i, 2] = v0 / n, v1 / n, v2 / n
     return V
-
-
-@njit(cache=True)
-def _all_finite(a) -> bool:
-    for v in a.ravel():
-        if not np.isfinite(v):
-            return False
-    return True
 
 
 N_TIP_ROWS = _D.shape[0]
@@ -123,70 +117,13 @@ def remember_active(active_ids, ids, G, h, lb, ub, x, tol):
 
 
 @njit(cache=True)
-def warm_solution(H, c, lb, ub, G, h, A, b, ids, active_ids, tol):
-    """(certified, x): the QP's solution if the constraints of active_ids (the previous
-    step's active set) are this step's: x solves the KKT system with them held as
-    equalities, satisfies every constraint (relative tol) and has non-negative
-    multipliers on them. That is the optimality certificate of the convex QP (H positive
-    definite: the solution is unique, the solver's to its rounding); anything else
-    (another active set, dependent rows) is not certified and goes to the solver."""
-    n, p = c.shape[0], b.shape[0]
-    rows = np.empty(G.shape[0] + 2 * n, dtype=np.int64)  # G's rows, then bounds as -(j + 1) / n + j
-    a = 0
-    for i in range(G.shape[0]):
-        if active_ids[ids[i]]:
-            rows[a] = i
-            a += 1
-    for j in range(n):
-        if active_ids[N_IDS - 2 * n + j]:
-            rows[a] = -(j + 1)
-            a += 1
-        if active_ids[N_IDS - n + j]:
-            rows[a] = G.shape[0] + j
-            a += 1
-    if a == 0 or a + p > n:
-        return False, np.zeros(n)
-    N = n + p + a
-    K = np.zeros((N, N))
-    rhs = np.zeros(N)
-    K[:n, :n] = H
-    rhs[:n] = -c
-    for i in range(p):
-        K[n + i, :n] = A[i]
-        K[:n, n + i] = A[i]
-        rhs[n + i] = b[i]
-    for r in range(a):
-        i = rows[r]
-        if i >= G.shape[0]:  # upper bound x_j <= ub_j
-            K[n + p + r, i - G.shape[0]] = K[i - G.shape[0], n + p + r] = 1.0
-            rhs[n + p + r] = ub[i - G.shape[0]]
-        elif i < 0:  # lower bound -x_j <= -lb_j
-            K[n + p + r, -i - 1] = K[-i - 1, n + p + r] = -1.0
-            rhs[n + p + r] = -lb[-i - 1]
-        else:
-            for j in range(n):
-                K[n + p + r, j] = K[j, n + p + r] = G[i, j]
-            rhs[n + p + r] = h[i]
-    z = _solve(K.copy(), rhs, 1e-300)
-    x = z[:n].copy()
-    if not (_finite(z) and _solves(K, z, rhs)):
-        return False, x
-    scale = 1.0
-    for r in range(N - n):
-        scale = max(scale, abs(z[n + r]))
-    for r in range(a):  # dual feasibility: the multipliers of the held inequalities
-        if z[n + p + r] < -1e-9 * scale:
-            return False, x
-    for i in range(G.shape[0]):  # primal feasibility, as the screen checks it
-        s = 0.0
-        for j in range(n):
-            s += G[i, j] * x[j]
-        if s > h[i] + tol * (1.0 + abs(h[i])):
-            return False, x
-    for j in range(n):
-        if x[j] < lb[j] - tol * (1.0 + abs(lb[j])) or x[j] > ub[j] + tol * (1.0 + abs(ub[j])):
-            return False, x
-    return True, x
+def warm_guess(active_ids, ids, n):
+    """(held rows of G (by their `ids`), held lower bounds (n,), held upper bounds (n,)):
+    the previous step's active set (active_ids) on this step's QP."""
+    held_rows = np.empty(ids.shape[0], dtype=np.bool_)
+    for i in range(ids.shape[0]):
+        held_rows[i] = active_ids[ids[i]]
+    return held_rows, active_ids[N_IDS - 2 * n:N_IDS - n].copy(), active_ids[N_IDS - n:].copy()
 
 
 # control_step's constant arguments in one float array (one argument instead of twenty:
@@ -268,7 +205,7 @@ def control_step(q, command, t_s, sensor_t_s, model_t_s, statics, model, cov_dir
     k_used = 2 if kind == PRIOR else k
     x = np.zeros(6)
     speed = np.sqrt(command[0] ** 2 + command[1] ** 2 + command[2] ** 2)
-    fault = not (_all_finite(q) and _all_finite(command[:3]) and _all_finite(P) and _all_finite(J)
+    fault = not (_finite(q) and _finite(command[:3]) and _finite(P) and _finite(J)
                  and speed <= max_command_speed and t_s - model_t_s <= max_model_age
                  and t_s - sensor_t_s <= max_sensor_age and np.isfinite(margin) and margin >= 0.0)
     if fault:
@@ -318,7 +255,7 @@ def control_step(q, command, t_s, sensor_t_s, model_t_s, statics, model, cov_dir
         active_ids[:] = False
     elif code == _NEEDS_SOLVER:
         ids = row_ids(rows, k_used)
-        certified, x_w = warm_solution(H, c, lb, ub, G, hv, rcm_A, rcm_b, ids, active_ids, ACTIVE_TOL)
+        certified, x_w = warm_solution(H, c, lb, ub, G, hv, rcm_A, rcm_b, *warm_guess(active_ids, ids, 6), ACTIVE_TOL)
         if certified:
             code, x = _OPTIMAL, x_w
             at_bound = remember_active(active_ids, ids, G, hv, lb, ub, x, ACTIVE_TOL)

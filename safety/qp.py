@@ -87,7 +87,7 @@ def _screen(H, c, lb, ub, G, h, A, b, tol):
     the equalities that also satisfies every inequality and bound (then it is the convex
     QP's solution), or _NEEDS_SOLVER (an inequality would be violated, or the KKT
     system is singular)."""
-    n, p = c.shape[0], b.shape[0]
+    n = c.shape[0]
     x = np.zeros(n)
     if not (_finite(H) and _finite(c) and _finite(G) and _finite(h) and _finite(A) and _finite(b)):
         return _NONFINITE, x
@@ -96,27 +96,83 @@ def _screen(H, c, lb, ub, G, h, A, b, tol):
             return _NONFINITE, x
         if lb[i] > ub[i]:
             return _CROSSED, x
-    K = np.zeros((n + p, n + p))
-    rhs = np.zeros(n + p)
+    solved, x = _kkt_solution(H, c, A, b, np.zeros((0, n)), np.zeros(0), tol)
+    return (_OPTIMAL if solved and _feasible(G, h, lb, ub, x, tol) else _NEEDS_SOLVER), x
+
+
+@njit(cache=True)
+def _kkt_solution(H, c, A, b, C, d, tol):
+    """(solved, x): the minimiser of 1/2 x^T H x + c^T x subject to A x = b and C x = d,
+    from its KKT system (Gaussian elimination with partial pivoting; a singular system
+    fails the residual check), solved False also when a multiplier of C's rows is
+    negative (below -1e-9 of the largest): then C's rows are not all binding."""
+    n, p, a = c.shape[0], b.shape[0], d.shape[0]
+    N = n + p + a
+    K = np.zeros((N, N))
+    rhs = np.zeros(N)
     K[:n, :n] = H
-    K[:n, n:] = A.T
-    K[n:, :n] = A
     rhs[:n] = -c
-    rhs[n:] = b
-    z = _solve(K.copy(), rhs, 1e-300)  # Gaussian elimination, partial pivoting (a singular K fails _solves)
+    for i in range(p + a):
+        row = A[i] if i < p else C[i - p]
+        for j in range(n):
+            K[n + i, j] = K[j, n + i] = row[j]
+        rhs[n + i] = b[i] if i < p else d[i - p]
+    z = _solve(K.copy(), rhs, 1e-300)
     x = z[:n].copy()
     if not (_finite(z) and _solves(K, z, rhs)):
-        return _NEEDS_SOLVER, x
+        return False, x
+    scale = 1.0
+    for i in range(p + a):
+        scale = max(scale, abs(z[n + i]))
+    for i in range(a):  # dual feasibility of the held inequalities
+        if z[n + p + i] < -1e-9 * scale:
+            return False, x
+    return True, x
+
+
+@njit(cache=True)
+def _feasible(G, h, lb, ub, x, tol) -> bool:
+    """G x <= h and lb <= x <= ub, each to tol relative to its bound."""
+    n = x.shape[0]
     for i in range(h.shape[0]):
         r = 0.0
         for j in range(n):
             r += G[i, j] * x[j]
         if r > h[i] + tol * (1.0 + abs(h[i])):
-            return _NEEDS_SOLVER, x
+            return False
     for i in range(n):
         if x[i] < lb[i] - tol * (1.0 + abs(lb[i])) or x[i] > ub[i] + tol * (1.0 + abs(ub[i])):
-            return _NEEDS_SOLVER, x
-    return _OPTIMAL, x
+            return False
+    return True
+
+
+@njit(cache=True)
+def warm_solution(H, c, lb, ub, G, h, A, b, held_rows, held_lower, held_upper, tol):
+    """(certified, x): the QP's solution if the guessed active set is its own: the rows
+    of G marked in held_rows (m,) and the bounds in held_lower / held_upper (n,) bool,
+    held as equalities with A x = b, give an x that satisfies every constraint (relative
+    tol) with non-negative multipliers on the held ones. That is the KKT certificate of
+    the convex QP (H positive definite: the solution is unique, every solver's to its
+    rounding); another active set, or dependent rows, is not certified."""
+    n, p = c.shape[0], b.shape[0]
+    C = np.zeros((G.shape[0] + 2 * n, n))
+    d = np.zeros(G.shape[0] + 2 * n)
+    a = 0
+    for i in range(G.shape[0]):
+        if held_rows[i]:
+            C[a], d[a] = G[i], h[i]
+            a += 1
+    for j in range(n):
+        if held_lower[j]:  # -x_j <= -lb_j
+            C[a, j], d[a] = -1.0, -lb[j]
+            a += 1
+        if held_upper[j]:
+            C[a, j], d[a] = 1.0, ub[j]
+            a += 1
+    if a == 0 or a + p > n:
+        return False, np.zeros(n)
+    solved, x = _kkt_solution(H, c, A, b, C[:a], d[:a], tol)
+    return solved and _feasible(G, h, lb, ub, x, tol), x
 
 
 @njit(cache=True)

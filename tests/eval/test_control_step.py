@@ -11,12 +11,12 @@ from eval.boundary_experiment import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
 from eval.commands import AdversarialCommand
 from eval.control_step import (
-    _STATICS, ACTIVE_TOL, N_IDS, N_TIP_ROWS, _chord, pack_statics, remember_active, row_ids, unpack_statics, warm_solution,
+    _STATICS, ACTIVE_TOL, N_IDS, N_TIP_ROWS, _chord, pack_statics, remember_active, row_ids, unpack_statics, warm_guess,
 )
 from models.coverage import _nearest_and_worst, fibonacci_directions
 from planning import SurgeryScenario
 from safety import constraints
-from safety.qp import solve
+from safety.qp import solve, warm_solution
 from test_closed_loop import State, model_from_spiral_beams
 
 QDOT_TOL = 1e-9  # rad/s: the same kernels on the same numbers; only the QP solver's own rounding differs
@@ -142,7 +142,8 @@ def random_qp(seed: int, clearance_mm: float, v_cmd):
 
 def warm(qp, active_ids):
     ids = row_ids(np.arange(len(qp.h) - N_TIP_ROWS), len(qp.h) - N_TIP_ROWS)
-    return warm_solution(qp.H, qp.c, qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b, ids, active_ids, ACTIVE_TOL), ids
+    held = warm_guess(active_ids, ids, len(qp.c))
+    return warm_solution(qp.H, qp.c, qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b, *held, ACTIVE_TOL), ids
 
 
 @settings(max_examples=80, deadline=None)
