@@ -393,8 +393,8 @@ class FilterSystem(LeafSystem):
         rec = self.record
         out, r = self.compiled.step(t, q, command, snap, sensor_t)
         if out is not None:  # the ordinary step, compiled: the points from its kinematics
-            k, m, P = r[2], r[4], r[5]
-            J_tip, P_W, L_W, rcm_error_mm = r[6], P[:k], P[k:k + m], float(r[7])
+            k, m, P = r.k, r.m, r.P_W
+            J_tip, P_W, L_W, rcm_error_mm = r.J_tip, P[:k], P[k:k + m], float(r.rcm_error_mm)
             x = self.inputs(t, q, command, snap, sensor_t)[0] if self.logger is not None else None
         else:  # a fault or an unusual step: the reference filter decides and says why
             try:

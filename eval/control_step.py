@@ -23,6 +23,7 @@ Units: mm, s, rad; frame W.
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -38,6 +39,29 @@ from safety.qp import (
 )
 
 OPTIMAL, NEEDS_SOLVER, REFERENCE = 0, 1, 2  # control_step's codes
+
+
+class StepResult(NamedTuple):
+    """control_step's result (mm, rad, s; W): `code`; `x` (6,) rad/s when OPTIMAL; k
+    boundary points (k_used of them against the model), m lens points, P_W (k + m + 1,
+    3) mm (tip, port, shaft, lens points, the shaft's point at the trocar); J_tip (3, 6)
+    mm/rad; the RCM error, the smallest clearance and the port's (mm); the QP's kept
+    barrier rows and rows at their bound (counts; the rows in the workspace); whether
+    J_tip x is off the command by > 1 %."""
+
+    code: int
+    x: np.ndarray
+    k: int
+    k_used: int
+    m: int
+    P_W: np.ndarray
+    J_tip: np.ndarray
+    rcm_error_mm: float
+    clearance_mm: float
+    port_clearance_mm: float
+    n_rows: int
+    n_at_bound: int
+    off_command: bool
 PRIOR, SPHERE, ELLIPSOID = 0, 1, 2  # the model the filter uses
 ACTIVE_TOL = 1e-6  # safety.qp.solve's default: a row within this (relative) of its bound is active
 _ROW_NAMES = tuple(f"boundary:{n}" for n in _NAMES), tuple(f"lens:{n}" for n in _LENS_NAMES)
@@ -185,10 +209,7 @@ def control_step(q, command, t_s, sensor_t_s, model_t_s, statics, model, cov_dir
     (N_IDS,) bool: the constraints active at the previous step's solution (row_ids),
     the guess tried when the equality optimum is not feasible; updated in place.
 
-    Returns (code, x (6,) rad/s when OPTIMAL, k (all boundary points), k_used (those
-    against the model), m (lens points), P_W (k + m + 1, 3) mm, J_tip (3, 6),
-    rcm_error_mm, clearance_mm, port_clearance_mm, n_rows, n_at_bound, whether the tip
-    velocity J_tip x is off the command by > 1 % (safety.filter._off_command)) and leaves in the
+    Returns a StepResult and leaves in the
     workspace (workspace_views of wsf, wsi) the QP (its G and h: the n_rows + N_TIP_ROWS
     first rows), its kept rows (indices into the k_used boundary points, then the lens
     points) and the rows of G at their bound (none when the equality optimum holds, as
@@ -210,7 +231,7 @@ def control_step(q, command, t_s, sensor_t_s, model_t_s, statics, model, cov_dir
                  and t_s - sensor_t_s <= max_sensor_age and np.isfinite(margin) and margin >= 0.0)
     if fault:
         active_ids[:] = False
-        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True
+        return StepResult(REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True)
     # which points the model is trusted for, and its measured misfit near them (CoverageView)
     trusted = np.ones(k_used, dtype=np.bool_)
     misfit = np.zeros(k_used)
@@ -233,14 +254,14 @@ def control_step(q, command, t_s, sensor_t_s, model_t_s, statics, model, cov_dir
     h_lens, g_lens, lens_generic = _shape_distance(ELLIPSOID, lens_center, lens_rotation, lens_radii, P[k:k + m])
     if not (generic and lens_generic):
         active_ids[:] = False
-        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True
+        return StepResult(REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True)
     always = np.zeros(k_used, dtype=np.bool_)
     always[:2] = True
     h, grad, h_min, keep, finite = barrier_rows(h_model, g_model, h_fallback, g_fallback, misfit, margin, d_safe, always,
                                                 h_lens, g_lens, lens_margin, max_tip_speed / gain)
     if not finite:
         active_ids[:] = False
-        return REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True
+        return StepResult(REFERENCE, x, k, k_used, m, P, J_tip, rcm_error, np.nan, np.nan, 0, 0, True)
     clearance = h[:k_used].min()
     rows = np.flatnonzero(keep)
     J_pts = np.empty((rows.shape[0], 3, 6))
@@ -265,8 +286,8 @@ def control_step(q, command, t_s, sensor_t_s, model_t_s, statics, model, cov_dir
     H_w[:], c_w[:], lb_w[:], ub_w[:], A_w[:], b_w[:] = H, c, lb, ub, rcm_A, rcm_b
     G_w[:G.shape[0]], h_w[:G.shape[0]], rows_w[:rows.shape[0]], bound_w[:at_bound.shape[0]] = G, hv, rows, at_bound
     out = OPTIMAL if code == _OPTIMAL else (NEEDS_SOLVER if code == _NEEDS_SOLVER else REFERENCE)
-    return (out, x, k, k_used, m, P, J_tip, rcm_error, clearance, h[1], rows.shape[0], at_bound.shape[0],
-            _off_command(J_tip, x, command))
+    return StepResult(out, x, k, k_used, m, P, J_tip, rcm_error, clearance, h[1], rows.shape[0], at_bound.shape[0],
+                      _off_command(J_tip, x, command))
 
 
 def _writeable(a) -> np.ndarray:
@@ -291,8 +312,7 @@ def row_names(rows: np.ndarray, k_used: int) -> tuple:
 
 
 class CompiledStep:
-    """`step(t_s, q, command, snap, sensor_t_s)` -> (FilterOutput or None, the kernel's
-    tuple): control_step with this loop's robot, configuration and prior; None where the
+    """`step(t_s, q, command, snap, sensor_t_s)` -> (FilterOutput or None, StepResult): control_step with this loop's robot, configuration and prior; None where the
     reference filter must decide (REFERENCE, or a solver failure). `snap` is an
     eval.closed_loop.ModelSnapshot: its arrays are unpacked once per snapshot. It keeps
     the last step's active set as the next step's guess: `reset` between runs."""
@@ -352,7 +372,7 @@ class CompiledStep:
         t0 = time.perf_counter()
         args = self._arguments(snap)
         r = control_step(q, command, t_s, sensor_t_s, t_s if self._prior else snap.t_s, *args)
-        code, x, k_used, n_rows, n_bound = r[0], r[1], r[3], r[10], r[11]
+        code, x, k_used, n_rows, n_bound = r.code, r.x, r.k_used, r.n_rows, r.n_at_bound
         if code == REFERENCE:
             return None, r
         H, c, lb, ub, A, b, G, h, rows, at_bound = self._ws
@@ -361,8 +381,8 @@ class CompiledStep:
             if n_bound:
                 names = row_names(rows[:n_rows], k_used)
                 active = tuple(sorted({names[i] for i in at_bound[:n_bound]}))
-            cutter = bool(r[9] > self.filter.config.cutter_clearance_mm)
-            return FilterOutput(x, True, "ok", active, float(r[8]), cutter, bool(r[12] or n_bound),
+            cutter = bool(r.port_clearance_mm > self.filter.config.cutter_clearance_mm)
+            return FilterOutput(x, True, "ok", active, float(r.clearance_mm), cutter, bool(r.off_command or n_bound),
                                 1e6 * (time.perf_counter() - t0)), r
         m = N_TIP_ROWS + n_rows
         qp = DenseQP(H.copy(), c.copy(), lb.copy(), ub.copy(), G[:m].copy(), h[:m].copy(), A.copy(), b.copy(),
@@ -372,4 +392,4 @@ class CompiledStep:
             self.reset()
             return None, r
         remember_active(self._active, row_ids(rows[:n_rows], k_used), qp.G, qp.h, qp.lb, qp.ub, result.x, ACTIVE_TOL)
-        return self.filter.output(result, r[6], command[:3], float(r[8]), float(r[9])), r
+        return self.filter.output(result, r.J_tip, command[:3], float(r.clearance_mm), float(r.port_clearance_mm)), r

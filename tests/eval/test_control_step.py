@@ -68,7 +68,7 @@ def test_both_compiled_outcomes_occur_and_faults_go_to_the_reference(setup):
     loop, starts, snaps, _ = setup
     step, snap, q = loop.filter.compiled.step, snaps["ellipsoid"], starts[0]
     # slow: the equality optimum holds (no solver); fast toward the retina: DAQP
-    assert step(0.001, q, np.array([0.1, 0.0, 0.0, 0.0]), snap, 0.0)[1][0] == 0
+    assert step(0.001, q, np.array([0.1, 0.0, 0.0, 0.0]), snap, 0.0)[1].code == 0
     out = (step(0.001, q, np.array([0.0, 0.0, 60.0, 0.0]), snap, 0.0))[0]
     assert out is not None and "tip_speed" in out.active
     stale = loop.config.filter.max_sensor_age_s + 0.01
