@@ -113,15 +113,15 @@ def run() -> None:
           f"filter system {_ms_per_s(c.runs, 'filter_wall_s'):.1f} ms, "
           f"model system {_ms_per_s(c.runs, 'model_wall_s'):.1f} ms (of the 100 ms that 10 x real time allows)")
     steps = np.concatenate([r.step_us for r in c.runs])
-    print(f"whole filter step (inputs + filter):     {summary_us(steps)}")
+    print(f"filter step in the loop (compiled step, ports, record): {summary_us(steps)}")
     qs = np.concatenate([r.q for r in c.runs])[:2000]
-    print(f"instrument_points per step:              {summary_us(time_calls_us(lambda i: instrument_points(loop.robot, qs[i], scenario.p_WC), len(qs)))}")
+    print(f"reference path: instrument_points:       {summary_us(time_calls_us(lambda i: instrument_points(loop.robot, qs[i], scenario.p_WC), len(qs)))}")
     f = loop.filter
     snap = ModelSnapshot(build.model.kind, build.model.shape, 0.0, 0.01, build.model.n_points, build.coverage.view(build.model.shape))
     cmd = np.array([5.0, 0.0, -3.0, 0.0])
-    print(f"filter inputs (points, trust, margins):  {summary_us(time_calls_us(lambda i: f.inputs(0.0, qs[i], cmd, snap, 0.0), len(qs)))}")
+    print(f"reference path: FilterSystem.inputs:     {summary_us(time_calls_us(lambda i: f.inputs(0.0, qs[i], cmd, snap, 0.0), len(qs)))}")
     xs = [f.inputs(0.0, q, cmd, snap, 0.0)[0] for q in qs[:500]]
-    print(f"SafetyFilter call:                       {summary_us(time_calls_us(lambda i: f.filter(xs[i]), len(xs)))}")
+    print(f"reference path: SafetyFilter call:       {summary_us(time_calls_us(lambda i: f.filter(xs[i]), len(xs)))}")
     packets = [qs[i:i + 10] for i in range(0, len(qs) - 10, 10)]  # joint angles along the runs
     T = np.arange(10) * 5e-4
     packet_us = time_calls_us(lambda i: loop.sensor.samples(packets[i], packets[i], T), len(packets))
