@@ -312,7 +312,8 @@ def row_names(rows: np.ndarray, k_used: int) -> tuple:
 
 
 class CompiledStep:
-    """`step(t_s, q, command, snap, sensor_t_s)` -> (FilterOutput or None, StepResult): control_step with this loop's robot, configuration and prior; None where the
+    """`step(t_s, q, command, snap, sensor_t_s)` -> (FilterOutput or None, StepResult):
+    control_step with this loop's robot, configuration and prior; None where the
     reference filter must decide (REFERENCE, or a solver failure). `snap` is an
     eval.closed_loop.ModelSnapshot: its arrays are unpacked once per snapshot. It keeps
     the last step's active set as the next step's guess: `reset` between runs."""
