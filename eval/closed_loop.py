@@ -19,8 +19,8 @@ Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
-import math
 import gc
+import math
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -31,10 +31,10 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import DiscreteTimeIntegrator
 
+from eval.control_step import CompiledStep
 from models import AdaptiveEyeModel
 from models.coverage import DirectionCoverage
 from models.transition import PredictiveCriteria
-from eval.control_step import CompiledStep
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 from planning.iioct_sensor import IioctSensor, IioctSensorSystem

@@ -33,9 +33,9 @@ from models.coverage import _nearest_and_worst
 from models.sphere import sphere_distance_and_gradient
 from planning.instrument_points import _LENS_NAMES, _NAMES, instrument_kinematics, kinematics_arguments
 from safety.constraints import _D, _POLYTOPE_REACH, TIP_SPEED_ROWS, _filter_qp, barrier_rows
-from safety.filter import FilterOutput, _off_command
+from safety.filter import _off_command
 from safety.qp import (
-    _NEEDS_SOLVER, _OPTIMAL, DenseQP, _finite, _rows_at_bound, _screen, solve_by_solver, warm_solution,
+    _NEEDS_SOLVER, _OPTIMAL, DenseQP, QPResult, _finite, _rows_at_bound, _screen, solve_by_solver, warm_solution,
 )
 
 OPTIMAL, NEEDS_SOLVER, REFERENCE = 0, 1, 2  # control_step's codes
@@ -237,15 +237,15 @@ def control_step(q, command, t_s, sensor_t_s, model_t_s, statics, model, cov_dir
     misfit = np.zeros(k_used)
     if kind != PRIOR and has_coverage:  # without covered directions: no point is trusted (angle pi)
         V = _unit_directions(P[:k_used], cov_center)
-        # (a direction beyond an angle's chord in z is beyond the angle: the band decides alike)
-        best, _ = _nearest_and_worst(V[:2], cov_dirs, cov_misfit, 2.0, chord_trust)
+        # one scan for both queries, in the z band of the wider angle (a direction beyond an
+        # angle's chord in z is beyond the angle: the band decides alike)
+        best, misfit = _nearest_and_worst(V, cov_dirs, cov_misfit, cos_misfit, max(chord_trust, chord_misfit))
         for i in range(2):
             trusted[i] = np.arccos(min(max(best[i], -1.0), 1.0)) <= trust_rad
-        misfit = _nearest_and_worst(V, cov_dirs, cov_misfit, cos_misfit, chord_misfit)[1]
     h_model, g_model, generic = _shape_distance(kind, center, rotation, radii, P[:k_used])
     h_fallback = np.full(k_used, np.inf)
     g_fallback = np.zeros((k_used, 3))
-    if kind != PRIOR:  # the prior as fallback where the model is not trusted
+    if kind != PRIOR and not trusted.all():  # the prior as fallback where the model is not trusted
         h_p, g_p, _ = _shape_distance(SPHERE, prior_center, rotation, prior_radii, P[:k_used])
         for i in range(k_used):
             if not trusted[i]:
@@ -382,15 +382,14 @@ class CompiledStep:
             if n_bound:
                 names = row_names(rows[:n_rows], k_used)
                 active = tuple(sorted({names[i] for i in at_bound[:n_bound]}))
-            cutter = bool(r.port_clearance_mm > self.filter.config.cutter_clearance_mm)
-            return FilterOutput(x, True, "ok", active, float(r.clearance_mm), cutter, bool(r.off_command or n_bound),
-                                1e6 * (time.perf_counter() - t0)), r
+            result = QPResult(x, "ok", active, 1e6 * (time.perf_counter() - t0))
+            return self.filter.output(result, float(r.clearance_mm), float(r.port_clearance_mm), r.off_command), r
         m = N_TIP_ROWS + n_rows
-        qp = DenseQP(H.copy(), c.copy(), lb.copy(), ub.copy(), G[:m].copy(), h[:m].copy(), A.copy(), b.copy(),
-                     row_names(rows[:n_rows], k_used))
+        qp = DenseQP(H, c, lb, ub, G[:m], h[:m], A, b, row_names(rows[:n_rows], k_used))  # views: used in this call only
         result = solve_by_solver(qp, self.solver, ACTIVE_TOL, t0)
         if not result.ok:
             self.reset()
             return None, r
         remember_active(self._active, row_ids(rows[:n_rows], k_used), qp.G, qp.h, qp.lb, qp.ub, result.x, ACTIVE_TOL)
-        return self.filter.output(result, r.J_tip, command[:3], float(r.clearance_mm), float(r.port_clearance_mm)), r
+        off = _off_command(r.J_tip, result.x, command)
+        return self.filter.output(result, float(r.clearance_mm), float(r.port_clearance_mm), off), r

@@ -59,8 +59,7 @@ def barrier_rows(h_model, g_model, h_fallback, g_fallback, point_margin, margin,
                 grad[i, r] = -g_lens[i - k, r]
             h_min[i] = lens_margin
         keep[i] = h[i] - h_min[i] <= reach_mm or (i < k and always[i])
-        if not (np.isfinite(h[i]) and np.isfinite(grad[i, 0]) and np.isfinite(grad[i, 1])
-                          and np.isfinite(grad[i, 2])):
+        if not (np.isfinite(h[i]) and np.isfinite(grad[i, 0]) and np.isfinite(grad[i, 1]) and np.isfinite(grad[i, 2])):
             finite = False
     return h, grad, h_min, keep, finite
 

@@ -188,15 +188,15 @@ class SafetyFilter:
         if not result.ok:
             return self._stop(n, f"QP: {result.reason}", clearance)
         port = [hi for p, hi in zip(pts, h) if p.name == "port"]
-        return self.output(result, x.J_tip, x.v_cmd_W, clearance, port[0] if port else None)
+        off = _off_command(np.asarray(x.J_tip, dtype=float), result.x, np.asarray(x.v_cmd_W, dtype=float))
+        return self.output(result, clearance, port[0] if port else None, off)
 
-    def output(self, result, J_tip, v_cmd_W, clearance: float, port_clearance_mm: float | None) -> FilterOutput:
-        """The FilterOutput of a solved step: `result` (safety.qp.QPResult, ok), the tip
-        Jacobian (3, n) mm/rad and command (3,) mm/s, the smallest clearance (mm) and the
-        port's (mm, None without a port) for the cutter interlock."""
+    def output(self, result, clearance: float, port_clearance_mm: float | None, off_command: bool) -> FilterOutput:
+        """The FilterOutput of a solved step: `result` (safety.qp.QPResult, ok), the smallest
+        clearance (mm), the port's (mm, None without a port) for the cutter interlock, and
+        whether the tip velocity is off the command by > 1 % (_off_command)."""
         cutter = port_clearance_mm is not None and bool(port_clearance_mm > self.config.cutter_clearance_mm)
-        off = _off_command(np.asarray(J_tip, dtype=float), result.x, np.asarray(v_cmd_W, dtype=float))
-        intervened = bool(off or any(a.startswith(("boundary", "lens", "tip_speed")) for a in result.active))
+        intervened = bool(off_command or any(a.startswith(("boundary", "lens", "tip_speed")) for a in result.active))
         return FilterOutput(result.x, True, "ok", result.active, clearance, cutter, intervened, result.solve_us)
 
     def _fault(self, x: FilterInputs, n: int) -> str | None:
