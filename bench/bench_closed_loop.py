@@ -63,6 +63,13 @@ def _ms_per_s(runs, wall_field: str) -> float:
     return 1e3 * sum(getattr(r, wall_field) for r in runs) / sum(r.duration_s for r in runs)
 
 
+def _per_system(runs) -> str:
+    """The command, filter and model systems' wall ms per simulated second over runs."""
+    return ("  per simulated second: " + ", ".join(f"{name} system {_ms_per_s(runs, f'{name}_wall_s'):.1f} ms"
+                                                  for name in ("command", "filter", "model"))
+            + " (of the 100 ms that 10 x real time allows)")
+
+
 def _sensor_ms_per_simulated_s(loop: ClosedLoop, q0: np.ndarray, duration_s: float = 1.0) -> float:
     """Wall ms per simulated second of the loop's sensor block (2 kHz, packets of 10,
     distance mode) on joint angles moving at every control step: a DiscreteTimeIntegrator
@@ -100,18 +107,14 @@ def run() -> None:
     build = build_model_by_spiral(loop, 17.0, pitch_mm=3.0, revolutions=3.0)
     print(f"spiral (3 turns, 17 mm/s): {build.run.duration_s:.2f} s simulated in {build.run.wall_s:.2f} s "
           f"(realtime factor {build.run.realtime_factor:.2f}); model {build.kind_final}, EF MAE {build.ef_mae_um:.1f} um")
-    print(f"  per simulated second: command system {_ms_per_s(build.run, 'command_wall_s'):.1f} ms, "
-          f"filter system {_ms_per_s(build.run, 'filter_wall_s'):.1f} ms, "
-          f"model system {_ms_per_s(build.run, 'model_wall_s'):.1f} ms (of the 100 ms that 10 x real time allows)")
+    print(_per_system(build.run))
     c = run_campaign(loop, build.model, build.coverage, 10, seed=0, duration_s=0.5)
     s = c.summary()
     print(f"10 adversarial scenarios x 0.5 s: realtime factor {s['realtime_factor']:.2f}, "
           f"filter solve median {s['solve_us']['median']:.0f} us p99 {s['solve_us']['p99']:.0f} us, "
           f"Drake DoDifferentialInverseKinematics median {s['drake_diffik_us']['median']:.0f} us "
           f"p99 {s['drake_diffik_us']['p99']:.0f} us")
-    print(f"  per simulated second: command system {_ms_per_s(c.runs, 'command_wall_s'):.1f} ms, "
-          f"filter system {_ms_per_s(c.runs, 'filter_wall_s'):.1f} ms, "
-          f"model system {_ms_per_s(c.runs, 'model_wall_s'):.1f} ms (of the 100 ms that 10 x real time allows)")
+    print(_per_system(c.runs))
     steps = np.concatenate([r.step_us for r in c.runs])
     print(f"filter step in the loop (compiled step, ports, record): {summary_us(steps)}")
     qs = np.concatenate([r.q for r in c.runs])[:2000]

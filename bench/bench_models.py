@@ -34,7 +34,10 @@ def _rays_to_the_posterior_wall(eye, n: int, rng) -> tuple[np.ndarray, np.ndarra
     s = rng.uniform(0.0, 25.0, n)
     P = eye.surface_points(U)
     for _ in range(50):  # shorten until every origin lies inside
-        s = np.where(eye.signed_distance(P - s[:, None] * D) > 0, s, 0.7 * s)
+        inside = eye.signed_distance(P - s[:, None] * D) > 0
+        if inside.all():
+            break
+        s = np.where(inside, s, 0.7 * s)
     return P - s[:, None] * D, D
 
 

@@ -43,17 +43,17 @@ class TipPathCommand:
         self.times_s, self.P_WT = t, P
         self.gain_per_s = as_positive(gain_per_s, "gain_per_s")
         self.max_feedback_mm_s = as_positive(max_feedback_mm_s, "max_feedback_mm_s")
-        self._V = np.diff(P, axis=0) / np.diff(t)[:, None]
+        V = np.diff(P, axis=0) / np.diff(t)[:, None]
         if roll_rad is None:
-            self._roll_rate = np.zeros(len(t) - 1)
+            roll_rate = np.zeros(len(t) - 1)
         else:
             roll = np.asarray(roll_rad, dtype=float)
             if roll.shape != t.shape or not np.all(np.isfinite(roll)):
                 raise ValueError(f"roll_rad must be finite with the shape of times_s {t.shape}, got {roll.shape}")
-            self._roll_rate = np.diff(roll) / np.diff(t)
-        # the same numbers as Python floats: one control step's arithmetic is scalar
+            roll_rate = np.diff(roll) / np.diff(t)
+        # as Python floats: one control step's arithmetic is scalar
         self._t, self._P = t.tolist(), [tuple(p) for p in P.tolist()]
-        self._Vl, self._roll_l = [tuple(v) for v in self._V.tolist()], self._roll_rate.tolist()
+        self._Vl, self._roll_l = [tuple(v) for v in V.tolist()], roll_rate.tolist()
 
     @property
     def duration_s(self) -> float:

@@ -29,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from models._eberly import generic_distance_and_gradient
-from models.coverage import _nearest_and_worst
+from models.coverage import _nearest_and_worst, band_chord
 from models.sphere import sphere_distance_and_gradient
 from planning.instrument_points import _LENS_NAMES, _NAMES, instrument_kinematics, kinematics_arguments
 from safety.constraints import _D, _POLYTOPE_REACH, TIP_SPEED_ROWS, _filter_qp, barrier_rows
@@ -298,12 +298,6 @@ def _writeable(a) -> np.ndarray:
     return np.array(a, dtype=float, order="C")
 
 
-def _chord(angle_deg: float) -> float:
-    """The chord of an angle on the unit sphere, a hair long (rounding): the z band that
-    holds every direction within the angle (models.coverage._nearest_and_worst)."""
-    return 2.0 * np.sin(np.radians(angle_deg) / 2.0) * (1.0 + 1e-12) + 1e-15
-
-
 def row_names(rows: np.ndarray, k_used: int) -> tuple:
     """The QP's inequality row names: the tip speed polytope's, then the kept barrier rows
     (indices below k_used: boundary points; the rest: lens points), as SafetyFilter names them."""
@@ -333,7 +327,7 @@ class CompiledStep:
             cfg=[f.d_safe_mm, f.gain_per_s, f.lens_margin_mm, f.joint_gain_per_s, f.joint_margin_rad, f.max_tip_speed_mm_s,
                  f.max_command_speed_mm_s, f.damping, f.max_model_age_s, f.max_sensor_age_s, f.max_recovery_mm_s,
                  np.radians(config.trust_angle_deg), np.cos(np.radians(config.misfit_angle_deg)),
-                 _chord(config.trust_angle_deg), _chord(config.misfit_angle_deg)])
+                 band_chord(np.radians(config.trust_angle_deg)), band_chord(np.radians(config.misfit_angle_deg))])
         self._margins = config.margins
         self._snap, self._args, self._prior = None, (), True
         self._active = np.zeros(N_IDS, dtype=np.bool_)  # control_step's active_ids

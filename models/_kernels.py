@@ -562,9 +562,10 @@ def diameter_after_adding(X, block_r, n, P, p0, diameter):
     for i in range(1, k):
         rho = max(rho, np.sqrt((X[n + i, 0] - m0) ** 2 + (X[n + i, 1] - m1) ** 2 + (X[n + i, 2] - m2) ** 2))
     n_blocks = (n + SCAN_BLOCK - 1) // SCAN_BLOCK
-    candidates = np.empty(n_blocks, np.int64)
-    n_cand = 0
-    for b in range(n_blocks):
+    batch = k > 1  # one point (an A-scan): its per-point test below is this one, no pre-pass
+    candidates = np.empty(n_blocks if batch else 0, np.int64)
+    n_cand = 0 if batch else n_blocks
+    for b in range(n_blocks if batch else 0):
         c = b * SCAN_BLOCK
         slack = diameter - block_r[b] - rho
         if not (slack >= 0.0 and (m0 - X[c, 0]) ** 2 + (m1 - X[c, 1]) ** 2 + (m2 - X[c, 2]) ** 2 <= slack * slack):
@@ -574,7 +575,7 @@ def diameter_after_adding(X, block_r, n, P, p0, diameter):
     for i in range(k):
         x0, x1, x2 = X[n + i, 0], X[n + i, 1], X[n + i, 2]
         for q in range(n_cand):
-            b = candidates[q]
+            b = candidates[q] if batch else q
             c = b * SCAN_BLOCK
             slack = best - block_r[b]  # |x - centre| + radius <= best, without a square root
             if slack >= 0.0 and (x0 - X[c, 0]) ** 2 + (x1 - X[c, 1]) ** 2 + (x2 - X[c, 2]) ** 2 <= slack * slack:

@@ -113,6 +113,12 @@ def _add_points(P, center, dirs, covered, inner, inner_r):
     return new
 
 
+def band_chord(angle_rad: float) -> float:
+    """The chord of an angle on the unit sphere, a hair long (rounding): the z band that
+    holds every direction within the angle (_nearest_and_worst's `chord`)."""
+    return 2.0 * np.sin(angle_rad / 2.0) * (1.0 + 1e-12) + 1e-15
+
+
 class CoverageView:
     """An immutable snapshot of the covered directions: `angle_from_data_rad(Q)`, and,
     when made for a model shape, `local_misfit_mm(Q, angle)`: how far inside that shape
@@ -147,7 +153,8 @@ class CoverageView:
         `angle_rad` of each point's direction (0 where none, or without a model)."""
         if not self.n_covered or self._misfit is None:
             return np.zeros(len(Q))
-        return _nearest_and_worst(self._directions(Q), self._dirs, self._misfit, np.cos(angle_rad))[1]
+        return _nearest_and_worst(self._directions(Q), self._dirs, self._misfit, np.cos(angle_rad),
+                                  band_chord(angle_rad))[1]
 
 
 class DirectionCoverage:

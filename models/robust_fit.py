@@ -134,12 +134,14 @@ class RobustEllipsoidFit:
         """Biweights of scaled points X (N, 3) from the current fit's Sampson distances."""
         return biweight(LENGTH_SCALE_MM * sampson_distance(self.last_ok.v, X), self.config.cutoff_mm)
 
-    def _reweight(self) -> None:
-        """IRLS over all stored points, warm-started from the current fit."""
+    def _reweight(self) -> EllipsoidFit | None:
+        """IRLS over all stored points, warm-started from the current fit; the last pass's
+        fit of S_w (None without a pass)."""
         X, w = self._X[: self._n], self._w[: self._n]
         M = design_rows(X)
         self._reweighted_at = self._n
         self.n_reweightings += 1
+        result = None
         for i in range(self.config.iterations):
             if self.last_ok is not None:
                 w[:] = self._weights(X)
@@ -149,8 +151,9 @@ class RobustEllipsoidFit:
             self.S_weighted = (M * w[:, None]).T @ M
             result = fit_scatter(self.S_weighted, self.p0)
             if not result.ok:
-                return
+                return result
             self.last_ok = result
+        return result
 
     def fit(self) -> EllipsoidFit:
         """Refit from S_w (after a full reweighting when one is due); keeps `last_ok` on
@@ -158,9 +161,11 @@ class RobustEllipsoidFit:
         if self.p0 is None:
             return EllipsoidFit("too_few_points")
         cfg = self.config
+        result = None  # a reweighting's last pass has fitted S_w already
         if self._n - self._reweighted_at >= max(cfg.min_refit_points, cfg.refit_growth * self._reweighted_at):
-            self._reweight()
-        result = fit_scatter(self.S_weighted, self.p0)
+            result = self._reweight()
+        if result is None:
+            result = fit_scatter(self.S_weighted, self.p0)
         if result.ok:
             self.last_ok = result
         return result

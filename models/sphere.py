@@ -51,8 +51,7 @@ class Sphere:
 
     def signed_distance(self, Q) -> np.ndarray:
         """(M,) exact signed distance (mm) of points Q (M, 3) mm; > 0 inside."""
-        Q = as_points(Q, "Q")
-        return self.radius - np.linalg.norm(Q - self.center, axis=1)
+        return self.signed_distance_and_gradient(Q)[0]
 
     def gradient(self, Q) -> np.ndarray:
         """(M, 3) unit gradient of the signed distance: the inward surface normal

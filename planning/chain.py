@@ -84,17 +84,6 @@ def frame_pose(S, q, R_home, p_home):
 
 
 @numba.njit(cache=True)
-def frame_poses(S, Q, R_home, p_home):
-    """(R (M, 3, 3), p (M, 3) mm): frame_pose at each row of Q (M, n)."""
-    M = Q.shape[0]
-    R = np.empty((M, 3, 3))
-    p = np.empty((M, 3))
-    for m in range(M):
-        R[m], p[m] = frame_pose(S, Q[m], R_home, p_home)
-    return R, p
-
-
-@numba.njit(cache=True)
 def frame_pose_and_jacobian(S, q, R_home, p_home):
     """(R_WF, p_WF mm, J (6, n)): the frame's pose and the spatial Jacobian of its origin
     (rows 0-2 angular rad/rad, 3-5 translational mm/rad), in W."""
@@ -178,13 +167,6 @@ class Chain:
         if name in self.fixed:
             return R_h.copy(), p_h.copy()
         return frame_pose(self.S, q, R_h, p_h)
-
-    def poses(self, name: str, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(R (M, 3, 3), p (M, 3) mm) at each row of Q (M, n) rad (finite, checked by the caller)."""
-        R_h, p_h = self.homes[name]
-        if name in self.fixed:
-            return np.broadcast_to(R_h, (len(Q), 3, 3)).copy(), np.broadcast_to(p_h, (len(Q), 3)).copy()
-        return frame_poses(self.S, np.ascontiguousarray(Q, dtype=float), R_h, p_h)
 
     def pose_and_jacobian(self, name: str, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(R, p mm, spatial Jacobian (6, n) of the frame's origin: angular rad/rad, then

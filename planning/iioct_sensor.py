@@ -354,11 +354,8 @@ class IioctSensor:
                 reasons[k] = "incidence"
         ascans = [None] * M
         if self.mode == "distance":
-            if live.all():  # the loop's usual packet: no masks
-                d, valid = self._distance_draws(d_true, incidence)
-            else:
-                d, valid = np.full(M, np.nan), np.zeros(M, dtype=bool)
-                d[live], valid[live] = self._distance_draws(d_true[live], incidence[live])
+            d, valid = np.full(M, np.nan), np.zeros(M, dtype=bool)
+            d[live], valid[live] = self._distance_draws(d_true[live], incidence[live])
             confidence = DISTANCE_MODE_CONFIDENCE * valid
             if not valid.all():
                 for k in np.flatnonzero(live & ~valid).tolist():

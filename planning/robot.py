@@ -103,15 +103,6 @@ class Robot:
         S_true with a scenario) at q."""
         return self.chain.pose(frame, self._checked(q))
 
-    def poses(self, frame: str, Q) -> tuple[np.ndarray, np.ndarray]:
-        """(R (M, 3, 3), p (M, 3) mm) of `frame` at each row of Q (M, 6) rad (all finite)."""
-        Q = np.asarray(Q, dtype=float)
-        if Q.ndim != 2 or Q.shape[1] != 6:
-            raise ValueError(f"Q must have shape (M, 6) in rad, got {Q.shape}")
-        if not np.all(np.isfinite(Q)):
-            raise ValueError("Q must be finite (rad)")
-        return self.chain.poses(frame, Q)
-
     def point(self, frame: str, p_frame_mm, q) -> np.ndarray:
         """Position (3,) mm in W of a point fixed in `frame` at p_frame_mm (3,) mm."""
         R, p = self.pose(frame, q)

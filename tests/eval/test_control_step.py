@@ -11,9 +11,9 @@ from eval.boundary_experiment import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
 from eval.commands import AdversarialCommand
 from eval.control_step import (
-    _STATICS, ACTIVE_TOL, N_IDS, N_TIP_ROWS, _chord, pack_statics, remember_active, row_ids, unpack_statics, warm_guess,
+    _STATICS, ACTIVE_TOL, N_IDS, N_TIP_ROWS, pack_statics, remember_active, row_ids, unpack_statics, warm_guess,
 )
-from models.coverage import _nearest_and_worst, fibonacci_directions
+from models.coverage import _nearest_and_worst, band_chord, fibonacci_directions
 from planning import SurgeryScenario
 from safety import constraints
 from safety.qp import solve, warm_solution
@@ -111,7 +111,7 @@ def test_the_z_band_finds_what_the_full_scan_finds(seed, angle_deg, n):
     V /= np.linalg.norm(V, axis=1, keepdims=True)
     cos_angle = np.cos(np.radians(angle_deg))
     best_full, worst_full = _nearest_and_worst(V, dirs, misfit, cos_angle)
-    best, worst = _nearest_and_worst(V, dirs, misfit, cos_angle, _chord(angle_deg))
+    best, worst = _nearest_and_worst(V, dirs, misfit, cos_angle, band_chord(np.radians(angle_deg)))
     np.testing.assert_array_equal(worst, worst_full)
     within = best_full >= cos_angle  # the nearest direction within the angle: found, exactly
     np.testing.assert_array_equal(best[within], best_full[within])
