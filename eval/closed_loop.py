@@ -1,12 +1,16 @@
 """The closed loop as a Drake diagram: command -> safety filter -> integrator -> sensor -> model.
 
-    CommandSystem (1 kHz) --v_cmd, roll--> FilterSystem (1 kHz, zero-order hold of qdot)
+    FilterSystem (1 kHz: calls the command source on the joint angles it filters, then
+        filters the command; zero-order hold of qdot)
         --qdot--> DiscreteTimeIntegrator (q_{k+1} = q_k + dt qdot_k) --q--> everything
     q --> IioctSensorSystem (2 kHz: beam from the TRUE sensor pose on the TRUE eye; point
           from the reported angles and the CALIBRATED sensor pose)
-      --sample--> AdaptiveModelSystem (buffers the valid points, updates the
-          AdaptiveEyeModel in batches) --snapshot--> FilterSystem
+      --packet--> AdaptiveModelSystem (updates the AdaptiveEyeModel with each packet's
+          valid points) --snapshot--> FilterSystem
 
+The command source (eval.commands) is called inside the filter's control step, on the
+same joint angles: the command the filter sees is the one made for the state it filters
+(no step of latency), and a control step is one Drake event, not two.
 Before the model has a shape the conservative prior eye (safety.margins) bounds the
 motion; the filter adds the model phase's margin (UncertaintyMargins). The filter's
 inputs and outputs of every step go to the run's MCAP log (RunLogger) so that
@@ -152,31 +156,6 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     return prior()
 
 
-class CommandSystem(LeafSystem):
-    """Calls the command source once per control step: state [v_W (3) mm/s, roll rad/s]."""
-
-    def __init__(self, robot: Robot, rate_hz: float):
-        super().__init__()
-        self.robot, self.source = robot, None
-        self.wall_s = 0.0  # wall time (s) of its steps since the last ClosedLoop.run began
-        self._q = self.DeclareVectorInputPort("q", 6)
-        state = self.DeclareDiscreteState(4)
-        self.DeclarePeriodicDiscreteUpdateEvent(1.0 / rate_hz, 0.0, self._update)
-        self.DeclareStateOutputPort("command", state)
-
-    def _update(self, context, discrete_state) -> None:
-        t0 = time.perf_counter()
-        q = self._q.Eval(context)
-        # the robot's kinematic chain without Robot.pose's argument checks: q is the
-        # integrator's (6,) float state, checked for finiteness here
-        p_WT = self.robot.chain.pose("T", q)[1] if all(map(math.isfinite, q.tolist())) else _NAN3
-        v, roll = self.source(context.get_time(), p_WT, q)
-        state = np.empty(4)
-        state[:3], state[3] = v, roll  # ValueError unless v holds 3 numbers
-        discrete_state.set_value(state)
-        self.wall_s += time.perf_counter() - t0
-
-
 class AdaptiveModelSystem(LeafSystem):
     """Feeds each packet of sensor samples (input "samples") to an AdaptiveEyeModel: one
     update per packet with its valid points; state and output "snapshot"
@@ -310,11 +289,13 @@ class StepRecord:
 
 
 class FilterSystem(LeafSystem):
-    """The safety filter at the control rate: inputs "q", "command", "snapshot" (the
-    model), "measurement" (the sensor's [distance, valid, confidence, t_s]); state and
-    output "qdot" (zero-order hold). Each step runs as one compiled call
-    (eval.control_step); a fault or an unusual step goes to the reference, SafetyFilter on
-    `inputs`, which the log records and `vitreoguard replay` re-runs."""
+    """The safety filter at the control rate: inputs "q", "snapshot" (the model),
+    "measurement" (the sensor's [distance, valid, confidence, t_s]); state and output
+    "qdot" (zero-order hold). Each step asks the command source (`source`, set by
+    `reset`: eval.commands' signature) for the tip velocity and roll rate at the joint
+    angles it filters, then runs as one compiled call (eval.control_step); a fault or an
+    unusual step goes to the reference, SafetyFilter on `inputs`, which the log records
+    and `vitreoguard replay` re-runs."""
 
     def __init__(self, robot: Robot, config: LoopConfig, prior):
         super().__init__()
@@ -324,7 +305,6 @@ class FilterSystem(LeafSystem):
         self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
         self.lens = robot.scenario.lens_W
         self._q = self.DeclareVectorInputPort("q", 6)
-        self._cmd = self.DeclareVectorInputPort("command", 4)
         self._snap = self.DeclareAbstractInputPort("snapshot", AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
         self._meas = self.DeclareVectorInputPort("measurement", 4)
         state = self.DeclareDiscreteState(6)
@@ -333,7 +313,7 @@ class FilterSystem(LeafSystem):
         first_s = dt * np.ceil(config.sensor_packet / config.sensor_rate_hz / dt + 0.5)
         self.DeclarePeriodicDiscreteUpdateEvent(dt, first_s, self._update)
         self.DeclareStateOutputPort("qdot", state)
-        self.reset()
+        self.reset(None, None)
         self._compile()
 
     def _compile(self) -> None:
@@ -344,11 +324,14 @@ class FilterSystem(LeafSystem):
         prior, q = ModelSnapshot("prior", None, 0.0, np.nan, 0), start_posture(self.robot, scenario.eye_pose.p_WE, self.robot.p_WC)
         for v in (0.0, 60.0, 60.0):
             self.compiled.step(0.0, q, np.array([v, 0.0, 0.0, 0.0]), prior, 0.0)
-        self.reset()
+        self.reset(None, None)
 
-    def reset(self, logger=None) -> None:
-        self.logger, self.record = logger, StepRecord()
-        self.wall_s = 0.0  # wall time (s) of its steps since the reset, records and log included
+    def reset(self, source, logger=None) -> None:
+        """A new run: the command source (called source(t_s, p_WT, q) -> (v_W (3,) mm/s,
+        roll rad/s) once per step, in time order) and the run's logger (or None)."""
+        self.source, self.logger, self.record = source, logger, StepRecord()
+        self.wall_s = 0.0  # wall time (s) of its steps since the reset (command source, records and log included)
+        self.command_wall_s = 0.0  # of which in the command source
         self.compiled.reset()
 
     def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
@@ -383,10 +366,22 @@ class FilterSystem(LeafSystem):
         self._step(context, discrete_state, t0)
         self.wall_s += time.perf_counter() - t0
 
+    def _command(self, t_s: float, q: np.ndarray) -> np.ndarray:
+        """The source's command (4,) [v_W (3,) mm/s, roll rad/s] at t_s for the joint angles
+        q (6,) rad: the tip position from the robot's kinematic chain (without Robot.pose's
+        argument checks; NaN for non-finite q, which the filter then refuses)."""
+        t0 = time.perf_counter()
+        p_WT = self.robot.chain.pose("T", q)[1] if all(map(math.isfinite, q.tolist())) else _NAN3
+        v, roll = self.source(t_s, p_WT, q)
+        command = np.empty(4)
+        command[:3], command[3] = v, roll  # ValueError unless v holds 3 numbers
+        self.command_wall_s += time.perf_counter() - t0
+        return command
+
     def _step(self, context, discrete_state, t0: float) -> None:
         t = context.get_time()
         q = self._q.Eval(context)
-        command = self._cmd.Eval(context)
+        command = self._command(t, q)
         snap = self._snap.Eval(context)
         meas = self._meas.Eval(context)
         sensor_t = float(meas[3])
@@ -454,9 +449,10 @@ class LoopRun:
     `true_clearance_mm` (M,): the smallest TRUE clearance of the monitored points per
     step (ground-truth eye); `lens_clearance_mm` (M,): the shaft's lens points' smallest
     distance outside the lens keep-out; `wall_s` the run's wall time, of which
-    `command_wall_s` in the command system, `model_wall_s` in the model system (its
-    sensor packets' hand-over, model updates and snapshots) and `filter_wall_s` in the
-    filter system (the step, its record and log); `model_epochs` the
+    `command_wall_s` in the command source (its tip position included), `model_wall_s`
+    in the model system (its sensor packets' hand-over, model updates and snapshots) and
+    `filter_wall_s` in the rest of the filter system's steps (the filter, its record and
+    log); `model_epochs` the
     model the filter used (ModelSnapshot, W) from each change of kind on (prior -> sphere
     -> ellipsoid), the first one from the start of the run."""
 
@@ -521,7 +517,6 @@ class ClosedLoop:
         self.robot = Robot(scenario)
         self.prior = conservative_prior(scenario.eye_pose.p_WE)
         builder = DiagramBuilder()
-        self.command = builder.AddSystem(CommandSystem(self.robot, config.control_rate_hz))
         self.filter = builder.AddSystem(FilterSystem(self.robot, config, self.prior))
         self.integrator = builder.AddSystem(DiscreteTimeIntegrator(6, 1.0 / config.control_rate_hz))
         self.sensor = IioctSensor(Robot(scenario), mode=config.sensor_mode, floater_rate=floater_rate, seed=sensor_seed)
@@ -531,9 +526,8 @@ class ClosedLoop:
                                                            config.model_min_points, config.model_min_scan_range_mm,
                                                            config.model_radius_range_mm))
         q = self.integrator.get_output_port()
-        for port in (self.command.GetInputPort("q"), self.filter.GetInputPort("q"), sensor_sys.GetInputPort("q")):
+        for port in (self.filter.GetInputPort("q"), sensor_sys.GetInputPort("q")):
             builder.Connect(q, port)
-        builder.Connect(self.command.GetOutputPort("command"), self.filter.GetInputPort("command"))
         builder.Connect(self.filter.GetOutputPort("qdot"), self.integrator.get_input_port())
         builder.Connect(sensor_sys.GetOutputPort("samples"), self.model.GetInputPort("samples"))
         builder.Connect(sensor_sys.GetOutputPort("measurement"), self.filter.GetInputPort("measurement"))
@@ -551,8 +545,7 @@ class ClosedLoop:
             raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")
         if not (np.isfinite(duration_s) and duration_s > 0):
             raise ValueError(f"duration_s must be > 0 s, got {duration_s}")
-        self.command.source, self.command.wall_s = source, 0.0
-        self.filter.reset(logger)
+        self.filter.reset(source, logger)
         self.model.reset(AdaptiveEyeModel() if model is None else model,
                          self.new_coverage() if coverage is None else coverage, logger)
         context = self.diagram.CreateDefaultContext()
@@ -599,6 +592,6 @@ class ClosedLoop:
             true_clearance_mm=true_clearances(col["points_W"], eye) if steps else np.zeros(0),
             lens_clearance_mm=lens_clear, kind=col["kind"], rcm_error_mm=a(col["rcm_error_mm"]),
             drake_diffik_us=a(self.filter.record.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
-            model_epochs=list(self.model.epochs), command_wall_s=self.command.wall_s, model_wall_s=self.model.wall_s,
-            filter_wall_s=self.filter.wall_s,
+            model_epochs=list(self.model.epochs), command_wall_s=self.filter.command_wall_s, model_wall_s=self.model.wall_s,
+            filter_wall_s=self.filter.wall_s - self.filter.command_wall_s,
         )

@@ -329,7 +329,7 @@ class CompiledStep:
                  np.radians(config.trust_angle_deg), np.cos(np.radians(config.misfit_angle_deg)),
                  band_chord(np.radians(config.trust_angle_deg)), band_chord(np.radians(config.misfit_angle_deg))])
         self._margins = config.margins
-        self._snap, self._args, self._prior = None, (), True
+        self._key, self._args, self._prior = (), (), True
         self._active = np.zeros(N_IDS, dtype=np.bool_)  # control_step's active_ids
         self._wsf, self._wsi = np.zeros(WORKSPACE_SIZES[0]), np.zeros(WORKSPACE_SIZES[1], dtype=np.int64)
         self._ws = workspace_views(self._wsf, self._wsi)
@@ -337,8 +337,10 @@ class CompiledStep:
     def _arguments(self, snap) -> tuple:
         """control_step's arguments after the times: the constants, the snapshot's model
         (kind, center, rotation, radii, margin, the coverage) and the step's state; made
-        once per snapshot."""
-        if snap is not self._snap:
+        once per model: a snapshot that differs from the last one only in its time (the
+        model system stamps every packet) reuses them."""
+        key = (snap.shape, snap.coverage, snap.kind, snap.residual_mm)
+        if not (len(key) == len(self._key) and all(a is b for a, b in zip(key, self._key))):
             shape = snap.shape
             if shape is None:
                 kind, center, rotation, radii = PRIOR, self._prior_center, np.eye(3), self._prior_radii
@@ -356,7 +358,7 @@ class CompiledStep:
             model = pack_model(kind, center, rotation, radii, float(snap.margin_mm(self._margins)), has_coverage, cov_center)
             w = _writeable  # one array type for every snapshot: one compiled specialisation
             self._args = (self._statics, model, w(dirs), w(misfit), self._active, self._wsf, self._wsi)
-            self._snap, self._prior = snap, kind == PRIOR
+            self._key, self._prior = key, kind == PRIOR
         return self._args
 
     def reset(self) -> None:

@@ -19,7 +19,7 @@ from models.transition import PredictiveCriteria
 from planning import SurgeryScenario, start_posture
 from safety import FilterConfig
 
-RCM_TOL_MM = 0.020  # RCM drift at 1 kHz with a one-step command latency, up to 20 mm/s
+RCM_TOL_MM = 0.020  # RCM drift of 1 kHz Euler steps of the joint velocities, up to 20 mm/s
 
 
 def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0):
@@ -96,8 +96,8 @@ def test_a_tip_path_is_followed(emmetropic):
     path = TipPathCommand(t, np.vstack([p0, p0 + [1.5, 0.0, 0.0]]))
     run = loop.run(path, q0, 0.4, **model.kw())
     p_end = loop.robot.pose("T", run.q[-1])[1]
-    assert np.linalg.norm(p_end - (p0 + [1.5, 0.0, 0.0])) < 0.05  # position feedback closes the 1-step latency
-    # the command and model systems' own time is part of the run's, and counted afresh per run
+    assert np.linalg.norm(p_end - (p0 + [1.5, 0.0, 0.0])) < 0.05  # the position feedback holds the tip at the path's end (0.1 s after it)
+    # the command source's and the model system's own time is part of the run's, and counted afresh per run
     assert 0.0 < run.command_wall_s and 0.0 < run.model_wall_s and run.command_wall_s + run.model_wall_s < run.wall_s
 
 
