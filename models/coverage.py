@@ -190,7 +190,8 @@ class DirectionCoverage:
         n = self._n_covered
         kind = None if shape is None else type(shape).__name__
         if n > self._view.n_covered * (1.0 + self._growth) or kind != self._view_shape:
-            misfit = None if shape is None else inside_depth_upper_mm(shape, self._inner[self._covered])
-            self._view = CoverageView(self.center_W, self._dirs[self._covered], misfit)
+            bins = np.flatnonzero(self._covered)  # taking rows by index: ~5x cheaper than by the boolean mask
+            misfit = None if shape is None else inside_depth_upper_mm(shape, np.take(self._inner, bins, axis=0))
+            self._view = CoverageView(self.center_W, np.take(self._dirs, bins, axis=0), misfit)
             self._view_shape = kind
         return self._view
