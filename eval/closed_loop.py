@@ -136,24 +136,22 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     `min_points` points over `min_scan_range_mm` with semi-axes within `radius_range_mm`;
     an ellipsoid outside that range (a fit to a pathological eye, like the pointed eye's
     153 x 29 x 29 mm) gives way to the model's sphere fit if that one is an eye's (its
-    phase's wider margin applies); "prior" otherwise."""
-    def prior() -> ModelSnapshot:  # made only when returned: a view of another kind is a rebuild
-        return ModelSnapshot("prior", None, t_s, float("nan"), model.n_points, coverage.view())
-
-    shape = model.shape
-    if shape is None or model.n_points < min_points or model.scan_range_mm < min_scan_range_mm:
-        return prior()
-    last, lo, hi = model.history[-1], radius_range_mm[0], radius_range_mm[1]
-    if model.kind == "ellipsoid":
-        radii = shape.radii.tolist()
-        if lo <= min(radii) and max(radii) <= hi:
-            return ModelSnapshot("ellipsoid", shape, t_s, float(last.ef_residual_mm), model.n_points, coverage.view(shape))
-        shape = model.sphere  # the ellipsoid is no eye's: its sphere fit, if that one is
-        if shape is None:
-            return prior()
-    if lo <= shape.radius <= hi:
-        return ModelSnapshot("sphere", shape, t_s, float(last.sf_residual_mm), model.n_points, coverage.view(shape))
-    return prior()
+    phase's wider margin applies); "prior" otherwise. The model's shapes are made once
+    per update (AdaptiveEyeModel.shape), and only once the trust limits on points and
+    scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says."""
+    n = model.n_points
+    shape = None if n < min_points or model.scan_range_mm < min_scan_range_mm else model.shape
+    if shape is not None:
+        lo, hi = radius_range_mm
+        if model.kind == "ellipsoid":
+            radii = shape.radii.tolist()
+            if lo <= min(radii) and max(radii) <= hi:
+                return ModelSnapshot("ellipsoid", shape, t_s, float(model.history[-1].ef_residual_mm), n,
+                                     coverage.view(shape))
+            shape = model.sphere  # the ellipsoid is no eye's: its sphere fit, if that one is
+        if shape is not None and lo <= shape.radius <= hi:
+            return ModelSnapshot("sphere", shape, t_s, float(model.history[-1].sf_residual_mm), n, coverage.view(shape))
+    return ModelSnapshot("prior", None, t_s, float("nan"), n, coverage.view())
 
 
 class AdaptiveModelSystem(LeafSystem):

@@ -84,7 +84,6 @@ class AdaptiveEyeModel:
         self._current = None  # quadric of the current model, in the fits' scaled coordinates
         self.n_received = 0
         self._sf = SphereKalmanFilter()
-        self._sphere = (0, None)  # (the filter's point count, its Sphere then)
         self._robust = robust is not None
         self._ef = RobustEllipsoidFit(robust) if self._robust else IncrementalEllipsoidFit()
         self._range = ScanRange()
@@ -103,11 +102,9 @@ class AdaptiveEyeModel:
 
     @property
     def sphere(self) -> Sphere | None:
-        """The sphere fit (mm, frame of the points), made once per change of the filter
-        (which changes only when it takes points)."""
-        if self._sphere[0] != self._sf.n_points:
-            self._sphere = (self._sf.n_points, self._sf.sphere)
-        return self._sphere[1]
+        """The sphere fit (mm, frame of the points): the same object until the model takes
+        points (SphereKalmanFilter.sphere)."""
+        return self._sf.sphere
 
     @property
     def ellipsoid(self) -> Ellipsoid | None:
@@ -180,8 +177,7 @@ class AdaptiveEyeModel:
             return None
         if ef.p0 is None:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
-        sf.n_points = n + k
-        sf.state = out[OUT_STATE:OUT_V_SF] if sf_ok else None
+        sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         ef.took(k)
         scan.took(k, diameter)
         if code:

@@ -32,8 +32,9 @@ class EllipsoidFit:
     `status` is "ok" or the reason of failure ("too_few_points", "collinear",
     "coplanar", "not_ellipsoid"); on success `center` (3,) mm, `radii` (3,) mm
     (descending) and `rotation` (3, 3) describe it, `v` (10,) holds the quadric in
-    scaled coordinates, and `ellipsoid` builds the validated Ellipsoid on first use
-    (the per-update hot path only needs the arrays).
+    scaled coordinates, and `ellipsoid` builds the Ellipsoid on first use and keeps it
+    (the per-update hot path only needs the arrays; a successful fit's arrays come from
+    the fit kernel, so Ellipsoid.of_fit takes them without checking them again).
     """
 
     __slots__ = ("status", "center", "radii", "rotation", "v", "_ellipsoid")
@@ -50,7 +51,7 @@ class EllipsoidFit:
     @property
     def ellipsoid(self) -> Ellipsoid | None:
         if self._ellipsoid is None and self.ok:
-            self._ellipsoid = Ellipsoid(self.center, self.radii, self.rotation)
+            self._ellipsoid = Ellipsoid.of_fit(self.center, self.radii, self.rotation)
         return self._ellipsoid
 
 

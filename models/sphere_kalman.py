@@ -21,10 +21,12 @@ class SphereKalmanFilter:
     """Sphere estimate that absorbs points one at a time at O(1) cost each.
 
     `update(P)` takes finite points (N, 3) mm in any frame; `sphere` is the current
-    estimate (None until 4 non-coplanar points are in); `state` is the filter state
-    [cx, cy, cz, r^2 - |c|^2] in scaled coordinates, `information` its 4x4 information
-    matrix (inverse covariance, in units of the measurement noise variance) and
-    `information_vector` (4,) the information-form right-hand side (models._kernels.sphere_absorb).
+    estimate (None until 4 non-coplanar points are in), made once per change of the state
+    (which changes only when the filter takes points: `absorb`, `took`); `state` is the
+    filter state [cx, cy, cz, r^2 - |c|^2] in scaled coordinates, `information` its 4x4
+    information matrix (inverse covariance, in units of the measurement noise variance)
+    and `information_vector` (4,) the information-form right-hand side
+    (models._kernels.sphere_absorb).
     """
 
     def __init__(self):
@@ -33,6 +35,7 @@ class SphereKalmanFilter:
         self.p0: np.ndarray | None = None
         self.n_points = 0
         self.state: np.ndarray | None = None
+        self._sphere: Sphere | None = None  # the Sphere of `state`, made on first use
 
     def update(self, P) -> None:
         """Absorb points P (N, 3) mm and refresh the state estimate."""
@@ -44,9 +47,17 @@ class SphereKalmanFilter:
             return
         if self.p0 is None:
             self.p0 = P[0].copy()
-        self.n_points += len(P)
-        x, ok = sphere_absorb(self.information, self.information_vector, P, self.p0, LENGTH_SCALE_MM, self.n_points)
-        self.state = x if ok else None
+        x, ok = sphere_absorb(self.information, self.information_vector, P, self.p0, LENGTH_SCALE_MM,
+                              self.n_points + len(P))
+        self.took(len(P), x if ok else None)
+
+    def took(self, k: int, state: np.ndarray | None) -> None:
+        """Count k points that a caller has absorbed into `information` and
+        `information_vector` itself (sphere_absorb about p0 with LENGTH_SCALE_MM:
+        models._kernels.packet_update), with the state they give (None: not yet determined)."""
+        self.n_points += k
+        self.state = state
+        self._sphere = None
 
     @property
     def center_radius(self) -> tuple[np.ndarray, float] | None:
@@ -58,6 +69,8 @@ class SphereKalmanFilter:
 
     @property
     def sphere(self) -> Sphere | None:
-        """The current Sphere estimate (mm, frame of the points), or None."""
-        cr = self.center_radius
-        return None if cr is None else Sphere(*cr)
+        """The current Sphere estimate (mm, frame of the points), or None; the same object
+        until the filter takes points."""
+        if self._sphere is None and self.state is not None:
+            self._sphere = Sphere(*self.center_radius)
+        return self._sphere

@@ -6,6 +6,7 @@ switches once, at the first update where every criterion it reports is met.
 """
 from __future__ import annotations
 
+import math
 from bisect import bisect_right
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -171,7 +172,7 @@ class PredictiveCriteria:
         c = (c_ef - snap.p0) / L
         centroid = snap.S[6:9, 9] / (2.0 * snap.S[9, 9])
         anterior = c - centroid  # the scanned retina lies opposite the front of the eye
-        anterior /= np.linalg.norm(anterior)
+        anterior /= math.sqrt(anterior.dot(anterior))  # np.linalg.norm's own formula for a vector, without its checks
         drift, gap, k = drift_and_gap(c, r_ef / L, R_ef, anterior, self.crop_mm / L, v_ef_old,
                                       (snap.sf[0] - snap.p0) / L, snap.sf[1] / L)
         if not k:  # an early, tiny ellipsoid lies wholly in the cropped front: not converged

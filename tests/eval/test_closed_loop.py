@@ -221,3 +221,34 @@ def test_an_ellipsoid_that_is_no_eye_gives_way_to_the_sphere_fit():
     assert snap.shape.radius == model.sphere.radius and np.array_equal(snap.shape.center, model.sphere.center)
     assert snap.residual_mm == model.history[-1].sf_residual_mm
     assert snapshot_of(model, coverage, 1.0, 200, 5.0, (8.0, 10.0)).kind == "prior"
+
+
+def test_the_snapshot_holds_the_models_own_shapes_once_trusted():
+    """Along the paper spiral in packets of 10: below the trust limits (200 points, 5 mm
+    of scan range) the snapshot is the prior's, and the model's sphere is not made for it;
+    past them it holds the model's current shape itself (one per update), that phase's
+    residual and the coverage's view for the shape; a second snapshot before the next
+    update holds the same objects."""
+    from eval.closed_loop import snapshot_of
+    from models.eyes import make_eye
+    from models.paper_scan import paper_scan
+
+    points = paper_scan(make_eye("emmetropic"), seed=0).points
+    model, coverage = AdaptiveEyeModel(), DirectionCoverage(np.zeros(3))
+    kinds = []
+    for k in range(0, len(points), 10):
+        model.update(points[k:k + 10])
+        coverage.add(model.last_accepted)
+        snap = snapshot_of(model, coverage, 1.0, 200, 5.0, (8.0, 16.0))
+        assert snap.n_points == model.n_points
+        if model.n_points < 200 or model.scan_range_mm < 5.0:
+            assert snap.kind == "prior" and snap.shape is None and model._sf._sphere is None
+            continue
+        kinds.append(snap.kind)
+        assert snap.kind == model.kind and snap.shape is model.shape
+        last = model.history[-1]
+        assert snap.residual_mm == (last.ef_residual_mm if snap.kind == "ellipsoid" else last.sf_residual_mm)
+        assert snap.coverage is coverage.view(model.shape)
+        again = snapshot_of(model, coverage, 2.0, 200, 5.0, (8.0, 16.0))
+        assert again.shape is snap.shape and again.coverage is snap.coverage and again.t_s == 2.0
+    assert kinds[0] == "sphere" and kinds[-1] == "ellipsoid"

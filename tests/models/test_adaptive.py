@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from scipy.spatial.distance import pdist
 
 from models import AdaptiveEyeModel, PaperCriteria, Sphere
+from models.robust_fit import RobustFitConfig
 from models.transition import PredictiveCriteria
 from models.eyes import make_eye
 from models.metrics import mae_exact, mmae_exact
@@ -290,3 +291,38 @@ def test_the_predictive_transition_is_the_numpy_references_in_any_packet_schedul
         for c, (value, met) in a.criteria.items():
             assert met == b.criteria[c][1]
             np.testing.assert_allclose(value, b.criteria[c][0], rtol=1e-10)
+
+
+@pytest.mark.parametrize("robust", [None, RobustFitConfig()], ids=["least-squares", "robust"])
+def test_the_shapes_are_made_once_per_change_and_equal_checked_ones(robust):
+    """The model's sphere and ellipsoid are made on first read and kept until the model
+    takes points: every read until then gives the same objects (an update that takes no
+    point keeps them, and so does one whose ellipsoid fit fails); after each update they
+    equal, bit for bit, the shapes the checked constructors make from the update's
+    history entry (ModelUpdate.sphere, ModelUpdate.ellipsoid)."""
+    scan = paper_scan(make_eye("emmetropic"), noise_um=SIGMA_UM, seed=2)
+    model = AdaptiveEyeModel(PredictiveCriteria(), robust=robust)
+    before = (None, None)
+    for k in range(0, 3000, 10):
+        entry = model.update(scan.points[k:k + 10])
+        sphere, ellipsoid = model.sphere, model.ellipsoid
+        assert model.sphere is sphere and model.ellipsoid is ellipsoid
+        assert model.shape is (ellipsoid if model.kind == "ellipsoid" else sphere)
+        if sphere is not None:
+            assert sphere is not before[0]
+            ref = entry.sphere
+            np.testing.assert_array_equal(sphere.center, ref.center)
+            assert sphere.radius == ref.radius
+        if entry.ef_status != "ok":
+            assert ellipsoid is before[1]  # the last good fit's, as it was
+        elif ellipsoid is not None:
+            assert ellipsoid is not before[1]
+            ref = entry.ellipsoid
+            for name in ("center", "radii", "rotation"):
+                np.testing.assert_array_equal(getattr(ellipsoid, name), getattr(ref, name))
+                assert not getattr(ellipsoid, name).flags.writeable
+        if k == 1000:  # a packet without a finite point: no update, the same shapes
+            assert model.update(np.full((3, 3), np.nan)) is None
+            assert model.sphere is sphere and model.ellipsoid is ellipsoid
+        before = (sphere, ellipsoid)
+    assert model.kind == "ellipsoid" and before[1] is not None

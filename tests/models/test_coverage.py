@@ -99,3 +99,25 @@ def test_the_bin_search_equals_a_k_d_tree_on_the_fibonacci_sphere(seed, bin_deg)
     np.testing.assert_array_equal(cov._inner_r, inner_r)
     hit = np.isfinite(inner_r)
     np.testing.assert_allclose(np.linalg.norm(cov._inner[hit] - c, axis=1), inner_r[hit], rtol=0, atol=0)
+
+
+def test_a_rebuilt_view_holds_the_covered_bins_and_their_misfits_exactly():
+    """A view made for a shape holds the directions of exactly the covered bins, sorted by z,
+    each with the misfit of its innermost point (inside_depth_upper_mm), bit for bit."""
+    from models import Ellipsoid
+    from models.coverage import inside_depth_upper_mm
+
+    rng = np.random.default_rng(4)
+    c = np.array([0.5, -1.0, 2.0])
+    cov = DirectionCoverage(c)
+    U = rng.normal(size=(400, 3))
+    U[:, 2] = -np.abs(U[:, 2])
+    cov.add(c + rng.uniform(10.5, 12.0, (400, 1)) * U / np.linalg.norm(U, axis=1, keepdims=True))
+    shape = Ellipsoid(c, np.array([11.5, 11.4, 10.1]))
+    view = cov.view(shape)
+    covered = cov._covered
+    order = np.argsort(cov._dirs[covered][:, 2], kind="stable")
+    assert view.n_covered == covered.sum() > 300
+    np.testing.assert_array_equal(view._dirs, cov._dirs[covered][order])
+    np.testing.assert_array_equal(view._misfit, inside_depth_upper_mm(shape, cov._inner[covered])[order])
+    assert view._misfit.max() > 0.0  # points inside the shape: misfits to compare

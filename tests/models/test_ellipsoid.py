@@ -259,3 +259,20 @@ def test_bad_query_points_are_refused(Q):
     for method in (e.signed_distance, e.gradient, e.closest_point):
         with pytest.raises(ValueError, match="Q"):
             method(Q)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_of_fit_holds_read_only_copies_like_the_checked_constructor(name):
+    """Ellipsoid.of_fit (for a fit's arrays, unchecked) holds exactly what the checked
+    constructor holds: equal read-only copies, which later writes to the arrays it was
+    given leave alone."""
+    e = CASES[name]
+    c, r, R = e.center.copy(), e.radii.copy(), e.rotation.copy()
+    fit = Ellipsoid.of_fit(c, r, R)
+    c[:], r[:], R[:] = 0.0, 1.0, 0.0
+    for field in ("center", "radii", "rotation"):
+        a = getattr(fit, field)
+        np.testing.assert_array_equal(a, getattr(e, field))
+        assert not a.flags.writeable and a.dtype == np.float64
+    Q = query_points(e)
+    np.testing.assert_array_equal(fit.signed_distance(Q), e.signed_distance(Q))

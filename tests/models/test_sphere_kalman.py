@@ -86,3 +86,21 @@ def test_bad_points_are_refused_and_leave_the_filter_unchanged(P):
         kf.update(P)
     assert kf.n_points == len(good)
     np.testing.assert_array_equal(kf.sphere.center, before.center)
+
+
+def test_the_sphere_is_made_once_per_change_of_the_state():
+    """`sphere` is the same object until the filter takes points (none: the same one), then
+    a new one equal bit for bit to the Sphere of the new centre and radius."""
+    kf = SphereKalmanFilter()
+    P = noisy_cap([1.0, -2.0, 40.0], 11.0, seed=5)
+    kf.update(P[:20])
+    s = kf.sphere
+    assert kf.sphere is s
+    kf.update(np.empty((0, 3)))
+    assert kf.sphere is s
+    kf.update(P[20:])
+    t = kf.sphere
+    assert t is not s and kf.sphere is t
+    c, r = kf.center_radius
+    np.testing.assert_array_equal(t.center, c)
+    assert t.radius == r != s.radius
