@@ -30,6 +30,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource, Selector, SelectorParams, ZeroOrderHold
 
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
+from models.rays import incidences_rad
 from planning.chain import _apply, chain_kinematics
 from planning.robot import Robot
 
@@ -156,44 +157,6 @@ def extractor_error_model(engine: OctEngine = OctEngine(), samples: int = 24, se
     return ExtractorErrorModel(tuple(D), tuple(A), bias.tolist(), sd.tolist(), p_invalid.tolist())
 
 
-@numba.njit(cache=True, error_model="numpy")
-def ellipsoid_hits(O_W, U_W, p_WE, R_WE, radii):
-    """((M,) distance mm along the unit rays (O_W[m], U_W[m]) (M, 3) in W to the ellipsoid
-    with semi-axes `radii` (3,) mm centred at p_WE with axes R_WE (its frame E), NaN where
-    a ray misses it or meets it only behind its origin; (M,) incidence rad between the ray
-    and the surface normal at the hit, NaN without a hit). The roots of
-    Ellipsoid.ray_cast (the first hit from inside, the first entry from outside) and the
-    normal of Eye.surface_normal in one compiled pass: the sensor's ray cast on the
-    regular eyes at 2 kHz (tests/planning/test_iioct_sensor.py checks it against them)."""
-    M = O_W.shape[0]
-    d, incidence = np.full(M, np.nan), np.full(M, np.nan)
-    o, u = np.empty(3), np.empty(3)  # origin and direction in E, scaled by the semi-axes
-    for m in range(M):
-        for k in range(3):
-            o[k] = ((O_W[m, 0] - p_WE[0]) * R_WE[0, k] + (O_W[m, 1] - p_WE[1]) * R_WE[1, k]
-                    + (O_W[m, 2] - p_WE[2]) * R_WE[2, k]) / radii[k]
-            u[k] = (U_W[m, 0] * R_WE[0, k] + U_W[m, 1] * R_WE[1, k] + U_W[m, 2] * R_WE[2, k]) / radii[k]
-        a = u[0] * u[0] + u[1] * u[1] + u[2] * u[2]
-        b = o[0] * u[0] + o[1] * u[1] + o[2] * u[2]
-        c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - 1.0
-        disc = b * b - a * c
-        if not disc >= 0.0:
-            continue
-        q = -(b + np.copysign(np.sqrt(disc), b))  # numerically stable roots q / a and c / q
-        t1, t2 = q / a, c / q
-        t = max(t1, t2) if c < 0.0 else min(t1, t2)
-        if not t > 0.0:
-            continue
-        d[m] = t
-        n2, nu = 0.0, 0.0  # the inward normal at the hit: -p_E / radii^2 = -(o + t u) / radii
-        for k in range(3):
-            n_k = -(o[k] + t * u[k]) / radii[k]
-            n2 += n_k * n_k
-            nu += n_k * u[k] * radii[k]
-        incidence[m] = np.arccos(min(1.0, abs(nu) / np.sqrt(n2)))
-    return d, incidence
-
-
 @numba.njit(cache=True)
 def sensor_beams(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal):
     """(O_true, U_true, O_cal, U_cal), each (M, 3) in W: the origins (mm) and z axes of
@@ -287,7 +250,7 @@ class IioctSensor:
         """((M,) true distances mm along the true beams at Q_true (M, 6) rad, finite, to
         the retina, NaN where there is none; (M,) incidences rad, NaN without a hit)."""
         Q = _finite_rows(Q_true)
-        return self._hits(*self._beams(Q, Q)[:2])
+        return self.eye.beam_hits(*self._beams(Q, Q)[:2])
 
     def _with_encoder_noise(self, Q: np.ndarray) -> np.ndarray:
         if self.encoder_noise_rad > 0:
@@ -300,20 +263,6 @@ class IioctSensor:
         chain = self.robot.chain
         return sensor_beams(chain.S, np.ascontiguousarray(Q_true), np.ascontiguousarray(Q_reported),
                             *chain.homes["S_true"], *self._home_Scal)
-
-    def _hits(self, O: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((M,) distances mm to the true retina along the beams (O, U) (M, 3) in W, NaN
-        where there is none; (M,) incidences rad, NaN without a hit)."""
-        if self.eye.is_ellipsoid:
-            return ellipsoid_hits(O, U, self.eye.pose.p_WE, self.eye.pose.R_WE, self.eye.radii)
-        d = np.asarray(self.eye.ray_cast(O, U), dtype=float)
-        d = np.where(np.isfinite(d) & (d > 0), d, np.nan)
-        hit = np.isfinite(d)
-        incidence = np.full(len(d), np.nan)
-        if hit.any():
-            N = self.eye.surface_normal(O[hit] + d[hit, None] * U[hit])
-            incidence[hit] = np.arccos(np.minimum(1.0, np.abs(np.einsum("ij,ij->i", N, U[hit]))))
-        return d, incidence
 
     def sample(self, q_true, q_reported, t_s: float, model=None) -> SensorSample:
         """One sample at OCT time t_s: the A-scan from the true pose at q_true, the point
@@ -343,7 +292,7 @@ class IioctSensor:
     def _measure(self, T: np.ndarray, Qt: np.ndarray, Qr: np.ndarray, model) -> list[SensorSample]:
         """The samples at times T (M,) s from finite joint angles Qt, Qr (M, 6) rad."""
         O_true, U_true, O, U = self._beams(Qt, self._with_encoder_noise(Qr))
-        d_true, incidence = self._hits(O_true, U_true)
+        d_true, incidence = self.eye.beam_hits(O_true, U_true)
         M = len(T)
         live = d_true <= self.max_distance_mm  # False where the beam meets no retina (NaN)
         reasons = ["" if ok else "no_retina" for ok in live.tolist()]
@@ -399,8 +348,7 @@ def _model_incidences(model, O: np.ndarray, U: np.ndarray) -> np.ndarray:
     hit = np.isfinite(d)
     if hit.any():
         G = np.asarray(model.gradient(O[hit] + d[hit, None] * U[hit]), dtype=float)
-        cos = np.abs(np.einsum("ij,ij->i", G, U[hit])) / np.linalg.norm(G, axis=1)
-        out[hit] = np.arccos(np.minimum(1.0, cos))
+        out[hit] = incidences_rad(np.ascontiguousarray(G), U[hit])
     return out
 
 
