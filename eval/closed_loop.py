@@ -179,10 +179,11 @@ class CommandSystem(LeafSystem):
 
 class AdaptiveModelSystem(LeafSystem):
     """Feeds each packet of sensor samples (input "packet", a planning.iioct_sensor
-    SensorPacket) to an AdaptiveEyeModel: one update per packet with the valid points of
-    its samples not seen before; state and output "snapshot" (ModelSnapshot). Runs at the
-    packet rate, just after each packet is complete. Logs the distances and model updates
-    when a logger is set."""
+    SensorPacket, its samples in time order as IioctSensorSystem delivers them) to an
+    AdaptiveEyeModel: one update per packet with the valid points of its samples not
+    seen before; state and output "snapshot" (ModelSnapshot). Runs at the packet rate,
+    just after each packet is complete. Logs the distances and model updates when a
+    logger is set."""
 
     def __init__(self, packet_rate_hz: float, offset_s: float, min_points: int, min_scan_range_mm: float,
                  radius_range_mm: tuple):
@@ -246,11 +247,11 @@ class AdaptiveModelSystem(LeafSystem):
 
     def _absorb(self, context, state) -> None:
         packet = self._packet.Eval(context)
-        new = packet.t_s > self._last_t
-        if not new.all():  # samples seen before (or the placeholder before the first packet): the others
-            if not new.any():
+        if not packet.t_s[0] > self._last_t:  # samples seen before (or the placeholder before the first packet)
+            new = np.flatnonzero(packet.t_s > self._last_t)  # in time order: the packet's last ones
+            if not len(new):
                 return
-            packet = packet.take(np.flatnonzero(new))
+            packet = packet.take(new)
         T, valid = packet.t_s, packet.valid
         self._last_t = float(T[-1])
         first = self.n_samples

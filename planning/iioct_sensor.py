@@ -477,8 +477,7 @@ class _PacketProcessor(LeafSystem):
         self.DeclarePeriodicUnrestrictedUpdateEvent(packet * self._period_s, (packet - 0.75) * self._period_s,
                                                     self._process)
         packet_changed = {self.abstract_state_ticket(self._packet)}
-        self.DeclareAbstractOutputPort("packet", lambda: AbstractValue.Make(NO_SAMPLE_YET), self._calc_packet,
-                                       prerequisites_of_calc=packet_changed)
+        self.DeclareStateOutputPort("packet", self._packet)
         self.DeclareAbstractOutputPort("sample", lambda: AbstractValue.Make(NO_SAMPLE_YET.sample(0)),
                                        self._calc_sample, prerequisites_of_calc=packet_changed)
         self.DeclareVectorOutputPort("p_W", 3, self._calc_p, prerequisites_of_calc=packet_changed)
@@ -512,9 +511,6 @@ class _PacketProcessor(LeafSystem):
 
     def _latest(self, context) -> SensorPacket:
         return context.get_abstract_state(self._packet).get_value()
-
-    def _calc_packet(self, context, value) -> None:
-        value.set_value(self._latest(context))
 
     def _calc_sample(self, context, value) -> None:
         value.set_value(self._latest(context).sample(-1))
