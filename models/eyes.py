@@ -105,10 +105,6 @@ class Eye:
         self._star = None if rho is None else StarSurface(rho)
 
     @property
-    def is_ellipsoid(self) -> bool:
-        return self._star is None
-
-    @property
     def ellipsoid(self) -> Ellipsoid:
         """The retinal ellipsoid (for composite shapes: the one they are built on) in W."""
         return Ellipsoid(self.pose.p_WE, self.radii, self.pose.R_WE)
