@@ -127,7 +127,7 @@ def run() -> None:
     print(f"reference path: SafetyFilter call:       {summary_us(time_calls_us(lambda i: f.filter(xs[i]), len(xs)))}")
     packets = [qs[i:i + 10] for i in range(0, len(qs) - 10, 10)]  # joint angles along the runs
     T = np.arange(10) * 5e-4
-    packet_us = time_calls_us(lambda i: loop.sensor.samples(packets[i], packets[i], T), len(packets))
+    packet_us = time_calls_us(lambda i: loop.sensor.packet(packets[i], packets[i], T), len(packets))
     print(f"sensor packet of 10 (distance mode):     {summary_us(packet_us)}")
     ms = _sensor_ms_per_simulated_s(loop, qs[0])
     rate, per_packet = loop.config.sensor_rate_hz, loop.config.sensor_packet

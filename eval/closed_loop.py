@@ -41,7 +41,7 @@ from models.coverage import DirectionCoverage
 from models.transition import PredictiveCriteria
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
-from planning.iioct_sensor import IioctSensor, IioctSensorSystem
+from planning.iioct_sensor import NO_SAMPLE_YET, IioctSensor, IioctSensorSystem
 from planning.robot import Robot
 from planning.scan import start_posture
 from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
@@ -155,16 +155,18 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
 
 
 class AdaptiveModelSystem(LeafSystem):
-    """Feeds each packet of sensor samples (input "samples") to an AdaptiveEyeModel: one
-    update per packet with its valid points; state and output "snapshot"
-    (ModelSnapshot). Runs at the packet rate, just after each packet is complete. Logs
-    the distances and model updates when a logger is set."""
+    """Feeds each packet of sensor samples (input "packet", a planning.iioct_sensor
+    SensorPacket, its samples in time order as IioctSensorSystem delivers them) to an
+    AdaptiveEyeModel: one update per packet with the valid points of its samples not
+    seen before; state and output "snapshot" (ModelSnapshot). Runs at the packet rate,
+    just after each packet is complete. Logs the distances and model updates when a
+    logger is set."""
 
     def __init__(self, packet_rate_hz: float, offset_s: float, min_points: int, min_scan_range_mm: float,
                  radius_range_mm: tuple):
         super().__init__()
         self._trust = (min_points, min_scan_range_mm, radius_range_mm)
-        self._samples = self.DeclareAbstractInputPort("samples", AbstractValue.Make(()))
+        self._packet = self.DeclareAbstractInputPort("packet", AbstractValue.Make(NO_SAMPLE_YET))
         self._snap = self.DeclareAbstractState(AbstractValue.Make(_PRIOR_AT_0))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
         self.DeclareStateOutputPort("snapshot", self._snap)
@@ -221,29 +223,34 @@ class AdaptiveModelSystem(LeafSystem):
         self.wall_s += time.perf_counter() - t0
 
     def _absorb(self, context, state) -> None:
-        last_t = self._last_t
-        packet = [s for s in self._samples.Eval(context) if s.t_s > last_t]
-        if not packet:
-            return
-        self._last_t = packet[-1].t_s
+        packet = self._packet.Eval(context)
+        if not packet.t_s[0] > self._last_t:  # samples seen before (or the placeholder before the first packet)
+            new = np.flatnonzero(packet.t_s > self._last_t)  # in time order: the packet's last ones
+            if not len(new):
+                return
+            packet = packet.take(new)
+        T, valid = packet.t_s, packet.valid
+        self._last_t = float(T[-1])
         first = self.n_samples
-        self.n_samples += len(packet)
-        valid = [s for s in packet if s.valid]
-        self.n_invalid += len(packet) - len(valid)
-        self.errors_mm.extend([s.distance_mm - s.true_distance_mm for s in valid])
+        self.n_samples += len(T)
+        n_valid = int(np.count_nonzero(valid))
+        self.n_invalid += len(T) - n_valid
+        self.errors_mm.extend((packet.distance_mm - packet.true_distance_mm)[valid].tolist())
         if self.logger is not None:
-            for k, s in enumerate(packet, first):
-                self.logger.log_distance(s.t_s, s.distance_mm, s.valid, s.confidence)
-                if s.ascan is not None and k % ASCAN_LOG_EVERY == 0:
-                    self.logger.log_ascan(s.t_s, s.ascan, s.valid, s.reason)
+            ascans = packet.ascans
+            for k, (t, d, ok, c) in enumerate(zip(T.tolist(), packet.distance_mm.tolist(), valid.tolist(),
+                                                  packet.confidence.tolist())):
+                self.logger.log_distance(t, d, ok, c)
+                if ascans is not None and ascans[k] is not None and (first + k) % ASCAN_LOG_EVERY == 0:
+                    self.logger.log_ascan(t, ascans[k], ok, packet.reasons[k])
         entry = None
-        if valid:
+        if n_valid:
             t0 = time.perf_counter()
-            entry = self.model.update(np.array([s.p_W for s in valid]))
+            entry = self.model.update(packet.p_W if n_valid == len(T) else packet.p_W[valid])
             # only what the model took in: a floater the gate turned away must not count as
             # retina measured deep inside the model (it would become every nearby point's margin)
             self.coverage.add(self.model.last_accepted)
-            self.update_us.append(1e6 * (time.perf_counter() - t0) / len(valid))
+            self.update_us.append(1e6 * (time.perf_counter() - t0) / n_valid)
             if entry is not None and self.logger is not None:
                 self.logger.log_model_update(self._last_t, entry)
         # the state is what this system last wrote (or the initial snapshot): kept at hand
@@ -527,7 +534,7 @@ class ClosedLoop:
         for port in (self.filter.GetInputPort("q"), sensor_sys.GetInputPort("q")):
             builder.Connect(q, port)
         builder.Connect(self.filter.GetOutputPort("qdot"), self.integrator.get_input_port())
-        builder.Connect(sensor_sys.GetOutputPort("samples"), self.model.GetInputPort("samples"))
+        builder.Connect(sensor_sys.GetOutputPort("packet"), self.model.GetInputPort("packet"))
         builder.Connect(sensor_sys.GetOutputPort("measurement"), self.filter.GetInputPort("measurement"))
         builder.Connect(self.model.GetOutputPort("snapshot"), self.filter.GetInputPort("snapshot"))
         self.diagram = builder.Build()

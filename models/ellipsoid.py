@@ -1,12 +1,15 @@
-"""Ellipsoids: the frozen result type with exact signed distance (Eberly)."""
+"""Ellipsoids: the frozen result type with exact signed distance (Eberly), and the
+compiled beam cast on a placed ellipsoid (`ellipsoid_hits`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from models._eberly import closest_point_first_octant, generic_distance_and_gradient
 from models._validation import as_points, as_rotation, as_vector3
+from models.rays import incidence_rad, rays_in_frame
 from models.sphere import sample_quadric_surface
 
 
@@ -131,3 +134,40 @@ class Ellipsoid:
         t_lo, t_hi = np.minimum(t1, t2), np.maximum(t1, t2)
         t = np.where(c < 0.0, t_hi, np.where(t_lo >= 0.0, t_lo, np.nan))
         return np.where(disc >= 0.0, t, np.nan)
+
+
+@njit(cache=True, error_model="numpy")
+def ellipsoid_hits(O_W, U_W, p_WE, R_WE, radii):
+    """((M,) distance mm along the unit rays (O_W[m], U_W[m]) (M, 3) in W to the ellipsoid
+    with semi-axes `radii` (3,) mm centred at p_WE (3,) mm with axes R_WE (3, 3) (its frame
+    E), NaN where a ray misses it or meets it only behind its origin; (M,) incidence rad
+    between the ray and the surface normal at the hit, NaN without a hit). The roots of
+    `Ellipsoid.ray_cast` (the first hit from inside, the first entry from outside) and its
+    normal in one compiled pass: Eye.beam_hits of the ellipsoidal eyes. ValueError as
+    models.rays.rays_in_frame."""
+    M = O_W.shape[0]
+    d, incidence = np.full(M, np.nan), np.full(M, np.nan)
+    O_E, U_E = rays_in_frame(O_W, U_W, p_WE, R_WE)
+    o, u = np.empty(3), np.empty(3)  # origin and direction in E, scaled by the semi-axes
+    for m in range(M):
+        for k in range(3):
+            o[k], u[k] = O_E[m, k] / radii[k], U_E[m, k] / radii[k]
+        a = u[0] * u[0] + u[1] * u[1] + u[2] * u[2]
+        b = o[0] * u[0] + o[1] * u[1] + o[2] * u[2]
+        c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - 1.0
+        disc = b * b - a * c
+        if not disc >= 0.0:
+            continue
+        q = -(b + np.copysign(np.sqrt(disc), b))  # numerically stable roots q / a and c / q
+        t1, t2 = q / a, c / q
+        t = max(t1, t2) if c < 0.0 else min(t1, t2)
+        if not t > 0.0:
+            continue
+        d[m] = t
+        n2, nu = 0.0, 0.0  # the inward normal at the hit: -p_E / radii^2 = -(o + t u) / radii
+        for k in range(3):
+            n_k = -(o[k] + t * u[k]) / radii[k]
+            n2 += n_k * n_k
+            nu += n_k * u[k] * radii[k]
+        incidence[m] = incidence_rad(nu, np.sqrt(n2))
+    return d, incidence

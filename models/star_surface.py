@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from models._validation import as_positive, as_vector3
+from models.rays import as_rays, incidence_rad, rays_in_frame
 from models.sampling import unit_sphere_grid
 
 RADIAL_KINDS = ("ellipsoid", "pointed", "staphyloma", "detached")
@@ -29,6 +30,7 @@ COARSE_STEP = 8  # the closest-point search scans every 8th row and column of th
 MAX_COARSE_MINIMA = 8  # coarse local minima refined per query, the nearest first
 SEED_TIE_MM = 0.05  # cloud minima this close to the best are all refined (_seeds)
 SLOPE_SAFETY = 2.0  # the sampled slope of rho times this bounds the true one (StarSurface.march_constants)
+MARCH_STEP_MM = 0.05  # the ray march's shortest step (StarSurface.ray_cast)
 
 
 @njit(cache=True)
@@ -299,6 +301,27 @@ def _normal_inward(kind, p, u):
 
 
 @njit(cache=True)
+def _beam_hits(kind, p, O_W, U_W, p_WE, R_WE, r_in, r_out, lip, step):
+    """((M,) distance mm along the unit rays (O_W, U_W) (M, 3) in W to the surface placed
+    at (R_WE, p_WE), NaN without a hit or with one only at or behind the origin; (M,)
+    incidence rad between the ray and the surface's normal at the hit, NaN without a
+    hit): `_ray_hits` (march constants as in StarSurface.ray_cast) and `_normal_inward`
+    at the hit's direction from the centre, in one compiled pass."""
+    O, D = rays_in_frame(O_W, U_W, p_WE, R_WE)
+    d = _ray_hits(kind, p, O, D, r_in, r_out, lip, step, np.inf)
+    incidence = np.full(O.shape[0], np.nan)
+    for m in range(O.shape[0]):
+        if not d[m] > 0.0:
+            d[m] = np.nan
+            continue
+        x, y, z = O[m, 0] + d[m] * D[m, 0], O[m, 1] + d[m] * D[m, 1], O[m, 2] + d[m] * D[m, 2]
+        r = np.sqrt(x * x + y * y + z * z)  # > r_in > 0: the surface lies in the shell
+        n = _normal_inward(kind, p, (x / r, y / r, z / r))
+        incidence[m] = incidence_rad(n[0] * D[m, 0] + n[1] * D[m, 1] + n[2] * D[m, 2], 1.0)
+    return d, incidence
+
+
+@njit(cache=True)
 def _normals_batch(kind, p, U):
     N = np.empty_like(U)
     for m in range(U.shape[0]):
@@ -463,10 +486,9 @@ class StarSurface:
         self._cloud_shape = cloud_shape
         self._grid: tuple[np.ndarray, ...] | None = None
         self._constants: tuple[float, float, float] | None = None
-        # the sensor's kernels loaded from numba's cache (compiled on a fresh checkout) now,
-        # not inside the first ray cast of a timed closed-loop run
-        self.ray_cast(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]))
-        self.normals_inward(np.array([[0.0, 0.0, -1.0]]))
+        # the sensor's kernel loaded from numba's cache (compiled on a fresh checkout) now,
+        # not inside the first packet of a timed closed-loop run
+        self.beam_hits(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.eye(3))
 
     def points(self, U: np.ndarray) -> np.ndarray:
         """(M, 3) surface points (mm) in the directions U (M, 3), unit vectors."""
@@ -478,7 +500,7 @@ class StarSurface:
         U = np.where(r[:, None] > 0, X / np.where(r > 0, r, 1.0)[:, None], [[0.0, 0.0, -1.0]])
         return r - self.rho(U)
 
-    def ray_cast(self, O: np.ndarray, D: np.ndarray, step_mm: float = 0.05, t_max_mm: float = np.inf):
+    def ray_cast(self, O: np.ndarray, D: np.ndarray, step_mm: float = MARCH_STEP_MM, t_max_mm: float = np.inf):
         """(M,) distance (mm) along unit rays D (M, 3) from O (M, 3) mm to the first crossing
         of the surface (from inside: the first exit), NaN when there is none within t_max_mm.
 
@@ -492,6 +514,18 @@ class StarSurface:
         r_in, r_out, lip = self.march_constants()
         return _ray_hits(self.rho.kind, self.rho.params, np.ascontiguousarray(O, dtype=float),
                          np.ascontiguousarray(D, dtype=float), r_in, r_out, lip, float(step_mm), float(t_max_mm))
+
+    def beam_hits(self, O_W, U_W, p_WE: np.ndarray, R_WE: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) distance mm along the unit rays with origins O_W (M, 3) mm and directions
+        U_W (M, 3) in a frame W to the surface, its frame E placed at (R_WE (3, 3) rotation,
+        p_WE (3,) mm: float arrays, as models.eyes.EyePose holds them): `ray_cast`'s first
+        crossing (default step), NaN without one or with one only at or behind the origin;
+        (M,) incidence rad between the ray and the surface normal (`normals_inward`) at the
+        hit, NaN without a hit). One compiled call: the sensor's beams at 2 kHz.
+        ValueError for shapes other than (M, 3), a non-finite origin or a direction not of
+        unit length."""
+        O, U = as_rays(O_W, U_W)
+        return _beam_hits(self.rho.kind, self.rho.params, O, U, p_WE, R_WE, *self.march_constants(), MARCH_STEP_MM)
 
     def march_constants(self) -> tuple[float, float, float]:
         """(r_in mm, r_out mm, lip): the surface lies in the shell r_in <= |x| <= r_out, and

@@ -30,11 +30,13 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource, Selector, SelectorParams, ZeroOrderHold
 
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
+from models.rays import incidences_rad
 from planning.chain import _apply, chain_kinematics
 from planning.robot import Robot
 
 DEFAULT_MAX_INCIDENCE_RAD = np.radians(55.0)
 DISTANCE_MODE_CONFIDENCE = 0.9  # of a valid "distance" mode sample
+BAD_JOINT_STATE = "bad_joint_state: q must be 6 finite angles (rad)"  # the reason of a sample without finite angles
 
 
 class SensorSample(NamedTuple):
@@ -44,9 +46,9 @@ class SensorSample(NamedTuple):
     retinal point `p_W` (NaN when invalid); the reported (calibrated) beam
     `beam_origin_W`, `beam_dir_W`; the raw `ascan` (None in "distance" mode); the true
     distance along the true beam (what evaluation compares with; nothing in the loop
-    reads it). A named tuple (the loop builds 2,000 a second: a tenth of a frozen
-    dataclass's cost), compared by identity like an object (its arrays have no truth
-    value), immutable by contract (its arrays too)."""
+    reads it). One row of a SensorPacket (`SensorPacket.sample`). A named tuple (a tenth
+    of a frozen dataclass's cost), compared by identity like an object (its arrays have
+    no truth value), immutable by contract (its arrays too)."""
 
     t_s: float
     distance_mm: float
@@ -65,6 +67,82 @@ class SensorSample(NamedTuple):
 
     def __deepcopy__(self, memo) -> SensorSample:
         return self  # immutable by contract: Drake copies abstract state values often
+
+
+class SensorPacket(NamedTuple):
+    """M iiOCT samples as arrays, sample m in row m (the fields of SensorSample): OCT
+    time stamps `t_s` (M,) s; extracted `distance_mm` (M,) (NaN where invalid); `valid`
+    (M,) bool; `confidence` (M,); `reasons`, a tuple of M str (SensorSample.reason's);
+    the reconstructed retinal points `p_W` (M, 3) mm (NaN rows where invalid); the
+    reported (calibrated) beams' origins `beam_origin_W` (M, 3) mm and unit directions
+    `beam_dir_W` (M, 3); `ascans`, a tuple of the M raw A-scans ("ascan" mode; None for
+    a sample without one) or None when the packet has none ("distance" mode); the true
+    distances `true_distance_mm` (M,) along the true beams (simulation ground truth, for
+    evaluation only). What `IioctSensor.packet` returns and IioctSensorSystem's "packet"
+    output carries: the loop reads it with array operations, no object per sample.
+    `n_samples` is M; `sample(k)` and `samples()` give SensorSamples. Compared by
+    identity like an object, immutable by contract (its arrays too): Drake copies
+    abstract values often, and a deep copy is the packet itself."""
+
+    t_s: np.ndarray
+    distance_mm: np.ndarray
+    valid: np.ndarray
+    confidence: np.ndarray
+    reasons: tuple
+    p_W: np.ndarray
+    beam_origin_W: np.ndarray
+    beam_dir_W: np.ndarray
+    ascans: tuple | None
+    true_distance_mm: np.ndarray
+
+    __eq__ = object.__eq__
+    __ne__ = object.__ne__
+    __hash__ = object.__hash__
+
+    def __deepcopy__(self, memo) -> SensorPacket:
+        return self
+
+    @classmethod
+    def invalid(cls, t_s, reason: str) -> SensorPacket:
+        """M invalid samples at the times t_s (M,) s, each for `reason`: NaN distances,
+        points and beams, confidence 0, no A-scans."""
+        T = np.array(t_s, dtype=float).reshape(-1)
+        M = len(T)
+        return cls(T, np.full(M, np.nan), np.zeros(M, dtype=bool), np.zeros(M), (reason,) * M,
+                   *(np.full((M, 3), np.nan) for _ in range(3)), None, np.full(M, np.nan))
+
+    @property
+    def n_samples(self) -> int:
+        """M, the number of samples."""
+        return len(self.t_s)
+
+    def sample(self, k: int) -> SensorSample:
+        """Sample k (0 <= k < M, or -M <= k < 0 counting from the last) as a SensorSample
+        (its arrays are rows of the packet's)."""
+        M = len(self.t_s)
+        if not -M <= k < M:
+            raise ValueError(f"k must be in [{-M}, {M - 1}] (a sample of the {M}), got {k}")
+        return self.samples()[k]
+
+    def samples(self) -> list[SensorSample]:
+        """The M samples as SensorSamples, in order (their arrays are rows of the packet's)."""
+        ascans = (None,) * len(self.t_s) if self.ascans is None else self.ascans
+        return [SensorSample(*x) for x in zip(self.t_s.tolist(), self.distance_mm.tolist(), self.valid.tolist(),
+                                              self.confidence.tolist(), self.reasons, self.p_W, self.beam_origin_W,
+                                              self.beam_dir_W, ascans, self.true_distance_mm.tolist())]
+
+    def take(self, at: np.ndarray) -> SensorPacket:
+        """The packet of the L samples at the indices `at` (L,) ints in [-M, M), in that
+        order (the arrays' rows copied)."""
+        rows = at.tolist()
+        return self._replace(**{name: getattr(self, name)[at] for name in _PER_SAMPLE_ARRAYS},
+                             reasons=tuple(self.reasons[k] for k in rows),
+                             ascans=None if self.ascans is None else tuple(self.ascans[k] for k in rows))
+
+
+# the fields of SensorPacket that are arrays with a row per sample
+_PER_SAMPLE_ARRAYS = ("t_s", "distance_mm", "valid", "confidence", "p_W", "beam_origin_W", "beam_dir_W",
+                      "true_distance_mm")
 
 
 @numba.njit(cache=True)
@@ -154,44 +232,6 @@ def extractor_error_model(engine: OctEngine = OctEngine(), samples: int = 24, se
                 med = float(np.median(err))
                 bias[i, j], sd[i, j] = med, 1.4826 * float(np.median(np.abs(err - med)))
     return ExtractorErrorModel(tuple(D), tuple(A), bias.tolist(), sd.tolist(), p_invalid.tolist())
-
-
-@numba.njit(cache=True, error_model="numpy")
-def ellipsoid_hits(O_W, U_W, p_WE, R_WE, radii):
-    """((M,) distance mm along the unit rays (O_W[m], U_W[m]) (M, 3) in W to the ellipsoid
-    with semi-axes `radii` (3,) mm centred at p_WE with axes R_WE (its frame E), NaN where
-    a ray misses it or meets it only behind its origin; (M,) incidence rad between the ray
-    and the surface normal at the hit, NaN without a hit). The roots of
-    Ellipsoid.ray_cast (the first hit from inside, the first entry from outside) and the
-    normal of Eye.surface_normal in one compiled pass: the sensor's ray cast on the
-    regular eyes at 2 kHz (tests/planning/test_iioct_sensor.py checks it against them)."""
-    M = O_W.shape[0]
-    d, incidence = np.full(M, np.nan), np.full(M, np.nan)
-    o, u = np.empty(3), np.empty(3)  # origin and direction in E, scaled by the semi-axes
-    for m in range(M):
-        for k in range(3):
-            o[k] = ((O_W[m, 0] - p_WE[0]) * R_WE[0, k] + (O_W[m, 1] - p_WE[1]) * R_WE[1, k]
-                    + (O_W[m, 2] - p_WE[2]) * R_WE[2, k]) / radii[k]
-            u[k] = (U_W[m, 0] * R_WE[0, k] + U_W[m, 1] * R_WE[1, k] + U_W[m, 2] * R_WE[2, k]) / radii[k]
-        a = u[0] * u[0] + u[1] * u[1] + u[2] * u[2]
-        b = o[0] * u[0] + o[1] * u[1] + o[2] * u[2]
-        c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - 1.0
-        disc = b * b - a * c
-        if not disc >= 0.0:
-            continue
-        q = -(b + np.copysign(np.sqrt(disc), b))  # numerically stable roots q / a and c / q
-        t1, t2 = q / a, c / q
-        t = max(t1, t2) if c < 0.0 else min(t1, t2)
-        if not t > 0.0:
-            continue
-        d[m] = t
-        n2, nu = 0.0, 0.0  # the inward normal at the hit: -p_E / radii^2 = -(o + t u) / radii
-        for k in range(3):
-            n_k = -(o[k] + t * u[k]) / radii[k]
-            n2 += n_k * n_k
-            nu += n_k * u[k] * radii[k]
-        incidence[m] = np.arccos(min(1.0, abs(nu) / np.sqrt(n2)))
-    return d, incidence
 
 
 @numba.njit(cache=True)
@@ -287,7 +327,7 @@ class IioctSensor:
         """((M,) true distances mm along the true beams at Q_true (M, 6) rad, finite, to
         the retina, NaN where there is none; (M,) incidences rad, NaN without a hit)."""
         Q = _finite_rows(Q_true)
-        return self._hits(*self._beams(Q, Q)[:2])
+        return self.eye.beam_hits(*self._beams(Q, Q)[:2])
 
     def _with_encoder_noise(self, Q: np.ndarray) -> np.ndarray:
         if self.encoder_noise_rad > 0:
@@ -301,20 +341,6 @@ class IioctSensor:
         return sensor_beams(chain.S, np.ascontiguousarray(Q_true), np.ascontiguousarray(Q_reported),
                             *chain.homes["S_true"], *self._home_Scal)
 
-    def _hits(self, O: np.ndarray, U: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((M,) distances mm to the true retina along the beams (O, U) (M, 3) in W, NaN
-        where there is none; (M,) incidences rad, NaN without a hit)."""
-        if self.eye.is_ellipsoid:
-            return ellipsoid_hits(O, U, self.eye.pose.p_WE, self.eye.pose.R_WE, self.eye.radii)
-        d = np.asarray(self.eye.ray_cast(O, U), dtype=float)
-        d = np.where(np.isfinite(d) & (d > 0), d, np.nan)
-        hit = np.isfinite(d)
-        incidence = np.full(len(d), np.nan)
-        if hit.any():
-            N = self.eye.surface_normal(O[hit] + d[hit, None] * U[hit])
-            incidence[hit] = np.arccos(np.minimum(1.0, np.abs(np.einsum("ij,ij->i", N, U[hit]))))
-        return d, incidence
-
     def sample(self, q_true, q_reported, t_s: float, model=None) -> SensorSample:
         """One sample at OCT time t_s: the A-scan from the true pose at q_true, the point
         from q_reported (both (6,) rad). `model`: the current eye model (Sphere, Ellipsoid
@@ -323,27 +349,35 @@ class IioctSensor:
 
     def samples(self, Q_true, Q_reported, T_s, model=None) -> list[SensorSample]:
         """`sample` for M samples at once (Q_true, Q_reported (M, 6) rad; T_s (M,) s): the
-        geometry, the checks and (in "distance" mode) the error draws are vectorised over
-        the M samples, which is what makes 2 kHz affordable."""
+        SensorSamples of `packet`."""
+        return self.packet(Q_true, Q_reported, T_s, model).samples()
+
+    def packet(self, Q_true, Q_reported, T_s, model=None) -> SensorPacket:
+        """The M samples at OCT times T_s (M,) s from the true joint angles Q_true and the
+        reported ones Q_reported (M, 6) rad (`sample`'s, in order) as a SensorPacket: the
+        geometry, the checks and (in "distance" mode) the error draws vectorised over the
+        M samples, which is what makes 2 kHz affordable. A row that is not 6 finite angles
+        gives an invalid sample (reason BAD_JOINT_STATE) and draws nothing."""
         M = len(T_s)
-        T = np.asarray(T_s, dtype=float).reshape(M)
+        T = np.array(T_s, dtype=float).reshape(M)
         Qt, Qr = _joint_rows(Q_true, M), _joint_rows(Q_reported, M)
         if np.isfinite(Qt.sum() + Qr.sum()):  # all finite (a sum of angles cannot overflow)
             return self._measure(T, Qt, Qr, model)
-        finite = np.isfinite(Qt).all(axis=1) & np.isfinite(Qr).all(axis=1)
-        nan3 = np.full(3, np.nan)
-        out = [SensorSample(t, float("nan"), False, 0.0, "bad_joint_state: q must be 6 finite angles (rad)",
-                            nan3, nan3, nan3) for t in T.tolist()]
-        good = np.flatnonzero(finite)
-        if len(good):
-            for k, s in zip(good.tolist(), self._measure(T[good], Qt[good], Qr[good], model)):
-                out[k] = s
-        return out
+        good = np.flatnonzero(np.isfinite(Qt).all(axis=1) & np.isfinite(Qr).all(axis=1))
+        out = SensorPacket.invalid(T, BAD_JOINT_STATE)
+        if not len(good):
+            return out
+        part = self._measure(T[good], Qt[good], Qr[good], model)
+        for name in _PER_SAMPLE_ARRAYS:
+            getattr(out, name)[good] = getattr(part, name)
+        return out._replace(reasons=_scattered(out.reasons, good, part.reasons),
+                            ascans=None if part.ascans is None else _scattered((None,) * M, good, part.ascans))
 
-    def _measure(self, T: np.ndarray, Qt: np.ndarray, Qr: np.ndarray, model) -> list[SensorSample]:
-        """The samples at times T (M,) s from finite joint angles Qt, Qr (M, 6) rad."""
+    def _measure(self, T: np.ndarray, Qt: np.ndarray, Qr: np.ndarray, model) -> SensorPacket:
+        """The packet of the samples at times T (M,) s (the packet keeps T) from finite
+        joint angles Qt, Qr (M, 6) rad."""
         O_true, U_true, O, U = self._beams(Qt, self._with_encoder_noise(Qr))
-        d_true, incidence = self._hits(O_true, U_true)
+        d_true, incidence = self.eye.beam_hits(O_true, U_true)
         M = len(T)
         live = d_true <= self.max_distance_mm  # False where the beam meets no retina (NaN)
         reasons = ["" if ok else "no_retina" for ok in live.tolist()]
@@ -352,7 +386,6 @@ class IioctSensor:
             live[oblique] = False
             for k in oblique.tolist():
                 reasons[k] = "incidence"
-        ascans = [None] * M
         if self.mode == "distance":
             d, valid = np.full(M, np.nan), np.zeros(M, dtype=bool)
             d[live], valid[live] = self._distance_draws(d_true[live], incidence[live])
@@ -360,15 +393,17 @@ class IioctSensor:
             if not valid.all():
                 for k in np.flatnonzero(live & ~valid).tolist():
                     reasons[k] = "low_confidence"
+            ascans = None
         else:
             d, valid, confidence = np.full(M, np.nan), np.zeros(M, dtype=bool), np.zeros(M)
+            ascans = [None] * M
             for k in np.flatnonzero(live).tolist():
                 ascans[k], m = self._ascan_one(float(d_true[k]), float(incidence[k]))
                 d[k], valid[k], confidence[k], reasons[k] = m.distance_mm, m.valid, m.confidence, "" if m.valid else m.reason
             d[~valid] = np.nan
+            ascans = tuple(ascans)
         P = O + d[:, None] * U  # NaN rows where invalid
-        return [SensorSample(*x) for x in zip(T.tolist(), d.tolist(), valid.tolist(), confidence.tolist(), reasons,
-                                              P, O, U, ascans, d_true.tolist())]
+        return SensorPacket(T, d, valid, confidence, tuple(reasons), P, O, U, ascans, d_true)
 
     def _distance_draws(self, d_true: np.ndarray, incidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """((L,) extracted distances mm, NaN where invalid; (L,) valid) of L samples with a
@@ -391,6 +426,14 @@ class IioctSensor:
         return ascan, self.extractor(ascan)
 
 
+def _scattered(items: tuple, at: np.ndarray, values) -> tuple:
+    """`items` with items[at[i]] = values[i] (at: (L,) indices, values: L items)."""
+    out = list(items)
+    for k, v in zip(at.tolist(), values):
+        out[k] = v
+    return tuple(out)
+
+
 def _model_incidences(model, O: np.ndarray, U: np.ndarray) -> np.ndarray:
     """(M,) incidence (rad) of the beams (origins O, unit directions U (M, 3) in W) on
     `model` (anything with ray_cast and gradient in W); 0 where a beam misses it."""
@@ -399,20 +442,11 @@ def _model_incidences(model, O: np.ndarray, U: np.ndarray) -> np.ndarray:
     hit = np.isfinite(d)
     if hit.any():
         G = np.asarray(model.gradient(O[hit] + d[hit, None] * U[hit]), dtype=float)
-        cos = np.abs(np.einsum("ij,ij->i", G, U[hit])) / np.linalg.norm(G, axis=1)
-        out[hit] = np.arccos(np.minimum(1.0, cos))
+        out[hit] = incidences_rad(np.ascontiguousarray(G), U[hit])
     return out
 
 
-@dataclass(frozen=True, eq=False)
-class _Packet:
-    """The packet processor's abstract state: the latest packet, a tuple of
-    SensorSample. Immutable: Drake copies state values often."""
-
-    samples: tuple
-
-    def __deepcopy__(self, memo) -> _Packet:
-        return self
+NO_SAMPLE_YET = SensorPacket.invalid([-np.inf], "no_sample_yet")  # IioctSensorSystem's packet before its first
 
 
 def _shift_selector(rows: int) -> Selector:
@@ -439,16 +473,13 @@ class _PacketProcessor(LeafSystem):
         self.sensor, self.time_offset_s, self.packet, self._slots = sensor, time_offset_s, packet, slots
         self._period_s = 1.0 / rate_hz  # the register's period, s: sample k is at k * period (Drake's event time)
         self._register = self.DeclareVectorInputPort("register", 7 * slots)
-        nan3 = np.full(3, np.nan)
-        first = SensorSample(-np.inf, np.nan, False, 0.0, "no_sample_yet", nan3, nan3, nan3)
-        self._packet = self.DeclareAbstractState(AbstractValue.Make(_Packet((first,))))
+        self._packet = self.DeclareAbstractState(AbstractValue.Make(NO_SAMPLE_YET))
         self.DeclarePeriodicUnrestrictedUpdateEvent(packet * self._period_s, (packet - 0.75) * self._period_s,
                                                     self._process)
         packet_changed = {self.abstract_state_ticket(self._packet)}
-        self.DeclareAbstractOutputPort("samples", lambda: AbstractValue.Make((first,)), self._calc_samples,
-                                       prerequisites_of_calc=packet_changed)
-        self.DeclareAbstractOutputPort("sample", lambda: AbstractValue.Make(first), self._calc_sample,
-                                       prerequisites_of_calc=packet_changed)
+        self.DeclareStateOutputPort("packet", self._packet)
+        self.DeclareAbstractOutputPort("sample", lambda: AbstractValue.Make(NO_SAMPLE_YET.sample(0)),
+                                       self._calc_sample, prerequisites_of_calc=packet_changed)
         self.DeclareVectorOutputPort("p_W", 3, self._calc_p, prerequisites_of_calc=packet_changed)
         self.DeclareVectorOutputPort("measurement", 4, self._calc_measurement, prerequisites_of_calc=packet_changed)
 
@@ -468,8 +499,8 @@ class _PacketProcessor(LeafSystem):
         if not len(T_all):  # a run started after this packet's last sample: keep the previous packet
             return
         T, Q = T_all[-self.packet:], Q_all[-self.packet:]
-        packet = tuple(self.sensor.samples(Q, self._reported(T, T_all, Q_all), T))
-        state.get_mutable_abstract_state(self._packet).set_value(_Packet(packet))
+        packet = self.sensor.packet(Q, self._reported(T, T_all, Q_all), T)
+        state.get_mutable_abstract_state(self._packet).set_value(packet)
 
     def _reported(self, T: np.ndarray, T_all: np.ndarray, Q_all: np.ndarray) -> np.ndarray:
         """Joint angles (M, 6) rad at the times T - time_offset_s, from the recorded
@@ -478,21 +509,18 @@ class _PacketProcessor(LeafSystem):
             return Q_all[-len(T):]
         return np.column_stack([np.interp(T - self.time_offset_s, T_all, Q_all[:, i]) for i in range(6)])
 
-    def _latest(self, context) -> SensorSample:
-        return context.get_abstract_state(self._packet).get_value().samples[-1]
-
-    def _calc_samples(self, context, value) -> None:
-        value.set_value(context.get_abstract_state(self._packet).get_value().samples)
+    def _latest(self, context) -> SensorPacket:
+        return context.get_abstract_state(self._packet).get_value()
 
     def _calc_sample(self, context, value) -> None:
-        value.set_value(self._latest(context))
+        value.set_value(self._latest(context).sample(-1))
 
     def _calc_p(self, context, output) -> None:
-        output.SetFromVector(self._latest(context).p_W)
+        output.SetFromVector(self._latest(context).p_W[-1])
 
     def _calc_measurement(self, context, output) -> None:
-        s = self._latest(context)
-        output.SetFromVector([s.distance_mm, float(s.valid), s.confidence, s.t_s])
+        p = self._latest(context)
+        output.SetFromVector([p.distance_mm[-1], float(p.valid[-1]), p.confidence[-1], p.t_s[-1]])
 
 
 class IioctSensorSystem(Diagram):
@@ -501,12 +529,13 @@ class IioctSensorSystem(Diagram):
     Input "q" (6,) rad: the robot's joint angles. The OCT engine streams its A-scans in
     packets of `packet` samples (default 10, i.e. 5 ms at 2 kHz): the joint angles are
     recorded at every sample time and the packet is processed when its last sample is
-    recorded (vectorised geometry). Outputs: "samples" (the latest packet, a tuple of
-    SensorSample), "sample" (its last sample), "p_W" (3,) mm of that sample (NaN when
-    invalid), "measurement" (4,) [distance_mm, valid 0/1, confidence, t_s] (t_s = -inf
-    before the first packet). With `time_offset_s` > 0 the points are reconstructed from
-    the joint angles of `time_offset_s` earlier (the paper's OCT-robot synchronisation
-    error, up to 2.6 ms), interpolated linearly in the recorded history.
+    recorded (vectorised geometry). Outputs: "packet" (the latest packet, a
+    SensorPacket; NO_SAMPLE_YET before the first), "sample" (its last sample, a
+    SensorSample), "p_W" (3,) mm of that sample (NaN when invalid), "measurement" (4,)
+    [distance_mm, valid 0/1, confidence, t_s] (t_s = -inf before the first packet).
+    With `time_offset_s` > 0 the points are reconstructed from the joint angles of
+    `time_offset_s` earlier (the paper's OCT-robot synchronisation error, up to 2.6 ms),
+    interpolated linearly in the recorded history.
 
     A diagram of Drake's C++ primitives and one Python system: a shift register (a
     ZeroOrderHold with period 1 / rate_hz, i.e. Drake's discrete update at every sample
@@ -547,6 +576,6 @@ class IioctSensorSystem(Diagram):
         b.Connect(shift.get_output_port(0), register.get_input_port())
         b.Connect(register.get_output_port(), processor.GetInputPort("register"))
         b.ExportInput(shift.get_input_port(2), "q")
-        for name in ("samples", "sample", "p_W", "measurement"):
+        for name in ("packet", "sample", "p_W", "measurement"):
             b.ExportOutput(processor.GetOutputPort(name), name)
         b.BuildInto(self)

@@ -138,6 +138,41 @@ def test_the_model_receives_every_sensor_packet_exactly_once():
     assert loop.model.n_samples == 200
 
 
+def test_the_model_system_takes_the_valid_points_of_each_packets_new_samples(emmetropic):
+    """Two packets from the sensor (floaters among them, and beams too long for a
+    shortened engine: invalid), the second repeating the last 5 sample times of the
+    first: the model system counts 10 + 5 new samples, keeps the errors (extracted -
+    true, mm) of the valid ones exactly and gives the model exactly the points a model fed
+    those valid points directly takes."""
+    from pydrake.common.value import AbstractValue
+
+    from planning.iioct_sensor import IioctSensor
+
+    loop, _ = emmetropic
+    q = deep_start(loop)
+    Q = q + np.linspace(0.0, 0.03, 15)[:, None] * np.array([1.0, -0.5, 0.3, 0.0, 0.2, 0.0])
+    T = np.arange(15) * 5e-4
+    sensor = IioctSensor(loop.robot, mode="distance", floater_rate=0.3, seed=3)
+    sensor.max_distance_mm = 5.78  # the beams along Q: 5.6-5.8 mm
+    a, b = sensor.packet(Q[:10], Q[:10], T[:10]), sensor.packet(Q[5:], Q[5:], T[5:])
+    new_b = b.take(np.arange(5, 10))
+    assert not a.valid.all() and new_b.valid.any()
+    system, reference = loop.model, AdaptiveEyeModel()
+    system.reset(AdaptiveEyeModel(), DirectionCoverage(loop.scenario.eye_pose.p_WE))
+    context = system.CreateDefaultContext()
+    for packet in (a, b):
+        system.get_input_port(0).FixValue(context, AbstractValue.Make(packet))
+        system._absorb(context, context.get_mutable_state())
+    for packet in (a, new_b):
+        reference.update(packet.p_W[packet.valid])
+    assert system.n_samples == 15 and system.n_invalid == 15 - a.valid.sum() - new_b.valid.sum()
+    errors = [p.distance_mm[p.valid] - p.true_distance_mm[p.valid] for p in (a, new_b)]
+    assert system.errors_mm == np.concatenate(errors).tolist()
+    assert system.model.n_received == reference.n_received and system.model.n_points == reference.n_points
+    np.testing.assert_array_equal(system.model.last_accepted, reference.last_accepted)
+    assert context.get_abstract_state(0).get_value().t_s == T[-1]
+
+
 def test_the_prior_bounds_the_motion_until_the_model_is_trusted():
     scenario = SurgeryScenario()
     loop = ClosedLoop(scenario)

@@ -13,6 +13,8 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -163,6 +165,79 @@ def test_ray_hits_from_inside_are_on_the_retina_and_the_first_crossing(name):
     assert np.all(np.abs(e.signed_distance(O + t[:, None] * D)) <= tol)
     for frac in (0.5, 0.9, 0.999):
         assert np.all(e.signed_distance(O + frac * t[:, None] * D) > 0)
+
+
+def incidences(e, O: np.ndarray, U: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(M,) incidence (rad) of the rays (O, U) (M, 3) in W hitting e's retina at t (M,) mm,
+    from Eye.surface_normal (the sensor's formula before Eye.beam_hits)."""
+    N = e.surface_normal(O + t[:, None] * U)
+    return np.arccos(np.minimum(1.0, np.abs(np.einsum("ij,ij->i", N, U))))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), tilt_deg=st.floats(-20.0, 20.0))
+def test_beam_hits_on_an_ellipsoidal_eye_are_its_ray_cast_and_normal(seed, tilt_deg):
+    """Eye.beam_hits against Ellipsoid.ray_cast and Eye.surface_normal on a tilted,
+    decentred eye: rays from inside and outside, some missing; the same roots and normals
+    to rounding (1e-9 mm, 1e-7 rad: arccos near 0 amplifies a 1e-16 cosine error)."""
+    rng = np.random.default_rng(seed)
+    e = make_eye("myopic", EyePose.anatomical(tilt_deg, 0.5, 0.2))
+    O = e.pose.p_WE + rng.uniform(-16.0, 16.0, (200, 3))
+    U = random_directions(200, seed + 1)
+    d, incidence = e.beam_hits(O, U)
+    ref = e.ellipsoid.ray_cast(O, U)
+    ref = np.where(ref > 0, ref, np.nan)
+    np.testing.assert_array_equal(np.isnan(d), np.isnan(ref))
+    hit = np.isfinite(ref)
+    np.testing.assert_allclose(d[hit], ref[hit], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(incidence[hit], incidences(e, O[hit], U[hit], ref[hit]), rtol=0, atol=1e-7)
+    assert np.isnan(incidence[~hit]).all()
+
+
+@pytest.mark.parametrize("name", COMPOSITE)
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 10_000))
+def test_beam_hits_on_a_composite_eye_are_its_ray_cast_and_normal(name, seed):
+    """Eye.beam_hits (one compiled call) against Eye.ray_cast then Eye.surface_normal on
+    the composite eyes at a random pose, rays from inside: the same first crossings to
+    1e-11 mm (both refine to ~1e-13 of the distance, from E-frame rays rounded
+    differently: ~2e-12 mm apart) and the same cosines of the incidence to 1e-8 (the
+    normal is a finite difference over 1e-6 rad, so 1e-16 mm of rounding in the hit moves
+    it by ~1e-9; the angle itself would amplify that without bound at normal incidence)."""
+    rng = np.random.default_rng(seed)
+    e = eye(name, "random")
+    O = e.pose.to_W(rng.uniform(-6.0, 6.0, (100, 3)))
+    U = random_directions(100, seed + 1)
+    d, incidence = e.beam_hits(O, U)
+    ref = e.ray_cast(O, U)
+    assert np.isfinite(ref).all() and np.isfinite(incidence).all()
+    np.testing.assert_allclose(d, ref, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(np.cos(incidence), np.cos(incidences(e, O, U, ref)), rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize("name", ["emmetropic", "detached"])
+def test_beam_hits_miss_behind_the_origin_and_outside(name):
+    """From outside, looking away: no hit (NaN distance and incidence), for both kernels."""
+    e = eye(name, "anatomical")
+    O = e.pose.to_W(np.array([[0.0, 0.0, -30.0], [0.0, 0.0, -30.0]]))
+    U = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]) @ e.pose.R_WE.T
+    d, incidence = e.beam_hits(O, U)
+    assert np.isnan(d).all() and np.isnan(incidence).all()
+
+
+@pytest.mark.parametrize("name", ["emmetropic", "pointed"])
+def test_beam_hits_refuse_bad_rays(name):
+    e = eye(name)
+    with pytest.raises(ValueError, match="unit"):
+        e.beam_hits(np.zeros((1, 3)), [[0.0, 0.0, 2.0]])
+    with pytest.raises(ValueError, match="unit"):
+        e.beam_hits(np.zeros((1, 3)), [[0.0, np.nan, 1.0]])
+    with pytest.raises(ValueError, match="finite origins"):
+        e.beam_hits([[np.inf, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match=r"\(M, 3\)"):
+        e.beam_hits(np.zeros((2, 3)), np.array([[0.0, 0.0, 1.0]]))
+    with pytest.raises(ValueError, match=r"\(M, 3\)"):
+        e.beam_hits(np.zeros(3), np.array([0.0, 0.0, 1.0]))
 
 
 @pytest.mark.parametrize("name", COMPOSITE)

@@ -3,18 +3,18 @@ angles and the calibrated pose; distance mode = the full chain's statistics; the
 block with packets, time offset and bad joint states."""
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, DiscreteTimeIntegrator
 
-from hypothesis import given, settings
-from hypothesis import strategies as st
 from pydrake.systems.framework import LeafSystem
 
-from models.eyes import EyePose, make_eye
-from planning.iioct_sensor import IioctSensor, IioctSensorSystem, ellipsoid_hits, extractor_error_model
+from planning.iioct_sensor import (BAD_JOINT_STATE, DISTANCE_MODE_CONFIDENCE, IioctSensor, IioctSensorSystem,
+                                   SensorPacket, extractor_error_model)
 
 
 def test_the_beam_comes_from_the_true_sensor_and_the_point_from_the_calibrated_one(setup):
@@ -108,40 +108,17 @@ def test_the_block_samples_at_2_khz_in_packets_and_the_time_offset_moves_the_poi
         sim, sensor = _moving_diagram(robot, q, qdot, offset)
         sim.AdvanceTo(0.0101)
         ctx = sensor.GetMyContextFromRoot(sim.get_context())
-        packet = sensor.GetOutputPort("samples").Eval(ctx)
+        packet = sensor.GetOutputPort("packet").Eval(ctx)
         m = sensor.GetOutputPort("measurement").Eval(ctx)
-        assert len(packet) == 10 and np.allclose(np.diff([s.t_s for s in packet]), 5e-4)
-        assert m[3] == packet[-1].t_s and m[1] == 1.0
-        out[offset] = packet[-1]
+        assert packet.n_samples == 10 and np.allclose(np.diff(packet.t_s), 5e-4)
+        assert m[3] == packet.t_s[-1] and m[1] == 1.0
+        out[offset] = packet.sample(-1)
     # with the offset the beam is taken 2 ms earlier: the origin lags by |v_origin| x 2 ms
     o_then, _ = robot.beam(q + (out[0.0].t_s - 0.002) * qdot)
     np.testing.assert_allclose(out[0.002].beam_origin_W, o_then, atol=1e-9)
     lag = np.linalg.norm(out[0.002].beam_origin_W - out[0.0].beam_origin_W)
     v = np.linalg.norm(robot.jacobian("S", np.zeros(3), q) @ qdot)
     assert abs(lag - v * 0.002) < 0.05 * v * 0.002
-
-
-@settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 10_000), tilt_deg=st.floats(-20.0, 20.0))
-def test_the_compiled_ray_cast_matches_the_eye_model(seed, tilt_deg):
-    """ellipsoid_hits against Ellipsoid.ray_cast and Eye.surface_normal on a tilted,
-    decentred eye: rays from inside and outside, some missing; the same roots and normals
-    to rounding (1e-9 mm, 1e-7 rad: arccos near 0 amplifies a 1e-16 cosine error)."""
-    rng = np.random.default_rng(seed)
-    eye = make_eye("myopic", EyePose.anatomical(tilt_deg, 0.5, 0.2))
-    O = eye.pose.p_WE + rng.uniform(-16.0, 16.0, (200, 3))
-    U = rng.standard_normal((200, 3))
-    U /= np.linalg.norm(U, axis=1, keepdims=True)
-    d, incidence = ellipsoid_hits(O, U, eye.pose.p_WE, eye.pose.R_WE, eye.radii)
-    ref = eye.ellipsoid.ray_cast(O, U)
-    ref = np.where(ref > 0, ref, np.nan)
-    np.testing.assert_array_equal(np.isnan(d), np.isnan(ref))
-    hit = np.isfinite(ref)
-    np.testing.assert_allclose(d[hit], ref[hit], atol=1e-9)
-    N = eye.surface_normal(O[hit] + ref[hit, None] * U[hit])
-    cos = np.minimum(1.0, np.abs(np.einsum("ij,ij->i", N, U[hit])))
-    np.testing.assert_allclose(incidence[hit], np.arccos(cos), atol=1e-7)
-    assert np.isnan(incidence[~hit]).all()
 
 
 def test_the_batched_draws_have_the_error_models_bias_sd_and_invalid_fraction():
@@ -198,6 +175,50 @@ def test_a_seed_reproduces_the_samples_and_floaters_and_rejections_keep_their_re
     assert [x.t_s for x in mixed] == T[:5].tolist()
 
 
+def test_a_packet_holds_its_samples_as_arrays_row_by_row(setup):
+    """One packet with every kind of sample (valid, floater, low confidence, incidence,
+    bad joint state): the arrays agree with each other (NaN distance and point exactly
+    where invalid, the point on the reported beam to 1e-12 mm, "" exactly where valid)
+    and with its SensorSamples field by field, with the same Python types as a
+    SensorSample's; `take` picks rows; a deep copy is the packet itself."""
+    scenario, robot, q = setup
+    Q = q + np.linspace(0.0, 0.02, 40)[:, None] * np.array([1.0, -0.5, 0.3, 0.0, 0.2, 0.0])
+    Q[[3, 17], 2] = np.nan
+    T = np.arange(40) * 5e-4
+    sensor = IioctSensor(robot, mode="distance", floater_rate=0.3, max_incidence_rad=np.radians(21.0), seed=5)
+    p = sensor.packet(Q, Q, T, model=scenario.eye.ellipsoid)
+    assert isinstance(p, SensorPacket) and p.n_samples == 40 and p.ascans is None
+    assert {"", "incidence", "low_confidence", BAD_JOINT_STATE} <= set(p.reasons)
+    np.testing.assert_array_equal(p.t_s, T)
+    np.testing.assert_array_equal(np.isnan(p.distance_mm), ~p.valid)
+    np.testing.assert_array_equal(np.isnan(p.p_W).any(axis=1), ~p.valid)
+    np.testing.assert_array_equal([r == "" for r in p.reasons], p.valid)
+    np.testing.assert_array_equal(p.confidence, np.where(p.valid, DISTANCE_MODE_CONFIDENCE, 0.0))
+    np.testing.assert_allclose(p.p_W[p.valid], (p.beam_origin_W + p.distance_mm[:, None] * p.beam_dir_W)[p.valid],
+                               rtol=0, atol=1e-12)
+    assert np.isnan(p.beam_origin_W[[3, 17]]).all() and np.isnan(p.true_distance_mm[[3, 17]]).all()
+    for k, s in enumerate(p.samples()):
+        assert [type(x) for x in (s.t_s, s.distance_mm, s.valid, s.confidence, s.reason, s.true_distance_mm)] == [
+            float, float, bool, float, str, float]
+        np.testing.assert_equal(tuple(s), (p.t_s[k], p.distance_mm[k], p.valid[k], p.confidence[k], p.reasons[k],
+                                           p.p_W[k], p.beam_origin_W[k], p.beam_dir_W[k], None, p.true_distance_mm[k]))
+    assert p.sample(-1).t_s == T[-1] and copy.deepcopy(p) is p
+    with pytest.raises(ValueError, match=r"\[-40, 39\]"):
+        p.sample(40)
+    part = p.take(np.array([17, 0]))
+    assert part.n_samples == 2 and part.reasons == (BAD_JOINT_STATE, p.reasons[0])
+    np.testing.assert_array_equal(part.p_W, p.p_W[[17, 0]])
+
+
+def test_an_ascan_mode_packet_holds_the_a_scans_of_the_samples_with_a_retina(setup):
+    scenario, robot, q = setup
+    Q = np.array([q, q, np.full(6, np.nan)])
+    p = IioctSensor(robot, mode="ascan", seed=1).packet(Q, Q, [0.0, 5e-4, 1e-3])
+    assert p.valid[:2].all() and p.reasons[2] == BAD_JOINT_STATE
+    assert [None if a is None else a.shape for a in p.ascans] == [p.ascans[0].shape] * 2 + [None]
+    assert p.sample(1).ascan is p.ascans[1]
+
+
 class _Recorder(LeafSystem):
     """Brute-force reference: records (t, q) at every sample time with a discrete update
     at 2 kHz (the phase in which the sensor's q is read) into a Python list."""
@@ -235,21 +256,19 @@ def test_the_block_delivers_exactly_the_brute_force_reference_samples(setup, off
     packets = []
     for n in range(12):  # read between each packet event (t_last + 0.125 ms) and the next sample
         sim.AdvanceTo(n * 5e-3 + 4.8e-3)
-        packets.append(sensor.GetOutputPort("samples").Eval(sensor.GetMyContextFromRoot(sim.get_context())))
-    assert len({p[0].t_s for p in packets}) == 12
+        packets.append(sensor.GetOutputPort("packet").Eval(sensor.GetMyContextFromRoot(sim.get_context())))
+    assert len({p.t_s[0] for p in packets}) == 12
     reference = IioctSensor(robot, mode="distance", seed=0)
     for n, packet in enumerate(packets):
         T = np.array([t for t, _ in rec.rows[10 * n:10 * n + 10]])
         Q = np.array([qq for _, qq in rec.rows[10 * n:10 * n + 10]])
-        assert len(packet) == 10 and [s.t_s for s in packet] == T.tolist()
+        assert packet.t_s.tolist() == T.tolist()
         assert len(set(map(tuple, Q))) == 10  # q really changes at every sample
         t_all, q_all = np.array([t for t, _ in rec.rows]), np.array([qq for _, qq in rec.rows])
         Q_reported = np.column_stack([np.interp(T - offset_s, t_all, q_all[:, i]) for i in range(6)])
-        for s, r in zip(packet, reference.samples(Q, Q_reported, T)):
-            np.testing.assert_equal((s.distance_mm, s.valid, s.reason, s.true_distance_mm),
-                                    (r.distance_mm, r.valid, r.reason, r.true_distance_mm))
-            np.testing.assert_array_equal(s.beam_origin_W, r.beam_origin_W)
-            np.testing.assert_array_equal(s.p_W, r.p_W)
+        r = reference.packet(Q, Q_reported, T)
+        for name in ("distance_mm", "valid", "reasons", "true_distance_mm", "beam_origin_W", "p_W"):
+            np.testing.assert_equal(getattr(packet, name), getattr(r, name))  # NaN equal to NaN
 
 
 def test_a_run_started_late_packs_only_the_samples_recorded_since_its_start(setup):
@@ -263,11 +282,10 @@ def test_a_run_started_late_packs_only_the_samples_recorded_since_its_start(setu
     sim.get_mutable_context().SetTime(0.0031)
     sim.Initialize()
     sim.AdvanceTo(0.0049)
-    packet = sensor.GetOutputPort("samples").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
-    assert [s.t_s for s in packet] == (np.arange(7, 10) * 5e-4).tolist()
+    packet = sensor.GetOutputPort("packet").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
+    assert packet.t_s.tolist() == (np.arange(7, 10) * 5e-4).tolist()
     first = IioctSensor(robot, mode="distance").reported_beams(np.array([q]))[0][0]  # q at 3.5 ms: the integral's start
-    for s in packet:
-        np.testing.assert_array_equal(s.beam_origin_W, first)
+    np.testing.assert_array_equal(packet.beam_origin_W, np.tile(first, (3, 1)))
 
 
 def test_a_run_started_after_a_packets_last_sample_has_no_packet_until_the_next(setup):
@@ -283,5 +301,5 @@ def test_a_run_started_after_a_packets_last_sample_has_no_packet_until_the_next(
     m = sensor.GetOutputPort("measurement").Eval(ctx)
     assert m[3] == -np.inf and m[1] == 0.0
     sim.AdvanceTo(0.0099)
-    packet = sensor.GetOutputPort("samples").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
-    assert [s.t_s for s in packet] == (np.arange(10, 20) * 5e-4).tolist()
+    packet = sensor.GetOutputPort("packet").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
+    assert packet.t_s.tolist() == (np.arange(10, 20) * 5e-4).tolist()
