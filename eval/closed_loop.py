@@ -103,7 +103,8 @@ class LoopConfig:
 
 class ModelSnapshot(NamedTuple):
     """What the filter reads of the model: `kind` "prior" | "sphere" | "ellipsoid", its
-    `shape` in W (None for the prior), `t_s` of the last processed sensor sample, the
+    `shape` in W (None for the prior), `t_s` of the newest sensor sample the model system
+    has processed (it stamps every packet: the filter's model age and sensor age), the
     model's RMS residual (mm) and point count."""
 
     kind: str
@@ -294,9 +295,10 @@ class StepRecord:
 
 
 class FilterSystem(LeafSystem):
-    """The safety filter at the control rate: inputs "q", "snapshot" (the model),
-    "measurement" (the sensor's [distance, valid, confidence, t_s]); state and output
-    "qdot" (zero-order hold). Each step asks the command source (`source`, set by
+    """The safety filter at the control rate: inputs "q", "snapshot" (the model, and through
+    its time the sensor's freshness: sensor -> model -> filter), "measurement" (the
+    sensor's latest [distance, valid, confidence, t_s], read for the log's beam only);
+    state and output "qdot" (zero-order hold). Each step asks the command source (`source`, set by
     `reset`: eval.commands' signature) for the tip velocity and roll rate at the joint
     angles it filters, then runs as one compiled call (eval.control_step); a fault or an
     unusual step goes to the reference, SafetyFilter on `inputs`, which the log records
@@ -388,8 +390,7 @@ class FilterSystem(LeafSystem):
         q = self._q.Eval(context)
         command = self._command(t, q)
         snap = self._snap.Eval(context)
-        meas = self._meas.Eval(context)
-        sensor_t = float(meas[3])
+        sensor_t = snap.t_s  # the newest sensor sample, relayed by the model system (ModelSnapshot.t_s)
         rec = self.record
         out, r = self.compiled.step(t, q, command, snap, sensor_t)
         if out is not None:  # the ordinary step, compiled: the points from its kinematics
@@ -414,6 +415,7 @@ class FilterSystem(LeafSystem):
         rec.steps.append(Step(t, q, out.qdot, command[:3], J_tip, out.ok, out.reason, out.intervened, out.solve_us,
                               step_us, out.min_clearance_mm, snap.kind, rcm_error_mm, P_W, L_W))
         if self.logger is not None:
+            meas = self._meas.Eval(context)
             self._log(t, q, x, out, float(meas[0]) if meas[1] > 0 else float("nan"))
 
     def time_drake_diffik(self) -> None:

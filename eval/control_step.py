@@ -329,7 +329,8 @@ class CompiledStep:
                  np.radians(config.trust_angle_deg), np.cos(np.radians(config.misfit_angle_deg)),
                  band_chord(np.radians(config.trust_angle_deg)), band_chord(np.radians(config.misfit_angle_deg))])
         self._margins = config.margins
-        self._key, self._args, self._prior = (), (), True
+        self._key, self._args, self._prior = (0, 0, "", 0.0), (), True  # matches no snapshot
+        self._names = {}  # (k_used, kept rows, rows at bound) -> the active constraints' names
         self._active = np.zeros(N_IDS, dtype=np.bool_)  # control_step's active_ids
         self._wsf, self._wsi = np.zeros(WORKSPACE_SIZES[0]), np.zeros(WORKSPACE_SIZES[1], dtype=np.int64)
         self._ws = workspace_views(self._wsf, self._wsi)
@@ -339,16 +340,16 @@ class CompiledStep:
         (kind, center, rotation, radii, margin, the coverage) and the step's state; made
         once per model: a snapshot that differs from the last one only in its time (the
         model system stamps every packet) reuses them."""
-        key = (snap.shape, snap.coverage, snap.kind, snap.residual_mm)
-        if not (len(key) == len(self._key) and all(a is b for a, b in zip(key, self._key))):
-            shape = snap.shape
+        shape, cov, res = snap.shape, snap.coverage, snap.residual_mm
+        last_shape, last_cov, last_kind, last_res = self._key
+        if not (shape is last_shape and cov is last_cov and snap.kind == last_kind
+                and (res == last_res or (res != res and last_res != last_res))):  # NaN: no residual
             if shape is None:
                 kind, center, rotation, radii = PRIOR, self._prior_center, np.eye(3), self._prior_radii
             elif hasattr(shape, "radii"):
                 kind, center, rotation, radii = ELLIPSOID, shape.center, shape.rotation, shape.radii
             else:
                 kind, center, rotation, radii = SPHERE, shape.center, np.eye(3), np.full(3, float(shape.radius))
-            cov = snap.coverage
             has_coverage = cov is not None and shape is not None
             if not has_coverage:
                 dirs, misfit, cov_center = np.zeros((0, 3)), np.zeros(0), np.zeros(3)
@@ -358,8 +359,22 @@ class CompiledStep:
             model = pack_model(kind, center, rotation, radii, float(snap.margin_mm(self._margins)), has_coverage, cov_center)
             w = _writeable  # one array type for every snapshot: one compiled specialisation
             self._args = (self._statics, model, w(dirs), w(misfit), self._active, self._wsf, self._wsi)
-            self._key, self._prior = key, kind == PRIOR
+            self._key, self._prior = (shape, cov, snap.kind, res), kind == PRIOR
         return self._args
+
+    def _active_names(self, k_used: int, rows: np.ndarray, at_bound: np.ndarray) -> tuple:
+        """The sorted names of the QP's rows at their bound (`at_bound`: indices into its
+        rows, the tip speed polytope's then the kept barrier `rows`), kept per (k_used,
+        rows, at_bound): a boundary held over many steps is named once."""
+        key = (k_used, rows.tobytes(), at_bound.tobytes())
+        active = self._names.get(key)
+        if active is None:
+            names = row_names(rows, k_used)
+            active = tuple(sorted({names[i] for i in at_bound.tolist()}))
+            if len(self._names) >= 4096:  # bounded: the combinations a run meets are few
+                self._names.clear()
+            self._names[key] = active
+        return active
 
     def reset(self) -> None:
         """Forget the previous step's active set (a new run)."""
@@ -374,10 +389,7 @@ class CompiledStep:
             return None, r
         H, c, lb, ub, A, b, G, h, rows, at_bound = self._ws
         if code == OPTIMAL:
-            active = ()
-            if n_bound:
-                names = row_names(rows[:n_rows], k_used)
-                active = tuple(sorted({names[i] for i in at_bound[:n_bound]}))
+            active = self._active_names(k_used, rows[:n_rows], at_bound[:n_bound]) if n_bound else ()
             result = QPResult(x, "ok", active, 1e6 * (time.perf_counter() - t0))
             return self.filter.output(result, float(r.clearance_mm), float(r.port_clearance_mm), r.off_command), r
         m = N_TIP_ROWS + n_rows
