@@ -24,7 +24,6 @@ Units: mm, s, rad; frame W.
 from __future__ import annotations
 
 import gc
-import math
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -39,6 +38,7 @@ from eval.control_step import CompiledStep
 from models import AdaptiveEyeModel
 from models.coverage import DirectionCoverage
 from models.transition import PredictiveCriteria
+from planning.chain import frame_pose
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 from planning.iioct_sensor import NO_SAMPLE_YET, IioctSensor, IioctSensorSystem
@@ -48,8 +48,6 @@ from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
 from safety.margins import UncertaintyMargins, conservative_prior
 
 JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
-_NAN3 = np.full(3, np.nan)
-_NAN3.setflags(write=False)  # the tip position of non-finite joint angles
 ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of the 2 kHz stream, ~0.4 MB/s
 
 
@@ -311,6 +309,8 @@ class FilterSystem(LeafSystem):
         self.compiled = CompiledStep(robot, config, prior, self.filter)
         self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
         self.lens = robot.scenario.lens_W
+        chain = robot.chain
+        self._tip_chain = (chain.S, *chain.homes["T"])  # frame_pose's (S, R_home, p_home) of the tip T, without q
         self._q = self.DeclareVectorInputPort("q", 6)
         self._snap = self.DeclareAbstractInputPort("snapshot", AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
         self._meas = self.DeclareVectorInputPort("measurement", 4)
@@ -375,11 +375,12 @@ class FilterSystem(LeafSystem):
 
     def _command(self, t_s: float, q: np.ndarray) -> np.ndarray:
         """The source's command (4,) [v_W (3,) mm/s, roll rad/s] at t_s for the joint angles
-        q (6,) rad: the tip position from the robot's kinematic chain (without Robot.pose's
-        argument checks; NaN for non-finite q, which the filter then refuses)."""
+        q (6,) rad: the tip position from the robot's kinematic chain, compiled, without
+        Robot.pose's argument checks (non-finite q gives a NaN tip, and the filter refuses
+        the step)."""
         t0 = time.perf_counter()
-        p_WT = self.robot.chain.pose("T", q)[1] if all(map(math.isfinite, q.tolist())) else _NAN3
-        v, roll = self.source(t_s, p_WT, q)
+        S, R_home, p_home = self._tip_chain
+        v, roll = self.source(t_s, frame_pose(S, q, R_home, p_home)[1], q)
         command = np.empty(4)
         command[:3], command[3] = v, roll  # ValueError unless v holds 3 numbers
         self.command_wall_s += time.perf_counter() - t0
