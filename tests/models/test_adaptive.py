@@ -326,3 +326,28 @@ def test_the_shapes_are_made_once_per_change_and_equal_checked_ones(robust):
             assert model.sphere is sphere and model.ellipsoid is ellipsoid
         before = (sphere, ellipsoid)
     assert model.kind == "ellipsoid" and before[1] is not None
+
+
+def test_a_copy_shares_the_history_and_continues_on_its_own():
+    """copy.deepcopy (a campaign's per-scenario model) shares the history's entries and
+    nothing that changes: the copy and a pickled round trip (a copy of everything) take
+    the same points to the same numbers, and the original is left as it was."""
+    import copy
+    import pickle
+
+    P = _scan_prefix(700)
+    model = AdaptiveEyeModel(criteria=PredictiveCriteria())
+    for k in range(0, 600, 10):
+        model.update(P[k:k + 10])
+    n, shape = len(model.history), model.shape
+    twin, reference = copy.deepcopy(model), pickle.loads(pickle.dumps(model))
+    assert all(a is b for a, b in zip(twin.history, model.history))
+    for k in range(600, 700, 10):
+        twin.update(P[k:k + 10])
+        reference.update(P[k:k + 10])
+    assert len(model.history) == n and model.shape is shape  # the original did not move
+    assert len(twin.history) == len(reference.history) == n + 10
+    for a, b in zip(twin.history[n:], reference.history[n:]):
+        assert a.n_points == b.n_points and a.kind == b.kind and a.criteria == b.criteria
+        np.testing.assert_array_equal(a.ellipsoid_radii, b.ellipsoid_radii)
+        np.testing.assert_array_equal(a.sphere_center, b.sphere_center)
