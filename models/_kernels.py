@@ -397,7 +397,7 @@ def _rayleigh_quotient_iteration(K, y, mu, norm_K):
         for i in range(n):
             for j in range(n):
                 A[i, j] = K[i, j] - (mu if i == j else 0.0)
-        y = _solve(A, y, 1e-300 + 1e-16 * norm_K)
+        y = pivoted_solve(A, y, 1e-300 + 1e-16 * norm_K)
         y /= np.sqrt(_dot(y, y))
         Ky = _mv(K, y)
         mu = _dot(y, Ky)
@@ -412,7 +412,7 @@ def _rayleigh_quotient_iteration(K, y, mu, norm_K):
 
 
 @njit(cache=True)
-def _solve(A, b, tiny):
+def pivoted_solve(A, b, tiny):
     """x with A x = b for A (n, n) (overwritten), by Gaussian elimination with partial
     pivoting; a pivot below `tiny` is replaced by `tiny` (for a shift at an eigenvalue,
     where the near-singular solve is the point: its answer is the eigenvector)."""

@@ -74,9 +74,11 @@ def staphyloma_rho(radii, centre_dir, depth_mm=1.5, curvature_radius_mm=8.4, ble
     With the defaults the walls meet at about 21 deg before blending."""
     u0 = centre_dir / np.linalg.norm(centre_dir)
     D = float(ellipsoid_radial(radii)(u0[None])[0]) + depth_mm - curvature_radius_mm
-    if D <= 0 or D >= curvature_radius_mm:
-        raise ValueError(f"staphyloma depth/curvature give a sphere centre at {D:.2f} mm; need 0 < D < radius")
-    return sphere_union_radial(radii, u0, D, curvature_radius_mm, blend_mm)
+    try:
+        return sphere_union_radial(radii, u0, D, curvature_radius_mm, blend_mm)
+    except ValueError as exc:  # its checks, in this function's parameters
+        raise ValueError(f"staphyloma depth_mm={depth_mm} and curvature_radius_mm={curvature_radius_mm} "
+                         f"put the sphere's centre {D:.2f} mm from the eye's: {exc}") from exc
 
 
 def detached_rho(radii, centre_dir, height_mm=2.0, base_diameter_mm=10.0) -> RadialFunction:

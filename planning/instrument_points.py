@@ -143,7 +143,7 @@ def kinematics_arguments(robot: Robot, p_WC, config: MonitoredPointsConfig, rcm_
 def instrument_points(robot: Robot, q, p_WC, config: MonitoredPointsConfig = MonitoredPointsConfig(),
                       rcm_gain_per_s: float = RCM_GAIN_PER_S) -> InstrumentPoints:
     """The monitored points, their Jacobians and the RCM rows at q (6,) rad, trocar p_WC (3,) mm."""
-    q = robot._checked(q)
+    q = robot.checked_joint_angles(q)
     head, tail = kinematics_arguments(robot, p_WC, config, rcm_gain_per_s)
     P, J, k, m, J_roll, rcm_A, rcm_b, err, R_WI, p_WI = instrument_kinematics(*head, q, *tail)
     return InstrumentPoints(

@@ -90,7 +90,8 @@ class Robot:
         return 6
 
     @staticmethod
-    def _checked(q) -> np.ndarray:
+    def checked_joint_angles(q) -> np.ndarray:
+        """q as a (6,) float array of finite joint angles (rad); ValueError otherwise."""
         q = np.asarray(q, dtype=float)
         if q.shape != (6,):
             raise ValueError(f"q must have shape (6,) in rad, got {q.shape}")
@@ -101,7 +102,7 @@ class Robot:
     def pose(self, frame: str, q) -> tuple[np.ndarray, np.ndarray]:
         """(R_W<frame> (3, 3), p_W<frame> (3,) mm) of frame F, I, T, S, P (and E, C,
         S_true with a scenario) at q."""
-        return self.chain.pose(frame, self._checked(q))
+        return self.chain.pose(frame, self.checked_joint_angles(q))
 
     def point(self, frame: str, p_frame_mm, q) -> np.ndarray:
         """Position (3,) mm in W of a point fixed in `frame` at p_frame_mm (3,) mm."""
@@ -121,7 +122,7 @@ class Robot:
 
     def pose_and_spatial_jacobian(self, frame: str, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(R_W<frame>, p_W<frame> mm, spatial_jacobian) from one evaluation of the chain."""
-        return self.chain.pose_and_jacobian(frame, self._checked(q))
+        return self.chain.pose_and_jacobian(frame, self.checked_joint_angles(q))
 
     def shaft(self, q) -> tuple[np.ndarray, np.ndarray]:
         """(p_WI (3,) mm: a point on the shaft axis, u_W (3,): unit direction towards the tip)."""

@@ -20,7 +20,7 @@ import qpsolvers
 from numba import njit
 from scipy import sparse
 
-from models._kernels import _solve
+from models._kernels import pivoted_solve
 
 SPARSE_SOLVERS = {"clarabel", "osqp", "scs", "piqp", "highs"}  # take CSC matrices natively
 _DAQP_INF = 1e30  # DAQP's "no bound"
@@ -117,7 +117,7 @@ def _kkt_solution(H, c, A, b, C, d, tol):
         for j in range(n):
             K[n + i, j] = K[j, n + i] = row[j]
         rhs[n + i] = b[i] if i < p else d[i - p]
-    z = _solve(K.copy(), rhs, 1e-300)
+    z = pivoted_solve(K.copy(), rhs, 1e-300)
     x = z[:n].copy()
     if not (_finite(z) and _solves(K, z, rhs)):
         return False, x

@@ -300,6 +300,14 @@ def test_unknown_shape_names_are_refused(name):
         make_eye(name)
 
 
+@pytest.mark.parametrize("depth_mm, curvature_mm", [(9.0, 8.4), (1.5, 20.0)])
+def test_a_staphyloma_whose_sphere_cannot_hold_the_centre_is_refused_in_its_own_terms(depth_mm, curvature_mm):
+    """The outpouching's sphere must hold the eye centre (star-shaped surface): its
+    centre lies retina + depth - curvature from it, in (0, curvature)."""
+    with pytest.raises(ValueError, match=rf"depth_mm={depth_mm} and curvature_radius_mm={curvature_mm}.*centre_dist_mm"):
+        make_eye("staphyloma", depth_mm=depth_mm, curvature_radius_mm=curvature_mm)
+
+
 def test_regular_shapes_take_no_parameters():
     with pytest.raises(ValueError, match="no shape parameters"):
         make_eye("myopic", depth_mm=1.0)
