@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from models._validation import as_positive, as_vector3
+from models._validation import as_points, as_positive, as_vector3
 from models.rays import as_rays, incidence_rad, rays_in_frame
 from models.sampling import unit_sphere_grid
 
@@ -129,6 +129,14 @@ def _inside_value(kind, p, x, y, z):
     if r > 0.0:
         return r - _rho(kind, p, x / r, y / r, z / r)
     return -_rho(kind, p, 0.0, 0.0, -1.0)
+
+
+@njit(cache=True)
+def _inside_values(kind, p, X):
+    out = np.empty(X.shape[0])
+    for m in range(X.shape[0]):
+        out[m] = _inside_value(kind, p, X[m, 0], X[m, 1], X[m, 2])
+    return out
 
 
 @njit(cache=True)
@@ -495,10 +503,9 @@ class StarSurface:
         return self.rho(U)[:, None] * U
 
     def inside_value(self, X: np.ndarray) -> np.ndarray:
-        """|x| - rho(x/|x|) (mm): < 0 inside, 0 on, > 0 outside; the origin is inside."""
-        r = np.linalg.norm(X, axis=1)
-        U = np.where(r[:, None] > 0, X / np.where(r > 0, r, 1.0)[:, None], [[0.0, 0.0, -1.0]])
-        return r - self.rho(U)
+        """(M,) |x| - rho(x/|x|) (mm) at the points X (M, 3) mm: < 0 inside, 0 on, > 0
+        outside; the origin is inside (the compiled `_inside_value` the ray march uses)."""
+        return _inside_values(self.rho.kind, self.rho.params, np.ascontiguousarray(as_points(X, "X")))
 
     def ray_cast(self, O: np.ndarray, D: np.ndarray, step_mm: float = MARCH_STEP_MM, t_max_mm: float = np.inf):
         """(M,) distance (mm) along unit rays D (M, 3) from O (M, 3) mm to the first crossing

@@ -246,3 +246,18 @@ def test_distances_near_the_pointed_crease_match_a_dense_band():
     assert np.all(d < 3.0)
     assert np.all(d <= d_ref + 1e-3)
     assert np.all(d_ref <= d + spacing)
+
+
+@pytest.mark.parametrize("name", ["pointed", "staphyloma", "detached"])
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_the_inside_value_is_the_distance_from_the_centre_minus_rho(name, seed):
+    """|x| - rho(x / |x|) at points r u (r in [0, 20] mm): negative inside, zero on the
+    surface, the origin counted as direction -z."""
+    star = composite(name)
+    rng = np.random.default_rng(seed)
+    U = unit(rng.normal(size=(50, 3)))
+    r = rng.uniform(0.0, 20.0, 50)
+    np.testing.assert_allclose(star.inside_value(r[:, None] * U), r - star.rho(U), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(star.inside_value(star.points(U)), 0.0, atol=1e-12)
+    assert star.inside_value(np.zeros((1, 3)))[0] == -star.rho(np.array([[0.0, 0.0, -1.0]]))[0]
