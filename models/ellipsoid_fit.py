@@ -18,14 +18,6 @@ from models.ellipsoid import Ellipsoid
 LENGTH_SCALE_MM = 10.0  # scaled coordinates are O(1) for an eye
 
 
-def design_rows(X: np.ndarray) -> np.ndarray:
-    """(N, 10) design rows m(x) = [x^2, y^2, z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1] of scaled,
-    centred points X (N, 3), in NumPy (the robust fit's weighted scatter; the reference
-    for the compiled accumulation in the tests)."""
-    x, y, z = X.T
-    return np.column_stack([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, np.ones(len(X))])
-
-
 class EllipsoidFit:
     """Outcome of one ellipsoid fit.
 

@@ -37,7 +37,7 @@ import numpy as np
 
 from models._kernels import add_weighted_design_rows
 from models._validation import check_count, check_positive
-from models.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, design_rows, fit_scatter
+from models.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_scatter
 from models.extrapolation import sampson_distance
 
 _ORIGIN = np.zeros(3)
@@ -138,7 +138,6 @@ class RobustEllipsoidFit:
         """IRLS over all stored points, warm-started from the current fit; the last pass's
         fit of S_w (None without a pass)."""
         X, w = self._X[: self._n], self._w[: self._n]
-        M = design_rows(X)
         self._reweighted_at = self._n
         self.n_reweightings += 1
         result = None
@@ -148,7 +147,8 @@ class RobustEllipsoidFit:
             if i == 0 and np.count_nonzero(w) < self.config.min_inlier_fraction * self._n:
                 w[:] = 1.0  # the warm start explains too few points: restart from the plain fit
                 self.restarted_at = self._n
-            self.S_weighted = (M * w[:, None]).T @ M
+            self.S_weighted = np.zeros((10, 10))
+            add_weighted_design_rows(self.S_weighted, X, _ORIGIN, 1.0, w)  # X is already scaled
             result = fit_scatter(self.S_weighted, self.p0)
             if not result.ok:
                 return result

@@ -152,6 +152,13 @@ def test_quadrics_on_the_k4_boundary_are_no_ellipsoid(surface):
         fit_ellipsoid(P @ Rotation.random(random_state=2).as_matrix().T + [3.0, -1.0, 2.0])
 
 
+def _design_rows(X: np.ndarray) -> np.ndarray:
+    """(N, 10) design rows m(x) = [x^2, y^2, z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1] of scaled,
+    centred points X (N, 3), in NumPy: the textbook form of what the kernels accumulate."""
+    x, y, z = X.T
+    return np.column_stack([x * x, y * y, z * z, 2 * y * z, 2 * x * z, 2 * x * y, 2 * x, 2 * y, 2 * z, np.ones(len(X))])
+
+
 def _general_eigensolver_fit(P: np.ndarray) -> Ellipsoid:
     """Reference: the same k = 4 problem by SciPy's general eigensolver on the pencil
     (S', C1), the textbook formulation (Li & Griffiths' C1^-1 S' v = lambda v): the
@@ -161,7 +168,7 @@ def _general_eigensolver_fit(P: np.ndarray) -> Ellipsoid:
     from models._kernels import C1, quadric_parameters
 
     p0 = P.mean(axis=0)
-    M = ellipsoid_fit.design_rows((P - p0) / ellipsoid_fit.LENGTH_SCALE_MM)
+    M = _design_rows((P - p0) / ellipsoid_fit.LENGTH_SCALE_MM)
     S = M.T @ M
     X = np.linalg.solve(S[6:, 6:], S[:6, 6:].T)
     w, V = scipy.linalg.eig(S[:6, :6] - S[:6, 6:] @ X, C1)
