@@ -124,9 +124,6 @@ class Eye:
         self.anterior_z_mm = float(self.radii[2])  # every shape keeps the ellipsoid's front
         self._ellipsoid_E = Ellipsoid(np.zeros(3), self.radii)
         self._star = None if rho is None else StarSurface(rho)
-        if self._star is not None:  # the sensor's kernel loaded from numba's cache (compiled on a fresh
-            # checkout) now, not inside the first packet of a timed closed-loop run
-            self.beam_hits(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]))
 
     @property
     def ellipsoid(self) -> Ellipsoid:
