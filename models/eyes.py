@@ -11,12 +11,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 from models._validation import as_points, as_rotation, as_vector3
 from models.ellipsoid import Ellipsoid, ellipsoid_hits
 from models.rays import as_rays
-from models.star_surface import (RadialFunction, StarSurface, bump_radial, ellipsoid_radial,
-                                 paraboloid_backed_radial, sphere_union_radial)
+from models.star_surface import (MARCH_STEP_MM, RadialFunction, StarSurface, bump_radial, ellipsoid_radial,
+                                 paraboloid_backed_radial, sphere_union_radial, star_hits)
 
 EYE_SHAPES = ("emmetropic", "myopic", "hyperopic", "pointed", "detached", "staphyloma")
 EMMETROPIC_RADII_MM = np.array([11.455, 11.365, 10.148])  # Atchison 2005 (gkaModelEye)
@@ -90,6 +91,26 @@ def detached_rho(radii, centre_dir, height_mm=2.0, base_diameter_mm=10.0) -> Rad
     return bump_radial(radii, u0, alpha_b, height_mm)
 
 
+ELLIPSOIDAL_RETINA = -1  # retina_hits' kind of the ellipsoidal eyes (the composite ones: their RADIAL_KINDS index)
+_UNUSED_PARAMS, _UNUSED_MARCH = np.empty(0), (0.0, 0.0, 0.0, 0.0)  # retina_hits' params and march for them
+
+
+@njit(cache=True)
+def retina_hits(O_W, U_W, p_WE, R_WE, radii, kind, params, march):
+    """((M,) distance mm along the unit rays with origins O_W (M, 3) mm and directions U_W
+    (M, 3) in W to the retina of an eye placed at (R_WE (3, 3), p_WE (3,) mm), NaN without
+    a hit or with one only at or behind the origin; (M,) incidence rad between the ray and
+    the retina's normal at the hit, NaN without a hit). kind ELLIPSOIDAL_RETINA: the
+    ellipsoid with semi-axes radii (3,) mm (ellipsoid_hits, closed form; params and march
+    unused); else the star-shaped retina of the radial function (kind, params)
+    (star_hits, march = (r_in mm, r_out mm, lip, step mm)). Eye.beam_hits's kernel, which
+    other compiled code calls with the eye's `Eye.hit_arguments` (the sensor's packet).
+    ValueError as models.rays.rays_in_frame."""
+    if kind == ELLIPSOIDAL_RETINA:
+        return ellipsoid_hits(O_W, U_W, p_WE, R_WE, radii)
+    return star_hits(kind, params, O_W, U_W, p_WE, R_WE, march[0], march[1], march[2], march[3])
+
+
 class Eye:
     """A ground-truth retina placed at X_WE. All points and directions are in W, mm.
 
@@ -124,16 +145,25 @@ class Eye:
             return self._ellipsoid_E.ray_cast(O, D)
         return self._star.ray_cast(O, D)
 
+    @property
+    def hit_arguments(self) -> tuple:
+        """(p_WE (3,) mm, R_WE (3, 3), radii (3,) mm, kind, params, march): the arguments of
+        `retina_hits` after the rays for this eye (kind ELLIPSOIDAL_RETINA for the
+        ellipsoidal eyes, else the radial function's kind and parameters with the march
+        constants of its StarSurface and the march's shortest step)."""
+        if self._star is None:
+            return self.pose.p_WE, self.pose.R_WE, self.radii, ELLIPSOIDAL_RETINA, _UNUSED_PARAMS, _UNUSED_MARCH
+        return (self.pose.p_WE, self.pose.R_WE, self.radii, self._star.rho.kind, self._star.rho.params,
+                (*self._star.march_constants(), MARCH_STEP_MM))
+
     def beam_hits(self, O_W, U_W) -> tuple[np.ndarray, np.ndarray]:
         """((M,) distance mm along the unit rays with origins O_W (M, 3) mm and directions
         U_W (M, 3) in W to the retina (`ray_cast`'s), NaN without a hit or with one only at
         or behind the origin; (M,) incidence rad between the ray and the retina's normal
-        (`surface_normal`) at the hit, NaN without a hit). One compiled call for any shape:
-        the sensor's beams at 2 kHz. ValueError for shapes other than (M, 3), a non-finite
-        origin or a direction not of unit length."""
-        if self._star is not None:
-            return self._star.beam_hits(O_W, U_W, self.pose.p_WE, self.pose.R_WE)
-        return ellipsoid_hits(*as_rays(O_W, U_W), self.pose.p_WE, self.pose.R_WE, self.radii)
+        (`surface_normal`) at the hit, NaN without a hit). One compiled call for any shape
+        (`retina_hits`). ValueError for shapes other than (M, 3), a non-finite origin or a
+        direction not of unit length."""
+        return retina_hits(*as_rays(O_W, U_W), *self.hit_arguments)
 
     def signed_distance(self, Q) -> np.ndarray:
         """(M,) signed distance (mm) of Q (M, 3) in W to the retina; > 0 inside."""

@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 from models._validation import as_points, as_positive, as_vector3
-from models.rays import as_rays, incidence_rad, rays_in_frame
+from models.rays import incidence_rad, rays_in_frame
 from models.sampling import unit_sphere_grid
 
 RADIAL_KINDS = ("ellipsoid", "pointed", "staphyloma", "detached")
@@ -309,12 +309,15 @@ def _normal_inward(kind, p, u):
 
 
 @njit(cache=True)
-def _beam_hits(kind, p, O_W, U_W, p_WE, R_WE, r_in, r_out, lip, step):
-    """((M,) distance mm along the unit rays (O_W, U_W) (M, 3) in W to the surface placed
-    at (R_WE, p_WE), NaN without a hit or with one only at or behind the origin; (M,)
-    incidence rad between the ray and the surface's normal at the hit, NaN without a
-    hit): `_ray_hits` (march constants as in StarSurface.ray_cast) and `_normal_inward`
-    at the hit's direction from the centre, in one compiled pass."""
+def star_hits(kind, p, O_W, U_W, p_WE, R_WE, r_in, r_out, lip, step):
+    """((M,) distance mm along the unit rays (O_W, U_W) (M, 3) in W to the surface of the
+    radial function (kind, p) placed at (R_WE (3, 3), p_WE (3,) mm), NaN without a hit or
+    with one only at or behind the origin; (M,) incidence rad between the ray and the
+    surface's normal at the hit, NaN without a hit): `_ray_hits` (march constants r_in,
+    r_out, lip of StarSurface.march_constants, step mm as in StarSurface.ray_cast) and
+    `_normal_inward` at the hit's direction from the centre, in one compiled pass (the
+    composite eyes' kernel of models.eyes.retina_hits). ValueError as
+    models.rays.rays_in_frame."""
     O, D = rays_in_frame(O_W, U_W, p_WE, R_WE)
     d = _ray_hits(kind, p, O, D, r_in, r_out, lip, step, np.inf)
     incidence = np.full(O.shape[0], np.nan)
@@ -494,9 +497,6 @@ class StarSurface:
         self._cloud_shape = cloud_shape
         self._grid: tuple[np.ndarray, ...] | None = None
         self._constants: tuple[float, float, float] | None = None
-        # the sensor's kernel loaded from numba's cache (compiled on a fresh checkout) now,
-        # not inside the first packet of a timed closed-loop run
-        self.beam_hits(np.zeros((1, 3)), np.array([[0.0, 0.0, -1.0]]), np.zeros(3), np.eye(3))
 
     def points(self, U: np.ndarray) -> np.ndarray:
         """(M, 3) surface points (mm) in the directions U (M, 3), unit vectors."""
@@ -521,18 +521,6 @@ class StarSurface:
         r_in, r_out, lip = self.march_constants()
         return _ray_hits(self.rho.kind, self.rho.params, np.ascontiguousarray(O, dtype=float),
                          np.ascontiguousarray(D, dtype=float), r_in, r_out, lip, float(step_mm), float(t_max_mm))
-
-    def beam_hits(self, O_W, U_W, p_WE: np.ndarray, R_WE: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((M,) distance mm along the unit rays with origins O_W (M, 3) mm and directions
-        U_W (M, 3) in a frame W to the surface, its frame E placed at (R_WE (3, 3) rotation,
-        p_WE (3,) mm: float arrays, as models.eyes.EyePose holds them): `ray_cast`'s first
-        crossing (default step), NaN without one or with one only at or behind the origin;
-        (M,) incidence rad between the ray and the surface normal (`normals_inward`) at the
-        hit, NaN without a hit). One compiled call: the sensor's beams at 2 kHz.
-        ValueError for shapes other than (M, 3), a non-finite origin or a direction not of
-        unit length."""
-        O, U = as_rays(O_W, U_W)
-        return _beam_hits(self.rho.kind, self.rho.params, O, U, p_WE, R_WE, *self.march_constants(), MARCH_STEP_MM)
 
     def march_constants(self) -> tuple[float, float, float]:
         """(r_in mm, r_out mm, lip): the surface lies in the shell r_in <= |x| <= r_out, and

@@ -29,6 +29,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantVectorSource, Selector, SelectorParams, ZeroOrderHold
 
+from models.eyes import retina_hits
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
 from models.rays import incidences_rad
 from planning.chain import _apply, chain_kinematics
@@ -154,26 +155,53 @@ def _grid_cell(grid, x):
 
 
 @numba.njit(cache=True)
+def _cell(D, A, d, a):
+    """(i, j, u, v): the cell [D[i], D[i + 1]] x [A[j], A[j + 1]] of the grid D x A that
+    holds (d, a) and the fractions u, v across it (both clamped as in `_grid_cell`)."""
+    i, u = _grid_cell(D, d)
+    j, v = _grid_cell(A, a)
+    return i, j, u, v
+
+
+@numba.njit(cache=True)
+def _bilinear_at(tables, cell, k):
+    """Table k of `tables` (len(D), len(A), K) interpolated bilinearly in `cell` (`_cell`)."""
+    i, j, u, v = cell
+    return ((1 - u) * (1 - v) * tables[i, j, k] + u * (1 - v) * tables[i + 1, j, k]
+            + (1 - u) * v * tables[i, j + 1, k] + u * v * tables[i + 1, j + 1, k])
+
+
+@numba.njit(cache=True)
 def bilinear(D, A, tables, d, a):
     """(M, K) the K tables (len(D), len(A), K) interpolated bilinearly at the M points
     (d[m], a[m]), clamped at the grid's edges."""
     out = np.empty((len(d), tables.shape[2]))
     for m in range(len(d)):
-        i, u = _grid_cell(D, d[m])
-        j, v = _grid_cell(A, a[m])
-        out[m] = ((1 - u) * (1 - v) * tables[i, j] + u * (1 - v) * tables[i + 1, j]
-                  + (1 - u) * v * tables[i, j + 1] + u * v * tables[i + 1, j + 1])
+        cell = _cell(D, A, d[m], a[m])
+        for k in range(tables.shape[2]):
+            out[m, k] = _bilinear_at(tables, cell, k)
     return out
 
 
 @numba.njit(cache=True)
+def _draw_one(D, A, tables, d, a, uniform, normal):
+    """(extracted distance mm, NaN when invalid; valid) of one sample at the true distance
+    d mm and incidence a rad from its draws `uniform` in [0, 1) and `normal` (standard):
+    invalid where uniform < p_invalid, else d + bias + sd normal (tables as in
+    `bilinear`: p_invalid, bias mm, sd mm)."""
+    cell = _cell(D, A, d, a)
+    if uniform < _bilinear_at(tables, cell, 0):
+        return np.nan, False
+    return d + _bilinear_at(tables, cell, 1) + _bilinear_at(tables, cell, 2) * normal, True
+
+
+@numba.njit(cache=True)
 def _draw(D, A, tables, d, a, uniform, normal):
-    """((M,) extracted distances mm, NaN where invalid; (M,) valid): sample m is invalid
-    where uniform[m] < p_invalid, else d + bias + sd normal[m] (tables as in `bilinear`:
-    p_invalid, bias, sd)."""
-    stats = bilinear(D, A, tables, d, a)
-    valid = uniform >= stats[:, 0]
-    out = np.where(valid, d + stats[:, 1] + stats[:, 2] * normal, np.nan)
+    """((M,) extracted distances mm, NaN where invalid; (M,) valid): `_draw_one` of the M
+    samples (true distances d mm, incidences a rad, draws uniform and normal (M,))."""
+    out, valid = np.empty(len(d)), np.empty(len(d), dtype=np.bool_)
+    for m in range(len(d)):
+        out[m], valid[m] = _draw_one(D, A, tables, d[m], a[m], uniform[m], normal[m])
     return out, valid
 
 
@@ -255,6 +283,54 @@ def sensor_beams(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal):
     return O_true, U_true, O_cal, U_cal
 
 
+DISTANCE_REASONS = ("", "no_retina", "low_confidence")  # the reasons of `distance_packet`'s codes
+_NO_RETINA, _LOW_CONFIDENCE = 1, 2  # their codes
+_NO_FLOATER_DRAWS = np.empty((2, 0))  # distance_packet's floater draws without floaters
+
+
+@numba.njit(cache=True)
+def distance_packet(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal, eye, max_distance_mm, D, A, tables,
+                    uniform, normal, floater_rate, floater_draws):
+    """The arrays of a "distance" mode packet of M samples in one compiled pass: the true
+    and calibrated beams at Q_true and Q_reported (M, 6) rad (`sensor_beams`, homes
+    (R_true, p_true) and (R_cal, p_cal) in the chain S); the true retina's distance and
+    incidence along the true beam (models.eyes.retina_hits with the eye's
+    `Eye.hit_arguments` `eye`); a sample with no retina within max_distance_mm (mm) is
+    invalid ("no_retina"), the others get the error model's draw (`_draw_one` with
+    ExtractorErrorModel's grid D mm, A rad and `tables`) from uniform[m] and normal[m]
+    (M,); then, with floater_rate > 0, a floater where floater_draws[0, m] <
+    floater_rate on a beam longer than 1 mm: a valid distance 0.5 + (d_true - 1)
+    floater_draws[1, m] mm, uniform between 0.5 mm and 0.5 mm before the retina
+    (floater_draws: (2, M) uniforms in [0, 1), not read without floaters).
+
+    Returns (d (M,) mm, NaN where invalid; valid (M,) bool; confidence (M,)
+    (DISTANCE_MODE_CONFIDENCE where valid, else 0); codes (M,) ints, the indices of the
+    samples' reasons in DISTANCE_REASONS; P_W (M, 3) mm = O_cal + d U_cal, NaN rows where
+    invalid; O_cal, U_cal (M, 3) the calibrated beams; d_true (M,) mm, NaN without a
+    hit). ValueError when the draws do not have M samples, or as retina_hits."""
+    M = Q_true.shape[0]
+    if len(uniform) != M or len(normal) != M or (floater_rate > 0.0 and floater_draws.shape[1] != M):
+        raise ValueError("uniform and normal must be (M,) draws, and floater_draws (2, M) with floaters")
+    O_true, U_true, O, U = sensor_beams(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal)
+    d_true, incidence = retina_hits(O_true, U_true, *eye)
+    d, valid, confidence = np.full(M, np.nan), np.zeros(M, dtype=np.bool_), np.zeros(M)
+    codes, P = np.zeros(M, dtype=np.int64), np.full((M, 3), np.nan)
+    for m in range(M):
+        if not d_true[m] <= max_distance_mm:  # NaN: no hit
+            codes[m] = _NO_RETINA
+            continue
+        d[m], valid[m] = _draw_one(D, A, tables, d_true[m], incidence[m], uniform[m], normal[m])
+        if floater_rate > 0.0 and floater_draws[0, m] < floater_rate and d_true[m] > 1.0:
+            d[m], valid[m] = 0.5 + (d_true[m] - 1.0) * floater_draws[1, m], True
+        if not valid[m]:
+            codes[m] = _LOW_CONFIDENCE
+            continue
+        confidence[m] = DISTANCE_MODE_CONFIDENCE
+        for k in range(3):
+            P[m, k] = O[m, k] + d[m] * U[m, k]
+    return d, valid, confidence, codes, P, O, U, d_true
+
+
 def _finite_rows(Q) -> np.ndarray:
     """Q as an (M, 6) float array of finite joint angles (rad); ValueError otherwise."""
     A = np.asarray(Q, dtype=float)
@@ -315,6 +391,10 @@ class IioctSensor:
         self.floater_rate = float(floater_rate)
         self._rng = np.random.default_rng(seed)
         self.max_distance_mm = self.engine.depth_mm / self.engine.group_index - self.engine.tip_offset_mm
+        if mode == "distance":  # the packet's kernel loaded from numba's cache (compiled on a fresh
+            # checkout) now, not inside the first packet of a timed closed-loop run; no draws taken
+            q = np.zeros((1, 6))
+            self._distance_arrays(q, q, np.zeros(1), np.zeros(1), np.zeros((2, 1)))
 
     def reported_beams(self, Q_reported) -> tuple[np.ndarray, np.ndarray]:
         """(origins (M, 3) mm, unit directions (M, 3)) in W of the calibrated beam at the
@@ -356,8 +436,15 @@ class IioctSensor:
         """The M samples at OCT times T_s (M,) s from the true joint angles Q_true and the
         reported ones Q_reported (M, 6) rad (`sample`'s, in order) as a SensorPacket: the
         geometry, the checks and (in "distance" mode) the error draws vectorised over the
-        M samples, which is what makes 2 kHz affordable. A row that is not 6 finite angles
-        gives an invalid sample (reason BAD_JOINT_STATE) and draws nothing."""
+        M samples, which is what makes 2 kHz affordable; in "distance" mode one compiled
+        call (`distance_packet`) after the draws. A row that is not 6 finite angles gives an
+        invalid sample (reason BAD_JOINT_STATE) and draws nothing.
+
+        Draws from the sensor's generator, in order: the encoder noise (M x 6 normals, if
+        any); in "distance" mode M uniforms, M standard normals and, with floaters, 2 x M
+        uniforms, sample m taking the m-th of each whether it has a retina or not (a
+        sample without one, or rejected for its incidence on `model`, leaves its draws
+        unused; every sample has the same error and floater statistics either way)."""
         M = len(T_s)
         T = np.array(T_s, dtype=float).reshape(M)
         Qt, Qr = _joint_rows(Q_true, M), _joint_rows(Q_reported, M)
@@ -375,47 +462,59 @@ class IioctSensor:
 
     def _measure(self, T: np.ndarray, Qt: np.ndarray, Qr: np.ndarray, model) -> SensorPacket:
         """The packet of the samples at times T (M,) s (the packet keeps T) from finite
-        joint angles Qt, Qr (M, 6) rad."""
-        O_true, U_true, O, U = self._beams(Qt, self._with_encoder_noise(Qr))
+        joint angles Qt, Qr (M, 6) rad (the encoder noise drawn first)."""
+        Qr = self._with_encoder_noise(Qr)
+        if self.mode == "distance":
+            return self._distance_packet(T, Qt, Qr, model)
+        O_true, U_true, O, U = self._beams(Qt, Qr)
         d_true, incidence = self.eye.beam_hits(O_true, U_true)
         M = len(T)
         live = d_true <= self.max_distance_mm  # False where the beam meets no retina (NaN)
         reasons = ["" if ok else "no_retina" for ok in live.tolist()]
-        if model is not None and live.any():
-            oblique = np.flatnonzero(live)[_model_incidences(model, O[live], U[live]) > self.max_incidence_rad]
-            live[oblique] = False
+        for k in self._oblique(model, O, U, live).tolist():
+            live[k], reasons[k] = False, "incidence"
+        d, valid, confidence = np.full(M, np.nan), np.zeros(M, dtype=bool), np.zeros(M)
+        ascans = [None] * M
+        for k in np.flatnonzero(live).tolist():
+            ascans[k], m = self._ascan_one(float(d_true[k]), float(incidence[k]))
+            d[k], valid[k], confidence[k], reasons[k] = m.distance_mm, m.valid, m.confidence, "" if m.valid else m.reason
+        d[~valid] = np.nan
+        P = O + d[:, None] * U  # NaN rows where invalid
+        return SensorPacket(T, d, valid, confidence, tuple(reasons), P, O, U, tuple(ascans), d_true)
+
+    def _distance_packet(self, T: np.ndarray, Qt: np.ndarray, Qr: np.ndarray, model) -> SensorPacket:
+        """`_measure` in "distance" mode: `distance_packet` with M uniforms, M standard
+        normals and, with floaters, 2 x M uniforms drawn in that order; a sample rejected
+        for its incidence on `model` (if any) leaves its draws unused."""
+        M = len(T)
+        uniform, normal = self._rng.random(M), self._rng.standard_normal(M)
+        floater_draws = self._rng.random((2, M)) if self.floater_rate > 0 else _NO_FLOATER_DRAWS
+        d, valid, confidence, codes, P, O, U, d_true = self._distance_arrays(Qt, Qr, uniform, normal, floater_draws)
+        reasons = [DISTANCE_REASONS[c] for c in codes.tolist()]
+        if model is not None:
+            oblique = self._oblique(model, O, U, codes != _NO_RETINA)
+            d[oblique], valid[oblique], confidence[oblique], P[oblique] = np.nan, False, 0.0, np.nan
             for k in oblique.tolist():
                 reasons[k] = "incidence"
-        if self.mode == "distance":
-            d, valid = np.full(M, np.nan), np.zeros(M, dtype=bool)
-            d[live], valid[live] = self._distance_draws(d_true[live], incidence[live])
-            confidence = DISTANCE_MODE_CONFIDENCE * valid
-            if not valid.all():
-                for k in np.flatnonzero(live & ~valid).tolist():
-                    reasons[k] = "low_confidence"
-            ascans = None
-        else:
-            d, valid, confidence = np.full(M, np.nan), np.zeros(M, dtype=bool), np.zeros(M)
-            ascans = [None] * M
-            for k in np.flatnonzero(live).tolist():
-                ascans[k], m = self._ascan_one(float(d_true[k]), float(incidence[k]))
-                d[k], valid[k], confidence[k], reasons[k] = m.distance_mm, m.valid, m.confidence, "" if m.valid else m.reason
-            d[~valid] = np.nan
-            ascans = tuple(ascans)
-        P = O + d[:, None] * U  # NaN rows where invalid
-        return SensorPacket(T, d, valid, confidence, tuple(reasons), P, O, U, ascans, d_true)
+        return SensorPacket(T, d, valid, confidence, tuple(reasons), P, O, U, None, d_true)
 
-    def _distance_draws(self, d_true: np.ndarray, incidence: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((L,) extracted distances mm, NaN where invalid; (L,) valid) of L samples with a
-        retina (true distances mm, incidences rad) in "distance" mode: the error model's
-        draws, then the floaters (a confident wrong distance, uniform between 0.5 mm and
-        0.5 mm before the retina, on beams longer than 1 mm)."""
-        d, valid = self.error_model.draws(d_true, incidence, self._rng)
-        if self.floater_rate > 0:
-            floater = (self._rng.random(len(d)) < self.floater_rate) & (d_true > 1.0)
-            d = np.where(floater, 0.5 + (d_true - 1.0) * self._rng.random(len(d)), d)
-            valid |= floater
-        return d, valid
+    def _distance_arrays(self, Qt: np.ndarray, Qr: np.ndarray, uniform: np.ndarray, normal: np.ndarray,
+                         floater_draws: np.ndarray) -> tuple:
+        """`distance_packet` of this sensor's chain, eye, range and error model at the
+        finite joint angles Qt, Qr (M, 6) rad with the draws uniform, normal (M,) and
+        floater_draws (2, M) (read only with floaters)."""
+        chain = self.robot.chain
+        return distance_packet(chain.S, np.ascontiguousarray(Qt), np.ascontiguousarray(Qr), *chain.homes["S_true"],
+                               *self._home_Scal, self.eye.hit_arguments, self.max_distance_mm, *self.error_model._grid,
+                               uniform, normal, self.floater_rate, floater_draws)
+
+    def _oblique(self, model, O: np.ndarray, U: np.ndarray, live: np.ndarray) -> np.ndarray:
+        """The indices of the `live` (M,) samples whose calibrated beams (origins O, unit
+        directions U (M, 3) in W) meet `model` (anything with ray_cast and gradient in W,
+        or None: none) more obliquely than max_incidence_rad."""
+        if model is None or not live.any():
+            return np.empty(0, dtype=int)
+        return np.flatnonzero(live)[_model_incidences(model, O[live], U[live]) > self.max_incidence_rad]
 
     def _ascan_one(self, d_true: float, incidence: float):
         """(A-scan, models.iioct extraction) of one sample with a retina at d_true mm and

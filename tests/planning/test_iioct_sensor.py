@@ -4,15 +4,18 @@ block with packets, time offset and bad joint states."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 
 import numpy as np
 import pytest
+from scipy.interpolate import RegularGridInterpolator
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, DiscreteTimeIntegrator
 
 from pydrake.systems.framework import LeafSystem
 
+from planning import Robot, SurgeryScenario, start_posture
 from planning.iioct_sensor import (BAD_JOINT_STATE, DISTANCE_MODE_CONFIDENCE, IioctSensor, IioctSensorSystem,
                                    SensorPacket, extractor_error_model)
 
@@ -208,6 +211,67 @@ def test_a_packet_holds_its_samples_as_arrays_row_by_row(setup):
     part = p.take(np.array([17, 0]))
     assert part.n_samples == 2 and part.reasons == (BAD_JOINT_STATE, p.reasons[0])
     np.testing.assert_array_equal(part.p_W, p.p_W[[17, 0]])
+
+
+@pytest.fixture(scope="module")
+def robots():
+    """{eye name: Robot}: an ellipsoidal and a star-shaped (composite) true retina."""
+    return {name: Robot(SurgeryScenario(eye_name=name)) for name in ("emmetropic", "detached")}
+
+
+@pytest.mark.parametrize("floater_rate", [0.0, 0.3])
+@pytest.mark.parametrize("eye_name", ["emmetropic", "detached"])
+def test_a_distance_packet_is_the_numpy_reference_computation_of_its_draws(robots, eye_name, floater_rate):
+    """The compiled "distance" packet against a NumPy reference from the same seed (M
+    uniforms, M standard normals, with floaters 2 x M uniforms; sample m takes the m-th):
+    beams from Robot.beam, true distances from Eye.ray_cast, the error model's tables
+    interpolated by SciPy (clamped to the grid), the draws, floaters and points written
+    out. 40 samples moving 0.02 rad, the reported angles 1e-4 rad off the true ones, the
+    range cut at the median true distance (half "no_retina") and p_invalid raised by 0.3
+    (some "low_confidence"). Distances, true distances, points and beams agree to 1e-12
+    mm, validity, reasons and confidences exactly, and the generator is left where the
+    reference's is. The incidence is Eye.beam_hits' (tests/models/test_eyes.py holds it
+    to the ray cast and the surface normal; the composite eyes' normal is a finite
+    difference, matching surface_normal's to ~1e-9 only, which moves the interpolated
+    bias by ~1e-11 mm)."""
+    robot = robots[eye_name]
+    eye = robot.scenario.eye
+    q = start_posture(robot, robot.scenario.eye_pose.to_W(np.array([[1.0, 2.0, -3.0]]))[0], robot.scenario.p_WC)
+    M = 40
+    Q = q + np.linspace(0.0, 0.02, M)[:, None] * np.array([1.0, -0.5, 0.3, 0.0, 0.2, 0.0])
+    Q_reported = Q + 1e-4 * np.sin(np.arange(6 * M).reshape(M, 6))
+    sensor = IioctSensor(robot, mode="distance", floater_rate=floater_rate, seed=11)
+    m = sensor.error_model
+    sensor.error_model = dataclasses.replace(m, p_invalid=np.minimum(np.array(m.p_invalid) + 0.3, 1.0).tolist())
+    beams = lambda Qs, true: [np.array(x) for x in zip(*(robot.beam(q, true=true) for q in Qs))]  # noqa: E731
+    (O_true, U_true), (O, U) = beams(Q, True), beams(Q_reported, False)
+    d_true = eye.ray_cast(O_true, U_true)
+    incidence = eye.beam_hits(O_true, U_true)[1]
+    sensor.max_distance_mm = float(np.median(d_true))
+    rng = np.random.default_rng(11)
+    uniform, normal = rng.random(M), rng.standard_normal(M)
+    floater_draws = rng.random((2, M)) if floater_rate > 0 else np.ones((2, M))
+    D, A = np.array(m.distances_mm), np.array(m.incidences_rad)
+    tables = np.stack([sensor.error_model.p_invalid, m.bias, m.sd], axis=-1)
+    p_invalid, bias, sd = RegularGridInterpolator((D, A), tables)(
+        np.column_stack([np.clip(d_true, D[0], D[-1]), np.clip(incidence, A[0], A[-1])])).T
+    live = d_true <= sensor.max_distance_mm
+    valid = live & (uniform >= p_invalid)
+    d = np.where(valid, d_true + bias + sd * normal, np.nan)
+    floater = live & (floater_draws[0] < floater_rate) & (d_true > 1.0)
+    d = np.where(floater, 0.5 + (d_true - 1.0) * floater_draws[1], d)
+    valid |= floater
+    reasons = np.where(~live, "no_retina", np.where(valid, "", "low_confidence")).tolist()
+
+    p = sensor.packet(Q, Q_reported, np.arange(M) * 5e-4)
+    assert set(reasons) == {"", "no_retina", "low_confidence"} and floater.any() == (floater_rate > 0)
+    np.testing.assert_array_equal(p.valid, valid)
+    assert list(p.reasons) == reasons
+    np.testing.assert_array_equal(p.confidence, np.where(valid, DISTANCE_MODE_CONFIDENCE, 0.0))
+    for got, want in ((p.true_distance_mm, d_true), (p.distance_mm, d), (p.p_W, O + d[:, None] * U),
+                      (p.beam_origin_W, O), (p.beam_dir_W, U)):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)  # NaN where NaN
+    assert sensor._rng.random() == rng.random()
 
 
 def test_an_ascan_mode_packet_holds_the_a_scans_of_the_samples_with_a_retina(setup):
