@@ -166,7 +166,10 @@ class DirectionCoverage:
     def __init__(self, center_W, bin_deg: float = 2.0, rebuild_growth: float = 0.02):
         if not (np.isfinite(bin_deg) and 0.2 <= bin_deg <= 30.0):
             raise ValueError(f"bin_deg must be in [0.2, 30] deg, got {bin_deg}")
-        self.center_W = as_vector3(center_W, "center_W")
+        # a writeable copy whatever it came from (a frozen pose's read-only array, a fresh
+        # one; deepcopy makes them writeable too): one compiled specialisation of the kernels
+        # that take it, loaded before a run, not in a run's first packet
+        self.center_W = as_vector3(center_W, "center_W").copy()
         n = int(np.ceil(4.0 * np.pi / np.radians(bin_deg) ** 2))
         self._dirs = fibonacci_directions(n)
         self._covered = np.zeros(n, dtype=bool)
