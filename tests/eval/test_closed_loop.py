@@ -101,6 +101,28 @@ def test_a_tip_path_is_followed(emmetropic):
     assert 0.0 < run.command_wall_s and 0.0 < run.model_wall_s and run.command_wall_s + run.model_wall_s < run.wall_s
 
 
+def test_the_command_is_made_for_the_joint_angles_the_filter_filters(emmetropic):
+    """The command source runs inside the filter's step: it is called once per step, in
+    time order, with that step's time, joint angles and tip position, and the command
+    the step records is the one it returned (no step of latency)."""
+    loop, model = emmetropic
+    calls = []
+
+    def source(t_s, p_WT, q):
+        v = np.array([1.0 + t_s, 0.0, -0.5])  # a different command each step
+        calls.append((t_s, np.array(p_WT), np.array(q), v))
+        return v, 0.0
+
+    q0 = deep_start(loop)
+    run = loop.run(source, q0, 0.05, **model.kw())
+    assert len(calls) == len(run.t) > 40
+    for (t_s, p_WT, q, v), t, q_run, v_run in zip(calls, run.t, run.q, run.v_cmd):
+        assert t_s == t
+        np.testing.assert_array_equal(q, q_run)
+        np.testing.assert_allclose(p_WT, loop.robot.pose("T", q)[1], atol=1e-12)  # mm
+        np.testing.assert_array_equal(v, v_run)
+
+
 def test_nan_commands_stop_the_robot_where_it_is(emmetropic):
     loop, model = emmetropic
     V = np.array([[2.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [2.0, 0.0, 0.0]])
