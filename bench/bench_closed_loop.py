@@ -115,6 +115,11 @@ def run() -> None:
           f"Drake DoDifferentialInverseKinematics median {s['drake_diffik_us']['median']:.0f} us "
           f"p99 {s['drake_diffik_us']['p99']:.0f} us")
     print(_per_system(c.runs))
+    # the machine's speed drifts between runs (up to ~2x here): the same campaign again
+    repeats = [run_campaign(loop, build.model, build.coverage, 10, seed=0, duration_s=0.5).summary()["realtime_factor"]
+               for _ in range(4)]
+    print(f"the same 10 scenarios 4 times more: realtime factor {', '.join(f'{x:.2f}' for x in repeats)} "
+          f"(median of all 5: {np.median(repeats + [s['realtime_factor']]):.2f})")
     steps = np.concatenate([r.step_us for r in c.runs])
     print(f"filter step in the loop (compiled step, ports, record): {summary_us(steps)}")
     qs = np.concatenate([r.q for r in c.runs])[:2000]
