@@ -121,19 +121,39 @@ class Ellipsoid:
             raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
         Lo = (O - self.center) @ self.rotation / self.radii
         Ld = D @ self.rotation / self.radii
-        a = np.einsum("ij,ij->i", Ld, Ld)
-        b = np.einsum("ij,ij->i", Lo, Ld)
-        c = np.einsum("ij,ij->i", Lo, Lo) - 1.0
-        disc = b * b - a * c
-        with np.errstate(invalid="ignore"):
-            sq = np.sqrt(disc)
-        # Numerically stable roots: q = -(b + sign(b) sq); t1 = q / a, t2 = c / q.
-        q = -(b + np.copysign(sq, b))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t1, t2 = q / a, c / q
-        t_lo, t_hi = np.minimum(t1, t2), np.maximum(t1, t2)
-        t = np.where(c < 0.0, t_hi, np.where(t_lo >= 0.0, t_lo, np.nan))
-        return np.where(disc >= 0.0, t, np.nan)
+        return _unit_sphere_roots(np.ascontiguousarray(Lo), np.ascontiguousarray(Ld))
+
+
+@njit(cache=True, error_model="numpy")
+def _unit_sphere_root(o0, o1, o2, u0, u1, u2):
+    """The parameter t of the ray o + t u at the unit sphere (the ellipsoid in coordinates
+    scaled by its semi-axes, so t is in the ray's own units): the exit from inside, the
+    first entry at t >= 0 from outside; NaN without one. The numerically stable roots
+    q / a and c / q, q = -(b + sign(b) sqrt(b^2 - a c)); a NaN root (a ray tangent at its
+    origin) makes both NaN. Ellipsoid.ray_cast's and ellipsoid_hits' root."""
+    a = u0 * u0 + u1 * u1 + u2 * u2
+    b = o0 * u0 + o1 * u1 + o2 * u2
+    c = o0 * o0 + o1 * o1 + o2 * o2 - 1.0
+    disc = b * b - a * c
+    if not disc >= 0.0:
+        return np.nan
+    q = -(b + np.copysign(np.sqrt(disc), b))
+    t1, t2 = q / a, c / q
+    if t1 != t1 or t2 != t2:
+        return np.nan
+    if c < 0.0:
+        return max(t1, t2)
+    t = min(t1, t2)
+    return t if t >= 0.0 else np.nan
+
+
+@njit(cache=True)
+def _unit_sphere_roots(O, U):
+    """(M,) `_unit_sphere_root` of the rays (O[m], U[m]) (M, 3), in scaled coordinates."""
+    out = np.empty(O.shape[0])
+    for m in range(O.shape[0]):
+        out[m] = _unit_sphere_root(O[m, 0], O[m, 1], O[m, 2], U[m, 0], U[m, 1], U[m, 2])
+    return out
 
 
 @njit(cache=True, error_model="numpy")
@@ -152,16 +172,8 @@ def ellipsoid_hits(O_W, U_W, p_WE, R_WE, radii):
     for m in range(M):
         for k in range(3):
             o[k], u[k] = O_E[m, k] / radii[k], U_E[m, k] / radii[k]
-        a = u[0] * u[0] + u[1] * u[1] + u[2] * u[2]
-        b = o[0] * u[0] + o[1] * u[1] + o[2] * u[2]
-        c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - 1.0
-        disc = b * b - a * c
-        if not disc >= 0.0:
-            continue
-        q = -(b + np.copysign(np.sqrt(disc), b))  # numerically stable roots q / a and c / q
-        t1, t2 = q / a, c / q
-        t = max(t1, t2) if c < 0.0 else min(t1, t2)
-        if not t > 0.0:
+        t = _unit_sphere_root(o[0], o[1], o[2], u[0], u[1], u[2])
+        if not t > 0.0:  # none, or only at the origin
             continue
         d[m] = t
         n2, nu = 0.0, 0.0  # the inward normal at the hit: -p_E / radii^2 = -(o + t u) / radii
