@@ -123,14 +123,14 @@ class SensorPacket(NamedTuple):
         M = len(self.t_s)
         if not -M <= k < M:
             raise ValueError(f"k must be in [{-M}, {M - 1}] (a sample of the {M}), got {k}")
-        return self.samples()[k]
+        return SensorSample(float(self.t_s[k]), float(self.distance_mm[k]), bool(self.valid[k]),
+                            float(self.confidence[k]), self.reasons[k], self.p_W[k], self.beam_origin_W[k],
+                            self.beam_dir_W[k], None if self.ascans is None else self.ascans[k],
+                            float(self.true_distance_mm[k]))
 
     def samples(self) -> list[SensorSample]:
         """The M samples as SensorSamples, in order (their arrays are rows of the packet's)."""
-        ascans = (None,) * len(self.t_s) if self.ascans is None else self.ascans
-        return [SensorSample(*x) for x in zip(self.t_s.tolist(), self.distance_mm.tolist(), self.valid.tolist(),
-                                              self.confidence.tolist(), self.reasons, self.p_W, self.beam_origin_W,
-                                              self.beam_dir_W, ascans, self.true_distance_mm.tolist())]
+        return [self.sample(k) for k in range(len(self.t_s))]
 
     def take(self, at: np.ndarray) -> SensorPacket:
         """The packet of the L samples at the indices `at` (L,) ints in [-M, M), in that
