@@ -71,7 +71,7 @@ def _per_system(runs) -> str:
 
 
 def _sensor_ms_per_simulated_s(loop: ClosedLoop, q0: np.ndarray, duration_s: float = 1.0) -> float:
-    """Wall ms per simulated second of the loop's sensor block (2 kHz, packets of 10,
+    """Wall ms per simulated second of the loop's sensor block (2 kHz, the loop's packets,
     distance mode) on joint angles moving at every control step: a DiscreteTimeIntegrator
     feeding the block, minus the same integrator alone."""
     from pydrake.systems.analysis import Simulator
@@ -130,10 +130,11 @@ def run() -> None:
     print(f"reference path: FilterSystem.inputs:     {summary_us(time_calls_us(lambda i: f.inputs(0.0, qs[i], cmd, snap, 0.0), len(qs)))}")
     xs = [f.inputs(0.0, q, cmd, snap, 0.0)[0] for q in qs[:500]]
     print(f"reference path: SafetyFilter call:       {summary_us(time_calls_us(lambda i: f.filter(xs[i]), len(xs)))}")
-    packets = [qs[i:i + 10] for i in range(0, len(qs) - 10, 10)]  # joint angles along the runs
-    T = np.arange(10) * 5e-4
+    P = loop.config.sensor_packet
+    packets = [qs[i:i + P] for i in range(0, len(qs) - P, P)]  # joint angles along the runs
+    T = np.arange(P) / loop.config.sensor_rate_hz
     packet_us = time_calls_us(lambda i: loop.sensor.packet(packets[i], packets[i], T), len(packets))
-    print(f"sensor packet of 10 (distance mode):     {summary_us(packet_us)}")
+    print(f"sensor packet of {P} (distance mode):     {summary_us(packet_us)}")
     ms = _sensor_ms_per_simulated_s(loop, qs[0])
     rate, per_packet = loop.config.sensor_rate_hz, loop.config.sensor_packet
     sample_us = 1e3 * (ms - 1e-3 * np.median(packet_us) * rate / per_packet) / rate
@@ -141,4 +142,4 @@ def run() -> None:
           f"per sample (the C++ shift register's step and the packet event's dispatch, the packets' median "
           f"taken off) {sample_us:.1f} us")
     upd = np.concatenate([r.model_update_us for r in c.runs])
-    print(f"model update per A-scan (packets of 10): {summary_us(upd)}")
+    print(f"model update per A-scan (packets of {P}): {summary_us(upd)}")
