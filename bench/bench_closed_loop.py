@@ -71,9 +71,10 @@ def _per_system(runs) -> str:
 
 
 def _sensor_ms_per_simulated_s(loop: ClosedLoop, q0: np.ndarray, duration_s: float = 1.0) -> float:
-    """Wall ms per simulated second of the loop's sensor block (2 kHz, the loop's packets,
-    distance mode) on joint angles moving at every control step: a DiscreteTimeIntegrator
-    feeding the block, minus the same integrator alone."""
+    """Wall ms per simulated second of the loop's sensor block (its rate and packets,
+    distance mode, joint angles latched at the control rate as in the loop) on joint
+    angles moving at every control step: a DiscreteTimeIntegrator feeding the block,
+    minus the same integrator alone."""
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource, DiscreteTimeIntegrator
@@ -87,7 +88,8 @@ def _sensor_ms_per_simulated_s(loop: ClosedLoop, q0: np.ndarray, duration_s: flo
         b.Connect(src.get_output_port(), integ.get_input_port())
         if with_sensor:
             sensor = b.AddSystem(IioctSensorSystem(IioctSensor(loop.robot, mode="distance"), loop.config.sensor_rate_hz,
-                                                   packet=loop.config.sensor_packet))
+                                                   packet=loop.config.sensor_packet,
+                                                   input_rate_hz=loop.config.control_rate_hz))
             b.Connect(integ.get_output_port(), sensor.GetInputPort("q"))
         sim = Simulator(b.Build())
         integ.set_integral_value(integ.GetMyMutableContextFromRoot(sim.get_mutable_context()), q0)
@@ -139,7 +141,7 @@ def run() -> None:
     rate, per_packet = loop.config.sensor_rate_hz, loop.config.sensor_packet
     sample_us = 1e3 * (ms - 1e-3 * np.median(packet_us) * rate / per_packet) / rate
     print(f"sensor block in a diagram, 1 s at {rate:.0f} Hz: {ms:.1f} ms per simulated s (target <= 15); "
-          f"per sample (the C++ shift register's step and the packet event's dispatch, the packets' median "
+          f"per sample (the C++ latches' steps and the packet events' dispatch, the packets' median "
           f"taken off) {sample_us:.1f} us")
     upd = np.concatenate([r.model_update_us for r in c.runs])
     print(f"model update per A-scan (packets of {P}): {summary_us(upd)}")

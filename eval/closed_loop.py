@@ -4,7 +4,8 @@
         filters the command; zero-order hold of qdot)
         --qdot--> DiscreteTimeIntegrator (q_{k+1} = q_k + dt qdot_k) --q--> everything
     q --> IioctSensorSystem (2 kHz: beam from the TRUE sensor pose on the TRUE eye; point
-          from the reported angles and the CALIBRATED sensor pose)
+          from the reported angles and the CALIBRATED sensor pose; q latched at the
+          control rate, at which the integrator's q changes)
       --packet--> AdaptiveModelSystem (updates the AdaptiveEyeModel with each packet's
           valid points) --snapshot--> FilterSystem
 
@@ -41,7 +42,7 @@ from models.transition import PredictiveCriteria
 from planning.chain import frame_pose
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
-from planning.iioct_sensor import NO_SAMPLE_YET, IioctSensor, IioctSensorSystem
+from planning.iioct_sensor import NO_SAMPLE_YET, IioctSensor, IioctSensorSystem, rate_ratio
 from planning.robot import Robot
 from planning.scan import start_posture
 from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
@@ -53,8 +54,9 @@ ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of t
 
 @dataclass(frozen=True)
 class LoopConfig:
-    """Rates (Hz), the sensor's packet (samples per delivery = per model update; 20 at 2 kHz:
-    a model update every 10 ms, well inside the filter's model and sensor age limits; half
+    """Rates (Hz; sensor_rate_hz an integer multiple r of control_rate_hz), the sensor's
+    packet (samples per delivery = per model update, a multiple of r; 20 at 2 kHz: a model
+    update every 10 ms, well inside the filter's model and sensor age limits, with half
     the per-packet Drake events and Python of packets of 10), the sensor mode
     ("distance": the extractor's error model, fast; "ascan": full A-scans), the filter,
     margins and monitored points, and how often Drake's DoDifferentialInverseKinematics
@@ -89,8 +91,13 @@ class LoopConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"LoopConfig.{name} must be > 0 Hz, got {v}")
-        if not (isinstance(self.sensor_packet, int) and self.sensor_packet >= 1):
-            raise ValueError(f"LoopConfig.sensor_packet must be an int >= 1, got {self.sensor_packet}")
+        ratio = rate_ratio(self.sensor_rate_hz, self.control_rate_hz)
+        if ratio is None:
+            raise ValueError(f"LoopConfig.sensor_rate_hz must be an integer multiple (1, 2, 3, ... x) of "
+                             f"control_rate_hz = {self.control_rate_hz:g} Hz, got {self.sensor_rate_hz:g} Hz")
+        if not (isinstance(self.sensor_packet, int) and self.sensor_packet >= 1 and self.sensor_packet % ratio == 0):
+            raise ValueError(f"LoopConfig.sensor_packet must be an int >= 1 and a multiple of sensor_rate_hz / "
+                             f"control_rate_hz = {ratio}, got {self.sensor_packet}")
         if self.sensor_mode not in ("distance", "ascan"):
             raise ValueError(f"LoopConfig.sensor_mode must be 'distance' or 'ascan', got {self.sensor_mode!r}")
         for name in ("trust_angle_deg", "misfit_angle_deg"):
@@ -530,9 +537,13 @@ class ClosedLoop:
         self.filter = builder.AddSystem(FilterSystem(self.robot, config, self.prior))
         self.integrator = builder.AddSystem(DiscreteTimeIntegrator(6, 1.0 / config.control_rate_hz))
         self.sensor = IioctSensor(Robot(scenario), mode=config.sensor_mode, floater_rate=floater_rate, seed=sensor_seed)
-        sensor_sys = builder.AddSystem(IioctSensorSystem(self.sensor, config.sensor_rate_hz, packet=config.sensor_packet))
+        # q is the integrator's zero-order hold at the control rate: the sensor latches it at that rate
+        sensor_sys = builder.AddSystem(IioctSensorSystem(self.sensor, config.sensor_rate_hz, packet=config.sensor_packet,
+                                                         input_rate_hz=config.control_rate_hz))
         packet_s = config.sensor_packet / config.sensor_rate_hz
-        self.model = builder.AddSystem(AdaptiveModelSystem(1.0 / packet_s, packet_s - 0.5 / config.sensor_rate_hz,
+        # the model reads each packet a quarter sample period after the sensor has made it
+        self.model = builder.AddSystem(AdaptiveModelSystem(1.0 / packet_s,
+                                                           sensor_sys.packet_offset_s + 0.25 / config.sensor_rate_hz,
                                                            config.model_min_points, config.model_min_scan_range_mm,
                                                            config.model_radius_range_mm))
         q = self.integrator.get_output_port()

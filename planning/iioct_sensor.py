@@ -561,20 +561,42 @@ def _shift_selector(rows: int) -> Selector:
                       outputs=[S.OutputPortParams(name="shifted", selections=kept + new)]))
 
 
-class _PacketProcessor(LeafSystem):
-    """Turns the shift register's newest `packet` samples into the packet, in one
-    unrestricted update at the packet rate, a quarter of a sample period after each
-    packet's last sample (IioctSensorSystem); input "register" (7 `slots`,): rows of
-    [recorded flag, q (6) rad], oldest first; outputs as IioctSensorSystem's."""
+def rate_ratio(rate_hz: float, input_rate_hz: float) -> int | None:
+    """r if rate_hz / input_rate_hz (both Hz) is an integer r >= 1 within a relative 1e-9
+    (input_rate_hz finite and > 0), else None."""
+    ratio = rate_hz / input_rate_hz if np.isfinite(input_rate_hz) and input_rate_hz > 0 else np.nan
+    if not np.isfinite(ratio):
+        return None
+    r = round(ratio)
+    return r if r >= 1 and abs(ratio - r) <= 1e-9 * ratio else None
 
-    def __init__(self, sensor: IioctSensor, rate_hz: float, time_offset_s: float, packet: int, slots: int):
+
+class _PacketProcessor(LeafSystem):
+    """Turns the latches' joint angles into the packet of the newest `packet` samples, in
+    one unrestricted update at the packet rate (IioctSensorSystem). Latch j is taken at
+    time j / input_rate (input_rate = rate_hz / `ratio`), sample k at k / rate_hz holds
+    the q of latch ceil(k / ratio); the update runs a quarter of a sample period after
+    the latch that covers each packet's last sample (`offset_s`, s, the first packet's
+    update time). Input "register" (7 `slots`,): rows of [recorded flag, q (6) rad] of
+    the newest `slots` latches, oldest first, covering the packet and the `history`
+    samples before it (the time offset's interpolation); outputs as IioctSensorSystem's."""
+
+    def __init__(self, sensor: IioctSensor, rate_hz: float, ratio: int, time_offset_s: float, packet: int,
+                 history: int):
         super().__init__()
-        self.sensor, self.time_offset_s, self.packet, self._slots = sensor, time_offset_s, packet, slots
-        self._period_s = 1.0 / rate_hz  # the register's period, s: sample k is at k * period (Drake's event time)
-        self._register = self.DeclareVectorInputPort("register", 7 * slots)
+        self.sensor, self.time_offset_s, self.packet, self._ratio = sensor, time_offset_s, packet, ratio
+        self._period_s = 1.0 / rate_hz  # the sample period, s: sample k is at k * period (Drake's event time)
+        last = packet - 1  # the first packet's last sample
+        latched = -(-last // ratio) * ratio  # the sample at the time of the latch covering it
+        self._lag = latched - last  # the same for every packet (packet is a multiple of ratio): 0 or 1 sample
+        # latches 0 .. latched / ratio cover samples 0 .. last, and history // ratio more the history before them
+        self.slots = latched // ratio + history // ratio + 1
+        self.offset_s = (latched + 0.25) * self._period_s
+        self._register = self.DeclareVectorInputPort("register", 7 * self.slots)
         self._packet = self.DeclareAbstractState(AbstractValue.Make(NO_SAMPLE_YET))
-        self.DeclarePeriodicUnrestrictedUpdateEvent(packet * self._period_s, (packet - 0.75) * self._period_s,
-                                                    self._process)
+        self._start = self.DeclareDiscreteState(1)  # the run's start time, s
+        self.DeclareInitializationDiscreteUpdateEvent(self._set_start)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(packet * self._period_s, self.offset_s, self._process)
         packet_changed = {self.abstract_state_ticket(self._packet)}
         self.DeclareStateOutputPort("packet", self._packet)
         self.DeclareAbstractOutputPort("sample", lambda: AbstractValue.Make(NO_SAMPLE_YET.sample(0)),
@@ -582,16 +604,26 @@ class _PacketProcessor(LeafSystem):
         self.DeclareVectorOutputPort("p_W", 3, self._calc_p, prerequisites_of_calc=packet_changed)
         self.DeclareVectorOutputPort("measurement", 4, self._calc_measurement, prerequisites_of_calc=packet_changed)
 
+    def _set_start(self, context, discrete_state) -> None:
+        discrete_state.set_value([context.get_time()])
+
     def _recorded(self, context) -> tuple[np.ndarray, np.ndarray]:
-        """((K,) time stamps s, (K, 6) joint angles rad) of the samples in the register,
-        oldest first (K <= slots). The newest is sample k = round(t / period - 1/4) at
-        the packet event's time t, stamped k * period: the time of the register's
-        update that recorded it, bit for bit."""
-        rows = self._register.Eval(context).reshape(self._slots, 7)
+        """((K,) time stamps s, (K, 6) joint angles rad) of the samples the recorded latches
+        cover, from the run's start to the packet's last sample, oldest first. At the
+        packet event's time t the newest latch is at sample round(t / period - 1/4), the
+        packet's last sample `lag` before it; sample k is stamped k * period, the time of
+        a register update at every sample, bit for bit, and counts from the run's start
+        on (k * period >= the start time: Drake's first event of a periodic series that
+        starts then)."""
+        rows = self._register.Eval(context).reshape(self.slots, 7)
         if rows[0, 0] != 1.0:  # not full yet: the recorded rows are the newest
             rows = rows[rows[:, 0] == 1.0]
-        k_last = round(context.get_time() / self._period_s - 0.25)
-        return np.arange(k_last - len(rows) + 1, k_last + 1) * self._period_s, rows[:, 1:]
+        r = self._ratio
+        newest = round(context.get_time() / self._period_s - 0.25) // r  # latch indices
+        oldest = newest - len(rows) + 1
+        K = np.arange(max((oldest - 1) * r + 1, 0), newest * r - self._lag + 1)  # the samples they cover
+        K = K[K * self._period_s >= context.get_discrete_state(self._start).GetAtIndex(0)]
+        return K * self._period_s, rows[-(-K // r) - oldest, 1:]  # sample k in latch ceil(k / r)
 
     def _process(self, context, state) -> None:
         T_all, Q_all = self._recorded(context)
@@ -626,34 +658,52 @@ class IioctSensorSystem(Diagram):
     """The sensor as a Drake block, sampling at `rate_hz` (default 2 kHz).
 
     Input "q" (6,) rad: the robot's joint angles. The OCT engine streams its A-scans in
-    packets of `packet` samples (default 10, i.e. 5 ms at 2 kHz): the joint angles are
-    recorded at every sample time and the packet is processed when its last sample is
-    recorded (vectorised geometry). Outputs: "packet" (the latest packet, a
+    packets of `packet` samples (default 10, i.e. 5 ms at 2 kHz): each sample gets the
+    joint angles held at its time, and the packet is processed once its last sample's
+    angles are recorded (vectorised geometry). Outputs: "packet" (the latest packet, a
     SensorPacket; NO_SAMPLE_YET before the first), "sample" (its last sample, a
     SensorSample), "p_W" (3,) mm of that sample (NaN when invalid), "measurement" (4,)
     [distance_mm, valid 0/1, confidence, t_s] (t_s = -inf before the first packet).
-    With `time_offset_s` > 0 the points are reconstructed from the joint angles of
+    With `time_offset_s` (s) > 0 the points are reconstructed from the joint angles of
     `time_offset_s` earlier (the paper's OCT-robot synchronisation error, up to 2.6 ms),
     interpolated linearly in the recorded history.
 
+    `input_rate_hz` (Hz; None: rate_hz) is the modelling assumption on q: a zero-order
+    hold that changes only at whole multiples of 1 / input_rate_hz s (like the closed
+    loop's DiscreteTimeIntegrator), an event at one of those times seeing the value
+    before its change. rate_hz / input_rate_hz must be an integer r >= 1 (within a
+    relative 1e-9) and `packet` a multiple of r. The joint angles are latched only at
+    those times, j / input_rate_hz, and sample k (at k / rate_hz) takes those of latch
+    ceil(k / r): the value q holds during ((j - 1) / input_rate_hz, j / input_rate_hz],
+    which a register at every sample time would record at each sample of that interval.
+    The packets are then those of r = 1, bit for bit, for one Drake step per latch
+    instead of one per sample (half the steps for a 2 kHz sensor on 1 kHz joint angles);
+    a q that changes between latches breaks the assumption: wrong angles, no warning.
+
     A diagram of Drake's C++ primitives and one Python system: a shift register (a
-    ZeroOrderHold with period 1 / rate_hz, i.e. Drake's discrete update at every sample
-    time k / rate_hz, fed by a Selector from its own value, a constant 1 and "q") holds
-    rows [recorded 1, q] of the newest `packet` samples and the offset's history before
-    them; `_PacketProcessor` reads the whole register at the packet rate, a quarter of a
-    sample period after each packet's last sample, and stamps sample k with k / rate_hz
-    as Drake computes it (k x period), the register update's time bit for bit. Not at
-    the last sample's own time: there the register would not hold that sample yet
-    (events at one time see the state before them), and Drake computes each periodic
-    series' times on its own (offset + k period), so coinciding times can differ by
-    rounding and a packet event a few ulps after a register step be skipped (seen in the
-    closed loop with the former 2 kHz Python recorder: one packet in 20 lost). A reader
-    at the same time as the packet event sees the previous packet; the closed loop's
-    model reads at half a sample period after the last sample, the filter at whole
-    control periods.
+    ZeroOrderHold with period 1 / input_rate_hz and offset 0, i.e. Drake's discrete
+    update at every latch time, its times computed like those of a
+    DiscreteTimeIntegrator of that period, fed by a Selector from its own value, a
+    constant 1 and "q") holds rows [recorded 1, q] of the latches covering the newest
+    `packet` samples and the offset's history before them; `_PacketProcessor` reads the
+    whole register at the packet rate, a quarter of a sample period after the latch
+    covering each packet's last sample (`packet_offset_s`, s, for the first packet, then
+    every packet / rate_hz s: a quarter sample after the last sample for r = 1, 1.25
+    samples after it for r > 1), and stamps sample k with k / rate_hz as Drake computes
+    it (k x period), a register update's time at every sample, bit for bit. A run
+    started mid-packet packs only the samples at or after its start time (noted by an
+    initialisation event). Not at the latch's own time: there the register would not
+    hold that latch yet (events at one time see the state before them), and Drake
+    computes each periodic series' times on its own (offset + k period), so coinciding
+    times can differ by rounding and a packet event a few ulps after a register step be
+    skipped (seen in the closed loop with the former 2 kHz Python recorder: one packet in
+    20 lost). A reader at the same time as the packet event sees the previous packet;
+    the closed loop's model reads a quarter sample period after the packet event, the
+    filter at whole control periods.
     """
 
-    def __init__(self, sensor: IioctSensor, rate_hz: float = 2000.0, time_offset_s: float = 0.0, packet: int = 10):
+    def __init__(self, sensor: IioctSensor, rate_hz: float = 2000.0, time_offset_s: float = 0.0, packet: int = 10,
+                 input_rate_hz: float | None = None):
         super().__init__()
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"rate_hz must be > 0 Hz, got {rate_hz}")
@@ -662,14 +712,23 @@ class IioctSensorSystem(Diagram):
         if not (isinstance(packet, int) and 1 <= packet <= 1000):
             raise ValueError(f"packet must be an int in [1, 1000] samples, got {packet}")
         self.sensor, self.rate_hz, self.time_offset_s, self.packet = sensor, float(rate_hz), float(time_offset_s), packet
+        if input_rate_hz is None:
+            input_rate_hz = self.rate_hz
+        ratio = rate_ratio(self.rate_hz, input_rate_hz)
+        if ratio is None:
+            raise ValueError(f"input_rate_hz must be rate_hz / r for an integer r >= 1 ({self.rate_hz:g}, "
+                             f"{self.rate_hz / 2:g}, {self.rate_hz / 3:g}, ... Hz), got {input_rate_hz}")
+        if packet % ratio:
+            raise ValueError(f"packet must be a multiple of rate_hz / input_rate_hz = {ratio} samples, got {packet}")
+        self.input_rate_hz = float(input_rate_hz)
         # samples recorded before the packet's, kept for the offset's interpolation
         history = int(np.ceil(time_offset_s * rate_hz)) + 1 if time_offset_s > 0 else 0
-        slots = packet + history
         b = DiagramBuilder()
-        register = b.AddSystem(ZeroOrderHold(1.0 / self.rate_hz, 7 * slots))
-        shift = b.AddSystem(_shift_selector(slots))
+        processor = b.AddSystem(_PacketProcessor(sensor, self.rate_hz, ratio, self.time_offset_s, packet, history))
+        self.packet_offset_s = processor.offset_s  # s: the first packet's processing time (then every packet / rate_hz s)
+        register = b.AddSystem(ZeroOrderHold(1.0 / self.input_rate_hz, 7 * processor.slots))
+        shift = b.AddSystem(_shift_selector(processor.slots))
         one = b.AddSystem(ConstantVectorSource([1.0]))
-        processor = b.AddSystem(_PacketProcessor(sensor, self.rate_hz, self.time_offset_s, packet, slots))
         b.Connect(register.get_output_port(), shift.get_input_port(0))
         b.Connect(one.get_output_port(), shift.get_input_port(1))
         b.Connect(shift.get_output_port(0), register.get_input_port())

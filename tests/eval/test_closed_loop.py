@@ -149,15 +149,17 @@ def test_a_stale_sensor_keeps_the_robot_still():
 
 
 def test_the_model_receives_every_sensor_packet_exactly_once():
-    """0.1 s at 2 kHz in packets of 20: the sensor processes each packet a quarter sample
-    after its last sample and the model reads it a quarter sample later, so all 10
-    packets arrive (a packet event on the sample times themselves lost one in 20 to
-    Drake's rounding of the two periodic series), none twice (the model skips samples
-    it has seen)."""
+    """The 200 samples of 0-99.5 ms at 2 kHz, in packets of 5 or 10 ms: the sensor latches
+    the 1 kHz joint angles at whole ms, so it processes each packet a quarter sample after
+    the latch at the next whole ms (1.25 samples after the packet's last sample: the last
+    packet at 100.125 ms), and the model reads it a quarter sample later (100.25 ms): a run
+    of 101 ms gets all of them (the next packet ends at 104.5 ms at the earliest), none twice
+    (the model skips samples it has seen). Not on the latch times themselves: a packet event
+    on the sample times lost one in 20 to Drake's rounding of the two periodic series."""
     scenario = SurgeryScenario()
     loop = ClosedLoop(scenario)
-    loop.run(VelocityReplayCommand([0.0], [[2.0, 0.0, 0.0]]), deep_start(loop), 0.1)
-    assert loop.model.n_samples == 200
+    loop.run(VelocityReplayCommand([0.0], [[2.0, 0.0, 0.0]]), deep_start(loop), 0.101)
+    assert loop.model.n_samples == 200 and loop.model._last_t == 199 * 5e-4
 
 
 def test_the_model_system_takes_the_valid_points_of_each_packets_new_samples(emmetropic):
@@ -229,6 +231,10 @@ def test_bad_loop_arguments_are_refused(emmetropic):
         loop.run(cmd, deep_start(loop), -1.0)
     with pytest.raises(ValueError, match="sensor_mode"):
         LoopConfig(sensor_mode="camera")
+    with pytest.raises(ValueError, match="sensor_rate_hz must be an integer multiple"):
+        LoopConfig(sensor_rate_hz=1500.0)
+    with pytest.raises(ValueError, match="sensor_packet must be an int >= 1 and a multiple"):
+        LoopConfig(sensor_packet=5)
 
 
 def test_adversarial_starts_are_inside_the_true_retina_where_the_model_bulges_past_it():
@@ -255,7 +261,7 @@ def test_an_ascan_mode_run_logs_a_scans_at_20_hz(emmetropic, tmp_path):
         ascan_loop.run(VelocityReplayCommand([0.0], [[2.0, 0.0, 0.0]]), deep_start(ascan_loop), 0.2, logger=log, **state.kw())
     messages = read_log(tmp_path / "a.mcap").messages
     scans, distances = messages["/oct/ascan"], messages["/oct/distance"]
-    assert len(distances) >= 390  # 2 kHz for 0.2 s, the last packet may be pending
+    assert len(distances) >= 380  # 2 kHz for 0.2 s, the last packet (20 samples) may be pending
     assert len(scans) == -(-len(distances) // ASCAN_LOG_EVERY)
     assert all(m["n_samples"] == ascan_loop.sensor.engine.n_samples for _, m in scans)
 

@@ -89,12 +89,14 @@ def test_bad_joint_angles_give_an_invalid_sample_never_a_point(setup):
         IioctSensor(robot, encoder_noise_rad=-1.0)
 
 
-def _moving_diagram(robot, q0, qdot, offset_s):
-    """q(t) = q0 + t qdot into the sensor block; returns (simulator, sensor system)."""
+def _moving_diagram(robot, q0, qdot, offset_s, input_rate_hz=None):
+    """q(t) = q0 + t qdot, integrated at 2 kHz (or at input_rate_hz, which the block is
+    told), into the sensor block; returns (simulator, sensor system)."""
     b = DiagramBuilder()
     src = b.AddSystem(ConstantVectorSource(qdot))
-    integ = b.AddSystem(DiscreteTimeIntegrator(6, 5e-4))
-    sensor = b.AddSystem(IioctSensorSystem(IioctSensor(robot, mode="distance", seed=0), 2000.0, offset_s, packet=10))
+    integ = b.AddSystem(DiscreteTimeIntegrator(6, 1.0 / (input_rate_hz or 2000.0)))
+    sensor = b.AddSystem(IioctSensorSystem(IioctSensor(robot, mode="distance", seed=0), 2000.0, offset_s, packet=10,
+                                           input_rate_hz=input_rate_hz))
     b.Connect(src.get_output_port(), integ.get_input_port())
     b.Connect(integ.get_output_port(), sensor.GetInputPort("q"))
     d = b.Build()
@@ -365,5 +367,75 @@ def test_a_run_started_after_a_packets_last_sample_has_no_packet_until_the_next(
     m = sensor.GetOutputPort("measurement").Eval(ctx)
     assert m[3] == -np.inf and m[1] == 0.0
     sim.AdvanceTo(0.0099)
+    packet = sensor.GetOutputPort("packet").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
+    assert packet.t_s.tolist() == (np.arange(10, 20) * 5e-4).tolist()
+
+
+@pytest.mark.parametrize("packet", [10, 20])
+@pytest.mark.parametrize("offset_s", [0.0, 0.0013])
+def test_a_block_latching_1_khz_joint_angles_delivers_the_2_khz_registers_packets(setup, offset_s, packet):
+    """q from a 1 kHz integrator into a block told so (input_rate_hz=1000: latches at whole
+    ms) and a block with the default 2 kHz register: the same packets, every field bit for
+    bit (NaN equal to NaN), each once. The default block processes a packet a quarter
+    sample after its last sample, the 1 kHz one after the latch at the next whole ms
+    (1.25 samples after it); each block is read between its processing and the next."""
+    scenario, robot, q = setup
+    b = DiagramBuilder()
+    src = b.AddSystem(ConstantVectorSource(np.array([0.05, -0.03, 0.02, 0.0, 0.04, 0.1])))
+    integ = b.AddSystem(DiscreteTimeIntegrator(6, 1e-3))
+    blocks = [b.AddSystem(IioctSensorSystem(IioctSensor(robot, mode="distance", seed=0), 2000.0, offset_s, packet,
+                                            input_rate_hz=rate)) for rate in (None, 1000.0)]
+    b.Connect(src.get_output_port(), integ.get_input_port())
+    for block in blocks:
+        b.Connect(integ.get_output_port(), block.GetInputPort("q"))
+    sim = Simulator(b.Build())
+    integ.set_integral_value(integ.GetMyMutableContextFromRoot(sim.get_mutable_context()), q)
+    assert [block.packet_offset_s for block in blocks] == [(packet - 0.75) * 5e-4, (packet + 0.25) * 5e-4]
+    packets = ([], [])
+    for n in range(8):
+        for block, out in zip(blocks, packets):
+            sim.AdvanceTo(n * packet * 5e-4 + block.packet_offset_s + 1e-4)
+            out.append(block.GetOutputPort("packet").Eval(block.GetMyContextFromRoot(sim.get_context())))
+    for default, latched in zip(*packets):
+        for name in SensorPacket._fields:
+            np.testing.assert_equal(getattr(latched, name), getattr(default, name))  # NaN equal to NaN
+    assert [p.t_s.tolist() for p in packets[1]] == [(np.arange(n * packet, (n + 1) * packet) * 5e-4).tolist()
+                                                    for n in range(8)]
+    d = packets[1][1].true_distance_mm  # samples 2j - 1 and 2j alike (q changes after each whole ms), no more
+    assert d[1::2].tolist() == d[2::2].tolist() + [d[-1]] and len(set(d.tolist())) == packet // 2 + 1
+
+
+def test_an_input_rate_that_does_not_divide_the_sample_rate_is_refused(setup):
+    """So is a packet that is no multiple of the samples per latch."""
+    scenario, robot, q = setup
+    for input_rate_hz in (3000.0, 0.0, np.nan, 1500.0):
+        with pytest.raises(ValueError, match=r"input_rate_hz must be rate_hz / r .*2000, 1000, 666.667, \.\.\. Hz"):
+            IioctSensorSystem(IioctSensor(robot), 2000.0, input_rate_hz=input_rate_hz)
+    with pytest.raises(ValueError, match="packet must be a multiple of rate_hz / input_rate_hz = 2 samples"):
+        IioctSensorSystem(IioctSensor(robot), 2000.0, packet=5, input_rate_hz=1000.0)
+
+
+@pytest.mark.parametrize("start_s, first", [(0.0031, 7), (0.0036, 8), (0.0046, 10)])
+def test_a_run_started_late_on_1_khz_joint_angles_packs_only_the_samples_since_its_start(setup, start_s, first):
+    """q integrated and latched at 1 kHz, the packet of 0-4.5 ms processed at 5.125 ms. A
+    run started mid-packet, at 3.1 or 3.6 ms, packs the samples from its start on (3.5 or
+    4.0 ms to 4.5 ms: at 3.6 ms the 4 ms latch covers the 3.5 ms sample too, which is
+    left out), with a 1.3 ms offset their points from the first sample's joint angles
+    (the history starts there); a run started at 4.6 ms, after the packet's last sample
+    (which the 5 ms latch covers), has no packet until the next, that of 5.0-9.5 ms."""
+    scenario, robot, q = setup
+    sim, sensor = _moving_diagram(robot, q, np.array([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]), 0.0013, input_rate_hz=1000.0)
+    sim.get_mutable_context().SetTime(start_s)
+    sim.Initialize()
+    sim.AdvanceTo(sensor.packet_offset_s + 2e-4)
+    ctx = sensor.GetMyContextFromRoot(sim.get_context())
+    packet, m = sensor.GetOutputPort("packet").Eval(ctx), sensor.GetOutputPort("measurement").Eval(ctx)
+    if first < 10:
+        assert packet.t_s.tolist() == (np.arange(first, 10) * 5e-4).tolist()
+        beam_at_start = IioctSensor(robot, mode="distance").reported_beams(np.array([q]))[0][0]
+        np.testing.assert_array_equal(packet.beam_origin_W, np.tile(beam_at_start, (10 - first, 1)))
+    else:
+        assert m[3] == -np.inf and m[1] == 0.0
+    sim.AdvanceTo(sensor.packet_offset_s + 5.2e-3)
     packet = sensor.GetOutputPort("packet").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
     assert packet.t_s.tolist() == (np.arange(10, 20) * 5e-4).tolist()
