@@ -305,7 +305,9 @@ class FilterSystem(LeafSystem):
     """The safety filter at the control rate: inputs "q", "snapshot" (the model, and through
     its time the sensor's freshness: sensor -> model -> filter), "measurement" (the
     sensor's latest [distance, valid, confidence, t_s], read for the log's beam only);
-    state and output "qdot" (zero-order hold). Each step asks the command source (`source`, set by
+    state and output "qdot" (zero-order hold; the integrator, updating at the same instants,
+    applies a step's qdot from the next step on: one control period of actuation latency,
+    the same at every step). Each step asks the command source (`source`, set by
     `reset`: eval.commands' signature) for the tip velocity and roll rate at the joint
     angles it filters, then runs as one compiled call (eval.control_step); a fault or an
     unusual step goes to the reference, SafetyFilter on `inputs`, which the log records
@@ -327,7 +329,12 @@ class FilterSystem(LeafSystem):
         dt = 1.0 / config.control_rate_hz
         # the first step waits for the sensor's first packet (the robot holds still until then)
         first_s = dt * np.ceil(config.sensor_packet / config.sensor_rate_hz / dt + 0.5)
-        self.DeclarePeriodicDiscreteUpdateEvent(dt, first_s, self._update)
+        # on the integrator's own series of times (period dt, offset 0), so that a step and
+        # the integrator's update are one simulator step, always: a series offset to the
+        # first step rounds apart from it (one step in four, each then a simulator step of
+        # its own, whose filter saw the joint angles after that update instead of before)
+        self._skip_before_s = first_s - 0.5 * dt
+        self.DeclarePeriodicDiscreteUpdateEvent(dt, 0.0, self._update)
         self.DeclareStateOutputPort("qdot", state)
         self.reset(None, None)
         self._compile()
@@ -378,6 +385,8 @@ class FilterSystem(LeafSystem):
         return x, ip
 
     def _update(self, context, discrete_state) -> None:
+        if context.get_time() < self._skip_before_s:  # before the first packet: qdot stays 0
+            return
         t0 = time.perf_counter()
         self._step(context, discrete_state, t0)
         self.wall_s += time.perf_counter() - t0
