@@ -42,28 +42,29 @@ def _shifted_root_rows(E2, Y, em2):
     out = np.empty(M)
     e = np.sqrt(E2)
     for m in range(M):
-        out[m] = _shifted_root_row(E2, e, Y[m], em2[m])
+        out[m] = _shifted_root_row(E2[0], E2[1], E2[2], e[0], e[1], e[2], Y[m, 0], Y[m, 1], Y[m, 2], em2[m])
     return out
 
 
 @njit(cache=True)
-def _shifted_root_row(E2, e, y, em2):
-    """One row of _shifted_root: y (3,) the query, em2 its squared smallest active axis."""
+def _shifted_root_row(E20, E21, E22, e0, e1, e2, y0, y1, y2, em2):
+    """One row of _shifted_root, in scalars: squared semi-axes E2i, semi-axes ei, the
+    query yi, em2 its squared smallest active axis (no array allocated: at a few points
+    per control step an allocation costs more than an iteration)."""
     rel_tol = 4.0 * _EPS
-    e_bar2 = (E2[0] + E2[1] + E2[2]) / 3.0
-    ey = np.empty(3)
-    D = np.empty(3)
+    e_bar2 = (E20 + E21 + E22) / 3.0
+    ey0, ey1, ey2 = e0 * y0, e1 * y1, e2 * y2
+    D0, D1, D2 = E20 - em2, E21 - em2, E22 - em2  # den_i = u + D_i, exactly u for the smallest axis
     em = np.sqrt(em2)
     y_m = 0.0
-    hi = 0.0
-    norm2 = 0.0
-    for i in range(3):
-        ey[i] = e[i] * y[i]
-        D[i] = E2[i] - em2  # den_i = u + D_i, exactly u for the smallest axis
-        if D[i] == 0.0 and y[i] > y_m:
-            y_m = y[i]
-        hi += ey[i]  # F(hi) <= 0 (>= |ey|, and no squares to underflow for tiny queries)
-        norm2 += y[i] * y[i]
+    if D0 == 0.0 and y0 > y_m:
+        y_m = y0
+    if D1 == 0.0 and y1 > y_m:
+        y_m = y1
+    if D2 == 0.0 and y2 > y_m:
+        y_m = y2
+    hi = 0.0 + ey0 + ey1 + ey2  # F(hi) <= 0 (>= |ey|, and no squares to underflow for tiny queries)
+    norm2 = 0.0 + y0 * y0 + y1 * y1 + y2 * y2
     lo = em * y_m  # F(lo) >= 0: the smallest-axis term alone reaches 1
     # start: the root for a sphere of the mean radius (exact when the radii are equal),
     # kept inside the bracket; from either side of the root the next step lands left of it
@@ -71,12 +72,21 @@ def _shifted_root_row(E2, e, y, em2):
     for _ in range(_MAX_STEPS):
         S = 0.0
         dS = 0.0
-        for i in range(3):
-            if ey[i] != 0.0:  # inactive terms (their denominator may vanish)
-                den = u + D[i]
-                r = ey[i] / den
-                S += r * r
-                dS -= 2.0 * r * r / den
+        if ey0 != 0.0:  # inactive terms (their denominator may vanish)
+            den = u + D0
+            r = ey0 / den
+            S += r * r
+            dS -= 2.0 * r * r / den
+        if ey1 != 0.0:
+            den = u + D1
+            r = ey1 / den
+            S += r * r
+            dS -= 2.0 * r * r / den
+        if ey2 != 0.0:
+            den = u + D2
+            r = ey2 / den
+            S += r * r
+            dS -= 2.0 * r * r / den
         F = S - 1.0
         if F > 0.0:
             lo = u
@@ -111,48 +121,47 @@ def generic_distance_and_gradient(center, rotation, radii, Q):
     frame, in one compiled pass: the control loop's query, a few points per call.
     Rows off the plane of the smallest axis (the generic case of Eberly's construction,
     zero coordinates of the other axes included) are answered here; the others (generic
-    False, measure zero) are left to closest_point_first_octant."""
+    False, measure zero) are left to closest_point_first_octant. Written in scalars (the
+    axes sorted by a stable insertion sort, largest first: argsort(-radii) "mergesort"'s
+    order), allocating only the outputs."""
+    o0, o1, o2 = 0, 1, 2
+    if radii[o1] > radii[o0]:
+        o0, o1 = o1, o0
+    if radii[o2] > radii[o1]:
+        o1, o2 = o2, o1
+        if radii[o1] > radii[o0]:
+            o0, o1 = o1, o0
+    e0, e1, e2 = radii[o0], radii[o1], radii[o2]
+    E20, E21, E22 = e0 * e0, e1 * e1, e2 * e2
     M = Q.shape[0]
-    order = np.argsort(-radii, kind="mergesort")
-    e = radii[order]
-    E2 = e * e
     d = np.zeros(M)
     g = np.zeros((M, 3))
     generic = np.zeros(M, dtype=np.bool_)
-    L = np.empty(3)
-    y = np.empty(3)
-    x = np.empty(3)
-    n = np.empty(3)
     for m in range(M):
-        k = 0.0
-        for i in range(3):
-            s = 0.0
-            for r in range(3):
-                s += (Q[m, r] - center[r]) * rotation[r, order[i]]
-            L[i] = s
-            y[i] = abs(s)
-            k += (s / e[i]) ** 2
-        if not y[2] > 0.0:  # on the smallest axis's plane: the closest point may leave it
+        q0, q1, q2 = Q[m, 0] - center[0], Q[m, 1] - center[1], Q[m, 2] - center[2]
+        L0 = 0.0 + q0 * rotation[0, o0] + q1 * rotation[1, o0] + q2 * rotation[2, o0]  # coordinates on the sorted axes
+        L1 = 0.0 + q0 * rotation[0, o1] + q1 * rotation[1, o1] + q2 * rotation[2, o1]
+        L2 = 0.0 + q0 * rotation[0, o2] + q1 * rotation[1, o2] + q2 * rotation[2, o2]
+        y0, y1, y2 = abs(L0), abs(L1), abs(L2)
+        k = 0.0 + (L0 / e0) ** 2 + (L1 / e1) ** 2 + (L2 / e2) ** 2
+        if not y2 > 0.0:  # on the smallest axis's plane: the closest point may leave it
             continue
         generic[m] = True
-        u = _shifted_root_row(E2, e, y, E2[2])
-        dist2 = 0.0
-        for i in range(3):
-            x[i] = E2[i] * y[i] / (u + (E2[i] - E2[2]))
-            dist2 += (y[i] - x[i]) ** 2
-            x[i] = x[i] if L[i] >= 0.0 else -x[i]
-        dist = np.sqrt(dist2)
+        u = _shifted_root_row(E20, E21, E22, e0, e1, e2, y0, y1, y2, E22)
+        x0 = E20 * y0 / (u + (E20 - E22))
+        x1 = E21 * y1 / (u + (E21 - E22))
+        x2 = E22 * y2 / (u + (E22 - E22))
+        dist = np.sqrt(0.0 + (y0 - x0) ** 2 + (y1 - x1) ** 2 + (y2 - x2) ** 2)
+        x0 = x0 if L0 >= 0.0 else -x0
+        x1 = x1 if L1 >= 0.0 else -x1
+        x2 = x2 if L2 >= 0.0 else -x2
         d[m] = dist if k < 1.0 else -dist
-        norm = 0.0
-        for r in range(3):  # inward normal: -R (x / e^2) in the points' frame
-            s = 0.0
-            for i in range(3):
-                s -= rotation[r, order[i]] * x[i] / E2[i]
-            n[r] = s
-            norm += s * s
-        norm = np.sqrt(norm)
-        for r in range(3):
-            g[m, r] = n[r] / norm
+        # inward normal: -R (x / e^2) in the points' frame
+        n0 = 0.0 - rotation[0, o0] * x0 / E20 - rotation[0, o1] * x1 / E21 - rotation[0, o2] * x2 / E22
+        n1 = 0.0 - rotation[1, o0] * x0 / E20 - rotation[1, o1] * x1 / E21 - rotation[1, o2] * x2 / E22
+        n2 = 0.0 - rotation[2, o0] * x0 / E20 - rotation[2, o1] * x1 / E21 - rotation[2, o2] * x2 / E22
+        norm = np.sqrt(0.0 + n0 * n0 + n1 * n1 + n2 * n2)
+        g[m, 0], g[m, 1], g[m, 2] = n0 / norm, n1 / norm, n2 / norm
     return d, g, generic
 
 
