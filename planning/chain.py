@@ -25,9 +25,10 @@ MM_PER_M = 1000.0
 @numba.njit(cache=True, inline="always")
 def _times_joint(S, i, th, R, p, work):
     """(R, p) <- (R, p) exp([S_i] th), in place: the product so far times joint i's
-    exponential at th rad (work: (3, 3, 3) scratch). Written out in scalars: for
-    3-vectors a BLAS call costs more than its work."""
-    Ri, G, Rn = work[0], work[1], work[2]
+    exponential at th rad (work: (2, 3, 3) scratch). Written out in scalars: for
+    3-vectors a BLAS call costs more than its work (and R's row in locals, updated in
+    place, runs faster than through a third scratch matrix)."""
+    Ri, G = work[0], work[1]
     wx, wy, wz = S[0, i], S[1, i], S[2, i]
     c, s = np.cos(th), np.sin(th)
     W = ((0.0, -wz, wy), (wz, 0.0, -wx), (-wy, wx, 0.0))
@@ -42,10 +43,10 @@ def _times_joint(S, i, th, R, p, work):
     ty = G[1, 0] * S[3, i] + G[1, 1] * S[4, i] + G[1, 2] * S[5, i]
     tz = G[2, 0] * S[3, i] + G[2, 1] * S[4, i] + G[2, 2] * S[5, i]
     for r in range(3):
-        p[r] += R[r, 0] * tx + R[r, 1] * ty + R[r, 2] * tz
+        a, b, c = R[r, 0], R[r, 1], R[r, 2]
+        p[r] += a * tx + b * ty + c * tz
         for k in range(3):
-            Rn[r, k] = R[r, 0] * Ri[0, k] + R[r, 1] * Ri[1, k] + R[r, 2] * Ri[2, k]
-    R[:, :] = Rn
+            R[r, k] = a * Ri[0, k] + b * Ri[1, k] + c * Ri[2, k]
 
 
 @numba.njit(cache=True)
@@ -57,7 +58,7 @@ def chain_kinematics(S, q):
     R = np.eye(3)
     p = np.zeros(3)
     J = np.empty((6, n))
-    work = np.empty((3, 3, 3))
+    work = np.empty((2, 3, 3))
     for i in range(n):
         for r in range(3):  # the twist moved by the product so far: (R w, R v + p x R w)
             J[r, i] = R[r, 0] * S[0, i] + R[r, 1] * S[1, i] + R[r, 2] * S[2, i]
@@ -73,7 +74,7 @@ def chain_kinematics(S, q):
 def chain_pose_into(S, q, R, p, work):
     """(R (3, 3), p (3,) mm) <- the product of the exponentials at q, in place:
     chain_kinematics's R and p bit for bit, without its Jacobian or any allocation
-    (work: (3, 3, 3) scratch), for callers that evaluate the chain in a loop."""
+    (work: (2, 3, 3) scratch), for callers that evaluate the chain in a loop."""
     for r in range(3):
         p[r] = 0.0
         for k in range(3):
