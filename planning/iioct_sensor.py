@@ -322,13 +322,13 @@ def distance_packet(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal, eye, ma
     and calibrated beams at Q_true and Q_reported (M, 6) rad (`sensor_beams`, homes
     (R_true, p_true) and (R_cal, p_cal) in the chain S); the true retina's distance and
     incidence along the true beam (models.eyes.retina_hits with the eye's
-    `Eye.hit_arguments` `eye`, once per run of equal rows of Q_true); a sample with no retina within max_distance_mm (mm) is
-    invalid ("no_retina"), the others get the error model's draw (`_draw_one` with
-    ExtractorErrorModel's grid D mm, A rad and `tables`) from uniform[m] and normal[m]
-    (M,); then, with floater_rate > 0, a floater where floater_draws[0, m] <
-    floater_rate on a beam longer than 1 mm: a valid distance 0.5 + (d_true - 1)
-    floater_draws[1, m] mm, uniform between 0.5 mm and 0.5 mm before the retina
-    (floater_draws: (2, M) uniforms in [0, 1), not read without floaters).
+    `Eye.hit_arguments` `eye`, one ray cast per run of equal rows of Q_true); a sample
+    with no retina within max_distance_mm (mm) is invalid ("no_retina"), the others get
+    the error model's draw (`_draw_one` with ExtractorErrorModel's grid D mm, A rad and
+    `tables`) from uniform[m] and normal[m] (M,); then, with floater_rate > 0, a floater
+    where floater_draws[0, m] < floater_rate on a beam longer than 1 mm: a valid distance
+    0.5 + (d_true - 1) floater_draws[1, m] mm, uniform between 0.5 mm and 0.5 mm before
+    the retina (floater_draws: (2, M) uniforms in [0, 1), not read without floaters).
 
     Returns (d (M,) mm, NaN where invalid; valid (M,) bool; confidence (M,)
     (DISTANCE_MODE_CONFIDENCE where valid, else 0); codes (M,) uint8, the indices of the
@@ -562,9 +562,9 @@ class IioctSensor:
         finite joint angles Qt, Qr (M, 6) rad (C-contiguous) with the draws uniform, normal
         (M,) and floater_draws (2, M) (read only with floaters)."""
         chain = self.robot.chain
-        return distance_packet(chain.S, Qt, Qr, *chain.homes["S_true"],
-                               *self._home_Scal, self.eye.hit_arguments, self.max_distance_mm, *self.error_model._grid,
-                               uniform, normal, self.floater_rate, floater_draws)
+        return distance_packet(chain.S, Qt, Qr, *chain.homes["S_true"], *self._home_Scal, self.eye.hit_arguments,
+                               self.max_distance_mm, *self.error_model._grid, uniform, normal, self.floater_rate,
+                               floater_draws)
 
     def _oblique(self, model, O: np.ndarray, U: np.ndarray, live: np.ndarray) -> np.ndarray:
         """The indices of the `live` (M,) samples whose calibrated beams (origins O, unit
@@ -675,43 +675,48 @@ class _PacketProcessor(LeafSystem):
         discrete_state.set_value([context.get_time()])
 
     def _recorded(self, context) -> tuple[np.ndarray, np.ndarray]:
-        """((K,) time stamps s, (K, 6) joint angles rad) of the samples the recorded latches
-        but the sentinel cover, from the run's start to the packet's last sample, oldest
-        first. At the packet event's time t the newest latch is at sample round(t / period
-        - 1/4), the packet's last sample `lag` before it; sample k is stamped k * period,
-        the time of a register update at every sample, bit for bit, and counts from the
-        run's start on (k * period >= the start time: Drake's first event of a periodic
-        series that starts then). With the sentinel recorded (every packet of a run but its
-        first few) every row is, and the run started at or before the sentinel's latch, a
-        sample period or more before the first sample the others cover: those samples, read
-        off with precomputed indices (the general case, `_recorded_since_start`, gives the
-        same arrays there)."""
+        """((K,) time stamps s, (K, 6) joint angles rad) of the samples covered by the
+        recorded latches but the sentinel, from the run's start to the packet's last sample,
+        oldest first. At the packet event's time t the newest latch is at sample round(t /
+        period - 1/4) (`_newest_latch`), the packet's last sample `lag` before it; sample k
+        is stamped k * period, the time of a register update at every sample, bit for bit,
+        and counts from the run's start on (k * period >= the start time: Drake's first
+        event of a periodic series that starts then). Once the sentinel is recorded (every
+        packet of a run but the first one or two) so is every later latch, and the run
+        started at or before the sentinel's latch, a sample period or more before the first
+        sample the other rows cover: all their samples count, read off the register with
+        precomputed indices and without the start time (the arrays `_recorded_since_start`
+        gives there, bit for bit); otherwise `_recorded_since_start`."""
         register = self._register.Eval(context)
-        r = self._ratio
-        newest = round(context.get_time() / self._period_s - 0.25) // r  # latch indices
-        sentinel = newest - self.slots + 1
+        sentinel = self._newest_latch(context) - self.slots + 1
         if register[0] == 1.0 and sentinel >= 0:
-            return (sentinel * r + 1 + self._covered) * self._period_s, register[self._covered_q]
-        return self._recorded_since_start(context, register, newest)
+            return (sentinel * self._ratio + 1 + self._covered) * self._period_s, register[self._covered_q]
+        return self._recorded_since_start(context)
 
-    def _recorded_since_start(self, context, register: np.ndarray, newest: int) -> tuple[np.ndarray, np.ndarray]:
-        """`_recorded` from the register's value (7 slots,) and the index of its newest
-        latch, with the run's start time (the initialisation event's) for any state."""
-        rows = register.reshape(self.slots, 7)[1:]  # the sentinel's samples are never packed
+    def _recorded_since_start(self, context) -> tuple[np.ndarray, np.ndarray]:
+        """`_recorded` in any state: the recorded rows but the sentinel, their samples
+        filtered by the run's start time (the initialisation event's)."""
+        rows = self._register.Eval(context).reshape(self.slots, 7)[1:]  # the sentinel's samples are never packed
         if rows[0, 0] != 1.0:  # not full yet: the recorded rows are the newest
             rows = rows[rows[:, 0] == 1.0]
         r = self._ratio
+        newest = self._newest_latch(context)
         oldest = newest - len(rows) + 1
         K = np.arange(max((oldest - 1) * r + 1, 0), newest * r - self._lag + 1)  # the samples they cover
         K = K[K * self._period_s >= context.get_discrete_state(self._start).GetAtIndex(0)]
         return K * self._period_s, rows[-(-K // r) - oldest, 1:]  # sample k in latch ceil(k / r)
+
+    def _newest_latch(self, context) -> int:
+        """The index of the newest latch at the packet event's time (a quarter sample after a sample)."""
+        return round(context.get_time() / self._period_s - 0.25) // self._ratio
 
     def _process(self, context, state) -> None:
         T_all, Q_all = self._recorded(context)
         if not len(T_all):  # a run started after this packet's last sample: keep the previous packet
             return
         T, Q = T_all[-self.packet:], Q_all[-self.packet:]
-        packet = self.sensor._packet(T, Q, self._reported(T, T_all, Q_all), None)  # IioctSensor.packet's
+        # IioctSensor.packet without its input conversions: these are C-contiguous float arrays already
+        packet = self.sensor._packet(T, Q, self._reported(T, T_all, Q_all), None)
         state.get_mutable_abstract_state(self._packet_at).set_value(packet)
 
     def _reported(self, T: np.ndarray, T_all: np.ndarray, Q_all: np.ndarray) -> np.ndarray:
@@ -768,21 +773,20 @@ class IioctSensorSystem(Diagram):
     constant 1 and "q") holds rows [recorded 1, q] of the latches covering the newest
     `packet` samples and the offset's history before them, and of one latch before those
     (whose flag tells the processor that the run started before them, without reading
-    the start time); `_PacketProcessor` reads the
-    whole register at the packet rate, a quarter of a sample period after the latch
-    covering each packet's last sample (`packet_offset_s`, s, for the first packet, then
-    every packet / rate_hz s: a quarter sample after the last sample for r = 1, 1.25
-    samples after it for r > 1), and stamps sample k with k / rate_hz as Drake computes
-    it (k x period), a register update's time at every sample, bit for bit. A run
-    started mid-packet packs only the samples at or after its start time (noted by an
-    initialisation event). Not at the latch's own time: there the register would not
-    hold that latch yet (events at one time see the state before them), and Drake
-    computes each periodic series' times on its own (offset + k period), so coinciding
-    times can differ by rounding and a packet event a few ulps after a register step be
-    skipped (seen in the closed loop with the former 2 kHz Python recorder: one packet in
-    20 lost). A reader at the same time as the packet event sees the previous packet;
-    the closed loop's model reads a quarter sample period after the packet event, the
-    filter at whole control periods.
+    the start time); `_PacketProcessor` reads the whole register at the packet rate, a
+    quarter of a sample period after the latch covering each packet's last sample
+    (`packet_offset_s`, s, for the first packet, then every packet / rate_hz s: a
+    quarter sample after the last sample for r = 1, 1.25 samples after it for r > 1),
+    and stamps sample k with k / rate_hz as Drake computes it (k x period), a register
+    update's time at every sample, bit for bit. A run started mid-packet packs only the
+    samples at or after its start time (noted by an initialisation event). Not at the
+    latch's own time: there the register would not hold that latch yet (events at one
+    time see the state before them), and Drake computes each periodic series' times on
+    its own (offset + k period), so coinciding times can differ by rounding and a packet
+    event a few ulps after a register step be skipped (seen in the closed loop with the
+    former 2 kHz Python recorder: one packet in 20 lost). A reader at the same time as
+    the packet event sees the previous packet; the closed loop's model reads a quarter
+    sample period after the packet event, the filter at whole control periods.
     """
 
     def __init__(self, sensor: IioctSensor, rate_hz: float = 2000.0, time_offset_s: float = 0.0, packet: int = 10,
