@@ -445,9 +445,10 @@ class IioctSensor:
         self.floater_rate = float(floater_rate)
         self._rng = np.random.default_rng(seed)
         self.max_distance_mm = self.engine.depth_mm / self.engine.group_index - self.engine.tip_offset_mm
-        if mode == "distance":  # the packet's kernel loaded from numba's cache (compiled on a fresh
+        if mode == "distance":  # the packet's kernels loaded from numba's cache (compiled on a fresh
             # checkout) now, not inside the first packet of a timed closed-loop run; no draws taken
             q = np.zeros((1, 6))
+            _all_finite(q, q)
             self._distance_arrays(q, q, np.zeros(1), np.zeros(1), np.zeros((2, 1)))
 
     def reported_beams(self, Q_reported) -> tuple[np.ndarray, np.ndarray]:
