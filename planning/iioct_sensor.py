@@ -492,8 +492,9 @@ class IioctSensor:
         reported ones Q_reported (M, 6) rad (`sample`'s, in order) as a SensorPacket: the
         geometry, the checks and (in "distance" mode) the error draws vectorised over the
         M samples, which is what makes 2 kHz affordable; in "distance" mode one compiled
-        call (`distance_packet`) after the draws. A row that is not 6 finite angles gives an
-        invalid sample (reason BAD_JOINT_STATE) and draws nothing.
+        call (`distance_packet`) after the draws (and a compiled finiteness check before
+        them). A row that is not 6 finite angles gives an invalid sample (reason
+        BAD_JOINT_STATE) and draws nothing.
 
         Draws from the sensor's generator, in order: the encoder noise (M x 6 normals, if
         any); in "distance" mode M uniforms, M standard normals and, with floaters, 2 x M
