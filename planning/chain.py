@@ -22,46 +22,65 @@ from pydrake.multibody.tree import JacobianWrtVariable
 MM_PER_M = 1000.0
 
 
+@numba.njit(cache=True, inline="always")
+def _times_joint(S, i, th, R, p, work):
+    """(R, p) <- (R, p) exp([S_i] th), in place: the product so far times joint i's
+    exponential at th rad (work: (2, 3, 3) scratch). Written out in scalars: for
+    3-vectors a BLAS call costs more than its work (and R's row in locals, updated in
+    place, runs faster than through a third scratch matrix)."""
+    Ri, G = work[0], work[1]
+    wx, wy, wz = S[0, i], S[1, i], S[2, i]
+    c, s = np.cos(th), np.sin(th)
+    W = ((0.0, -wz, wy), (wz, 0.0, -wx), (-wy, wx, 0.0))
+    for r in range(3):  # Rodrigues: R_i = I + s W + (1 - c) W^2; G = th I + (1 - c) W + (th - s) W^2
+        for k in range(3):
+            w2 = W[r][0] * W[0][k] + W[r][1] * W[1][k] + W[r][2] * W[2][k]
+            e = 1.0 if r == k else 0.0
+            Ri[r, k] = e + s * W[r][k] + (1.0 - c) * w2
+            G[r, k] = th * e + (1.0 - c) * W[r][k] + (th - s) * w2
+    # the exponential's translation t = G v; then p += R t and R = R R_i
+    tx = G[0, 0] * S[3, i] + G[0, 1] * S[4, i] + G[0, 2] * S[5, i]
+    ty = G[1, 0] * S[3, i] + G[1, 1] * S[4, i] + G[1, 2] * S[5, i]
+    tz = G[2, 0] * S[3, i] + G[2, 1] * S[4, i] + G[2, 2] * S[5, i]
+    for r in range(3):
+        a, b, c = R[r, 0], R[r, 1], R[r, 2]
+        p[r] += a * tx + b * ty + c * tz
+        for k in range(3):
+            R[r, k] = a * Ri[0, k] + b * Ri[1, k] + c * Ri[2, k]
+
+
 @numba.njit(cache=True)
 def chain_kinematics(S, q):
     """(R (3, 3), p (3,) mm, J_s (6, n)) of the chain at q: the product of the
     exponentials (applied to a home pose X_WB(0) it gives X_WB(q)) and the space
-    Jacobian, rows 0-2 angular, 3-5 the velocity of the point at W's origin. Written
-    out in scalars: for 3-vectors a BLAS call costs more than its work."""
+    Jacobian, rows 0-2 angular, 3-5 the velocity of the point at W's origin."""
     n = S.shape[1]
     R = np.eye(3)
     p = np.zeros(3)
     J = np.empty((6, n))
-    Ri = np.empty((3, 3))
-    G = np.empty((3, 3))
-    Rn = np.empty((3, 3))
+    work = np.empty((2, 3, 3))
     for i in range(n):
-        wx, wy, wz = S[0, i], S[1, i], S[2, i]
         for r in range(3):  # the twist moved by the product so far: (R w, R v + p x R w)
-            J[r, i] = R[r, 0] * wx + R[r, 1] * wy + R[r, 2] * wz
+            J[r, i] = R[r, 0] * S[0, i] + R[r, 1] * S[1, i] + R[r, 2] * S[2, i]
             J[3 + r, i] = R[r, 0] * S[3, i] + R[r, 1] * S[4, i] + R[r, 2] * S[5, i]
         J[3, i] += p[1] * J[2, i] - p[2] * J[1, i]
         J[4, i] += p[2] * J[0, i] - p[0] * J[2, i]
         J[5, i] += p[0] * J[1, i] - p[1] * J[0, i]
-        th = q[i]
-        c, s = np.cos(th), np.sin(th)
-        W = ((0.0, -wz, wy), (wz, 0.0, -wx), (-wy, wx, 0.0))
-        for r in range(3):  # Rodrigues: R_i = I + s W + (1 - c) W^2; G = th I + (1 - c) W + (th - s) W^2
-            for k in range(3):
-                w2 = W[r][0] * W[0][k] + W[r][1] * W[1][k] + W[r][2] * W[2][k]
-                e = 1.0 if r == k else 0.0
-                Ri[r, k] = e + s * W[r][k] + (1.0 - c) * w2
-                G[r, k] = th * e + (1.0 - c) * W[r][k] + (th - s) * w2
-        # the exponential's translation t = G v; then p += R t and R = R R_i
-        tx = G[0, 0] * S[3, i] + G[0, 1] * S[4, i] + G[0, 2] * S[5, i]
-        ty = G[1, 0] * S[3, i] + G[1, 1] * S[4, i] + G[1, 2] * S[5, i]
-        tz = G[2, 0] * S[3, i] + G[2, 1] * S[4, i] + G[2, 2] * S[5, i]
-        for r in range(3):
-            p[r] += R[r, 0] * tx + R[r, 1] * ty + R[r, 2] * tz
-            for k in range(3):
-                Rn[r, k] = R[r, 0] * Ri[0, k] + R[r, 1] * Ri[1, k] + R[r, 2] * Ri[2, k]
-        R[:, :] = Rn
+        _times_joint(S, i, q[i], R, p, work)
     return R, p, J
+
+
+@numba.njit(cache=True)
+def chain_pose_into(S, q, R, p, work):
+    """(R (3, 3), p (3,) mm) <- the product of the exponentials at q, in place:
+    chain_kinematics's R and p bit for bit, without its Jacobian or any allocation
+    (work: (2, 3, 3) scratch), for callers that evaluate the chain in a loop."""
+    for r in range(3):
+        p[r] = 0.0
+        for k in range(3):
+            R[r, k] = 1.0 if r == k else 0.0
+    for i in range(S.shape[1]):
+        _times_joint(S, i, q[i], R, p, work)
 
 
 @numba.njit(cache=True)

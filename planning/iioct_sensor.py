@@ -32,7 +32,7 @@ from pydrake.systems.primitives import ConstantVectorSource, Selector, SelectorP
 from models.eyes import retina_hits
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
 from models.rays import incidences_rad
-from planning.chain import _apply, chain_kinematics
+from planning.chain import chain_pose_into
 from planning.robot import Robot
 
 DEFAULT_MAX_INCIDENCE_RAD = np.radians(55.0)
@@ -263,23 +263,50 @@ def extractor_error_model(engine: OctEngine = OctEngine(), samples: int = 24, se
 
 
 @numba.njit(cache=True)
+def _same_row(A, m, B, k) -> bool:
+    """Whether row m of A equals row k of B (rows of joint angles; NaN equals nothing)."""
+    for i in range(A.shape[1]):
+        if A[m, i] != B[k, i]:
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _beam_into(R, p, R_home, p_home, O, U, m):
+    """O[m], U[m] <- the origin (mm) and z axis in W of the frame with home pose (R_home,
+    p_home) on the chain's product (R, p) (chain_pose_into): planning.chain._apply's,
+    bit for bit."""
+    for r in range(3):
+        U[m, r] = R[r, 0] * R_home[0, 2] + R[r, 1] * R_home[1, 2] + R[r, 2] * R_home[2, 2]
+        O[m, r] = p[r] + (R[r, 0] * p_home[0] + R[r, 1] * p_home[1] + R[r, 2] * p_home[2])
+
+
+@numba.njit(cache=True)
 def sensor_beams(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal):
     """(O_true, U_true, O_cal, U_cal), each (M, 3) in W: the origins (mm) and z axes of
     the chain's (planning.chain) frames with home poses (R_true, p_true) at the rows of
     Q_true and (R_cal, p_cal) at the rows of Q_reported (M, n) rad: the true and the
-    calibrated beam. One chain evaluation per row where the two rows are equal."""
-    M, n = Q_true.shape
+    calibrated beam. A row equal to the one before (the sensor's latches hold the joint
+    angles over several samples) repeats that row's beam; the chain is evaluated once per
+    other row, and once more for a reported row that differs from its true one. Equal
+    angles give equal beams bit for bit (signed zeros too: an angle of -0.0 or 0.0 gives
+    the same product)."""
+    M = Q_true.shape[0]
     O_true, U_true, O_cal, U_cal = np.empty((M, 3)), np.empty((M, 3)), np.empty((M, 3)), np.empty((M, 3))
+    R, p, R_rep, p_rep, work = np.empty((3, 3)), np.empty(3), np.empty((3, 3)), np.empty(3), np.empty((2, 3, 3))
     for m in range(M):
-        R, p, _ = chain_kinematics(S, Q_true[m])
-        R_WF, p_WF = _apply(R, p, R_true, p_true)
-        O_true[m], U_true[m] = p_WF, R_WF[:, 2]
-        for i in range(n):
-            if Q_reported[m, i] != Q_true[m, i]:
-                R, p, _ = chain_kinematics(S, Q_reported[m])
-                break
-        R_WF, p_WF = _apply(R, p, R_cal, p_cal)
-        O_cal[m], U_cal[m] = p_WF, R_WF[:, 2]
+        if m > 0 and _same_row(Q_true, m, Q_true, m - 1):
+            O_true[m], U_true[m] = O_true[m - 1], U_true[m - 1]  # (R, p) stays the product at this row
+        else:
+            chain_pose_into(S, Q_true[m], R, p, work)
+            _beam_into(R, p, R_true, p_true, O_true, U_true, m)
+        if m > 0 and _same_row(Q_reported, m, Q_reported, m - 1):
+            O_cal[m], U_cal[m] = O_cal[m - 1], U_cal[m - 1]
+        elif _same_row(Q_reported, m, Q_true, m):
+            _beam_into(R, p, R_cal, p_cal, O_cal, U_cal, m)
+        else:
+            chain_pose_into(S, Q_reported[m], R_rep, p_rep, work)
+            _beam_into(R_rep, p_rep, R_cal, p_cal, O_cal, U_cal, m)
     return O_true, U_true, O_cal, U_cal
 
 
@@ -295,16 +322,16 @@ def distance_packet(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal, eye, ma
     and calibrated beams at Q_true and Q_reported (M, 6) rad (`sensor_beams`, homes
     (R_true, p_true) and (R_cal, p_cal) in the chain S); the true retina's distance and
     incidence along the true beam (models.eyes.retina_hits with the eye's
-    `Eye.hit_arguments` `eye`); a sample with no retina within max_distance_mm (mm) is
-    invalid ("no_retina"), the others get the error model's draw (`_draw_one` with
-    ExtractorErrorModel's grid D mm, A rad and `tables`) from uniform[m] and normal[m]
-    (M,); then, with floater_rate > 0, a floater where floater_draws[0, m] <
-    floater_rate on a beam longer than 1 mm: a valid distance 0.5 + (d_true - 1)
-    floater_draws[1, m] mm, uniform between 0.5 mm and 0.5 mm before the retina
-    (floater_draws: (2, M) uniforms in [0, 1), not read without floaters).
+    `Eye.hit_arguments` `eye`, one ray cast per run of equal rows of Q_true); a sample
+    with no retina within max_distance_mm (mm) is invalid ("no_retina"), the others get
+    the error model's draw (`_draw_one` with ExtractorErrorModel's grid D mm, A rad and
+    `tables`) from uniform[m] and normal[m] (M,); then, with floater_rate > 0, a floater
+    where floater_draws[0, m] < floater_rate on a beam longer than 1 mm: a valid distance
+    0.5 + (d_true - 1) floater_draws[1, m] mm, uniform between 0.5 mm and 0.5 mm before
+    the retina (floater_draws: (2, M) uniforms in [0, 1), not read without floaters).
 
     Returns (d (M,) mm, NaN where invalid; valid (M,) bool; confidence (M,)
-    (DISTANCE_MODE_CONFIDENCE where valid, else 0); codes (M,) ints, the indices of the
+    (DISTANCE_MODE_CONFIDENCE where valid, else 0); codes (M,) uint8, the indices of the
     samples' reasons in DISTANCE_REASONS; P_W (M, 3) mm = O_cal + d U_cal, NaN rows where
     invalid; O_cal, U_cal (M, 3) the calibrated beams; d_true (M,) mm, NaN without a
     hit). ValueError when the draws do not have M samples, or as retina_hits."""
@@ -312,14 +339,23 @@ def distance_packet(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal, eye, ma
     if len(uniform) != M or len(normal) != M or (floater_rate > 0.0 and floater_draws.shape[1] != M):
         raise ValueError("uniform and normal must be (M,) draws, and floater_draws (2, M) with floaters")
     O_true, U_true, O, U = sensor_beams(S, Q_true, Q_reported, R_true, p_true, R_cal, p_cal)
-    d_true, incidence = retina_hits(O_true, U_true, *eye)
+    # one ray cast per run of equal rows of Q_true (equal true beams): row m's is number at[m]
+    at, first = np.empty(M, dtype=np.int64), np.empty(M, dtype=np.int64)
+    n = 0
+    for m in range(M):
+        if m == 0 or not _same_row(Q_true, m, Q_true, m - 1):
+            first[n] = m
+            n += 1
+        at[m] = n - 1
+    hit_distance, hit_incidence = retina_hits(O_true[first[:n]], U_true[first[:n]], *eye)
+    d_true = hit_distance[at]
     d, valid, confidence = np.full(M, np.nan), np.zeros(M, dtype=np.bool_), np.zeros(M)
-    codes, P = np.zeros(M, dtype=np.int64), np.full((M, 3), np.nan)
+    codes, P = np.zeros(M, dtype=np.uint8), np.full((M, 3), np.nan)
     for m in range(M):
         if not d_true[m] <= max_distance_mm:  # NaN: no hit
             codes[m] = _NO_RETINA
             continue
-        d[m], valid[m] = _draw_one(D, A, tables, d_true[m], incidence[m], uniform[m], normal[m])
+        d[m], valid[m] = _draw_one(D, A, tables, d_true[m], hit_incidence[at[m]], uniform[m], normal[m])
         if floater_rate > 0.0 and floater_draws[0, m] < floater_rate and d_true[m] > 1.0:
             d[m], valid[m] = 0.5 + (d_true[m] - 1.0) * floater_draws[1, m], True
         if not valid[m]:
@@ -340,13 +376,31 @@ def _finite_rows(Q) -> np.ndarray:
 
 
 def _joint_rows(Q, m: int) -> np.ndarray:
-    """Q as an (m, 6) float array of joint angles (rad): a row that is not 6 numbers, or
-    an array of another shape, becomes a NaN row (reported per sample as a bad joint state)."""
+    """Q as a C-contiguous (m, 6) float array of joint angles (rad): a row that is not 6
+    numbers, or an array of another shape, becomes a NaN row (reported per sample as a bad
+    joint state)."""
     try:
-        A = np.asarray(Q, dtype=float)
+        A = np.ascontiguousarray(Q, dtype=float)
     except (TypeError, ValueError):  # ragged rows
         A = np.array([np.asarray(q, dtype=float) if np.shape(q) == (6,) else np.full(6, np.nan) for q in Q])
     return A if A.shape == (m, 6) else np.full((m, 6), np.nan)
+
+
+@numba.njit(cache=True)
+def _all_finite(A, B) -> bool:
+    """Whether every entry of A and B is finite."""
+    for X in (A, B):
+        for x in X.flat:
+            if not np.isfinite(x):
+                return False
+    return True
+
+
+@lru_cache(maxsize=4096)
+def _distance_reasons(codes: bytes) -> tuple:
+    """The reasons (DISTANCE_REASONS) of a packet's `distance_packet` codes (one byte per
+    sample), one tuple per pattern of codes (a packet's in a dict lookup)."""
+    return tuple(DISTANCE_REASONS[c] for c in codes)
 
 
 class IioctSensor:
@@ -391,9 +445,10 @@ class IioctSensor:
         self.floater_rate = float(floater_rate)
         self._rng = np.random.default_rng(seed)
         self.max_distance_mm = self.engine.depth_mm / self.engine.group_index - self.engine.tip_offset_mm
-        if mode == "distance":  # the packet's kernel loaded from numba's cache (compiled on a fresh
+        if mode == "distance":  # the packet's kernels loaded from numba's cache (compiled on a fresh
             # checkout) now, not inside the first packet of a timed closed-loop run; no draws taken
             q = np.zeros((1, 6))
+            _all_finite(q, q)
             self._distance_arrays(q, q, np.zeros(1), np.zeros(1), np.zeros((2, 1)))
 
     def reported_beams(self, Q_reported) -> tuple[np.ndarray, np.ndarray]:
@@ -437,8 +492,9 @@ class IioctSensor:
         reported ones Q_reported (M, 6) rad (`sample`'s, in order) as a SensorPacket: the
         geometry, the checks and (in "distance" mode) the error draws vectorised over the
         M samples, which is what makes 2 kHz affordable; in "distance" mode one compiled
-        call (`distance_packet`) after the draws. A row that is not 6 finite angles gives an
-        invalid sample (reason BAD_JOINT_STATE) and draws nothing.
+        call (`distance_packet`) after the draws (and a compiled finiteness check before
+        them). A row that is not 6 finite angles gives an invalid sample (reason
+        BAD_JOINT_STATE) and draws nothing.
 
         Draws from the sensor's generator, in order: the encoder noise (M x 6 normals, if
         any); in "distance" mode M uniforms, M standard normals and, with floaters, 2 x M
@@ -446,10 +502,15 @@ class IioctSensor:
         sample without one, or rejected for its incidence on `model`, leaves its draws
         unused; every sample has the same error and floater statistics either way)."""
         M = len(T_s)
-        T = np.array(T_s, dtype=float).reshape(M)
-        Qt, Qr = _joint_rows(Q_true, M), _joint_rows(Q_reported, M)
-        if np.isfinite(Qt.sum() + Qr.sum()):  # all finite (a sum of angles cannot overflow)
+        return self._packet(np.array(T_s, dtype=float).reshape(M), _joint_rows(Q_true, M), _joint_rows(Q_reported, M),
+                            model)
+
+    def _packet(self, T: np.ndarray, Qt: np.ndarray, Qr: np.ndarray, model) -> SensorPacket:
+        """`packet` of the samples at times T (M,) s (the packet keeps T) from the joint
+        angles Qt, Qr: C-contiguous (M, 6) float arrays (rad), NaN rows for bad joint states."""
+        if _all_finite(Qt, Qr):
             return self._measure(T, Qt, Qr, model)
+        M = len(T)
         good = np.flatnonzero(np.isfinite(Qt).all(axis=1) & np.isfinite(Qr).all(axis=1))
         out = SensorPacket.invalid(T, BAD_JOINT_STATE)
         if not len(good):
@@ -462,7 +523,7 @@ class IioctSensor:
 
     def _measure(self, T: np.ndarray, Qt: np.ndarray, Qr: np.ndarray, model) -> SensorPacket:
         """The packet of the samples at times T (M,) s (the packet keeps T) from finite
-        joint angles Qt, Qr (M, 6) rad (the encoder noise drawn first)."""
+        joint angles Qt, Qr (M, 6) rad, C-contiguous (the encoder noise drawn first)."""
         Qr = self._with_encoder_noise(Qr)
         if self.mode == "distance":
             return self._distance_packet(T, Qt, Qr, model)
@@ -486,27 +547,26 @@ class IioctSensor:
         """`_measure` in "distance" mode: `distance_packet` with M uniforms, M standard
         normals and, with floaters, 2 x M uniforms drawn in that order; a sample rejected
         for its incidence on `model` (if any) leaves its draws unused."""
-        M = len(T)
-        uniform, normal = self._rng.random(M), self._rng.standard_normal(M)
-        floater_draws = self._rng.random((2, M)) if self.floater_rate > 0 else _NO_FLOATER_DRAWS
+        M, rng = len(T), self._rng
+        uniform, normal = rng.random(M), rng.standard_normal(M)
+        floater_draws = rng.random((2, M)) if self.floater_rate > 0 else _NO_FLOATER_DRAWS
         d, valid, confidence, codes, P, O, U, d_true = self._distance_arrays(Qt, Qr, uniform, normal, floater_draws)
-        reasons = [DISTANCE_REASONS[c] for c in codes.tolist()]
+        reasons = _distance_reasons(codes.tobytes())
         if model is not None:
             oblique = self._oblique(model, O, U, codes != _NO_RETINA)
             d[oblique], valid[oblique], confidence[oblique], P[oblique] = np.nan, False, 0.0, np.nan
-            for k in oblique.tolist():
-                reasons[k] = "incidence"
-        return SensorPacket(T, d, valid, confidence, tuple(reasons), P, O, U, None, d_true)
+            reasons = _scattered(reasons, oblique, ("incidence",) * len(oblique))
+        return SensorPacket(T, d, valid, confidence, reasons, P, O, U, None, d_true)
 
     def _distance_arrays(self, Qt: np.ndarray, Qr: np.ndarray, uniform: np.ndarray, normal: np.ndarray,
                          floater_draws: np.ndarray) -> tuple:
         """`distance_packet` of this sensor's chain, eye, range and error model at the
-        finite joint angles Qt, Qr (M, 6) rad with the draws uniform, normal (M,) and
-        floater_draws (2, M) (read only with floaters)."""
+        finite joint angles Qt, Qr (M, 6) rad (C-contiguous) with the draws uniform, normal
+        (M,) and floater_draws (2, M) (read only with floaters)."""
         chain = self.robot.chain
-        return distance_packet(chain.S, np.ascontiguousarray(Qt), np.ascontiguousarray(Qr), *chain.homes["S_true"],
-                               *self._home_Scal, self.eye.hit_arguments, self.max_distance_mm, *self.error_model._grid,
-                               uniform, normal, self.floater_rate, floater_draws)
+        return distance_packet(chain.S, Qt, Qr, *chain.homes["S_true"], *self._home_Scal, self.eye.hit_arguments,
+                               self.max_distance_mm, *self.error_model._grid, uniform, normal, self.floater_rate,
+                               floater_draws)
 
     def _oblique(self, model, O: np.ndarray, U: np.ndarray, live: np.ndarray) -> np.ndarray:
         """The indices of the `live` (M,) samples whose calibrated beams (origins O, unit
@@ -578,8 +638,11 @@ class _PacketProcessor(LeafSystem):
     the q of latch ceil(k / ratio); the update runs a quarter of a sample period after
     the latch that covers each packet's last sample (`offset_s`, s, the first packet's
     update time). Input "register" (7 `slots`,): rows of [recorded flag, q (6) rad] of
-    the newest `slots` latches, oldest first, covering the packet and the `history`
-    samples before it (the time offset's interpolation); outputs as IioctSensorSystem's."""
+    the newest `slots` latches, oldest first: the latches covering the packet and the
+    `history` samples before it (the time offset's interpolation), and one older still,
+    the sentinel, whose samples are never packed (a recorded sentinel shows, from the
+    register alone, that the run started before every sample the other rows cover);
+    outputs as IioctSensorSystem's."""
 
     def __init__(self, sensor: IioctSensor, rate_hz: float, ratio: int, time_offset_s: float, packet: int,
                  history: int):
@@ -589,11 +652,17 @@ class _PacketProcessor(LeafSystem):
         last = packet - 1  # the first packet's last sample
         latched = -(-last // ratio) * ratio  # the sample at the time of the latch covering it
         self._lag = latched - last  # the same for every packet (packet is a multiple of ratio): 0 or 1 sample
-        # latches 0 .. latched / ratio cover samples 0 .. last, and history // ratio more the history before them
-        self.slots = latched // ratio + history // ratio + 1
+        # latches 0 .. latched / ratio cover samples 0 .. last, history // ratio more the history before
+        # them, and one more is the sentinel
+        self.slots = latched // ratio + history // ratio + 2
+        # with the sentinel recorded: the samples rows 1 .. slots - 1 cover, counted from the sentinel's
+        # last one, and the register's entries of their joint angles (sample i in row 1 + i // ratio)
+        self._covered = np.arange((self.slots - 1) * ratio - self._lag)
+        self._covered_q = 7 * (1 + self._covered // ratio)[:, None] + np.arange(1, 7)
         self.offset_s = (latched + 0.25) * self._period_s
         self._register = self.DeclareVectorInputPort("register", 7 * self.slots)
         self._packet = self.DeclareAbstractState(AbstractValue.Make(NO_SAMPLE_YET))
+        self._packet_at = int(self._packet)  # the same index as an int, which pybind takes faster per packet
         self._start = self.DeclareDiscreteState(1)  # the run's start time, s
         self.DeclareInitializationDiscreteUpdateEvent(self._set_start)
         self.DeclarePeriodicUnrestrictedUpdateEvent(packet * self._period_s, self.offset_s, self._process)
@@ -608,30 +677,49 @@ class _PacketProcessor(LeafSystem):
         discrete_state.set_value([context.get_time()])
 
     def _recorded(self, context) -> tuple[np.ndarray, np.ndarray]:
-        """((K,) time stamps s, (K, 6) joint angles rad) of the samples the recorded latches
-        cover, from the run's start to the packet's last sample, oldest first. At the
-        packet event's time t the newest latch is at sample round(t / period - 1/4), the
-        packet's last sample `lag` before it; sample k is stamped k * period, the time of
-        a register update at every sample, bit for bit, and counts from the run's start
-        on (k * period >= the start time: Drake's first event of a periodic series that
-        starts then)."""
-        rows = self._register.Eval(context).reshape(self.slots, 7)
+        """((K,) time stamps s, (K, 6) joint angles rad) of the samples covered by the
+        recorded latches but the sentinel, from the run's start to the packet's last sample,
+        oldest first. At the packet event's time t the newest latch is at sample round(t /
+        period - 1/4) (`_newest_latch`), the packet's last sample `lag` before it; sample k
+        is stamped k * period, the time of a register update at every sample, bit for bit,
+        and counts from the run's start on (k * period >= the start time: Drake's first
+        event of a periodic series that starts then). Once the sentinel is recorded (every
+        packet of a run but the first one or two) so is every later latch, and the run
+        started at or before the sentinel's latch, a sample period or more before the first
+        sample the other rows cover: all their samples count, read off the register with
+        precomputed indices and without the start time (the arrays `_recorded_since_start`
+        gives there, bit for bit); otherwise `_recorded_since_start`."""
+        register = self._register.Eval(context)
+        sentinel = self._newest_latch(context) - self.slots + 1
+        if register[0] == 1.0 and sentinel >= 0:
+            return (sentinel * self._ratio + 1 + self._covered) * self._period_s, register[self._covered_q]
+        return self._recorded_since_start(context)
+
+    def _recorded_since_start(self, context) -> tuple[np.ndarray, np.ndarray]:
+        """`_recorded` in any state: the recorded rows but the sentinel, their samples
+        filtered by the run's start time (the initialisation event's)."""
+        rows = self._register.Eval(context).reshape(self.slots, 7)[1:]  # the sentinel's samples are never packed
         if rows[0, 0] != 1.0:  # not full yet: the recorded rows are the newest
             rows = rows[rows[:, 0] == 1.0]
         r = self._ratio
-        newest = round(context.get_time() / self._period_s - 0.25) // r  # latch indices
+        newest = self._newest_latch(context)
         oldest = newest - len(rows) + 1
         K = np.arange(max((oldest - 1) * r + 1, 0), newest * r - self._lag + 1)  # the samples they cover
         K = K[K * self._period_s >= context.get_discrete_state(self._start).GetAtIndex(0)]
         return K * self._period_s, rows[-(-K // r) - oldest, 1:]  # sample k in latch ceil(k / r)
+
+    def _newest_latch(self, context) -> int:
+        """The index of the newest latch at the packet event's time (a quarter sample after a sample)."""
+        return round(context.get_time() / self._period_s - 0.25) // self._ratio
 
     def _process(self, context, state) -> None:
         T_all, Q_all = self._recorded(context)
         if not len(T_all):  # a run started after this packet's last sample: keep the previous packet
             return
         T, Q = T_all[-self.packet:], Q_all[-self.packet:]
-        packet = self.sensor.packet(Q, self._reported(T, T_all, Q_all), T)
-        state.get_mutable_abstract_state(self._packet).set_value(packet)
+        # IioctSensor.packet without its input conversions: these are C-contiguous float arrays already
+        packet = self.sensor._packet(T, Q, self._reported(T, T_all, Q_all), None)
+        state.get_mutable_abstract_state(self._packet_at).set_value(packet)
 
     def _reported(self, T: np.ndarray, T_all: np.ndarray, Q_all: np.ndarray) -> np.ndarray:
         """Joint angles (M, 6) rad at the times T - time_offset_s, from the recorded
@@ -641,7 +729,7 @@ class _PacketProcessor(LeafSystem):
         return np.column_stack([np.interp(T - self.time_offset_s, T_all, Q_all[:, i]) for i in range(6)])
 
     def _latest(self, context) -> SensorPacket:
-        return context.get_abstract_state(self._packet).get_value()
+        return context.get_abstract_state(self._packet_at).get_value()
 
     def _calc_sample(self, context, value) -> None:
         value.set_value(self._latest(context).sample(-1))
@@ -685,21 +773,22 @@ class IioctSensorSystem(Diagram):
     update at every latch time, its times computed like those of a
     DiscreteTimeIntegrator of that period, fed by a Selector from its own value, a
     constant 1 and "q") holds rows [recorded 1, q] of the latches covering the newest
-    `packet` samples and the offset's history before them; `_PacketProcessor` reads the
-    whole register at the packet rate, a quarter of a sample period after the latch
-    covering each packet's last sample (`packet_offset_s`, s, for the first packet, then
-    every packet / rate_hz s: a quarter sample after the last sample for r = 1, 1.25
-    samples after it for r > 1), and stamps sample k with k / rate_hz as Drake computes
-    it (k x period), a register update's time at every sample, bit for bit. A run
-    started mid-packet packs only the samples at or after its start time (noted by an
-    initialisation event). Not at the latch's own time: there the register would not
-    hold that latch yet (events at one time see the state before them), and Drake
-    computes each periodic series' times on its own (offset + k period), so coinciding
-    times can differ by rounding and a packet event a few ulps after a register step be
-    skipped (seen in the closed loop with the former 2 kHz Python recorder: one packet in
-    20 lost). A reader at the same time as the packet event sees the previous packet;
-    the closed loop's model reads a quarter sample period after the packet event, the
-    filter at whole control periods.
+    `packet` samples and the offset's history before them, and of one latch before those
+    (whose flag tells the processor that the run started before them, without reading
+    the start time); `_PacketProcessor` reads the whole register at the packet rate, a
+    quarter of a sample period after the latch covering each packet's last sample
+    (`packet_offset_s`, s, for the first packet, then every packet / rate_hz s: a
+    quarter sample after the last sample for r = 1, 1.25 samples after it for r > 1),
+    and stamps sample k with k / rate_hz as Drake computes it (k x period), a register
+    update's time at every sample, bit for bit. A run started mid-packet packs only the
+    samples at or after its start time (noted by an initialisation event). Not at the
+    latch's own time: there the register would not hold that latch yet (events at one
+    time see the state before them), and Drake computes each periodic series' times on
+    its own (offset + k period), so coinciding times can differ by rounding and a packet
+    event a few ulps after a register step be skipped (seen in the closed loop with the
+    former 2 kHz Python recorder: one packet in 20 lost). A reader at the same time as
+    the packet event sees the previous packet; the closed loop's model reads a quarter
+    sample period after the packet event, the filter at whole control periods.
     """
 
     def __init__(self, sensor: IioctSensor, rate_hz: float = 2000.0, time_offset_s: float = 0.0, packet: int = 10,

@@ -10,7 +10,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import FixedOffsetFrame, JacobianWrtVariable, RevoluteJoint, SpatialInertia, UnitInertia
 
 from planning import SurgeryScenario
-from planning.chain import MM_PER_M, Chain
+from planning.chain import MM_PER_M, Chain, chain_kinematics, chain_pose_into
 from planning.robot import Robot
 
 
@@ -42,6 +42,15 @@ def test_every_frame_pose_and_jacobian_is_the_plants(robot, q):
                                                plant.world_frame(), plant.world_frame())
         Js[3:] *= MM_PER_M
         np.testing.assert_allclose(robot.spatial_jacobian(name, q), Js, atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(q=joint_angles)
+def test_the_product_without_the_jacobian_is_chain_kinematics_bit_for_bit(robot, q):
+    R, p = np.full((3, 3), np.nan), np.full(3, np.nan)  # overwritten in place
+    chain_pose_into(robot.chain.S, q, R, p, np.empty((2, 3, 3)))
+    R_ref, p_ref, _ = chain_kinematics(robot.chain.S, q)
+    assert R.tobytes() == R_ref.tobytes() and p.tobytes() == p_ref.tobytes()
 
 
 def test_world_fixed_frames_do_not_move(robot):

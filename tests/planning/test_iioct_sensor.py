@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from unittest import mock
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.interpolate import RegularGridInterpolator
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -17,7 +20,7 @@ from pydrake.systems.framework import LeafSystem
 
 from planning import Robot, SurgeryScenario, start_posture
 from planning.iioct_sensor import (BAD_JOINT_STATE, DISTANCE_MODE_CONFIDENCE, IioctSensor, IioctSensorSystem,
-                                   SensorPacket, extractor_error_model)
+                                   SensorPacket, _PacketProcessor, extractor_error_model, sensor_beams)
 
 
 def test_the_beam_comes_from_the_true_sensor_and_the_point_from_the_calibrated_one(setup):
@@ -172,11 +175,11 @@ def test_a_seed_reproduces_the_samples_and_floaters_and_rejections_keep_their_re
     short_range = IioctSensor(robot, mode="distance")
     short_range.max_distance_mm = 1.0
     assert all(x.reason == "no_retina" and not x.valid for x in short_range.samples(Q[:5], Q[:5], T[:5]))
-    # a bad row among good ones: only that sample is invalid
+    # bad rows among good ones (NaN, infinite): only those samples are invalid
     Qbad = Q[:5].copy()
-    Qbad[2, 3] = np.nan
+    Qbad[2, 3], Qbad[4, 0] = np.nan, -np.inf
     mixed = IioctSensor(robot, mode="distance").samples(Qbad, Q[:5], T[:5])
-    assert [x.reason.startswith("bad_joint_state") for x in mixed] == [False, False, True, False, False]
+    assert [x.reason.startswith("bad_joint_state") for x in mixed] == [False, False, True, False, True]
     assert [x.t_s for x in mixed] == T[:5].tolist()
 
 
@@ -228,8 +231,9 @@ def test_a_distance_packet_is_the_numpy_reference_computation_of_its_draws(robot
     uniforms, M standard normals, with floaters 2 x M uniforms; sample m takes the m-th):
     beams from Robot.beam, true distances from Eye.ray_cast, the error model's tables
     interpolated by SciPy (clamped to the grid), the draws, floaters and points written
-    out. 40 samples moving 0.02 rad, the reported angles 1e-4 rad off the true ones, the
-    range cut at the median true distance (half "no_retina") and p_invalid raised by 0.3
+    out. 40 samples moving 0.02 rad in runs of 1 to 3 equal rows (as the sensor's latches
+    repeat them), the reported angles 1e-4 rad off the true ones (equal to them in every
+    fifth row), the range cut at the median true distance (half "no_retina") and p_invalid raised by 0.3
     (some "low_confidence"). Distances, true distances, points and beams agree to 1e-12
     mm, validity, reasons and confidences exactly, and the generator is left where the
     reference's is. The incidence is Eye.beam_hits' (tests/models/test_eyes.py holds it
@@ -239,9 +243,10 @@ def test_a_distance_packet_is_the_numpy_reference_computation_of_its_draws(robot
     robot = robots[eye_name]
     eye = robot.scenario.eye
     q = start_posture(robot, robot.scenario.eye_pose.to_W(np.array([[1.0, 2.0, -3.0]]))[0], robot.scenario.p_WC)
-    M = 40
-    Q = q + np.linspace(0.0, 0.02, M)[:, None] * np.array([1.0, -0.5, 0.3, 0.0, 0.2, 0.0])
+    M, runs = 40, np.resize([1, 2, 3, 2], 20)
+    Q = q + np.repeat(np.linspace(0.0, 0.02, len(runs)), runs)[:, None] * np.array([1.0, -0.5, 0.3, 0.0, 0.2, 0.0])
     Q_reported = Q + 1e-4 * np.sin(np.arange(6 * M).reshape(M, 6))
+    Q_reported[::5] = Q[::5]
     sensor = IioctSensor(robot, mode="distance", floater_rate=floater_rate, seed=11)
     m = sensor.error_model
     sensor.error_model = dataclasses.replace(m, p_invalid=np.minimum(np.array(m.p_invalid) + 0.3, 1.0).tolist())
@@ -274,6 +279,39 @@ def test_a_distance_packet_is_the_numpy_reference_computation_of_its_draws(robot
                       (p.beam_origin_W, O), (p.beam_dir_W, U)):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)  # NaN where NaN
     assert sensor._rng.random() == rng.random()
+
+
+@pytest.mark.parametrize("eye_name", ["emmetropic", "detached"])
+def test_each_sample_of_a_packet_is_what_it_gives_alone(robots, eye_name):
+    """Runs of 1 to 3 equal rows, as the sensor's latches repeat them (one with a joint at
+    0.0, -0.0, 0.0); reported rows equal to the true ones, off them in a whole run, in part
+    of one, or repeating the row before across a run's end: the compiled packet (which
+    evaluates the chain and casts the ray once per run of equal rows) gives every sample,
+    every array bit for bit, as a packet of that sample alone with the same draws
+    (floaters included); so do the beams (`sensor_beams`)."""
+    robot = robots[eye_name]
+    q = start_posture(robot, robot.scenario.eye_pose.to_W(np.array([[1.0, 2.0, -3.0]]))[0], robot.scenario.p_WC)
+    M, runs = 24, np.resize([1, 2, 3], 12)  # runs start at rows 0, 1, 3, 6, 7, 9, 12, 13, 15, 18, 19, 21
+    Q = q + np.repeat(np.linspace(0.0, 0.02, len(runs)), runs)[:, None] * np.array([1.0, -0.5, 0.3, 0.0, 0.2, 0.0])
+    Q[3:6, 3] = 0.0, -0.0, 0.0
+    Q_reported = Q.copy()
+    Q_reported[9:12] += 1e-4  # a run off the true rows
+    Q_reported[13] -= 1e-4  # the first row of a run off
+    Q_reported[18] = Q_reported[17]  # the row before, across a run's end
+    sensor = IioctSensor(robot, mode="distance", floater_rate=0.3, seed=2)
+    rng = np.random.default_rng(2)
+    uniform, normal, floater_draws = rng.random(M), rng.standard_normal(M), rng.random((2, M))
+    packet = sensor._distance_arrays(Q, Q_reported, uniform, normal, floater_draws)
+    chain = robot.chain
+    beams = sensor_beams(chain.S, Q, Q_reported, *chain.homes["S_true"], *sensor._home_Scal)
+    for m in range(M):
+        alone = sensor._distance_arrays(Q[m:m + 1], Q_reported[m:m + 1], uniform[m:m + 1], normal[m:m + 1],
+                                        floater_draws[:, m:m + 1])
+        assert [a[m].tobytes() for a in packet] == [a[0].tobytes() for a in alone]
+        beams_alone = sensor_beams(chain.S, Q[m:m + 1], Q_reported[m:m + 1], *chain.homes["S_true"],
+                                   *sensor._home_Scal)
+        assert [b[m].tobytes() for b in beams] == [b[0].tobytes() for b in beams_alone]
+    assert len({tuple(o) for o in beams[0]}) == len(runs)  # the runs were there
 
 
 def test_an_ascan_mode_packet_holds_the_a_scans_of_the_samples_with_a_retina(setup):
@@ -439,3 +477,33 @@ def test_a_run_started_late_on_1_khz_joint_angles_packs_only_the_samples_since_i
     sim.AdvanceTo(sensor.packet_offset_s + 5.2e-3)
     packet = sensor.GetOutputPort("packet").Eval(sensor.GetMyContextFromRoot(sim.get_context()))
     assert packet.t_s.tolist() == (np.arange(10, 20) * 5e-4).tolist()
+
+
+
+@settings(max_examples=20, deadline=None)
+@given(start_s=st.floats(0.0, 0.012), input_rate_hz=st.sampled_from([None, 1000.0]),
+       offset_s=st.sampled_from([0.0, 0.0013]))
+def test_a_full_registers_fast_read_is_the_general_one(setup, start_s, input_rate_hz, offset_s):
+    """A run started at a random time, q moving at every latch: at each of the first 6
+    packet events after the start `_recorded` gives, bit for bit, the arrays of
+    `_recorded_since_start` (the general read, filtered by the run's start time): through
+    the general read for the first packet or two (the sentinel not yet recorded), through
+    its precomputed indices from the third on."""
+    scenario, robot, q = setup
+    sim, sensor = _moving_diagram(robot, q, np.array([0.05, -0.03, 0.02, 0.0, 0.04, 0.1]), offset_s, input_rate_hz)
+    processor = next(s for s in sensor.GetSystems() if isinstance(s, _PacketProcessor))
+    sim.get_mutable_context().SetTime(start_s)
+    sim.Initialize()
+    general = []
+    with mock.patch.object(processor, "_recorded_since_start", wraps=processor._recorded_since_start) as since_start:
+        first = int(np.floor((start_s - sensor.packet_offset_s) / 5e-3)) + 1  # the first packet event after the start
+        for t in sensor.packet_offset_s + 5e-3 * np.arange(max(first, 0), max(first, 0) + 6):
+            sim.AdvanceTo(t)
+            context = processor.GetMyContextFromRoot(sim.get_context())
+            calls = since_start.call_count
+            T, Q = processor._recorded(context)
+            general.append(since_start.call_count > calls)
+            T_ref, Q_ref = since_start(context)
+            assert T.tobytes() == T_ref.tobytes() and Q.tobytes() == Q_ref.tobytes()
+            assert Q.shape == (len(T), 6) and Q.flags.c_contiguous
+    assert general[0] and not any(general[2:])
