@@ -39,7 +39,7 @@ from eval.control_step import CompiledStep
 from models import AdaptiveEyeModel
 from models.coverage import DirectionCoverage
 from models.transition import PredictiveCriteria
-from planning.chain import frame_pose
+from planning.chain import frame_position
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 from planning.iioct_sensor import NO_SAMPLE_YET, IioctSensor, IioctSensorSystem, rate_ratio
@@ -321,7 +321,7 @@ class FilterSystem(LeafSystem):
         self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
         self.lens = robot.scenario.lens_W
         chain = robot.chain
-        self._tip_chain = (chain.S, *chain.homes["T"])  # frame_pose's (S, R_home, p_home) of the tip T, without q
+        self._tip_chain = (chain.S, *chain.homes["T"])  # frame_position's (S, R_home, p_home) of the tip T, without q
         self._q = self.DeclareVectorInputPort("q", 6)
         self._snap = self.DeclareAbstractInputPort("snapshot", AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
         self._meas = self.DeclareVectorInputPort("measurement", 4)
@@ -398,7 +398,7 @@ class FilterSystem(LeafSystem):
         the step)."""
         t0 = time.perf_counter()
         S, R_home, p_home = self._tip_chain
-        v, roll = self.source(t_s, frame_pose(S, q, R_home, p_home)[1], q)
+        v, roll = self.source(t_s, frame_position(S, q, R_home, p_home), q)
         command = np.empty(4)
         command[:3], command[3] = v, roll  # ValueError unless v holds 3 numbers
         self.command_wall_s += time.perf_counter() - t0

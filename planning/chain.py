@@ -98,8 +98,27 @@ def _apply(R, p, R_home, p_home):
 @numba.njit(cache=True)
 def frame_pose(S, q, R_home, p_home):
     """(R_WF (3, 3), p_WF (3,) mm) of a frame with home pose (R_home, p_home) at q = 0."""
-    R, p, _ = chain_kinematics(S, q)
+    R, p = _chain_pose(S, q)
     return _apply(R, p, R_home, p_home)
+
+
+@numba.njit(cache=True)
+def frame_position(S, q, R_home, p_home):
+    """p_WF (3,) mm: frame_pose's position alone, bit for bit (the control loop's tip
+    position for its command source, every step)."""
+    R, p = _chain_pose(S, q)
+    p_WF = p.copy()
+    for r in range(3):
+        p_WF[r] += R[r, 0] * p_home[0] + R[r, 1] * p_home[1] + R[r, 2] * p_home[2]
+    return p_WF
+
+
+@numba.njit(cache=True)
+def _chain_pose(S, q):
+    """(R (3, 3), p (3,) mm) of the product of the exponentials at q (chain_pose_into)."""
+    R, p = np.empty((3, 3)), np.empty(3)
+    chain_pose_into(S, q, R, p, np.empty((2, 3, 3)))
+    return R, p
 
 
 @numba.njit(cache=True)

@@ -10,7 +10,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import FixedOffsetFrame, JacobianWrtVariable, RevoluteJoint, SpatialInertia, UnitInertia
 
 from planning import SurgeryScenario
-from planning.chain import MM_PER_M, Chain, chain_kinematics, chain_pose_into
+from planning.chain import MM_PER_M, Chain, _apply, chain_kinematics, chain_pose_into, frame_pose, frame_position
 from planning.robot import Robot
 
 
@@ -51,6 +51,18 @@ def test_the_product_without_the_jacobian_is_chain_kinematics_bit_for_bit(robot,
     chain_pose_into(robot.chain.S, q, R, p, np.empty((2, 3, 3)))
     R_ref, p_ref, _ = chain_kinematics(robot.chain.S, q)
     assert R.tobytes() == R_ref.tobytes() and p.tobytes() == p_ref.tobytes()
+
+
+@settings(max_examples=60, deadline=None)
+@given(q=joint_angles)
+def test_a_frames_pose_and_position_are_the_full_products_bit_for_bit(robot, q):
+    # the tip's home pose: frame_pose and frame_position (the loop's command source's tip,
+    # every step) against _apply on chain_kinematics' product, the Jacobian's pass
+    S, (R_home, p_home) = robot.chain.S, robot.chain.homes["T"]
+    R_ref, p_ref = _apply(*chain_kinematics(S, q)[:2], R_home, p_home)
+    R, p = frame_pose(S, q, R_home, p_home)
+    assert R.tobytes() == R_ref.tobytes() and p.tobytes() == p_ref.tobytes()
+    assert frame_position(S, q, R_home, p_home).tobytes() == p_ref.tobytes()
 
 
 def test_world_fixed_frames_do_not_move(robot):
