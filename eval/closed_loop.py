@@ -147,11 +147,12 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     phase's wider margin applies); "prior" otherwise. The model's shapes are made once
     per update (AdaptiveEyeModel.shape), and only once the trust limits on points and
     scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says.
-    The scan range and residuals are the last history entry's (the model's own since its
-    last update); the snapshot is made by tuple.__new__, without the NamedTuple's
-    Python-level __new__ (the loop makes one per packet)."""
-    n = model.n_points
-    last = model.history[-1] if n else None
+    The point count, scan range and residuals are the last history entry's (the model's
+    own since its last update); the snapshot is made by tuple.__new__, without the
+    NamedTuple's Python-level __new__ (the loop makes one per packet)."""
+    history = model.history
+    last = history[-1] if history else None  # its n_points are the model's
+    n = 0 if last is None else last.n_points
     shape = None if last is None or n < min_points or last.scan_range_mm < min_scan_range_mm else model.shape
     if shape is not None:
         lo, hi = radius_range_mm

@@ -155,8 +155,9 @@ class AdaptiveEyeModel:
             P = P.reshape(1, 3)
         self.n_received += len(P)
         sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
-        n = sf.n_points
-        scan.reserve(len(P) + 1)  # the gate may add its pending first point
+        n = sf.n_points  # the scan range's too: all three take the same points
+        if n + len(P) + 1 > len(scan.X):  # the gate may add its pending first point
+            scan.reserve(len(P) + 1)
         g = _NO_GATE if gate is None else gate
         current = self._current
         out = np.empty(OUT_SIZE)
@@ -177,9 +178,11 @@ class AdaptiveEyeModel:
         scan.took(k, diameter)
         if code:
             fit = EllipsoidFit(FIT_STATUS[code])
-        else:
-            fit = EllipsoidFit("ok", out[OUT_CENTER:OUT_RADII], out[OUT_RADII:OUT_ROTATION],
-                               out[OUT_ROTATION:OUT_SF_CENTER].reshape(3, 3), out[OUT_V_EF:OUT_CENTER])
+        else:  # centre, semi-axes and rotation in a read-only copy of their own: the Ellipsoid holds them (of_fit)
+            ell = out[OUT_CENTER:OUT_SF_CENTER].copy()
+            ell.flags.writeable = False
+            r, R = OUT_RADII - OUT_CENTER, OUT_ROTATION - OUT_CENTER  # where the semi-axes and the rotation begin
+            fit = EllipsoidFit("ok", ell[:r], ell[r:R], ell[R:].reshape(3, 3), out[OUT_V_EF:OUT_CENTER])
         ef.record(fit, check, took=k)
         if sf_ok:
             return self._evaluate(fit, out[OUT_V_SF:OUT_V_EF], (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res,

@@ -161,12 +161,6 @@ class PredictiveCriteria:
     def initial_state(self) -> _PredictiveMemory:
         return _PredictiveMemory()
 
-    @staticmethod
-    def _at_most(mem: _PredictiveMemory, n: float) -> int | None:
-        """Index of the last checkpoint with at most n points, or None."""
-        i = bisect_right(mem.n, n) - 1
-        return i if i >= 0 else None
-
     def _convergence(self, snap: FitSnapshot, v_ef_old: np.ndarray):
         """(ellipsoid drift / sphere-ellipsoid distance over the retina, met)."""
         c_ef, r_ef, R_ef = snap.ef
@@ -185,21 +179,22 @@ class PredictiveCriteria:
         if snap.v_ef is None or snap.sf is None:
             mem.last = {name: (np.nan, False) for name in mem.last}
             return
-        w = self._at_most(mem, (1.0 - self.window_fraction) * snap.n_points)
+        # the last checkpoints with at most the points before the newest window, and before the lag (-1: none)
+        w = bisect_right(mem.n, (1.0 - self.window_fraction) * snap.n_points) - 1
         if not snap.robust:
             fit_ratio = snap.ef_residual_mm / self.noise_sd_mm
             mem.last["fit"] = (fit_ratio, bool(fit_ratio < self.fit_factor))
-        elif w is not None and w < len(mem.n) - 1:
+        elif 0 <= w < len(mem.n) - 1:
             explained = float(snap.S[9, 9] - mem.S[w][9, 9]) / (snap.n_points - mem.n[w])
             mem.last["fit"] = (explained, bool(explained >= self.min_explained_fraction))
         else:
             mem.last["fit"] = (np.nan, False)
-        j = self._at_most(mem, snap.fit_since + self.lag_fraction * (snap.n_points - snap.fit_since))
-        old_ef = None if j is None else mem.v_ef[j]
+        j = bisect_right(mem.n, snap.fit_since + self.lag_fraction * (snap.n_points - snap.fit_since)) - 1
+        old_ef = mem.v_ef[j] if j >= 0 else None
         mem.last["convergence"] = (np.nan, False) if old_ef is None else self._convergence(snap, old_ef)
         gain, better = np.nan, False
-        if j is not None and w is not None and w < len(mem.n) - 1 and mem.v_sf[j] is not None and mem.v_ef[j] is not None:
-            e_sf, e_ef = _prequential_errors(snap.S, mem.S[w], mem.v_sf[j], mem.v_ef[j], LENGTH_SCALE_MM)
+        if old_ef is not None and 0 <= w < len(mem.n) - 1 and mem.v_sf[j] is not None:
+            e_sf, e_ef = _prequential_errors(snap.S, mem.S[w], mem.v_sf[j], old_ef, LENGTH_SCALE_MM)
             gain, better = e_sf - e_ef, e_ef < e_sf
         mem.last["prediction"] = (gain, better)
 
