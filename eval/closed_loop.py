@@ -146,20 +146,26 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     153 x 29 x 29 mm) gives way to the model's sphere fit if that one is an eye's (its
     phase's wider margin applies); "prior" otherwise. The model's shapes are made once
     per update (AdaptiveEyeModel.shape), and only once the trust limits on points and
-    scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says."""
-    n = model.n_points
-    shape = None if n < min_points or model.scan_range_mm < min_scan_range_mm else model.shape
+    scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says.
+    The point count, scan range and residuals are the last history entry's (the model's
+    own since its last update); the snapshot is made by tuple.__new__, without the
+    NamedTuple's Python-level __new__ (the loop makes one per packet)."""
+    history = model.history
+    last = history[-1] if history else None  # its n_points are the model's
+    n = 0 if last is None else last.n_points
+    shape = None if last is None or n < min_points or last.scan_range_mm < min_scan_range_mm else model.shape
     if shape is not None:
         lo, hi = radius_range_mm
         if model.kind == "ellipsoid":
             radii = shape.radii.tolist()
             if lo <= min(radii) and max(radii) <= hi:
-                return ModelSnapshot("ellipsoid", shape, t_s, float(model.history[-1].ef_residual_mm), n,
-                                     coverage.view(shape))
+                return tuple.__new__(ModelSnapshot, ("ellipsoid", shape, t_s, float(last.ef_residual_mm), n,
+                                                     coverage.view(shape)))
             shape = model.sphere  # the ellipsoid is no eye's: its sphere fit, if that one is
         if shape is not None and lo <= shape.radius <= hi:
-            return ModelSnapshot("sphere", shape, t_s, float(model.history[-1].sf_residual_mm), n, coverage.view(shape))
-    return ModelSnapshot("prior", None, t_s, float("nan"), n, coverage.view())
+            return tuple.__new__(ModelSnapshot, ("sphere", shape, t_s, float(last.sf_residual_mm), n,
+                                                 coverage.view(shape)))
+    return tuple.__new__(ModelSnapshot, ("prior", None, t_s, float("nan"), n, coverage.view()))
 
 
 class AdaptiveModelSystem(LeafSystem):
@@ -206,10 +212,16 @@ class AdaptiveModelSystem(LeafSystem):
         self._written = _PRIOR_AT_0  # the declared state's value, until initial_snapshot
         self.wall_s = 0.0  # wall time (s) of its updates since the reset
         self.update_us: list[float] = []
-        self.errors_mm: list[float] = []  # extracted - true distance of the valid samples (evaluation)
+        self._distances: list[tuple] = []  # per packet: its extracted and true distances, and which are valid
         self.n_samples = 0
         self.n_invalid = 0
         self.epochs: list[ModelSnapshot] = []  # the snapshot whenever the filter's model changed kind
+
+    @property
+    def errors_mm(self) -> list[float]:
+        """Extracted - true distance (mm) of the valid samples since the reset, in time order
+        (evaluation; made when read from the packets' arrays, which no one changes)."""
+        return [e for d, true, valid in self._distances for e in (d - true)[valid].tolist()]
 
     def _mark_epoch(self, snap: ModelSnapshot) -> None:
         if not self.epochs or self.epochs[-1].kind != snap.kind:
@@ -232,18 +244,18 @@ class AdaptiveModelSystem(LeafSystem):
 
     def _absorb(self, context, state) -> None:
         packet = self._packet.Eval(context)
-        if not packet.t_s[0] > self._last_t:  # samples seen before (or the placeholder before the first packet)
+        if not packet.t_s.item(0) > self._last_t:  # samples seen before (or the placeholder before the first packet)
             new = np.flatnonzero(packet.t_s > self._last_t)  # in time order: the packet's last ones
             if not len(new):
                 return
             packet = packet.take(new)
         T, valid = packet.t_s, packet.valid
-        self._last_t = float(T[-1])
+        self._last_t = T.item(-1)
         first = self.n_samples
         self.n_samples += len(T)
-        n_valid = int(np.count_nonzero(valid))
+        n_valid = valid.tolist().count(True)  # C calls only (np.count_nonzero is a Python function)
         self.n_invalid += len(T) - n_valid
-        self.errors_mm.extend((packet.distance_mm - packet.true_distance_mm)[valid].tolist())
+        self._distances.append((packet.distance_mm, packet.true_distance_mm, valid))
         if self.logger is not None:
             ascans = packet.ascans
             for k, (t, d, ok, c) in enumerate(zip(T.tolist(), packet.distance_mm.tolist(), valid.tolist(),
@@ -263,7 +275,7 @@ class AdaptiveModelSystem(LeafSystem):
                 self.logger.log_model_update(self._last_t, entry)
         # the state is what this system last wrote (or the initial snapshot): kept at hand
         if entry is not None or self._written.shape is None:
-            self._written = self.snapshot_for(self.model, self.coverage, self._last_t)
+            self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust)
         else:
             self._written = self._written._replace(t_s=self._last_t)
         state.get_mutable_abstract_state(0).set_value(self._written)

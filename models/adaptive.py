@@ -125,7 +125,10 @@ class AdaptiveEyeModel:
 
     @property
     def shape(self) -> Sphere | Ellipsoid | None:
-        return self.ellipsoid if self.kind == "ellipsoid" else self.sphere
+        if self.kind == "ellipsoid":
+            last = self._ef.last_ok
+            return None if last is None else last.ellipsoid
+        return self._sf.sphere
 
     @property
     def n_rejected_outliers(self) -> int:
@@ -137,10 +140,57 @@ class AdaptiveEyeModel:
 
     def update(self, P) -> ModelUpdate | None:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
-        no entry, if no point was finite and passed the gate)."""
-        if (isinstance(P, np.ndarray) and P.dtype == np.float64 and P.ndim in (1, 2) and P.shape[-1] == 3
-                and not self._robust):  # the robust fit reweights: general path
-            return self._update_compiled(P.reshape(-1, 3))
+        no entry, if no point was finite and passed the gate).
+
+        Points as a float array (one A-scan's or a packet's, non-finite rows allowed) take
+        the general path's kernels in one compiled call (models._kernels.packet_update), the
+        same numbers, here; anything else, and the robust fit (it reweights), the general
+        path (_update_general). The sphere filter, the ellipsoid fit and the scan range all
+        take the first point as their origin: ef.p0 stands for the three (set here from the
+        kernel's when it took the first point)."""
+        if (self._robust or type(P) is not np.ndarray or P.dtype != _FLOAT64 or P.ndim not in (1, 2)
+                or P.shape[-1] != 3):
+            return self._update_general(P)
+        if P.ndim == 1:
+            P = P.reshape(1, 3)
+        self.n_received += len(P)
+        sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
+        n = sf.n_points  # the scan range's too: all three take the same points
+        if n + len(P) + 1 > len(scan.X):  # the gate may add its pending first point
+            scan.reserve(len(P) + 1)
+        g = _NO_GATE if gate is None else gate
+        current = self._current
+        out = np.empty(OUT_SIZE)
+        kept = np.empty((len(P) + 1, 3))
+        p0 = np.zeros(3) if ef.p0 is None else ef.p0  # without a point yet: the kernel writes the first one
+        n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = packet_update(
+            P, n, p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
+            g.params, g.counts, g.last, g.scales, g.recent, sf.information, sf.information_vector, ef.S,
+            ef.spread_checked_at, ef.SPREAD_RECHECK, scan.X, scan.block_r, scan.diameter_mm, self._prev_radii,
+            self._has_prev, LENGTH_SCALE_MM, kept, out)
+        self.n_rejected_nonfinite += n_nonfinite
+        self.last_accepted = kept[:k]
+        if k == 0:
+            return None
+        if ef.p0 is None:
+            ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
+        sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
+        scan.took(k, diameter)
+        if code:
+            fit = EllipsoidFit(FIT_STATUS[code])
+        else:  # centre, semi-axes and rotation in a read-only copy of their own: the Ellipsoid holds them (of_fit)
+            ell = out[OUT_CENTER:OUT_SF_CENTER].copy()
+            ell.flags.writeable = False
+            r, R = OUT_RADII - OUT_CENTER, OUT_ROTATION - OUT_CENTER  # where the semi-axes and the rotation begin
+            fit = EllipsoidFit("ok", ell[:r], ell[r:R], ell[R:].reshape(3, 3), out[OUT_V_EF:OUT_CENTER])
+        ef.record(fit, check, took=k)
+        if sf_ok:
+            return self._evaluate(fit, out[OUT_V_SF:OUT_V_EF], (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res,
+                                  axis_change)
+        return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
+
+    def _update_general(self, P) -> ModelUpdate | None:
+        """`update` of any points P, or with the robust fit: the kernels one by one."""
         P = as_points(P, "P", allow_nonfinite=True)
         self.n_received += len(P)
         finite = np.isfinite(P).all(axis=1)
@@ -163,76 +213,40 @@ class AdaptiveEyeModel:
             fit.radii if fit.ok else _NO_RADII, self._prev_radii, fit.ok and self._has_prev, v_sf, LENGTH_SCALE_MM)
         return self._evaluate(fit, v_sf if sf_ok else None, self._sf.center_radius, sf_res, ef_res, axis_change)
 
-    def _update_compiled(self, P: np.ndarray) -> ModelUpdate | None:
-        """`update` by points P (N, 3) float mm (one A-scan's or a packet's, non-finite rows
-        allowed): the general path's kernels in one compiled call
-        (models._kernels.packet_update), the same numbers. The sphere filter, the ellipsoid
-        fit and the scan range all take the first point as their origin: ef.p0 stands for
-        the three (set here from the kernel's when it took the first point)."""
-        self.n_received += len(P)
-        sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
-        n = sf.n_points
-        scan.reserve(len(P) + 1)  # the gate may add its pending first point
-        g = _NO_GATE if gate is None else gate
-        current = self._current
-        out = np.empty(OUT_SIZE)
-        kept = np.empty((len(P) + 1, 3))
-        p0 = np.zeros(3) if ef.p0 is None else ef.p0  # without a point yet: the kernel writes the first one
-        n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = packet_update(
-            P, n, p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
-            g.params, g.counts, g.last, g.scales, g.recent, sf.information, sf.information_vector, ef.S,
-            ef.spread_checked_at, ef.SPREAD_RECHECK, scan.X, scan.block_r, scan.diameter_mm, self._prev_radii,
-            self._has_prev, LENGTH_SCALE_MM, kept, out)
-        self.n_rejected_nonfinite += n_nonfinite
-        self.last_accepted = kept[:k]
-        if k == 0:
-            return None
-        if ef.p0 is None:
-            ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
-        sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
-        ef.took(k)
-        scan.took(k, diameter)
-        if code:
-            fit = EllipsoidFit(FIT_STATUS[code])
-        else:
-            fit = EllipsoidFit("ok", out[OUT_CENTER:OUT_RADII], out[OUT_RADII:OUT_ROTATION],
-                               out[OUT_ROTATION:OUT_SF_CENTER].reshape(3, 3), out[OUT_V_EF:OUT_CENTER])
-        ef.record(fit, check)
-        if sf_ok:
-            return self._evaluate(fit, out[OUT_V_SF:OUT_V_EF], (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res,
-                                  axis_change)
-        return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
-
     def _evaluate(self, fit, v_sf, sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
         """The criteria, the transition and the history entry of an update whose fits are
         `fit` (the ellipsoid's EllipsoidFit), v_sf (the sphere's quadric in the fits' scaled
         coordinates) and sf (its centre mm, radius mm) (both None without a sphere), with
-        residuals (mm) and axis change from fit_summary."""
-        self._has_prev = fit.ok
-        snap = FitSnapshot(
-            self.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, self._ef.S, v_sf,
-            fit.v if fit.ok else None, sf, (fit.center, fit.radii, fit.rotation) if fit.ok else None, self._ef.p0,
-            self._ef.restarted_at, self._robust,
-        )
+        residuals (mm) and axis change from fit_summary. The FitSnapshot and the ModelUpdate
+        are made by tuple.__new__, without their NamedTuple's Python-level __new__ (a call
+        fewer each: they are made at every update)."""
+        ok = fit.ok
+        self._has_prev = ok
+        ef = self._ef
+        snap = tuple.__new__(FitSnapshot, (
+            self._sf.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, ef.S, v_sf, fit.v if ok else None,
+            sf, (fit.center, fit.radii, fit.rotation) if ok else None, ef.p0, ef.restarted_at, self._robust))
         criteria, self._memory = self.criteria.evaluate(snap, self._memory)
-        if self.kind == "sphere" and fit.ok and all(met for _, met in criteria.values()):
-            self.kind = "ellipsoid"
-            self.transition_index = len(self.history)
-        elif self.kind == "ellipsoid" and self.criteria.reversible and self.criteria.wants_sphere(self._memory):
-            self.kind = "sphere"
+        kind = self.kind
+        if kind == "sphere":
+            if ok and all(met for _, met in criteria.values()):
+                self.kind = kind = "ellipsoid"
+                self.transition_index = len(self.history)
+        elif self.criteria.reversible and self.criteria.wants_sphere(self._memory):
+            self.kind = kind = "sphere"
             self.transition_index = None
-        last = self._ef.last_ok
-        self._current = last.v if self.kind == "ellipsoid" and last is not None else v_sf
-        entry = ModelUpdate(
-            self.n_points, self.kind, snap.scan_range_mm, sf_res, ef_res, axis_change, criteria, fit.status,
+        last = ef.last_ok
+        self._current = last.v if kind == "ellipsoid" and last is not None else v_sf
+        entry = tuple.__new__(ModelUpdate, (
+            snap.n_points, kind, snap.scan_range_mm, sf_res, ef_res, axis_change, criteria, fit.status,
             None if sf is None else sf[0], np.nan if sf is None else sf[1],
             None if last is None else last.center, None if last is None else last.radii,
-            None if last is None else last.rotation, self.n_received,
-        )
+            None if last is None else last.rotation, self.n_received))
         self.history.append(entry)
         return entry
 
 
+_FLOAT64 = np.dtype(np.float64)
 _NO_GATE = GateState(OutlierGate())  # fills the compiled update's gate arguments when the gate is off (unread)
 _NO_QUADRIC = np.zeros(10)  # stands for an absent quadric in compiled calls (read only with its flag)
 _NO_STATE = np.zeros(4)

@@ -28,11 +28,41 @@ def fibonacci_directions(n: int) -> np.ndarray:
 def inside_depth_upper_mm(shape, P: np.ndarray) -> np.ndarray:
     """(M,) an upper bound (mm) of how deep the points P (M, 3) lie inside `shape` (a
     models.Sphere or Ellipsoid; 0 for points outside): r_max (1 - k), k the scaled radius
-    (a path of length d moves the scaled point by at least d / r_max)."""
+    (a path of length d moves the scaled point by at least d / r_max). The NumPy formulas
+    max(r - |P - c|, 0) and max(r_max (1 - |(P - c) R / radii|), 0), compiled but for the
+    product by R (NumPy's, whose rounding a compiled sum does not reproduce). The shape's
+    numbers go to the kernels as floats: its arrays are read-only or not (a copied shape's),
+    and each kind would be a compiled specialisation of its own."""
+    D = _offsets(P, tuple(shape.center.tolist()))
     if hasattr(shape, "radius"):
-        return np.maximum(shape.radius - np.linalg.norm(P - shape.center, axis=1), 0.0)
-    L = (P - shape.center) @ shape.rotation / shape.radii
-    return np.maximum(float(shape.radii.max()) * (1.0 - np.linalg.norm(L, axis=1)), 0.0)
+        return _depth(D, None, float(shape.radius))
+    return _depth(D @ shape.rotation, tuple(shape.radii.tolist()), float(shape.radii.max()))
+
+
+@njit(cache=True)
+def _offsets(P, c):
+    """P - c of the rows of P (M, 3) (c: 3 floats)."""
+    D = np.empty((P.shape[0], 3))
+    for m in range(P.shape[0]):
+        D[m, 0], D[m, 1], D[m, 2] = P[m, 0] - c[0], P[m, 1] - c[1], P[m, 2] - c[2]
+    return D
+
+
+@njit(cache=True)
+def _depth(L, radii, r_max):
+    """(M,) per row of L (M, 3): max(r_max - |L_m|, 0) without `radii`, max(r_max (1 -
+    |L_m / radii|), 0) with them (3 floats) (NaN stays NaN: np.maximum's), |x| as
+    np.linalg.norm computes it: sqrt((x0^2 + x1^2) + x2^2)."""
+    out = np.empty(L.shape[0])
+    for m in range(L.shape[0]):
+        x0, x1, x2 = L[m, 0], L[m, 1], L[m, 2]
+        if radii is None:
+            v = r_max - np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+        else:
+            x0, x1, x2 = x0 / radii[0], x1 / radii[1], x2 / radii[2]
+            v = r_max * (1.0 - np.sqrt(x0 * x0 + x1 * x1 + x2 * x2))
+        out[m] = v if v >= 0.0 or v != v else 0.0
+    return out
 
 
 @njit(cache=True)
@@ -63,29 +93,46 @@ def _nearest_and_worst(V, dirs, misfit, cos_angle, chord=2.0):
 
 
 @njit(cache=True)
-def nearest_fibonacci(u0, u1, u2, dirs):
+def nearest_fibonacci(u0, u1, u2, dirs, hint=-1):
     """Index of the row of `dirs` (n, 3), fibonacci_directions(n), nearest (Euclidean) to
-    the direction (u0, u1, u2): an exact search over the rows sorted by z. The rows'
-    z = 1 - 2 (k + 1/2) / n fall with k, and a row whose z differs from u2 by more than
-    the best distance so far cannot be nearer, so the scan widens from the row of
-    nearest z until both sides are past that bound (a few hundred rows for 2 deg bins)."""
+    the direction (u0, u1, u2) (of equally near rows the first): an exact search over the
+    rows sorted by z. The rows' z = 1 - 2 (k + 1/2) / n fall with k, and a row whose z
+    differs from u2 by more than the best distance so far cannot be nearer. Given a
+    `hint`, a row near the direction (the bin of the A-scan before), one pass compares
+    every row whose z lies within the hint's distance; without one, the scan widens from
+    the row of nearest z until both sides are past the bound (a few hundred rows for 2
+    deg bins)."""
     n = dirs.shape[0]
+    if hint >= 0:
+        best = hint
+        d0, d1, d2 = dirs[hint, 0] - u0, dirs[hint, 1] - u1, dirs[hint, 2] - u2
+        best_d = d0 * d0 + d1 * d1 + d2 * d2
+        r = np.sqrt(best_d)
+        # the rows with z in [u2 - r, u2 + r], and two more on each side for rounding
+        lo = max(int(0.5 * n * (1.0 - (u2 + r)) - 0.5) - 2, 0)
+        hi = min(int(0.5 * n * (1.0 - (u2 - r)) - 0.5) + 3, n)
+        for k in range(lo, hi):
+            d0, d1, d2 = dirs[k, 0] - u0, dirs[k, 1] - u1, dirs[k, 2] - u2
+            d = d0 * d0 + d1 * d1 + d2 * d2
+            if d < best_d or (d == best_d and k < best):
+                best, best_d = k, d
+        return best
     k0 = min(max(int(round(0.5 * n * (1.0 - u2) - 0.5)), 0), n - 1)
     best, best_d = k0, np.inf
     lo, hi = k0, k0 + 1  # next rows to visit below (decreasing k) and above
     while lo >= 0 or hi < n:
-        for k in (lo, hi):
-            if 0 <= k < n:
-                d0, d1, d2 = dirs[k, 0] - u0, dirs[k, 1] - u1, dirs[k, 2] - u2
-                d = d0 * d0 + d1 * d1 + d2 * d2
-                if d < best_d or (d == best_d and k < best):
-                    best, best_d = k, d
         if lo >= 0:
-            dz = dirs[lo, 2] - u2
-            lo = lo - 1 if dz * dz <= best_d else -1
+            d0, d1, d2 = dirs[lo, 0] - u0, dirs[lo, 1] - u1, dirs[lo, 2] - u2
+            d = d0 * d0 + d1 * d1 + d2 * d2
+            if d < best_d or (d == best_d and lo < best):
+                best, best_d = lo, d
+            lo = lo - 1 if d2 * d2 <= best_d else -1
         if hi < n:
-            dz = dirs[hi, 2] - u2
-            hi = hi + 1 if dz * dz <= best_d else n
+            d0, d1, d2 = dirs[hi, 0] - u0, dirs[hi, 1] - u1, dirs[hi, 2] - u2
+            d = d0 * d0 + d1 * d1 + d2 * d2
+            if d < best_d or (d == best_d and hi < best):
+                best, best_d = hi, d
+            hi = hi + 1 if d2 * d2 <= best_d else n
     return best
 
 
@@ -96,6 +143,7 @@ def _add_points(P, center, dirs, covered, inner, inner_r):
     (`inner`, its distance `inner_r` mm; of equally near points the last). Returns the
     number of bins newly covered."""
     new = 0
+    b = -1
     for i in range(P.shape[0]):
         x, y, z = P[i, 0], P[i, 1], P[i, 2]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
@@ -103,7 +151,7 @@ def _add_points(P, center, dirs, covered, inner, inner_r):
         v0, v1, v2 = x - center[0], y - center[1], z - center[2]
         r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
         s = max(r, 1e-12)
-        b = nearest_fibonacci(v0 / s, v1 / s, v2 / s, dirs)
+        b = nearest_fibonacci(v0 / s, v1 / s, v2 / s, dirs, b)  # consecutive A-scans: the last bin is near
         if not covered[b]:
             covered[b] = True
             new += 1
@@ -119,18 +167,47 @@ def band_chord(angle_rad: float) -> float:
     return 2.0 * np.sin(angle_rad / 2.0) * (1.0 + 1e-12) + 1e-15
 
 
+@njit(cache=True)
+def _covered_rows(covered, dirs, inner, m):
+    """The rows of `dirs` and `inner` (n, 3) of the m covered bins, the last bin first: by
+    z ascending, as a CoverageView holds them (fibonacci_directions' z falls with the bin)."""
+    D, I = np.empty((m, 3)), np.empty((m, 3))
+    j = 0
+    for b in range(covered.shape[0] - 1, -1, -1):
+        if j == m:
+            break
+        if covered[b]:
+            D[j, 0], D[j, 1], D[j, 2] = dirs[b, 0], dirs[b, 1], dirs[b, 2]
+            I[j, 0], I[j, 1], I[j, 2] = inner[b, 0], inner[b, 1], inner[b, 2]
+            j += 1
+    return D, I
+
+
+_FLOAT = np.dtype(np.float64)
+
+
 class CoverageView:
     """An immutable snapshot of the covered directions: `angle_from_data_rad(Q)`, and,
     when made for a model shape, `local_misfit_mm(Q, angle)`: how far inside that shape
     the retina was measured near each direction (what the model gets wrong there)."""
 
     def __init__(self, center_W: np.ndarray, covered_dirs: np.ndarray, misfit_mm: np.ndarray | None = None):
-        self.center_W = center_W
-        self.n_covered = len(covered_dirs)
         dirs = np.asarray(covered_dirs, dtype=float).reshape(-1, 3)
         order = np.argsort(dirs[:, 2], kind="stable")  # sorted by z: a query scans only its band
-        self._dirs = np.take(dirs, order, axis=0)  # a new contiguous array; ~2x faster than dirs[order]
-        self._misfit = None if misfit_mm is None else np.ascontiguousarray(np.asarray(misfit_mm, dtype=float)[order])
+        self._hold(center_W, len(covered_dirs),
+                   np.take(dirs, order, axis=0),  # a new contiguous array; ~2x faster than dirs[order]
+                   None if misfit_mm is None else np.ascontiguousarray(np.asarray(misfit_mm, dtype=float)[order]))
+
+    @classmethod
+    def of_sorted(cls, center_W: np.ndarray, dirs: np.ndarray, misfit_mm: np.ndarray | None = None) -> CoverageView:
+        """The view of contiguous float arrays already in a view's order, held as they are:
+        the covered directions (M, 3) sorted by z (stably) and their misfits (M,) (or None)."""
+        view = object.__new__(cls)
+        view._hold(center_W, len(dirs), dirs, misfit_mm)
+        return view
+
+    def _hold(self, center_W: np.ndarray, n_covered: int, dirs: np.ndarray, misfit: np.ndarray | None) -> None:
+        self.center_W, self.n_covered, self._dirs, self._misfit = center_W, n_covered, dirs, misfit
 
     def __deepcopy__(self, memo) -> CoverageView:
         return self  # immutable
@@ -182,7 +259,9 @@ class DirectionCoverage:
 
     def add(self, P) -> None:
         """Mark the bins of the measured points P (N, 3) mm (non-finite rows ignored)."""
-        P = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True))
+        if not (type(P) is np.ndarray and P.dtype == _FLOAT and P.ndim == 2 and P.shape[1] == 3
+                and P.flags.c_contiguous):  # else the kernel's own type already (the model's last_accepted)
+            P = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True))
         self._n_covered += _add_points(P, self.center_W, self._dirs, self._covered, self._inner, self._inner_r)
 
     def view(self, shape=None) -> CoverageView:
@@ -193,8 +272,8 @@ class DirectionCoverage:
         n = self._n_covered
         kind = None if shape is None else type(shape).__name__
         if n > self._view.n_covered * (1.0 + self._growth) or kind != self._view_shape:
-            bins = np.flatnonzero(self._covered)  # taking rows by index: ~5x cheaper than by the boolean mask
-            misfit = None if shape is None else inside_depth_upper_mm(shape, np.take(self._inner, bins, axis=0))
-            self._view = CoverageView(self.center_W, np.take(self._dirs, bins, axis=0), misfit)
+            dirs, inner = _covered_rows(self._covered, self._dirs, self._inner, n)
+            misfit = None if shape is None else inside_depth_upper_mm(shape, inner)
+            self._view = CoverageView.of_sorted(self.center_W, dirs, misfit)
             self._view_shape = kind
         return self._view

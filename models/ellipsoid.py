@@ -34,11 +34,13 @@ class Ellipsoid:
         R = as_rotation(self.rotation, "rotation", tol=1e-8)
         self._hold(c, r, R)
 
-    def _hold(self, center: np.ndarray, radii: np.ndarray, rotation: np.ndarray) -> None:
-        """Keep read-only copies of the float arrays centre (3,), semi-axes (3,), rotation (3, 3)."""
+    def _hold(self, center: np.ndarray, radii: np.ndarray, rotation: np.ndarray, copy: bool = True) -> None:
+        """Keep the float arrays centre (3,), semi-axes (3,), rotation (3, 3) read-only: as
+        copies, or (not `copy`) the given read-only arrays themselves."""
         for name, a in (("center", center), ("radii", radii), ("rotation", rotation)):
-            a = a.copy()
-            a.setflags(write=False)
+            if copy:
+                a = a.copy()
+                a.setflags(write=False)
             object.__setattr__(self, name, a)
 
     @classmethod
@@ -48,9 +50,12 @@ class Ellipsoid:
         positive eigenvalues, the eigenvectors as a right-handed orthonormal rotation (3, 3)),
         without the constructor's checks, which such a fit passes by construction. The
         closed loop reads a new one after every update (EllipsoidFit.ellipsoid): this takes
-        ~3 us, half of what the checked constructor takes."""
+        ~3 us, half of what the checked constructor takes; ~1 us when the three arrays are
+        read-only, which it then holds as they are (a fit's are when no one writes to them
+        or to their buffer: the per-packet update's, models.adaptive), else read-only copies."""
         ellipsoid = object.__new__(cls)
-        ellipsoid._hold(center, radii, rotation)
+        ellipsoid._hold(center, radii, rotation,
+                        copy=center.flags.writeable or radii.flags.writeable or rotation.flags.writeable)
         return ellipsoid
 
     @property

@@ -22,23 +22,20 @@ class EllipsoidFit:
     """Outcome of one ellipsoid fit.
 
     `status` is "ok" or the reason of failure ("too_few_points", "collinear",
-    "coplanar", "not_ellipsoid"); on success `center` (3,) mm, `radii` (3,) mm
-    (descending) and `rotation` (3, 3) describe it, `v` (10,) holds the quadric in
-    scaled coordinates, and `ellipsoid` builds the Ellipsoid on first use and keeps it
-    (the per-update hot path only needs the arrays; a successful fit's arrays come from
-    the fit kernel, so Ellipsoid.of_fit takes them without checking them again).
+    "coplanar", "not_ellipsoid"), `ok` whether it is "ok"; on success `center` (3,) mm,
+    `radii` (3,) mm (descending) and `rotation` (3, 3) describe it, `v` (10,) holds the
+    quadric in scaled coordinates, and `ellipsoid` builds the Ellipsoid on first use and
+    keeps it (the per-update hot path only needs the arrays; a successful fit's arrays
+    come from the fit kernel, so Ellipsoid.of_fit takes them without checking them again).
     """
 
-    __slots__ = ("status", "center", "radii", "rotation", "v", "_ellipsoid")
+    __slots__ = ("status", "ok", "center", "radii", "rotation", "v", "_ellipsoid")
 
     def __init__(self, status, center=None, radii=None, rotation=None, v=None):
         self.status = status
+        self.ok = status == "ok"
         self.center, self.radii, self.rotation, self.v = center, radii, rotation, v
         self._ellipsoid = None
-
-    @property
-    def ok(self) -> bool:
-        return self.status == "ok"
 
     @property
     def ellipsoid(self) -> Ellipsoid | None:
@@ -100,7 +97,7 @@ class IncrementalEllipsoidFit:
         self._n = 0  # points in S (its [9, 9] entry, kept as an int)
         self.p0: np.ndarray | None = None
         self.last_ok: EllipsoidFit | None = None
-        self._spread_checked_at = 0  # point count at the last passed spread test (0: none)
+        self.spread_checked_at = 0  # the point count at the last passed spread test (0: none)
 
     @property
     def n_points(self) -> int:
@@ -115,11 +112,6 @@ class IncrementalEllipsoidFit:
         add_design_rows(self.S, P, self.p0, LENGTH_SCALE_MM)
         self._n += len(P)
 
-    def took(self, k: int) -> None:
-        """Count k points that a compiled caller has added to S itself (add_design_rows
-        about p0 with LENGTH_SCALE_MM: models._kernels.packet_update)."""
-        self._n += k
-
     def fit(self) -> EllipsoidFit:
         """Refit from all points so far; keeps `last_ok` on failure."""
         if self.p0 is None:
@@ -131,19 +123,17 @@ class IncrementalEllipsoidFit:
         """Whether the fit of n points must run the collinear/coplanar test. Adding points
         only widens a cloud's scatter about its mean, so once spread in 3-D it stays so;
         the ratio test is still repeated every SPREAD_RECHECK points."""
-        return spread_check_due(self._spread_checked_at, n, self.SPREAD_RECHECK)
+        return spread_check_due(self.spread_checked_at, n, self.SPREAD_RECHECK)
 
-    @property
-    def spread_checked_at(self) -> int:
-        """The point count at the last passed spread test (0: none)."""
-        return self._spread_checked_at
-
-    def record(self, result: EllipsoidFit, checked: bool) -> EllipsoidFit:
+    def record(self, result: EllipsoidFit, checked: bool, took: int = 0) -> EllipsoidFit:
         """Take in the fit `result` of all points so far (`checked`: with the spread test):
         `last_ok` and the spread test's schedule; returns the result. For a caller that
-        ran the fit kernel itself (the per-A-scan update, models.adaptive)."""
+        ran the fit kernel itself (the per-A-scan update, models.adaptive), which has also
+        added `took` points to S itself (add_design_rows about p0 with LENGTH_SCALE_MM:
+        models._kernels.packet_update)."""
+        self._n += took
         if checked:
-            self._spread_checked_at = self._n if result.status not in ("collinear", "coplanar", "too_few_points") else 0
+            self.spread_checked_at = self._n if result.status not in ("collinear", "coplanar", "too_few_points") else 0
         if result.ok:
             self.last_ok = result
         return result

@@ -6,15 +6,16 @@ switches once, at the first update where every criterion it reports is met.
 """
 from __future__ import annotations
 
-import math
 from bisect import bisect_right
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
+from models._kernels import taubin_residuals
 from models._validation import check_count, check_positive
-from models.ellipsoid_fit import LENGTH_SCALE_MM, taubin_residual
+from models.ellipsoid_fit import LENGTH_SCALE_MM
 from models.extrapolation import drift_and_gap
 
 
@@ -23,8 +24,9 @@ class FitSnapshot(NamedTuple):
 
     `axis_change`: largest relative change of the sorted ellipsoid semi-axes since the
     previous update (NaN without a previous fit). `S`: the cumulative 10x10 scatter
-    matrix in the fits' scaled coordinates (read-only view); `v_sf`, `v_ef`: the
-    sphere's and ellipsoid's quadric coefficients in those coordinates (None if absent);
+    matrix in the fits' scaled coordinates (the model's own, which later updates change);
+    `v_sf`, `v_ef`: the sphere's and ellipsoid's quadric coefficients in those
+    coordinates (None if absent), arrays of this update's that are never written again;
     `sf` (center, radius) and `ef` (center, radii, rotation): the fits in mm (or None);
     `p0`: the origin of the scaled coordinates (mm); `fit_since`: the point count where
     the ellipsoid fit's history begins (0, or a robust fit's last restart); `robust`:
@@ -159,22 +161,11 @@ class PredictiveCriteria:
     def initial_state(self) -> _PredictiveMemory:
         return _PredictiveMemory()
 
-    @staticmethod
-    def _at_most(mem: _PredictiveMemory, n: float) -> int | None:
-        """Index of the last checkpoint with at most n points, or None."""
-        i = bisect_right(mem.n, n) - 1
-        return i if i >= 0 else None
-
     def _convergence(self, snap: FitSnapshot, v_ef_old: np.ndarray):
         """(ellipsoid drift / sphere-ellipsoid distance over the retina, met)."""
-        L = LENGTH_SCALE_MM
         c_ef, r_ef, R_ef = snap.ef
-        c = (c_ef - snap.p0) / L
-        centroid = snap.S[6:9, 9] / (2.0 * snap.S[9, 9])
-        anterior = c - centroid  # the scanned retina lies opposite the front of the eye
-        anterior /= math.sqrt(anterior.dot(anterior))  # np.linalg.norm's own formula for a vector, without its checks
-        drift, gap, k = drift_and_gap(c, r_ef / L, R_ef, anterior, self.crop_mm / L, v_ef_old,
-                                      (snap.sf[0] - snap.p0) / L, snap.sf[1] / L)
+        drift, gap, k = drift_and_gap(c_ef, r_ef, R_ef, snap.p0, LENGTH_SCALE_MM, snap.S, self.crop_mm, v_ef_old,
+                                      *snap.sf)
         if not k:  # an early, tiny ellipsoid lies wholly in the cropped front: not converged
             return np.inf, False
         ratio = drift / gap if gap > 0 else np.inf
@@ -183,41 +174,39 @@ class PredictiveCriteria:
     def _checkpoint(self, snap: FitSnapshot, mem: _PredictiveMemory) -> None:
         mem.n.append(snap.n_points)
         mem.S.append(snap.S.copy())
-        mem.v_sf.append(None if snap.v_sf is None else snap.v_sf.copy())
-        mem.v_ef.append(None if snap.v_ef is None else snap.v_ef.copy())
+        mem.v_sf.append(snap.v_sf)  # never written again (FitSnapshot): kept as they are
+        mem.v_ef.append(snap.v_ef)
         if snap.v_ef is None or snap.sf is None:
             mem.last = {name: (np.nan, False) for name in mem.last}
             return
-        w = self._at_most(mem, (1.0 - self.window_fraction) * snap.n_points)
+        # the last checkpoints with at most the points before the newest window, and before the lag (-1: none)
+        w = bisect_right(mem.n, (1.0 - self.window_fraction) * snap.n_points) - 1
         if not snap.robust:
             fit_ratio = snap.ef_residual_mm / self.noise_sd_mm
             mem.last["fit"] = (fit_ratio, bool(fit_ratio < self.fit_factor))
-        elif w is not None and w < len(mem.n) - 1:
+        elif 0 <= w < len(mem.n) - 1:
             explained = float(snap.S[9, 9] - mem.S[w][9, 9]) / (snap.n_points - mem.n[w])
             mem.last["fit"] = (explained, bool(explained >= self.min_explained_fraction))
         else:
             mem.last["fit"] = (np.nan, False)
-        j = self._at_most(mem, snap.fit_since + self.lag_fraction * (snap.n_points - snap.fit_since))
-        old_ef = None if j is None else mem.v_ef[j]
+        j = bisect_right(mem.n, snap.fit_since + self.lag_fraction * (snap.n_points - snap.fit_since)) - 1
+        old_ef = mem.v_ef[j] if j >= 0 else None
         mem.last["convergence"] = (np.nan, False) if old_ef is None else self._convergence(snap, old_ef)
         gain, better = np.nan, False
-        if j is not None and w is not None and w < len(mem.n) - 1 and mem.v_sf[j] is not None and mem.v_ef[j] is not None:
-            S_new = snap.S - mem.S[w]
-            e_sf = LENGTH_SCALE_MM * taubin_residual(S_new, mem.v_sf[j])
-            e_ef = LENGTH_SCALE_MM * taubin_residual(S_new, mem.v_ef[j])
-            gain, better = e_sf - e_ef, bool(e_ef < e_sf)
+        if old_ef is not None and 0 <= w < len(mem.n) - 1 and mem.v_sf[j] is not None:
+            e_sf, e_ef = _prequential_errors(snap.S, mem.S[w], mem.v_sf[j], old_ef, LENGTH_SCALE_MM)
+            gain, better = e_sf - e_ef, e_ef < e_sf
         mem.last["prediction"] = (gain, better)
 
     def evaluate(self, snap: FitSnapshot, mem: _PredictiveMemory):
         """({criterion: (value, met)}, memory) for this update."""
-        at_checkpoint = snap.n_points >= (mem.n[-1] if mem.n else 0) + self.check_every
-        if at_checkpoint:
-            self._checkpoint(snap, mem)
         range_ok = snap.scan_range_mm > self.min_scan_range_mm
-        if at_checkpoint:
-            all_ok = range_ok and all(met for _, met in mem.last.values())
+        if snap.n_points >= (mem.n[-1] if mem.n else 0) + self.check_every:
+            self._checkpoint(snap, mem)
+            last = mem.last
+            all_ok = range_ok and last["fit"][1] and last["convergence"][1] and last["prediction"][1]
             mem.stable = mem.stable + 1 if all_ok else 0
-            mem.misfit = 0 if mem.last["fit"][1] else mem.misfit + 1
+            mem.misfit = 0 if last["fit"][1] else mem.misfit + 1
         return {
             "scan_range": (snap.scan_range_mm, range_ok),
             **mem.last,
@@ -227,6 +216,17 @@ class PredictiveCriteria:
     def wants_sphere(self, mem: _PredictiveMemory) -> bool:
         """True when the ellipsoid has failed the fit condition long enough to drop it."""
         return mem.misfit >= max(self.min_stable_checks, 1)
+
+
+@njit(cache=True)
+def _prequential_errors(S, S_old, v_sf, v_ef, scale):
+    """(sphere's, ellipsoid's) RMS error (mm, Taubin's, taubin_residuals) of the quadrics
+    v_sf and v_ef (10,) (scaled coordinates, `scale` mm) over the points that scatter
+    matrix S has and S_old had not."""
+    V = np.empty((2, 10))
+    V[0], V[1] = v_sf, v_ef
+    e = taubin_residuals(S - S_old, V)
+    return scale * e[0], scale * e[1]
 
 
 CRITERIA = {"paper": PaperCriteria, "predictive": PredictiveCriteria}

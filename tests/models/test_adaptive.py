@@ -244,6 +244,22 @@ def test_the_compiled_update_equals_the_general_path(criteria, packet):
         np.testing.assert_equal(a._asdict(), b._asdict())
 
 
+def test_the_compiled_update_outgrows_the_scan_range_store_as_the_general_path():
+    """Past the scan range's initial room (ScanRange: 8,192 points) the compiled update makes
+    room before its kernel as the general path does: the same points, scan range and
+    history entries (the spiral out and back in, 10,186 points in packets of 20)."""
+    scan = paper_scan(make_eye("emmetropic"), noise_um=SIGMA_UM, seed=3).points
+    P = np.vstack([scan, scan[::-1] + 0.01])
+    fast, general = AdaptiveEyeModel(PredictiveCriteria()), AdaptiveEyeModel(PredictiveCriteria())
+    for k in range(0, len(P), 20):
+        fast.update(P[k:k + 20])
+        general.update(P[k:k + 20].tolist())
+    assert fast.n_points == general.n_points > 8192 and fast.scan_range_mm == general.scan_range_mm
+    assert len(fast.history) == len(general.history)
+    for a, b in zip(fast.history, general.history):
+        np.testing.assert_equal(a._asdict(), b._asdict())
+
+
 class _NumPyConvergence(PredictiveCriteria):
     """PredictiveCriteria with its convergence test written straight in NumPy (the
     reference for the compiled one, models.extrapolation.drift_and_gap): the ellipsoid's

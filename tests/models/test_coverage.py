@@ -68,8 +68,10 @@ def test_queries_equal_a_k_d_tree_reference(seed, angle_deg):
 @given(st.integers(0, 2**32 - 1), st.sampled_from([0.5, 2.0, 7.0, 30.0]))
 def test_the_bin_search_equals_a_k_d_tree_on_the_fibonacci_sphere(seed, bin_deg):
     """The compiled nearest-direction search finds the k-d tree's bin for random directions,
-    directions next to bins (within 1e-9) and the poles; and `add` keeps the same bins and
-    innermost points as the k-d tree version did (scipy, vectorised)."""
+    directions next to bins (within 1e-9) and the poles, with or without a hint (a row to
+    start from: near the answer, as the bin of the A-scan before, or anywhere); and `add`
+    keeps the same bins and innermost points as the k-d tree version did (scipy,
+    vectorised)."""
     from scipy.spatial import cKDTree
 
     from models.coverage import nearest_fibonacci
@@ -84,6 +86,10 @@ def test_the_bin_search_equals_a_k_d_tree_on_the_fibonacci_sphere(seed, bin_deg)
     tree = cKDTree(dirs)
     _, idx = tree.query(U)
     assert [nearest_fibonacci(u[0], u[1], u[2], dirs) for u in U] == idx.tolist()
+    near = np.clip(idx + rng.integers(-3, 4, len(U)), 0, len(dirs) - 1)
+    anywhere = rng.integers(len(dirs), size=len(U))
+    for hints in (idx, near, anywhere):
+        assert [nearest_fibonacci(u[0], u[1], u[2], dirs, h) for u, h in zip(U, hints)] == idx.tolist()
 
     P = c + rng.uniform(8.0, 13.0, (len(U), 1)) * U
     P[rng.integers(len(P), size=5)] = np.nan
@@ -101,11 +107,21 @@ def test_the_bin_search_equals_a_k_d_tree_on_the_fibonacci_sphere(seed, bin_deg)
     np.testing.assert_allclose(np.linalg.norm(cov._inner[hit] - c, axis=1), inner_r[hit], rtol=0, atol=0)
 
 
-def test_a_rebuilt_view_holds_the_covered_bins_and_their_misfits_exactly():
+def _numpy_depth(shape, P):
+    """inside_depth_upper_mm's formulas in NumPy (the reference for the compiled ones)."""
+    if hasattr(shape, "radius"):
+        return np.maximum(shape.radius - np.linalg.norm(P - shape.center, axis=1), 0.0)
+    L = (P - shape.center) @ shape.rotation / shape.radii
+    return np.maximum(float(shape.radii.max()) * (1.0 - np.linalg.norm(L, axis=1)), 0.0)
+
+
+@pytest.mark.parametrize("kind", ["ellipsoid", "sphere"])
+def test_a_rebuilt_view_holds_the_covered_bins_and_their_misfits_exactly(kind):
     """A view made for a shape holds the directions of exactly the covered bins, sorted by z,
-    each with the misfit of its innermost point (inside_depth_upper_mm), bit for bit."""
-    from models import Ellipsoid
-    from models.coverage import inside_depth_upper_mm
+    each with the misfit of its innermost point (inside_depth_upper_mm: its NumPy formulas,
+    bit for bit), as CoverageView sorts them."""
+    from models import Ellipsoid, Sphere
+    from models.coverage import CoverageView, inside_depth_upper_mm
 
     rng = np.random.default_rng(4)
     c = np.array([0.5, -1.0, 2.0])
@@ -113,11 +129,19 @@ def test_a_rebuilt_view_holds_the_covered_bins_and_their_misfits_exactly():
     U = rng.normal(size=(400, 3))
     U[:, 2] = -np.abs(U[:, 2])
     cov.add(c + rng.uniform(10.5, 12.0, (400, 1)) * U / np.linalg.norm(U, axis=1, keepdims=True))
-    shape = Ellipsoid(c, np.array([11.5, 11.4, 10.1]))
+    a, b = 0.3, -0.2  # a rotation about z, then about x
+    R = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]]) @ np.array(
+        [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    shape = Ellipsoid(c, np.array([11.5, 11.4, 10.1]), R) if kind == "ellipsoid" else Sphere(c, 11.3)
     view = cov.view(shape)
     covered = cov._covered
+    inner = cov._inner[covered]
     order = np.argsort(cov._dirs[covered][:, 2], kind="stable")
     assert view.n_covered == covered.sum() > 300
+    np.testing.assert_array_equal(inside_depth_upper_mm(shape, inner), _numpy_depth(shape, inner))
     np.testing.assert_array_equal(view._dirs, cov._dirs[covered][order])
-    np.testing.assert_array_equal(view._misfit, inside_depth_upper_mm(shape, cov._inner[covered])[order])
+    np.testing.assert_array_equal(view._misfit, _numpy_depth(shape, inner)[order])
+    sorted_here = CoverageView(c, cov._dirs[covered], _numpy_depth(shape, inner))
+    np.testing.assert_array_equal(view._dirs, sorted_here._dirs)
+    np.testing.assert_array_equal(view._misfit, sorted_here._misfit)
     assert view._misfit.max() > 0.0  # points inside the shape: misfits to compare

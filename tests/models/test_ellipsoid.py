@@ -265,7 +265,7 @@ def test_bad_query_points_are_refused(Q):
 def test_of_fit_holds_read_only_copies_like_the_checked_constructor(name):
     """Ellipsoid.of_fit (for a fit's arrays, unchecked) holds exactly what the checked
     constructor holds: equal read-only copies, which later writes to the arrays it was
-    given leave alone."""
+    given leave alone; or, given read-only arrays (the per-packet update's), those arrays."""
     e = CASES[name]
     c, r, R = e.center.copy(), e.radii.copy(), e.rotation.copy()
     fit = Ellipsoid.of_fit(c, r, R)
@@ -276,3 +276,9 @@ def test_of_fit_holds_read_only_copies_like_the_checked_constructor(name):
         assert not a.flags.writeable and a.dtype == np.float64
     Q = query_points(e)
     np.testing.assert_array_equal(fit.signed_distance(Q), e.signed_distance(Q))
+    frozen = [e.center.copy(), e.radii.copy(), e.rotation.copy()]  # read-only arrays: held as they are
+    for a in frozen:
+        a.setflags(write=False)
+    held = Ellipsoid.of_fit(*frozen)
+    assert all(getattr(held, f) is a for f, a in zip(("center", "radii", "rotation"), frozen))
+    np.testing.assert_array_equal(held.signed_distance(Q), e.signed_distance(Q))
