@@ -516,6 +516,7 @@ class LoopRun:
     command_wall_s: float = 0.0
     model_wall_s: float = 0.0
     filter_wall_s: float = 0.0
+    logged: bool = False  # every step went to an MCAP log (RunLogger): JSON per step, ~1 x real time
 
     @property
     def duration_s(self) -> float:
@@ -607,13 +608,13 @@ class ClosedLoop:
         finally:
             gc.unfreeze()
         self.filter.time_drake_diffik()
-        return self._collect(wall)
+        return self._collect(wall, logger is not None)
 
     def new_coverage(self) -> DirectionCoverage:
         """An empty record of measured directions, seen from the nominal eye centre."""
         return DirectionCoverage(self.scenario.eye_pose.p_WE)
 
-    def _collect(self, wall_s: float) -> LoopRun:
+    def _collect(self, wall_s: float, logged: bool) -> LoopRun:
         steps = self.filter.record.steps
         eye, lens = self.scenario.eye, self.scenario.lens_W
         col = {name: [getattr(st, name) for st in steps] for name in Step._fields}
@@ -636,4 +637,5 @@ class ClosedLoop:
             drake_diffik_us=a(self.filter.record.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
             model_epochs=list(self.model.epochs), command_wall_s=self.filter.command_wall_s, model_wall_s=self.model.wall_s,
             filter_wall_s=self.filter.wall_s - self.filter.command_wall_s,
+            logged=logged,
         )

@@ -91,7 +91,8 @@ def run_boundary(args, out, progress=print, keep_build: bool = False):
     spiral = build.run
     result = {
         **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction",
-                             "tracking_rmse_mm_s", "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor")},
+                             "tracking_rmse_mm_s", "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor",
+                             "realtime_factor_unlogged")},
         "shape": args.shape, "seed": args.seed, "sensor_mode": args.sensor_mode, "scenario_s": args.duration_s,
         "violation_threshold_mm": 0.45,
         "lens_violations": s["lens_violations"], "max_rcm_error_um": s["max_rcm_error_um"],
@@ -118,7 +119,7 @@ def main(args) -> int:
     write_json(out / "boundary.json", result)
     print(f"\n{'scenarios':24s} {result['scenarios']}")
     for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
-                "failsafe_stops", "realtime_factor"):
+                "failsafe_stops", "realtime_factor", "realtime_factor_unlogged"):
         v = result[key]
         print(f"{key:24s} {v:.4g}" if isinstance(v, float) else f"{key:24s} {v}")
     print(f"{'solve_us':24s} median {result['solve_us']['median']:.0f}  p99 {result['solve_us']['p99']:.0f}   "

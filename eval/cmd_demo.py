@@ -75,7 +75,7 @@ def main(args) -> int:
     print(f"final: {m['kind']}, EF MAE {m['ef_mae_um']:.1f} um, SF MAE {m['sf_mae_um']:.1f} um (exact, vs the true retina)")
     print(f"\nAdversarial teleoperation: {result['scenarios']} scenarios of 0.5 s")
     for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "failsafe_stops",
-                "realtime_factor"):
+                "realtime_factor", "realtime_factor_unlogged"):
         v = result[key]
         print(f"  {key:24s} {v:.4g}" if isinstance(v, float) else f"  {key:24s} {v}")
     print(f"  {'filter solve (us)':24s} median {result['solve_us']['median']:.0f}, p99 {result['solve_us']['p99']:.0f} "

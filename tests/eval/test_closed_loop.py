@@ -116,6 +116,7 @@ def test_the_command_is_made_for_the_joint_angles_the_filter_filters(emmetropic)
     q0 = deep_start(loop)
     run = loop.run(source, q0, 0.05, **model.kw())
     assert len(calls) == len(run.t) == round((0.05 - run.t[0]) * 1e3) > 30  # 1 kHz from the first packet on
+    assert not run.logged
     for (t_s, p_WT, q, v), t, q_run, v_run in zip(calls, run.t, run.q, run.v_cmd):
         assert t_s == t
         np.testing.assert_array_equal(q, q_run)
@@ -230,7 +231,8 @@ def test_a_closed_loop_log_replays_bit_for_bit(emmetropic, tmp_path):
     loop, model = emmetropic
     q0 = deep_start(loop)
     with RunLogger(tmp_path / "loop.mcap", loop.config.filter) as log:
-        loop.run(VelocityReplayCommand([0.0], [[5.0, 0.0, -3.0]]), q0, 0.1, **model.kw(), logger=log)
+        run = loop.run(VelocityReplayCommand([0.0], [[5.0, 0.0, -3.0]]), q0, 0.1, **model.kw(), logger=log)
+    assert run.logged  # its realtime factor holds the log's JSON per step: campaigns report it apart
     result = replay(tmp_path / "loop.mcap")
     assert result.ok and result.steps >= 85 and result.max_abs_diff == 0.0  # 1 kHz from the first packet (11 ms) to 0.1 s
 
