@@ -146,26 +146,19 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     153 x 29 x 29 mm) gives way to the model's sphere fit if that one is an eye's (its
     phase's wider margin applies); "prior" otherwise. The model's shapes are made once
     per update (AdaptiveEyeModel.shape), and only once the trust limits on points and
-    scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says.
-    The point count, scan range and residuals are the last history entry's (the model's
-    own since its last update); the snapshot is made by tuple.__new__, without the
-    NamedTuple's Python-level __new__ (the loop makes one per packet)."""
-    history = model.history
-    last = history[-1] if history else None  # its n_points are the model's
-    n = 0 if last is None else last.n_points
-    shape = None if last is None or n < min_points or last.scan_range_mm < min_scan_range_mm else model.shape
+    scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says."""
+    n = model.n_points
+    shape = None if n < min_points or model.scan_range_mm < min_scan_range_mm else model.shape
     if shape is not None:
-        lo, hi = radius_range_mm
+        last, (lo, hi) = model.history[-1], radius_range_mm
         if model.kind == "ellipsoid":
             radii = shape.radii.tolist()
             if lo <= min(radii) and max(radii) <= hi:
-                return tuple.__new__(ModelSnapshot, ("ellipsoid", shape, t_s, float(last.ef_residual_mm), n,
-                                                     coverage.view(shape)))
+                return ModelSnapshot("ellipsoid", shape, t_s, float(last.ef_residual_mm), n, coverage.view(shape))
             shape = model.sphere  # the ellipsoid is no eye's: its sphere fit, if that one is
         if shape is not None and lo <= shape.radius <= hi:
-            return tuple.__new__(ModelSnapshot, ("sphere", shape, t_s, float(last.sf_residual_mm), n,
-                                                 coverage.view(shape)))
-    return tuple.__new__(ModelSnapshot, ("prior", None, t_s, float("nan"), n, coverage.view()))
+            return ModelSnapshot("sphere", shape, t_s, float(last.sf_residual_mm), n, coverage.view(shape))
+    return ModelSnapshot("prior", None, t_s, float("nan"), n, coverage.view())
 
 
 class AdaptiveModelSystem(LeafSystem):

@@ -217,15 +217,13 @@ class AdaptiveEyeModel:
         """The criteria, the transition and the history entry of an update whose fits are
         `fit` (the ellipsoid's EllipsoidFit), v_sf (the sphere's quadric in the fits' scaled
         coordinates) and sf (its centre mm, radius mm) (both None without a sphere), with
-        residuals (mm) and axis change from fit_summary. The FitSnapshot and the ModelUpdate
-        are made by tuple.__new__, without their NamedTuple's Python-level __new__ (a call
-        fewer each: they are made at every update)."""
+        residuals (mm) and axis change from fit_summary."""
         ok = fit.ok
         self._has_prev = ok
         ef = self._ef
-        snap = tuple.__new__(FitSnapshot, (
+        snap = FitSnapshot(
             self._sf.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, ef.S, v_sf, fit.v if ok else None,
-            sf, (fit.center, fit.radii, fit.rotation) if ok else None, ef.p0, ef.restarted_at, self._robust))
+            sf, (fit.center, fit.radii, fit.rotation) if ok else None, ef.p0, ef.restarted_at, self._robust)
         criteria, self._memory = self.criteria.evaluate(snap, self._memory)
         kind = self.kind
         if kind == "sphere":
@@ -237,11 +235,11 @@ class AdaptiveEyeModel:
             self.transition_index = None
         last = ef.last_ok
         self._current = last.v if kind == "ellipsoid" and last is not None else v_sf
-        entry = tuple.__new__(ModelUpdate, (
+        entry = ModelUpdate(
             snap.n_points, kind, snap.scan_range_mm, sf_res, ef_res, axis_change, criteria, fit.status,
             None if sf is None else sf[0], np.nan if sf is None else sf[1],
             None if last is None else last.center, None if last is None else last.radii,
-            None if last is None else last.rotation, self.n_received))
+            None if last is None else last.rotation, self.n_received)
         self.history.append(entry)
         return entry
 
