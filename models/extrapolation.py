@@ -15,20 +15,11 @@ from models.sampling import unit_sphere_grid
 _DIRECTIONS = unit_sphere_grid(12, 24)  # 288 directions over the whole surface
 
 
-# relative to the ellipsoid's size: far above how far the last bits of the anterior
-# direction's length can move the crop test's heights (~25 units in the last place of the
-# largest semi-axis: the direction's elements by ~7, the products and sums round apart)
-_UNDECIDED = 1e-12
-
-
 @njit(cache=True, error_model="numpy")  # a zero length divides as NumPy divides: inf, NaN
-def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm, anterior_norm,
-                   undecided):
-    """drift_and_gap over the directions D (K, 3), with the length of the anterior direction
-    given or computed here (anterior_norm -1): then (NaN, NaN, -1) when the crop test
-    of a point hangs on that length's last bits (a height within `undecided` x (largest
-    semi-axis + crop) of the cut; then, as when anything is not finite, the caller decides
-    with NumPy's length). All in the fits' scaled coordinates ((x - p0) / scale, computed
+def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm, anterior_norm):
+    """drift_and_gap over the directions D (K, 3), the anterior direction normalised by
+    `anterior_norm` (its length as NumPy computes it: the crop test of a point can hang on
+    its last bits). All in the fits' scaled coordinates ((x - p0) / scale, computed
     element by element as NumPy's array arithmetic computes them); one pass, no temporary
     arrays but X and the heights h along the anterior direction."""
     center, radii, anterior, c_sf = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
@@ -36,15 +27,9 @@ def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_ol
         center[i] = (center_mm[i] - p0[i]) / scale
         radii[i] = radii_mm[i] / scale
         # from the points' centroid to the centre: the scanned retina lies opposite the front of the eye
-        anterior[i] = center[i] - S[6 + i, 9] / (2.0 * S[9, 9])
+        anterior[i] = (center[i] - S[6 + i, 9] / (2.0 * S[9, 9])) / anterior_norm
         c_sf[i] = (c_sf_mm[i] - p0[i]) / scale
     crop, r_sf = crop_mm / scale, r_sf_mm / scale
-    # NumPy's norm (a BLAS dot product) and this sum of squares may differ in the last bit:
-    # the direction, and with it the heights, by a few units in their last place
-    computed = anterior_norm == -1.0
-    norm = np.sqrt(anterior[0] ** 2 + anterior[1] ** 2 + anterior[2] ** 2) if computed else anterior_norm
-    for i in range(3):
-        anterior[i] /= norm
     K = D.shape[0]
     X = np.empty((K, 3))
     h = np.empty(K)
@@ -57,13 +42,6 @@ def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_ol
                 + (X[k, 2] - center[2]) * anterior[2])
         h_max = max(h_max, h[k])
     cut = h_max - crop
-    if computed:
-        band = undecided * (max(radii[0], radii[1], radii[2]) + crop)
-        if not (np.isfinite(cut) and band < np.inf):
-            return np.nan, np.nan, -1
-        for k in range(K):
-            if not abs(h[k] - cut) > band:
-                return np.nan, np.nan, -1
     drift, gap, m = 0.0, 0.0, 0
     for k in range(K):
         if h[k] <= cut:
@@ -75,25 +53,17 @@ def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_ol
     return (drift / m, gap / m, m) if m else (np.nan, np.nan, 0)
 
 
-def drift_and_gap(center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm,
-                  undecided: float = _UNDECIDED) -> tuple[float, float, int]:
+def drift_and_gap(center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm) -> tuple[float, float, int]:
     """(mean drift, mean gap, K) over the K points of the ellipsoid (center_mm (3,), radii_mm
     (3,) mm, rotation (3, 3)) in _DIRECTIONS, equal-area, without the cap within crop_mm of
     its extreme point along the anterior direction, from the centroid of the points of the
     scatter matrix S to the centre (the part the metrics ignore): the drift is the Sampson
     distance from the quadric v_old (10,), the gap the distance from the sphere (c_sf_mm
     (3,), r_sf_mm mm). The quadric, S and the results are in the fits' scaled coordinates
-    ((x - p0) / scale, p0 (3,) mm); NaNs and K = 0 when the cap covers the whole ellipsoid.
-    The direction's length is np.linalg.norm's, as NumPy computes it: a compiled sum of
-    squares where that decides every point alike, NumPy's where it might not
-    (`undecided`: see _drift_and_gap)."""
-    drift, gap, k = _drift_and_gap(_DIRECTIONS, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm,
-                                   r_sf_mm, -1.0, undecided)
-    if k < 0:
-        anterior = (center_mm - p0) / scale - S[6:9, 9] / (2.0 * S[9, 9])
-        drift, gap, k = _drift_and_gap(_DIRECTIONS, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old,
-                                       c_sf_mm, r_sf_mm, math.sqrt(anterior.dot(anterior)), undecided)
-    return drift, gap, k
+    ((x - p0) / scale, p0 (3,) mm); NaNs and K = 0 when the cap covers the whole ellipsoid."""
+    anterior = (center_mm - p0) / scale - S[6:9, 9] / (2.0 * S[9, 9])
+    return _drift_and_gap(_DIRECTIONS, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm,
+                          math.sqrt(anterior.dot(anterior)))
 
 
 def sampson_distance(v: np.ndarray, X: np.ndarray) -> np.ndarray:

@@ -11,11 +11,9 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
-from models._kernels import taubin_residuals
 from models._validation import check_count, check_positive
-from models.ellipsoid_fit import LENGTH_SCALE_MM
+from models.ellipsoid_fit import LENGTH_SCALE_MM, taubin_residual
 from models.extrapolation import drift_and_gap
 
 
@@ -194,7 +192,9 @@ class PredictiveCriteria:
         mem.last["convergence"] = (np.nan, False) if old_ef is None else self._convergence(snap, old_ef)
         gain, better = np.nan, False
         if old_ef is not None and 0 <= w < len(mem.n) - 1 and mem.v_sf[j] is not None:
-            e_sf, e_ef = _prequential_errors(snap.S, mem.S[w], mem.v_sf[j], old_ef, LENGTH_SCALE_MM)
+            # RMS errors (mm) of the old sphere and ellipsoid over the points since checkpoint w
+            errors = LENGTH_SCALE_MM * taubin_residual(snap.S - mem.S[w], np.array([mem.v_sf[j], old_ef]))
+            e_sf, e_ef = errors.tolist()
             gain, better = e_sf - e_ef, e_ef < e_sf
         mem.last["prediction"] = (gain, better)
 
@@ -204,7 +204,7 @@ class PredictiveCriteria:
         if snap.n_points >= (mem.n[-1] if mem.n else 0) + self.check_every:
             self._checkpoint(snap, mem)
             last = mem.last
-            all_ok = range_ok and last["fit"][1] and last["convergence"][1] and last["prediction"][1]
+            all_ok = range_ok and all(met for _, met in last.values())
             mem.stable = mem.stable + 1 if all_ok else 0
             mem.misfit = 0 if last["fit"][1] else mem.misfit + 1
         return {
@@ -216,17 +216,6 @@ class PredictiveCriteria:
     def wants_sphere(self, mem: _PredictiveMemory) -> bool:
         """True when the ellipsoid has failed the fit condition long enough to drop it."""
         return mem.misfit >= max(self.min_stable_checks, 1)
-
-
-@njit(cache=True)
-def _prequential_errors(S, S_old, v_sf, v_ef, scale):
-    """(sphere's, ellipsoid's) RMS error (mm, Taubin's, taubin_residuals) of the quadrics
-    v_sf and v_ef (10,) (scaled coordinates, `scale` mm) over the points that scatter
-    matrix S has and S_old had not."""
-    V = np.empty((2, 10))
-    V[0], V[1] = v_sf, v_ef
-    e = taubin_residuals(S - S_old, V)
-    return scale * e[0], scale * e[1]
 
 
 CRITERIA = {"paper": PaperCriteria, "predictive": PredictiveCriteria}
