@@ -125,10 +125,7 @@ class AdaptiveEyeModel:
 
     @property
     def shape(self) -> Sphere | Ellipsoid | None:
-        if self.kind == "ellipsoid":
-            last = self._ef.last_ok
-            return None if last is None else last.ellipsoid
-        return self._sf.sphere
+        return self.ellipsoid if self.kind == "ellipsoid" else self.sphere
 
     @property
     def n_rejected_outliers(self) -> int:
@@ -156,8 +153,7 @@ class AdaptiveEyeModel:
         self.n_received += len(P)
         sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
         n = sf.n_points  # the scan range's too: all three take the same points
-        if n + len(P) + 1 > len(scan.X):  # the gate may add its pending first point
-            scan.reserve(len(P) + 1)
+        scan.reserve(len(P) + 1)  # the gate may add its pending first point
         g = _NO_GATE if gate is None else gate
         current = self._current
         out = np.empty(OUT_SIZE)

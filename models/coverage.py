@@ -30,22 +30,13 @@ def inside_depth_upper_mm(shape, P: np.ndarray) -> np.ndarray:
     models.Sphere or Ellipsoid; 0 for points outside): r_max (1 - k), k the scaled radius
     (a path of length d moves the scaled point by at least d / r_max). The NumPy formulas
     max(r - |P - c|, 0) and max(r_max (1 - |(P - c) R / radii|), 0), compiled but for the
-    product by R (NumPy's, whose rounding a compiled sum does not reproduce). The shape's
-    numbers go to the kernels as floats: its arrays are read-only or not (a copied shape's),
+    product by R (NumPy's, whose rounding a compiled sum does not reproduce). The radii go
+    to the kernel as floats: the shape's arrays are read-only or not (a copied shape's),
     and each kind would be a compiled specialisation of its own."""
-    D = _offsets(P, tuple(shape.center.tolist()))
+    D = P - shape.center
     if hasattr(shape, "radius"):
         return _depth(D, None, float(shape.radius))
     return _depth(D @ shape.rotation, tuple(shape.radii.tolist()), float(shape.radii.max()))
-
-
-@njit(cache=True)
-def _offsets(P, c):
-    """P - c of the rows of P (M, 3) (c: 3 floats)."""
-    D = np.empty((P.shape[0], 3))
-    for m in range(P.shape[0]):
-        D[m, 0], D[m, 1], D[m, 2] = P[m, 0] - c[0], P[m, 1] - c[1], P[m, 2] - c[2]
-    return D
 
 
 @njit(cache=True)
@@ -92,6 +83,18 @@ def _nearest_and_worst(V, dirs, misfit, cos_angle, chord=2.0):
     return best, worst
 
 
+@njit(cache=True, inline="always")
+def _closer(dirs, k, u0, u1, u2, best, best_d):
+    """(best, best_d, dz): row k of `dirs` replaces the best row so far (squared distance
+    best_d to the direction (u0, u1, u2)) when nearer, or as near with a smaller index;
+    dz its z offset from the direction."""
+    d0, d1, d2 = dirs[k, 0] - u0, dirs[k, 1] - u1, dirs[k, 2] - u2
+    d = d0 * d0 + d1 * d1 + d2 * d2
+    if d < best_d or (d == best_d and k < best):
+        return k, d, d2
+    return best, best_d, d2
+
+
 @njit(cache=True)
 def nearest_fibonacci(u0, u1, u2, dirs, hint=-1):
     """Index of the row of `dirs` (n, 3), fibonacci_directions(n), nearest (Euclidean) to
@@ -112,27 +115,18 @@ def nearest_fibonacci(u0, u1, u2, dirs, hint=-1):
         lo = max(int(0.5 * n * (1.0 - (u2 + r)) - 0.5) - 2, 0)
         hi = min(int(0.5 * n * (1.0 - (u2 - r)) - 0.5) + 3, n)
         for k in range(lo, hi):
-            d0, d1, d2 = dirs[k, 0] - u0, dirs[k, 1] - u1, dirs[k, 2] - u2
-            d = d0 * d0 + d1 * d1 + d2 * d2
-            if d < best_d or (d == best_d and k < best):
-                best, best_d = k, d
+            best, best_d, _ = _closer(dirs, k, u0, u1, u2, best, best_d)
         return best
     k0 = min(max(int(round(0.5 * n * (1.0 - u2) - 0.5)), 0), n - 1)
     best, best_d = k0, np.inf
     lo, hi = k0, k0 + 1  # next rows to visit below (decreasing k) and above
     while lo >= 0 or hi < n:
         if lo >= 0:
-            d0, d1, d2 = dirs[lo, 0] - u0, dirs[lo, 1] - u1, dirs[lo, 2] - u2
-            d = d0 * d0 + d1 * d1 + d2 * d2
-            if d < best_d or (d == best_d and lo < best):
-                best, best_d = lo, d
-            lo = lo - 1 if d2 * d2 <= best_d else -1
+            best, best_d, dz = _closer(dirs, lo, u0, u1, u2, best, best_d)
+            lo = lo - 1 if dz * dz <= best_d else -1
         if hi < n:
-            d0, d1, d2 = dirs[hi, 0] - u0, dirs[hi, 1] - u1, dirs[hi, 2] - u2
-            d = d0 * d0 + d1 * d1 + d2 * d2
-            if d < best_d or (d == best_d and hi < best):
-                best, best_d = hi, d
-            hi = hi + 1 if d2 * d2 <= best_d else n
+            best, best_d, dz = _closer(dirs, hi, u0, u1, u2, best, best_d)
+            hi = hi + 1 if dz * dz <= best_d else n
     return best
 
 

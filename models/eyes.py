@@ -15,7 +15,7 @@ from numba import njit
 
 from models._validation import as_points, as_rotation, as_vector3
 from models.ellipsoid import Ellipsoid, ellipsoid_hits
-from models.rays import as_rays
+from models.rays import UNIT_TOL, as_rays
 from models.star_surface import (MARCH_STEP_MM, RadialFunction, StarSurface, bump_radial, ellipsoid_radial,
                                  paraboloid_backed_radial, sphere_union_radial, star_hits)
 
@@ -139,7 +139,7 @@ class Eye:
         if O.shape != D.shape:
             raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
         n = np.linalg.norm(D, axis=1)
-        if np.any(np.abs(n - 1.0) > 1e-6):
+        if np.any(np.abs(n - 1.0) > UNIT_TOL):
             raise ValueError("dirs must be unit vectors")
         if self._star is None:
             return self._ellipsoid_E.ray_cast(O, D)

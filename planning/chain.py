@@ -106,11 +106,7 @@ def frame_pose(S, q, R_home, p_home):
 def frame_position(S, q, R_home, p_home):
     """p_WF (3,) mm: frame_pose's position alone, bit for bit (the control loop's tip
     position for its command source, every step)."""
-    R, p = _chain_pose(S, q)
-    p_WF = p.copy()
-    for r in range(3):
-        p_WF[r] += R[r, 0] * p_home[0] + R[r, 1] * p_home[1] + R[r, 2] * p_home[2]
-    return p_WF
+    return frame_pose(S, q, R_home, p_home)[1]
 
 
 @numba.njit(cache=True)

@@ -142,8 +142,7 @@ class SensorPacket(NamedTuple):
 
 
 # the fields of SensorPacket that are arrays with a row per sample
-_PER_SAMPLE_ARRAYS = ("t_s", "distance_mm", "valid", "confidence", "p_W", "beam_origin_W", "beam_dir_W",
-                      "true_distance_mm")
+_PER_SAMPLE_ARRAYS = tuple(f for f in SensorPacket._fields if f not in ("reasons", "ascans"))
 
 
 @numba.njit(cache=True)
