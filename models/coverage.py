@@ -57,7 +57,7 @@ def _depth(L, radii, r_max):
 
 
 @njit(cache=True)
-def _nearest_and_worst(V, dirs, misfit, cos_angle, chord=2.0):
+def nearest_and_worst(V, dirs, misfit, cos_angle, chord=2.0):
     """Per unit row of V (M, 3): the largest cosine to any of `dirs` (N, 3) (-2 without
     any), and the largest `misfit` (N,) among the dirs with cosine >= cos_angle (0 if none).
     A scan of the covered directions: for the loop's few points per step, cheaper than a
@@ -157,7 +157,7 @@ def _add_points(P, center, dirs, covered, inner, inner_r):
 
 def band_chord(angle_rad: float) -> float:
     """The chord of an angle on the unit sphere, a hair long (rounding): the z band that
-    holds every direction within the angle (_nearest_and_worst's `chord`)."""
+    holds every direction within the angle (nearest_and_worst's `chord`)."""
     return 2.0 * np.sin(angle_rad / 2.0) * (1.0 + 1e-12) + 1e-15
 
 
@@ -206,6 +206,16 @@ class CoverageView:
     def __deepcopy__(self, memo) -> CoverageView:
         return self  # immutable
 
+    @property
+    def sorted_directions(self) -> np.ndarray:
+        """(N, 3) the covered unit directions, sorted by z ascending (read, don't change)."""
+        return self._dirs
+
+    @property
+    def misfits_mm(self) -> np.ndarray | None:
+        """(N,) the measured misfit (mm) of each covered direction, or None without a model."""
+        return self._misfit
+
     def _directions(self, Q) -> np.ndarray:
         V = as_points(Q, "Q") - self.center_W
         return V / np.maximum(np.sqrt(np.einsum("ij,ij->i", V, V)), 1e-12)[:, None]
@@ -216,7 +226,7 @@ class CoverageView:
         V = self._directions(Q)
         if not self.n_covered:
             return np.full(len(V), np.pi)
-        best, _ = _nearest_and_worst(V, self._dirs, np.zeros(self.n_covered), 2.0)
+        best, _ = nearest_and_worst(V, self._dirs, np.zeros(self.n_covered), 2.0)
         return np.arccos(np.clip(best, -1.0, 1.0))
 
     def local_misfit_mm(self, Q, angle_rad: float) -> np.ndarray:
@@ -224,7 +234,7 @@ class CoverageView:
         `angle_rad` of each point's direction (0 where none, or without a model)."""
         if not self.n_covered or self._misfit is None:
             return np.zeros(len(Q))
-        return _nearest_and_worst(self._directions(Q), self._dirs, self._misfit, np.cos(angle_rad),
+        return nearest_and_worst(self._directions(Q), self._dirs, self._misfit, np.cos(angle_rad),
                                   band_chord(angle_rad))[1]
 
 

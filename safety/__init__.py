@@ -1,4 +1,7 @@
-"""The virtual boundary: a QP safety filter on commanded joint velocities (mm, s, rad)."""
-from safety.filter import FilterConfig, FilterInputs, FilterOutput, PointKinematics, SafetyFilter
+"""The virtual boundary: a QP safety filter on commanded joint velocities (mm, s, rad), built from constraint objects."""
+from safety.filter import SafetyFilter, default_constraints
+from safety.inputs import FilterConfig, FilterInputs, FilterOutput, PointKinematics
+from safety.stack import ConstraintStack
 
-__all__ = ["FilterConfig", "FilterInputs", "FilterOutput", "PointKinematics", "SafetyFilter"]
+__all__ = ["ConstraintStack", "FilterConfig", "FilterInputs", "FilterOutput", "PointKinematics", "SafetyFilter",
+           "default_constraints"]

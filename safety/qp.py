@@ -26,7 +26,7 @@ SPARSE_SOLVERS = {"clarabel", "osqp", "scs", "piqp", "highs"}  # take CSC matric
 _DAQP_INF = 1e30  # DAQP's "no bound"
 _DAQP_EQUALITY = 5  # sense flags: active (1) and immutable (4)
 
-_NONFINITE, _CROSSED, _OPTIMAL, _NEEDS_SOLVER = 0, 1, 2, 3
+NONFINITE, CROSSED, OPTIMAL, NEEDS_SOLVER = 0, 1, 2, 3
 
 
 class DenseQP(NamedTuple):
@@ -82,22 +82,22 @@ def _solves(K, z, rhs) -> bool:
 
 
 @njit(cache=True)
-def _screen(H, c, lb, ub, G, h, A, b, tol):
-    """(code, x): _NONFINITE data, _CROSSED bounds, _OPTIMAL with x the minimiser under
+def screen(H, c, lb, ub, G, h, A, b, tol):
+    """(code, x): NONFINITE data, CROSSED bounds, OPTIMAL with x the minimiser under
     the equalities that also satisfies every inequality and bound (then it is the convex
-    QP's solution), or _NEEDS_SOLVER (an inequality would be violated, or the KKT
+    QP's solution), or NEEDS_SOLVER (an inequality would be violated, or the KKT
     system is singular)."""
     n = c.shape[0]
     x = np.zeros(n)
     if not (_finite(H) and _finite(c) and _finite(G) and _finite(h) and _finite(A) and _finite(b)):
-        return _NONFINITE, x
+        return NONFINITE, x
     for i in range(n):
         if np.isnan(lb[i]) or np.isnan(ub[i]):
-            return _NONFINITE, x
+            return NONFINITE, x
         if lb[i] > ub[i]:
-            return _CROSSED, x
+            return CROSSED, x
     solved, x = _kkt_solution(H, c, A, b, np.zeros((0, n)), np.zeros(0), tol)
-    return (_OPTIMAL if solved and _feasible(G, h, lb, ub, x, tol) else _NEEDS_SOLVER), x
+    return (OPTIMAL if solved and _feasible(G, h, lb, ub, x, tol) else NEEDS_SOLVER), x
 
 
 @njit(cache=True)
@@ -222,12 +222,12 @@ def solve(qp: DenseQP, solver: str = "daqp", active_tol: float = 1e-6) -> QPResu
     inequality is active the equality-constrained optimum is returned without a solver
     (it is every solver's answer up to that solver's tolerance)."""
     t0 = time.perf_counter()
-    code, x = _screen(qp.H, qp.c, qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b, active_tol)
-    if code == _NONFINITE:
+    code, x = screen(qp.H, qp.c, qp.lb, qp.ub, qp.G, qp.h, qp.A, qp.b, active_tol)
+    if code == NONFINITE:
         return QPResult(None, "non-finite QP data", (), 1e6 * (time.perf_counter() - t0))
-    if code == _CROSSED:
+    if code == CROSSED:
         return QPResult(None, "infeasible: bounds cross", (), 1e6 * (time.perf_counter() - t0))
-    if code == _OPTIMAL:
+    if code == OPTIMAL:
         return QPResult(x, "ok", (), 1e6 * (time.perf_counter() - t0))
     return solve_by_solver(qp, solver, active_tol, t0)
 
@@ -243,12 +243,12 @@ def solve_by_solver(qp: DenseQP, solver: str = "daqp", active_tol: float = 1e-6,
     dt = 1e6 * (time.perf_counter() - t0)
     if x is None or not _finite(x):
         return QPResult(None, "infeasible or not solved", (), dt)
-    at_bound = _rows_at_bound(qp.G, qp.h, x, active_tol)
+    at_bound = rows_at_bound(qp.G, qp.h, x, active_tol)
     return QPResult(x, "ok", tuple(sorted({qp.row_names[i] for i in at_bound})) if len(at_bound) else (), dt)
 
 
 @njit(cache=True)
-def _rows_at_bound(G, h, x, tol):
+def rows_at_bound(G, h, x, tol):
     """Indices of the rows of G x <= h within tol (relative) of their bound."""
     out = np.empty(h.shape[0], dtype=np.int64)
     n = 0

@@ -6,21 +6,29 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from safety import constraints
-from safety.qp import solve
+from safety.constraints.tip_speed import FACE_NORMALS, REACH
+from safety.qp import DenseQP, solve
 
 
-def random_filter_qp(seed: int, clearance_mm: float, v_cmd=(3.0, 1.0, -2.0)):
-    """Filter-sized: 6 joints, 8 barrier rows at `clearance_mm` (h_min 0.5 mm), RCM rows."""
+def random_filter_qp(seed: int, clearance_mm: float, v_cmd=(3.0, 1.0, -2.0)) -> DenseQP:
+    """Filter-shaped (the rows safety.constraints write): 6 joints, tracking cost with damping
+    1e-3, joint bounds, the tip speed polytope at 20 mm/s, 8 barrier rows at `clearance_mm`
+    (h_min 0.5 mm, gain 20/s), two RCM rows; random Jacobians."""
     rng = np.random.default_rng(seed)
     n, k = 6, 8
     J = 50.0 * rng.normal(size=(3, n))
+    J_roll = rng.normal(size=(1, n))
+    H = 2.0 * (J.T @ J + J_roll.T @ J_roll + 1e-3 * np.eye(n))
+    c = -2.0 * (J.T @ np.asarray(v_cmd) + J_roll.T @ [0.1])
     g = rng.normal(size=(k, 3))
-    return constraints.filter_qp(
-        J, np.array(v_cmd), 1e-3, rng.normal(size=(1, n)), 0.1, np.zeros(n), -2 * np.ones(n), 2 * np.ones(n),
-        3 * np.ones(n), 10.0, 0.03, 20.0, tuple(f"b{i}" for i in range(k)), np.full(k, clearance_mm),
-        g / np.linalg.norm(g, axis=1, keepdims=True), 50.0 * rng.normal(size=(k, 3, n)), np.full(k, 0.5), 20.0, 5.0,
-        rng.normal(size=(2, n)), np.zeros(2))
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    J_pts = 50.0 * rng.normal(size=(k, 3, n))
+    G = np.vstack([FACE_NORMALS @ J, -np.einsum("ki,kij->kj", g, J_pts)])
+    h = np.concatenate([np.full(len(FACE_NORMALS), 20.0 / REACH), np.maximum(20.0 * (clearance_mm - 0.5), -5.0)
+                        * np.ones(k)])
+    bound = np.minimum(3.0, 10.0 * (2.0 - 0.03))
+    names = ("tip_speed",) * len(FACE_NORMALS) + tuple(f"b{i}" for i in range(k))
+    return DenseQP(H, c, np.full(n, -bound), np.full(n, bound), G, h, rng.normal(size=(2, n)), np.zeros(2), names)
 
 
 @settings(max_examples=40, deadline=None)

@@ -1,0 +1,181 @@
+"""The filter's compiled step, assembled from its constraints' fillers.
+
+Every constraint names a module-level compiled filler whose argument names say what it
+reads (safety.constraints.base.CONTEXT); each field slot names the compiled kernel of
+its distance field; a loop may add a kinematics kernel that turns joint angles into the
+step's points. From these the filter's step is generated once as Python source: the
+input checks, the tracking cost, one call per constraint in the given order (a
+barrier's field evaluated at its group's points first), the clearance, and the QP's
+screen and warm start (safety.step_core). The source is written to a cache folder
+(VITREOGUARD_CACHE_DIR, default ~/.cache/vitreoguard) and compiled by numba with its
+disk cache, so the next process loads it instead of compiling it. Its name hashes the
+constraints' types, the kernels, and the source of every module of the project's
+packages (numba does not notice a change in a function the step calls).
+
+The same generated step serves the filter's Python API (points given) and the closed
+loop (points from the kinematics kernel, in the same compiled call).
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import inspect
+import os
+import sys
+from functools import lru_cache
+from pathlib import Path
+
+from safety.constraints.base import CONTEXT, KINDS
+
+_PACKAGES = ("models", "safety", "planning")
+_DIRECT = {"q", "command", "P", "J", "J_tip", "R_WI", "p_WI", "G", "h", "ids", "m", "A", "b", "p", "lb", "ub",
+           "point_h"}
+
+
+def cache_dir() -> Path:
+    """Where generated steps are written (VITREOGUARD_CACHE_DIR, default ~/.cache/vitreoguard/steps)."""
+    root = os.environ.get("VITREOGUARD_CACHE_DIR") or os.path.join(os.path.expanduser("~"), ".cache", "vitreoguard")
+    return Path(root) / "steps"
+
+
+@lru_cache(maxsize=1)
+def _sources_digest() -> str:
+    """A digest of every .py file of the project's packages (one per process)."""
+    h = hashlib.sha256()
+    here = Path(__file__).resolve().parent.parent
+    for pkg in _PACKAGES:
+        for path in sorted((here / pkg).rglob("*.py")):
+            h.update(str(path.relative_to(here)).encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def _importable(fn, what: str) -> tuple[str, str]:
+    """(module, name) of a module-level compiled function, or ValueError."""
+    py = getattr(fn, "py_func", None)
+    module, name = getattr(fn, "__module__", None), getattr(py, "__name__", None)
+    if py is None or module is None or getattr(sys.modules.get(module), name, None) is not fn:
+        raise ValueError(f"{what} must be a module-level numba @njit function, got {fn!r}")
+    return module, name
+
+
+def _arguments(filler, i: int, kind: str, has_group: bool, has_field: bool, id0: int) -> str:
+    """The call's argument list of constraint i's filler, by its parameter names."""
+    names = list(inspect.signature(filler.py_func).parameters)
+    out = []
+    for a in names:
+        if a not in CONTEXT:
+            raise ValueError(f"filler {filler.py_func.__name__}: unknown argument {a!r}; allowed: {', '.join(CONTEXT)}")
+        if a in ("start", "stop") and not has_group:
+            raise ValueError(f"filler {filler.py_func.__name__} reads {a!r} but its constraint has no group")
+        if a in ("fh", "fg", "fu") and not has_field:
+            raise ValueError(f"filler {filler.py_func.__name__} reads {a!r} but its constraint has no field")
+        out.append({"sp": f"sp{i}", "start": f"s{i}", "stop": f"e{i}", "fh": f"fh{i}", "fg": f"fg{i}", "fu": f"fu{i}",
+                    "id0": str(id0)}.get(a, a))
+    return ", ".join(out)
+
+
+def generate(constraints, groups: dict, kernels: dict, kinematics=None, capacities: dict | None = None) -> str:
+    """The step's Python source for `constraints` (in order), point `groups` (name ->
+    index into `ranges`), field `kernels` (slot -> compiled kernel) and an optional
+    `kinematics` kernel."""
+    capacities = capacities or {}
+    imports = ["import numpy as np", "from numba import njit",
+               "from safety.step_core import (ACTIVE_TOL, CFG_DAMPING, CONSTRAINT_FAULT, OK, STEP_FAULT, STEP_OPTIMAL,",
+               "                              finish, input_fault, off_command, tracking_cost)"]
+    slots = sorted({c.field for c in constraints if c.field is not None})
+    for s in slots:
+        if s not in kernels:
+            raise ValueError(f"no field kernel for slot {s!r} (constraints read it)")
+        imports.append("from {} import {} as K_{}".format(*_importable(kernels[s], f"field kernel of slot {s!r}"), s))
+    body, id0 = [], 0
+    for i, c in enumerate(constraints):
+        if c.kind not in KINDS:
+            raise ValueError(f"constraint {c.name!r}: kind must be one of {KINDS}, got {c.kind!r}")
+        module, name = _importable(c.filler, f"filler of constraint {c.name!r}")
+        imports.append(f"from {module} import {name} as F{i}")
+        if c.group is not None:
+            if c.group not in groups:
+                raise ValueError(f"constraint {c.name!r} reads point group {c.group!r}; the step has {sorted(groups)}")
+            body.append(f"    s{i}, e{i} = ranges[{groups[c.group]}, 0], ranges[{groups[c.group]}, 1]")
+        if c.field is not None:
+            body.append(f"    fh{i}, fg{i}, fu{i} = K_{c.field}(fp_{c.field}, P[s{i}:e{i}])")
+        args = _arguments(c.filler, i, c.kind, c.group is not None, c.field is not None, id0)
+        if c.kind == "inequality":
+            body += [f"    m = F{i}({args})", f"    if m < 0:", f"        return _fault(active, q, CONSTRAINT_FAULT + {i}, -m)"]
+            id0 += c.max_rows(capacities.get(c.group, 0))
+        elif c.kind == "equality":
+            body += [f"    p = F{i}({args})", f"    if p < 0:", f"        return _fault(active, q, CONSTRAINT_FAULT + {i}, -p)"]
+        else:
+            body.append(f"    F{i}({args})")
+        if c.reports_clearance:
+            body += [f"    for r in range(s{i}, e{i}):", "        clearance = min(clearance, point_h[r])"]
+    sp = "".join(f"sp{i}, " for i in range(len(constraints)))
+    fp = "".join(f"fp_{s}, " for s in slots)
+    src = "\n".join(imports) + f"""
+
+
+@njit(cache=True)
+def _fault(active, q, fault, detail):
+    active[:] = False
+    return STEP_FAULT, fault, detail, np.zeros(q.shape[0]), 0, 0, 0, np.nan, True
+
+
+@njit(cache=True)
+def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, {sp}{fp}active, warm, H, c, lb, ub, G, h,
+         ids, A, b, point_h, at_bound):
+    fault = input_fault(q, command, J_tip, P, J, times, cfg)
+    if fault != OK:
+        return _fault(active, q, fault, 0)
+    tracking_cost(J_tip, command[:3], J_roll, np.full(J_roll.shape[0], command[3]), cfg[CFG_DAMPING], H, c)
+    lb[:] = -np.inf
+    ub[:] = np.inf
+    point_h[:] = np.inf
+    m = 0
+    p = 0
+    clearance = np.inf
+""" + "\n".join(body) + f"""
+    code, x, n_bound = finish(H, c, lb, ub, G[:m], h[:m], A[:p], b[:p], ids[:m], active, warm, at_bound)
+    off = off_command(J_tip, x, command) if code == STEP_OPTIMAL else True
+    return code, OK, 0, x, m, p, n_bound, clearance, off
+"""
+    if kinematics is not None:
+        imports_k = "from {} import {} as KIN\n".format(*_importable(kinematics, "kinematics kernel"))
+        src = imports_k + src + f"""
+
+@njit(cache=True)
+def step_at(q, command, times, cfg, kp, {sp}{fp}active, warm, H, c, lb, ub, G, h, ids, A, b, point_h, at_bound):
+    P, J, ranges, J_tip, J_roll, R_WI, p_WI, rcm_error = KIN(kp, q)
+    r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, {sp}{fp}active, warm, H, c, lb, ub, G,
+             h, ids, A, b, point_h, at_bound)
+    return r, P, ranges, J_tip, rcm_error
+"""
+    return src
+
+
+_LOADED: dict[str, object] = {}
+
+
+def assemble(constraints, groups: dict, kernels: dict, kinematics=None, capacities: dict | None = None):
+    """The generated module (attributes `step`, and `step_at` with kinematics) for these
+    constraints, groups, field kernels and kinematics; written and imported once per
+    distinct source."""
+    src = generate(constraints, groups, kernels, kinematics, capacities)
+    digest = hashlib.sha256((src + _sources_digest()).encode()).hexdigest()[:16]
+    if digest in _LOADED:
+        return _LOADED[digest]
+    folder = cache_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"step_{digest}.py"
+    text = f'"""Generated by safety.assembly: the filter step for {", ".join(c.name for c in constraints)}."""\n{src}'
+    if not path.exists() or path.read_text() != text:
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, path)  # atomic: parallel processes may generate the same step
+    name = f"vitreoguard_step_{digest}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    _LOADED[digest] = module
+    return module

@@ -1,0 +1,173 @@
+"""A stack of constraints compiled into one filter step, with its workspace, the names
+of its rows and the words for its faults.
+
+`ConstraintStack(constraints, groups, kernels, config, kinematics)` assembles the step
+(safety.assembly) once; `solve(...)` runs it on given points, `solve_at(...)` on the
+points of the kinematics kernel at q. A step the compiled code cannot finish (the
+optimum under the equalities violates an inequality and the remembered active set is
+not this step's) goes to the solver (safety.qp, DAQP by default); a fault or a failed
+QP gives zero velocity and the reason. Units: mm, s, rad; frame W.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from safety import step_core as core
+from safety.assembly import assemble
+from safety.inputs import FilterConfig, FilterOutput
+from safety.qp import DenseQP, QPResult, solve, solve_by_solver
+
+_FAULT_WORDS = {core.NONFINITE_Q: "non-finite q", core.NONFINITE_COMMAND: "non-finite v_cmd_W",
+                core.NONFINITE_J_TIP: "non-finite J_tip"}
+
+
+class ConstraintStack:
+    """The constraints (in row order) over point `groups` (name -> capacity, in the order
+    of the kinematics' ranges), field slots `kernels` (slot -> compiled kernel), the
+    filter-level `config`, an optional `kinematics` kernel (safety.assembly), and
+    `point_names(group, count)` for the rows' names. `port`: (group, index) of the cutter
+    port, whose clearance opens the cutter interlock (None: no interlock)."""
+
+    def __init__(self, constraints, groups: dict, kernels: dict, config: FilterConfig, kinematics=None,
+                 point_names=None, port: tuple | None = None, n_joints: int = 6):
+        self.constraints, self.groups, self.config = tuple(constraints), dict(groups), config
+        self.index = {g: i for i, g in enumerate(self.groups)}
+        self.slots = sorted({c.field for c in self.constraints if c.field is not None})
+        self.module = assemble(self.constraints, self.index, kernels, kinematics, self.groups)
+        self._names = point_names or (lambda group, count: tuple(f"{group}{i}" for i in range(count)))
+        self._port = port
+        self.cfg = np.array([config.damping, config.max_command_speed_mm_s, config.max_model_age_s,
+                             config.max_sensor_age_s])
+        self._size(n_joints)
+        self._names_cache: dict = {}
+
+    def _size(self, n: int) -> None:
+        """The workspace for n joints: ids per inequality constraint, buffers for the QP."""
+        self.n = n
+        self._id_owner, id0 = [], 0
+        m_cap = p_cap = 0
+        for i, c in enumerate(self.constraints):
+            rows = c.max_rows(self.groups.get(c.group, 0))
+            if c.kind == "inequality":
+                self._id_owner += [(i, r) for r in range(rows)]
+                m_cap += rows
+            elif c.kind == "equality":
+                p_cap += rows
+        self.active = np.zeros(len(self._id_owner) + 2 * n, dtype=np.bool_)
+        k_cap = sum(self.groups.values())
+        self.ws = (np.zeros((n, n)), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((m_cap, n)), np.zeros(m_cap),
+                   np.zeros(m_cap, dtype=np.int64), np.zeros((p_cap, n)), np.zeros(p_cap), np.zeros(max(k_cap, 1)),
+                   np.zeros(m_cap, dtype=np.int64))
+        self.params = tuple(c.params() for c in self.constraints)
+
+    def reset(self) -> None:
+        """Forget the previous step's active set (a new run)."""
+        self.active[:] = False
+
+    def set_params(self) -> None:
+        """Re-read every constraint's params() (after changing a constraint's numbers)."""
+        self.params = tuple(c.params() for c in self.constraints)
+
+    def solve(self, q, command, times, J_tip, J_roll, P, J, ranges, fields: tuple, R_WI=None, p_WI=None,
+              warm: bool = False):
+        """(FilterOutput, raw step result) on given points: q (n,) rad, command (4,) [tip
+        velocity mm/s, roll rad/s], times [t, model time, sensor time] s, J_tip (3, n),
+        J_roll (r, n), P (K, 3) mm, J (K, 3, n), ranges (groups, 2), `fields` the
+        params of each field slot in self.slots' order."""
+        t0 = time.perf_counter()
+        R = np.eye(3) if R_WI is None else R_WI
+        p = np.zeros(3) if p_WI is None else p_WI
+        r = self.module.step(q, command, times, self.cfg, J_tip, J_roll, P, J, ranges, R, p, *self.params, *fields,
+                             self.active, warm, *self.ws)
+        return self.output(r, q, command, times, J_tip, P, ranges, t0, warm), r
+
+    def solve_at(self, q, command, times, kp, fields: tuple):
+        """(FilterOutput, raw step result, P, ranges, J_tip, rcm error mm) with the points
+        of the kinematics kernel (params kp) at q, warm started from the previous step."""
+        t0 = time.perf_counter()
+        r, P, ranges, J_tip, rcm_error = self.module.step_at(q, command, times, self.cfg, kp, *self.params, *fields,
+                                                              self.active, True, *self.ws)
+        return self.output(r, q, command, times, J_tip, P, ranges, t0, True), r, P, ranges, J_tip, rcm_error
+
+    def output(self, r, q, command, times, J_tip, P, ranges, t0: float, warm: bool) -> FilterOutput:
+        code, fault, detail, x, m, p, n_bound, clearance, off = r
+        n = len(q)
+        if code == core.STEP_FAULT:
+            return FilterOutput(np.zeros(n), False, self.fault_reason(fault, detail, q, command, times, P, ranges))
+        H, c, lb, ub, G, h, ids, A, b, point_h, at_bound = self.ws
+        port = self._port_clearance(point_h, ranges)
+        if code == core.STEP_OPTIMAL:
+            active = self.active_names(ids[:m], at_bound[:n_bound], ranges) if n_bound else ()
+            return self.finished(QPResult(x, "ok", active, 1e6 * (time.perf_counter() - t0)), clearance, port, off)
+        qp = DenseQP(H, c, lb, ub, G[:m], h[:m], A[:p], b[:p], self.row_names(ids[:m], ranges))
+        result = solve(qp, self.config.solver) if code == core.STEP_QP_FAILED else \
+            solve_by_solver(qp, self.config.solver, core.ACTIVE_TOL, t0)
+        if not result.ok:
+            self.reset()
+            return FilterOutput(np.zeros(n), False, f"QP: {result.reason}", min_clearance_mm=float(clearance))
+        if warm:
+            core.remember_active(self.active, ids[:m], qp.G, qp.h, lb, ub, result.x, core.ACTIVE_TOL, at_bound)
+        return self.finished(result, clearance, port, bool(core.off_command(J_tip, result.x, command)))
+
+    def finished(self, result: QPResult, clearance: float, port_clearance_mm: float | None,
+                 off_command: bool) -> FilterOutput:
+        """The FilterOutput of a solved step."""
+        cutter = port_clearance_mm is not None and bool(port_clearance_mm > self.config.cutter_clearance_mm)
+        owners = {c.name for c in self.constraints if c.intervenes}
+        intervened = bool(off_command or any(a.split(":", 1)[0] in owners for a in result.active))
+        return FilterOutput(result.x, True, "ok", result.active, float(clearance), cutter, intervened, result.solve_us)
+
+    def _port_clearance(self, point_h, ranges) -> float | None:
+        if self._port is None:
+            return None
+        group, i = self._port
+        g = self.index[group]
+        start, stop = ranges[g]
+        return float(point_h[start + i]) if start + i < stop else None
+
+    def row_names(self, ids, ranges) -> tuple:
+        """The names of G's rows with identities `ids`."""
+        out = []
+        for rid in ids.tolist():
+            ci, local = self._id_owner[rid]
+            c = self.constraints[ci]
+            count = int(ranges[self.index[c.group], 1] - ranges[self.index[c.group], 0]) if c.group in self.index else 0
+            out.append(c.row_name(local, self._names(c.group, count) if c.group is not None else ()))
+        return tuple(out)
+
+    def active_names(self, ids, at_bound, ranges) -> tuple:
+        """Sorted names of the rows at their bound, kept per (ids, rows at bound, ranges)."""
+        key = (ids.tobytes(), at_bound.tobytes(), np.asarray(ranges).tobytes())
+        names = self._names_cache.get(key)
+        if names is None:
+            rows = self.row_names(ids, ranges)
+            names = tuple(sorted({rows[i] for i in at_bound.tolist()}))
+            if len(self._names_cache) >= 4096:  # bounded: the combinations a run meets are few
+                self._names_cache.clear()
+            self._names_cache[key] = names
+        return names
+
+    def fault_reason(self, fault: int, detail: int, q, command, times, P, ranges) -> str:
+        """Words for the step's fault code (step_core)."""
+        cfg = self.config
+        if fault in _FAULT_WORDS:
+            return _FAULT_WORDS[fault]
+        if fault == core.ABSURD_SPEED:
+            speed = float(np.linalg.norm(command[:3]))
+            return f"absurd command speed {speed:.1f} mm/s > {cfg.max_command_speed_mm_s:g} mm/s"
+        if fault == core.STALE_MODEL:
+            return f"stale model: {times[0] - times[1]:.3f} s old > {cfg.max_model_age_s:g} s"
+        if fault == core.STALE_SENSOR:
+            return f"stale sensor: {times[0] - times[2]:.3f} s old > {cfg.max_sensor_age_s:g} s"
+        if fault == core.NONFINITE_POINTS:
+            bad = np.flatnonzero(~np.all(np.isfinite(np.asarray(P).reshape(len(P), -1)), axis=1))
+            k = int(bad[0]) if len(bad) else 0
+            for g, (start, stop) in zip(self.groups, np.asarray(ranges).tolist()):
+                if start <= k < stop:
+                    return f"non-finite kinematics of {self._names(g, stop - start)[k - start]}"
+            return "non-finite kinematics"
+        if fault >= core.CONSTRAINT_FAULT:
+            return self.constraints[fault - core.CONSTRAINT_FAULT].fault_reason(detail)
+        return f"fault {fault}"
