@@ -1,0 +1,1 @@
+"""The closed loop's Drake systems: sensor, model and safety filter, each a LeafSystem with named ports."""

@@ -1,0 +1,260 @@
+"""The safety filter as a Drake system at the control rate.
+
+Each step asks the command source for the tip velocity and roll rate at the joint
+angles it filters, then runs the filter's compiled step (safety.ConstraintStack built
+from the loop's constraints, with the instrument's kinematics kernel): the points, the
+eye model as a distance field (models.model_field: the model's shape, its phase margin,
+the misfit measured near each point, and the prior where the model has no data near
+the tip or the port), the lens, the RCM and the joint limits, in one call. A fault
+gives zero velocity and the reason from the same call.
+
+The shaft points count only against a fitted model: the prior lies inside every retina,
+and the shaft crosses the eye wall at the trocar, so the shaft behind the tip lies
+outside the prior by construction. Units: mm, s, rad; frame W.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+
+from eval.loop_config import LoopConfig
+from eval.systems.model import ModelSnapshot
+from models.coverage import band_chord
+from models.model_field import ModelField, model_field_kernel
+from planning.chain import frame_position
+from planning.diffik import DrakeDiffIK
+from planning.instrument_points import instrument_points
+from planning.robot import RCM_GAIN_PER_S, Robot
+from planning.scan import start_posture
+from planning.step_kinematics import GROUP_CAPACITY, POINT_GROUPS, point_names, step_kinematics, step_kinematics_params
+from safety import ConstraintStack, FilterInputs, PointKinematics, default_constraints
+from safety.constraints import RcmEquality
+
+JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
+
+
+class Step(NamedTuple):
+    """One control step's record: time, joints, command and result, what the filter saw
+    (mm, s, rad; W). The tip velocity done is J_tip qdot (LoopRun computes it)."""
+
+    t: float
+    q: np.ndarray
+    qdot: np.ndarray
+    v_cmd: np.ndarray
+    J_tip: np.ndarray
+    ok: bool
+    reason: str
+    intervened: bool
+    solve_us: float
+    step_us: float
+    model_clearance: float
+    kind: str
+    rcm_error_mm: float
+    points_W: np.ndarray
+    lens_W: np.ndarray
+
+
+@dataclass
+class StepRecord:
+    """A run's steps (one Step each: one append per control step) and the (q, v_cmd) on
+    which Drake's diff IK is timed after the run."""
+
+    steps: list = field(default_factory=list)
+    drake_diffik_us: list = field(default_factory=list)
+    diffik_states: list = field(default_factory=list)
+
+
+def loop_constraints(robot: Robot, config: LoopConfig) -> list:
+    """The loop's constraint stack: tip speed, joint limits, the tip and port against the
+    eye field (slot "eye"), the shaft against the fitted model (slot "eye_shaft"), the lens
+    keep-out (slot "lens"), the RCM through the robot's trocar, then config.extra_constraints."""
+    return default_constraints(config.filter, robot.q_lower, robot.q_upper, robot.qdot_max,
+                               (("tip_port", "eye", 2), ("shaft", "eye_shaft", 0)), ("lens", "lens"),
+                               RcmEquality(np.asarray(robot.p_WC, dtype=float), RCM_GAIN_PER_S),
+                               config.extra_constraints)
+
+
+class FilterSystem(LeafSystem):
+    """The safety filter at the control rate: inputs "q", "snapshot" (the model, and through
+    its time the sensor's freshness), "measurement" (the sensor's latest [distance, valid,
+    confidence, t_s], read for the log's beam only); state and output "qdot" (zero-order
+    hold; the integrator, updating at the same instants, applies a step's qdot from the
+    next step on: one control period of actuation latency, the same at every step). The
+    command source (`source`, set by `reset`: eval.commands' signature) is called inside
+    the step. With a logger, each step's FilterInputs (`inputs`) go to the log, which
+    `vitreoguard replay` re-runs through safety.SafetyFilter."""
+
+    def __init__(self, robot: Robot, config: LoopConfig, prior):
+        super().__init__()
+        self.robot, self.config, self.prior = robot, config, prior
+        self.constraints = loop_constraints(robot, config)
+        self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
+                                     {"eye": model_field_kernel, "eye_shaft": model_field_kernel,
+                                      "lens": model_field_kernel}, config.filter, kinematics=step_kinematics,
+                                     point_names=point_names, port=("tip_port", 1))
+        self._kp = step_kinematics_params(robot, robot.p_WC, config.points)
+        self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
+        self.lens = robot.scenario.lens_W
+        self._lens_field = ModelField(self.lens).params
+        self._prior_field = ModelField(prior).params
+        self._none_field = ModelField.none().params
+        chord = max(band_chord(np.radians(config.trust_angle_deg)), band_chord(np.radians(config.misfit_angle_deg)))
+        self._field_options = dict(trust_angle_rad=float(np.radians(config.trust_angle_deg)),
+                                   misfit_angle_rad=float(np.radians(config.misfit_angle_deg)), band_chord=chord)
+        self._key, self._fields = None, ()
+        chain = robot.chain
+        self._tip_chain = (chain.S, *chain.homes["T"])  # frame_position's (S, R_home, p_home) of the tip T, without q
+        self._q = self.DeclareVectorInputPort("q", 6)
+        self._snap = self.DeclareAbstractInputPort("snapshot", AbstractValue.Make(ModelSnapshot("prior", None, 0.0, np.nan, 0)))
+        self._meas = self.DeclareVectorInputPort("measurement", 4)
+        state = self.DeclareDiscreteState(6)
+        dt = 1.0 / config.control_rate_hz
+        # the first step waits for the sensor's first packet (the robot holds still until then)
+        first_s = dt * np.ceil(config.sensor_packet / config.sensor_rate_hz / dt + 0.5)
+        # on the integrator's own series of times (period dt, offset 0), so that a step and
+        # the integrator's update are one simulator step, always
+        self._skip_before_s = first_s - 0.5 * dt
+        self.DeclarePeriodicDiscreteUpdateEvent(dt, 0.0, self._update)
+        self.DeclareStateOutputPort("qdot", state)
+        self.reset(None, None)
+        self._compile()
+
+    def _compile(self) -> None:
+        """Compile (or load from numba's cache) the step before any run, so that no run's wall
+        time holds a compilation: a step that holds the equality optimum, one that needs
+        DAQP, then the same with its remembered active set."""
+        scenario = self.robot.scenario
+        prior, q = ModelSnapshot("prior", None, 0.0, np.nan, 0), start_posture(self.robot, scenario.eye_pose.p_WE, self.robot.p_WC)
+        for v in (0.0, 60.0, 60.0):
+            self.filter_step(0.0, q, np.array([v, 0.0, 0.0, 0.0]), prior, 0.0)
+        self.reset(None, None)
+
+    def reset(self, source, logger=None) -> None:
+        """A new run: the command source (called source(t_s, p_WT, q) -> (v_W (3,) mm/s,
+        roll rad/s) once per step, in time order) and the run's logger (or None)."""
+        self.source, self.logger, self.record = source, logger, StepRecord()
+        self.wall_s = 0.0  # wall time (s) of its steps since the reset (command source, records and log included)
+        self.command_wall_s = 0.0  # of which in the command source
+        self.stack.reset()
+
+    def fields(self, snap: ModelSnapshot) -> tuple:
+        """The field slots' params ("eye", "eye_shaft", "lens") for a snapshot: made once per
+        model; a snapshot that differs from the last only in its time reuses them."""
+        key = (snap.shape, snap.coverage, snap.kind, snap.residual_mm)
+        last = self._key
+        if last is None or not (key[0] is last[0] and key[1] is last[1] and key[2] == last[2]
+                                and (key[3] == last[3] or (key[3] != key[3] and last[3] != last[3]))):
+            if snap.shape is None:
+                eye, shaft = self._prior_field, self._none_field
+            else:
+                margin = float(snap.margin_mm(self.config.margins))
+                eye = ModelField(snap.shape, margin, snap.coverage, self.prior, **self._field_options).params
+                shaft = ModelField(snap.shape, margin, snap.coverage, None, **self._field_options).params
+            self._fields, self._key = (eye, shaft, self._lens_field), key
+        return self._fields
+
+    def filter_step(self, t_s: float, q: np.ndarray, command: np.ndarray, snap: ModelSnapshot, sensor_t_s: float):
+        """(FilterOutput, P (K, 3) mm, ranges, J_tip (3, 6) mm/rad, RCM error mm) of one step."""
+        times = np.array([t_s, t_s if snap.shape is None else snap.t_s, sensor_t_s])
+        out, _, P, ranges, J_tip, rcm_error = self.stack.solve_at(q, command, times, self._kp, self.fields(snap))
+        return out, P, ranges, J_tip, rcm_error
+
+    def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
+        """(FilterInputs, InstrumentPoints) of one step, as the log records it for replay;
+        ValueError on bad joint angles."""
+        robot = self.robot
+        ip = instrument_points(robot, q, robot.p_WC, self.config.points)
+        model, kind = (self.prior, None) if snap.shape is None else (snap.shape, snap.kind)
+        k = 2 if kind is None else len(ip.names)
+        trusted, misfit = np.ones(k, dtype=bool), np.zeros(k)
+        if kind is not None and snap.coverage is not None:
+            trusted[:2] = snap.coverage.angle_from_data_rad(ip.P_W[:2]) <= np.radians(self.config.trust_angle_deg)
+            misfit = snap.coverage.local_misfit_mm(ip.P_W[:k], np.radians(self.config.misfit_angle_deg))
+        x = FilterInputs(
+            t_s=t_s, q=np.array(q), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,
+            v_cmd_W=np.array(command[:3]), J_tip=ip.J_tip,
+            boundary_points=[PointKinematics(n, p, J, bool(tr), float(m))
+                             for n, p, J, tr, m in zip(ip.names[:k], ip.P_W[:k], ip.J_W[:k], trusted, misfit)],
+            model=model, model_time_s=t_s if kind is None else snap.t_s, sensor_time_s=sensor_t_s,
+            rcm_A=ip.rcm_A, rcm_b=ip.rcm_b, lens=self.lens,
+            lens_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.lens_names, ip.L_W, ip.J_L)],
+            margin_mm=snap.margin_mm(self.config.margins), J_roll=ip.J_roll,
+            roll_rate_cmd=float(command[3]), fallback=None if kind is None else self.prior,
+        )
+        return x, ip
+
+    def _update(self, context, discrete_state) -> None:
+        if context.get_time() < self._skip_before_s:  # before the first packet: qdot stays 0
+            return
+        t0 = time.perf_counter()
+        self._step(context, discrete_state, t0)
+        self.wall_s += time.perf_counter() - t0
+
+    def _command(self, t_s: float, q: np.ndarray) -> np.ndarray:
+        """The source's command (4,) [v_W (3,) mm/s, roll rad/s] at t_s for the joint angles
+        q (6,) rad (non-finite q gives a NaN tip, and the filter refuses the step)."""
+        t0 = time.perf_counter()
+        S, R_home, p_home = self._tip_chain
+        v, roll = self.source(t_s, frame_position(S, q, R_home, p_home), q)
+        command = np.empty(4)
+        command[:3], command[3] = v, roll  # ValueError unless v holds 3 numbers
+        self.command_wall_s += time.perf_counter() - t0
+        return command
+
+    def _step(self, context, discrete_state, t0: float) -> None:
+        t = context.get_time()
+        q = self._q.Eval(context)
+        command = self._command(t, q)
+        snap = self._snap.Eval(context)
+        sensor_t = snap.t_s  # the newest sensor sample, relayed by the model system (ModelSnapshot.t_s)
+        rec = self.record
+        out, P, ranges, J_tip, rcm_error = self.filter_step(t, q, command, snap, sensor_t)
+        discrete_state.set_value(out.qdot)
+        step_us = 1e6 * (time.perf_counter() - t0)
+        if self.config.drake_diffik_every and len(rec.steps) % self.config.drake_diffik_every == 0 and out.ok:
+            rec.diffik_states.append((q, command[:3]))  # Drake is timed on these after the run (ClosedLoop.run)
+        rec.steps.append(Step(t, q, out.qdot, command[:3], J_tip, out.ok, out.reason, out.intervened, out.solve_us,
+                              step_us, out.min_clearance_mm, snap.kind, float(rcm_error), P[:ranges[1, 1]],
+                              P[ranges[2, 0]:ranges[2, 1]]))
+        if self.logger is not None:
+            meas = self._meas.Eval(context)
+            self._log(t, q, command, snap, sensor_t, out, float(meas[0]) if meas[1] > 0 else float("nan"))
+
+    def time_drake_diffik(self) -> None:
+        """Time Drake's DoDifferentialInverseKinematics on the states recorded during the
+        run (every drake_diffik_every-th step the filter solved), into the record: the
+        same plant and states as the filter, outside the run's wall time."""
+        rec = self.record
+        for q, v_cmd in rec.diffik_states:
+            t1 = time.perf_counter()
+            self.drake_diffik(q, v_cmd)
+            rec.drake_diffik_us.append(1e6 * (time.perf_counter() - t1))
+
+    def _log(self, t: float, q, command, snap, sensor_t: float, out, distance_mm: float) -> None:
+        """Every step's filter inputs and outputs; joint states at 100 Hz; frames and the
+        3D scene (model, lens, trocar, the beam to the last measured distance) at 20 Hz."""
+        log, k = self.logger, len(self.record.steps)
+        try:
+            x = self.inputs(t, q, command, snap, sensor_t)[0]
+        except ValueError:  # non-finite joint angles: nothing the replay could re-run
+            x = None
+        if x is not None:
+            log.log_filter_step(x, out)
+        if k % 10 == 1:
+            log.log_joint_states(t, q, out.qdot, JOINT_NAMES)
+        if k % 50 == 1 and x is not None:
+            frames = {}
+            for name in ("F", "T", "S", "P"):
+                R, p = self.robot.pose(name, q)
+                X = np.eye(4)
+                X[:3, :3], X[:3, 3] = R, p
+                frames[name] = X
+            log.log_frames(t, frames)
+            o, u = self.robot.beam(q)
+            beam = None if not np.isfinite(distance_mm) else (o, o + distance_mm * u)
+            log.log_scene(t, eye=x.model, beam=beam, p_W_trocar=self.robot.p_WC, lens=self.lens)

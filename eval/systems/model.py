@@ -1,0 +1,192 @@
+"""The adaptive model as a Drake system: each sensor packet updates the model, and the
+filter reads a snapshot (the model's shape in W, its phase, its coverage, and through
+its time the sensor's freshness: sensor -> model -> filter).
+
+Before the model has a shape the conservative prior eye (safety.margins) bounds the
+motion. Units: mm, s; frame W.
+"""
+from __future__ import annotations
+
+import time
+from typing import NamedTuple
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+
+from models import AdaptiveEyeModel
+from models.coverage import DirectionCoverage
+from models.transition import PredictiveCriteria
+from planning.iioct_sensor import NO_SAMPLE_YET
+from safety.margins import UncertaintyMargins
+
+ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of the 2 kHz stream, ~0.4 MB/s
+
+
+class ModelSnapshot(NamedTuple):
+    """What the filter reads of the model: `kind` "prior" | "sphere" | "ellipsoid", its
+    `shape` in W (None for the prior), `t_s` of the newest sensor sample the model system
+    has processed (it stamps every packet: the filter's model age and sensor age), the
+    model's RMS residual (mm) and point count."""
+
+    kind: str
+    shape: object
+    t_s: float
+    residual_mm: float
+    n_points: int
+    coverage: object = None  # models.coverage.CoverageView of the measured directions
+
+    def __deepcopy__(self, memo) -> ModelSnapshot:
+        return self  # immutable (the shapes are frozen): Drake copies abstract state values often
+
+    def margin_mm(self, margins: UncertaintyMargins) -> float:
+        """The uncertainty margin (mm) the filter adds to d_safe for this model (none for
+        the prior, which is conservative by construction)."""
+        return margins.margin_mm(None if self.shape is None else self.kind, self.residual_mm)
+
+
+_PRIOR_AT_0 = ModelSnapshot("prior", None, 0.0, np.nan, 0)
+
+
+def semi_axes_mm(shape) -> np.ndarray:
+    """The semi-axes (mm) of a Sphere (its radius, once) or an Ellipsoid."""
+    return np.atleast_1d(getattr(shape, "radii", getattr(shape, "radius", np.nan)))
+
+
+def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float, min_points: int = 0,
+                min_scan_range_mm: float = 0.0, radius_range_mm: tuple = (0.0, np.inf)) -> ModelSnapshot:
+    """The snapshot of `model` at t_s: its current shape once it rests on at least
+    `min_points` points over `min_scan_range_mm` with semi-axes within `radius_range_mm`;
+    an ellipsoid outside that range (a fit to a pathological eye, like the pointed eye's
+    153 x 29 x 29 mm) gives way to the model's sphere fit if that one is an eye's (its
+    phase's wider margin applies); "prior" otherwise. The model's shapes are made once
+    per update (AdaptiveEyeModel.shape), and only once the trust limits on points and
+    scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says."""
+    n = model.n_points
+    shape = None if n < min_points or model.scan_range_mm < min_scan_range_mm else model.shape
+    if shape is not None:
+        last, (lo, hi) = model.history[-1], radius_range_mm
+        if model.kind == "ellipsoid":
+            radii = shape.radii.tolist()
+            if lo <= min(radii) and max(radii) <= hi:
+                return ModelSnapshot("ellipsoid", shape, t_s, float(last.ef_residual_mm), n, coverage.view(shape))
+            shape = model.sphere  # the ellipsoid is no eye's: its sphere fit, if that one is
+        if shape is not None and lo <= shape.radius <= hi:
+            return ModelSnapshot("sphere", shape, t_s, float(last.sf_residual_mm), n, coverage.view(shape))
+    return ModelSnapshot("prior", None, t_s, float("nan"), n, coverage.view())
+
+
+class AdaptiveModelSystem(LeafSystem):
+    """Feeds each packet of sensor samples (input "packet", a planning.iioct_sensor
+    SensorPacket, its samples in time order as IioctSensorSystem delivers them) to an
+    AdaptiveEyeModel: one update per packet with the valid points of its samples not
+    seen before; state and output "snapshot" (ModelSnapshot). Runs at the packet rate,
+    just after each packet is complete. Logs the distances and model updates when a
+    logger is set."""
+
+    def __init__(self, packet_rate_hz: float, offset_s: float, min_points: int, min_scan_range_mm: float,
+                 radius_range_mm: tuple):
+        super().__init__()
+        self._trust = (min_points, min_scan_range_mm, radius_range_mm)
+        self._packet = self.DeclareAbstractInputPort("packet", AbstractValue.Make(NO_SAMPLE_YET))
+        self._snap = self.DeclareAbstractState(AbstractValue.Make(_PRIOR_AT_0))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
+        self.DeclareStateOutputPort("snapshot", self._snap)
+        self._compile()
+        self.reset(AdaptiveEyeModel(), DirectionCoverage(np.zeros(3)))
+
+    def _compile(self) -> None:
+        """Compile (or load from numba's cache, ~0.5 s) the model's kernels before any run, so
+        that no run's first packet holds it: a throwaway model with the predictive criteria
+        (their checkpoints' kernels too) and its coverage take packets of 10 points from an
+        eye-sized ellipsoid cap (mm) until both fits and a checkpoint's convergence test
+        have run, then the snapshot of each kind (trust limits of 0: any shape)."""
+        rng = np.random.default_rng(0)
+        u = rng.normal(size=(300, 3))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        u[:, 2] = -np.abs(u[:, 2])  # a posterior cap
+        P = u * [11.5, 11.4, 10.1] + rng.normal(0.0, 0.02, (300, 1)) * u
+        model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), DirectionCoverage(np.zeros(3))
+        for k in range(0, len(P), 10):
+            model.update(P[k:k + 10])
+            coverage.add(model.last_accepted)
+        for shape in (None, model.sphere, model.ellipsoid):
+            coverage.view(shape)
+        snapshot_of(model, coverage, 0.0)
+
+    def reset(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, logger=None) -> None:
+        self.model, self.coverage, self.logger = model, coverage, logger
+        self._last_t = -np.inf
+        self._written = _PRIOR_AT_0  # the declared state's value, until initial_snapshot
+        self.wall_s = 0.0  # wall time (s) of its updates since the reset
+        self.update_us: list[float] = []
+        self._distances: list[tuple] = []  # per packet: its extracted and true distances, and which are valid
+        self.n_samples = 0
+        self.n_invalid = 0
+        self.epochs: list[ModelSnapshot] = []  # the snapshot whenever the filter's model changed kind
+
+    @property
+    def errors_mm(self) -> list[float]:
+        """Extracted - true distance (mm) of the valid samples since the reset, in time order
+        (evaluation; made when read from the packets' arrays, which no one changes)."""
+        return [e for d, true, valid in self._distances for e in (d - true)[valid].tolist()]
+
+    def _mark_epoch(self, snap: ModelSnapshot) -> None:
+        if not self.epochs or self.epochs[-1].kind != snap.kind:
+            self.epochs.append(snap)
+
+    def snapshot_for(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float) -> ModelSnapshot:
+        """What the filter would read of `model` at t_s under this loop's trust rules."""
+        return snapshot_of(model, coverage, t_s, *self._trust)
+
+    def initial_snapshot(self) -> ModelSnapshot:
+        """The snapshot the run starts from (ClosedLoop.run puts it in the context's state)."""
+        self._written = self.snapshot_for(self.model, self.coverage, 0.0)
+        self._mark_epoch(self._written)
+        return self._written
+
+    def _update(self, context, state) -> None:
+        t0 = time.perf_counter()
+        self._absorb(context, state)
+        self.wall_s += time.perf_counter() - t0
+
+    def _absorb(self, context, state) -> None:
+        packet = self._packet.Eval(context)
+        if not packet.t_s.item(0) > self._last_t:  # samples seen before (or the placeholder before the first packet)
+            new = np.flatnonzero(packet.t_s > self._last_t)  # in time order: the packet's last ones
+            if not len(new):
+                return
+            packet = packet.take(new)
+        T, valid = packet.t_s, packet.valid
+        self._last_t = T.item(-1)
+        first = self.n_samples
+        self.n_samples += len(T)
+        n_valid = valid.tolist().count(True)  # C calls only (np.count_nonzero is a Python function)
+        self.n_invalid += len(T) - n_valid
+        self._distances.append((packet.distance_mm, packet.true_distance_mm, valid))
+        if self.logger is not None:
+            ascans = packet.ascans
+            for k, (t, d, ok, c) in enumerate(zip(T.tolist(), packet.distance_mm.tolist(), valid.tolist(),
+                                                  packet.confidence.tolist())):
+                self.logger.log_distance(t, d, ok, c)
+                if ascans is not None and ascans[k] is not None and (first + k) % ASCAN_LOG_EVERY == 0:
+                    self.logger.log_ascan(t, ascans[k], ok, packet.reasons[k])
+        entry = None
+        if n_valid:
+            t0 = time.perf_counter()
+            entry = self.model.update(packet.p_W if n_valid == len(T) else packet.p_W[valid])
+            # only what the model took in: a floater the gate turned away must not count as
+            # retina measured deep inside the model (it would become every nearby point's margin)
+            self.coverage.add(self.model.last_accepted)
+            self.update_us.append(1e6 * (time.perf_counter() - t0) / n_valid)
+            if entry is not None and self.logger is not None:
+                self.logger.log_model_update(self._last_t, entry)
+        # the state is what this system last wrote (or the initial snapshot): kept at hand
+        if entry is not None or self._written.shape is None:
+            self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust)
+        else:
+            self._written = self._written._replace(t_s=self._last_t)
+        state.get_mutable_abstract_state(0).set_value(self._written)
+        self._mark_epoch(self._written)
+
+
