@@ -28,7 +28,7 @@ NONE, SPHERE, ELLIPSOID = 0, 1, 2
 # params: kind, centre (3), rotation (9), radii (3), margin, fallback (0/1), fallback centre (3), fallback radius,
 # coverage (0/1), coverage centre (3), trust angle, cos(misfit angle), z band chord, covered count, then the
 # covered directions (3 N) and their misfits (N)
-_HEAD = 1 + 3 + 9 + 3 + 1 + 1 + 3 + 1 + 1 + 3 + 3 + 1
+_HEAD = 1 + 3 + 9 + 3 + 1 + 1 + 3 + 1 + 1 + 3 + 3 + 1  # 30
 
 
 @njit(cache=True)
@@ -50,7 +50,7 @@ def model_field_kernel(fp, P):
     u = np.full(M, margin)
     if not has_coverage:
         return h, g, u
-    n = int(fp[30])
+    n = int(fp[29])
     dirs, misfit = fp[_HEAD:_HEAD + 3 * n].reshape((n, 3)), fp[_HEAD + 3 * n:_HEAD + 4 * n]
     V = np.empty((M, 3))
     for i in range(M):
@@ -96,7 +96,7 @@ class ModelField:
         if coverage is not None and shape is not None:
             dirs = coverage.sorted_directions
             misfit = coverage.misfits_mm
-            head[22], head[23:26], head[26:29], head[30] = 1.0, coverage.center_W, (
+            head[22], head[23:26], head[26:29], head[29] = 1.0, coverage.center_W, (
                 trust_angle_rad, np.cos(misfit_angle_rad), band_chord), len(dirs)
             parts += [np.asarray(dirs, dtype=float).ravel(),
                       np.zeros(len(dirs)) if misfit is None else np.asarray(misfit, dtype=float)]
