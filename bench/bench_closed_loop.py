@@ -10,6 +10,7 @@ import numpy as np
 from bench.timing import summary_us, time_calls_us
 from eval.boundary_experiment import build_model_by_spiral, run_campaign
 from eval.closed_loop import ClosedLoop, ModelSnapshot
+from safety import SafetyFilter
 from planning import SurgeryScenario
 from planning.instrument_points import instrument_points
 
@@ -131,7 +132,8 @@ def run() -> None:
     cmd = np.array([5.0, 0.0, -3.0, 0.0])
     print(f"reference path: FilterSystem.inputs:     {summary_us(time_calls_us(lambda i: f.inputs(0.0, qs[i], cmd, snap, 0.0), len(qs)))}")
     xs = [f.inputs(0.0, q, cmd, snap, 0.0)[0] for q in qs[:500]]
-    print(f"reference path: SafetyFilter call:       {summary_us(time_calls_us(lambda i: f.filter(xs[i]), len(xs)))}")
+    reference = SafetyFilter(loop.config.filter)
+    print(f"reference path: SafetyFilter call:       {summary_us(time_calls_us(lambda i: reference(xs[i]), len(xs)))}")
     P = loop.config.sensor_packet
     packets = [qs[i:i + P] for i in range(0, len(qs) - P, P)]  # joint angles along the runs
     T = np.arange(P) / loop.config.sensor_rate_hz

@@ -88,10 +88,20 @@ class SafetyFilter:
         return stack
 
     def __call__(self, x: FilterInputs) -> FilterOutput:
+        return self._run(x)[0]
+
+    def qp(self, x: FilterInputs):
+        """The step's QP (safety.qp.DenseQP) for these inputs, as the filter builds it (None on a fault)."""
+        out, stack, r, ranges = self._run(x)
+        return None if stack is None else stack.qp(r, ranges)
+
+    def _run(self, x: FilterInputs) -> tuple:
+        """(FilterOutput, the stack, its raw result, the point ranges); None for the last three
+        on a fault found before the compiled step."""
         n = len(np.atleast_1d(x.q))
         fault = self._fault(x, n)
         if fault:
-            return FilterOutput(np.zeros(n), False, fault)
+            return FilterOutput(np.zeros(n), False, fault), None, None, None
         pts = list(x.boundary_points)
         lens_pts = list(x.lens_points) if x.lens is not None else []
         k, m = len(pts), len(lens_pts)
@@ -99,7 +109,7 @@ class SafetyFilter:
         J = np.array([p.J_W for p in pts + lens_pts], dtype=float).reshape(k + m, 3, n)
         if not (np.isfinite(P).all() and np.isfinite(J).all()):
             bad = next(p for p in pts + lens_pts if not (np.all(np.isfinite(p.p_W)) and np.all(np.isfinite(p.J_W))))
-            return FilterOutput(np.zeros(n), False, f"non-finite kinematics of {bad.name}")
+            return FilterOutput(np.zeros(n), False, f"non-finite kinematics of {bad.name}"), None, None, None
         h, g = _distance_and_gradient(x.model, P[:k])
         untrusted = [i for i, p in enumerate(pts) if not p.trusted]
         if untrusted and x.fallback is not None:  # the tighter of the model and the fallback
@@ -118,9 +128,9 @@ class SafetyFilter:
         ranges = np.array([[0, k], [k, k + m]], dtype=np.int64)
         times = np.array([x.t_s, x.model_time_s, x.sensor_time_s], dtype=float)
         fields = fields if m else fields + [np.zeros(0)] * (len(stack.slots) - 1)
-        out, _ = stack.solve(np.asarray(x.q, dtype=float), command, times, np.asarray(x.J_tip, dtype=float), J_roll, P,
+        out, r = stack.solve(np.asarray(x.q, dtype=float), command, times, np.asarray(x.J_tip, dtype=float), J_roll, P,
                              J, ranges, tuple(fields[:len(stack.slots)]))
-        return out
+        return out, stack, r, ranges
 
     def _fault(self, x: FilterInputs, n: int) -> str | None:
         """Why this step must not move the robot, from what the compiled step cannot see

@@ -91,6 +91,15 @@ class ConstraintStack:
                                                               self.active, True, *self.ws)
         return self.output(r, q, command, times, J_tip, P, ranges, t0, True), r, P, ranges, J_tip, rcm_error
 
+    def qp(self, r, ranges) -> DenseQP | None:
+        """The QP a step with raw result `r` left in the workspace (None after a fault)."""
+        code, _, _, _, m, p, _, _, _ = r
+        if code == core.STEP_FAULT:
+            return None
+        H, c, lb, ub, G, h, ids, A, b, _, _ = self.ws
+        return DenseQP(H.copy(), c.copy(), lb.copy(), ub.copy(), G[:m].copy(), h[:m].copy(), A[:p].copy(), b[:p].copy(),
+                       self.row_names(ids[:m], ranges))
+
     def output(self, r, q, command, times, J_tip, P, ranges, t0: float, warm: bool) -> FilterOutput:
         code, fault, detail, x, m, p, n_bound, clearance, off = r
         n = len(q)

@@ -265,9 +265,9 @@ def test_adversarial_starts_are_inside_the_true_retina_where_the_model_bulges_pa
 
 
 def test_an_ascan_mode_run_logs_a_scans_at_20_hz(emmetropic, tmp_path):
-    """Issue 6's log holds A-scans: in "ascan" mode one in ASCAN_LOG_EVERY (20 Hz of the
+    """The log holds A-scans: in "ascan" mode one in ASCAN_LOG_EVERY (20 Hz of the
     2 kHz stream), each the engine's full length, beside every distance."""
-    from eval.closed_loop import ASCAN_LOG_EVERY
+    from eval.systems.model import ASCAN_LOG_EVERY
     from eval.mcap_log import read_log
 
     loop, state = emmetropic
