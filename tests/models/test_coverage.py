@@ -145,3 +145,24 @@ def test_a_rebuilt_view_holds_the_covered_bins_and_their_misfits_exactly(kind):
     np.testing.assert_array_equal(view._dirs, sorted_here._dirs)
     np.testing.assert_array_equal(view._misfit, sorted_here._misfit)
     assert view._misfit.max() > 0.0  # points inside the shape: misfits to compare
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), angle_deg=st.floats(1.0, 180.0), n=st.integers(0, 400))
+def test_the_z_band_finds_what_the_full_scan_finds(seed, angle_deg, n):
+    # directions sorted by z (as CoverageView keeps them); queries anywhere
+    from models.coverage import band_chord, nearest_and_worst
+
+    rng = np.random.default_rng(seed)
+    dirs = fibonacci_directions(2000)[rng.permutation(2000)[:n]]
+    dirs = np.ascontiguousarray(dirs[np.argsort(dirs[:, 2])])
+    misfit = rng.uniform(0.0, 1.0, n)
+    V = rng.standard_normal((8, 3))
+    V /= np.linalg.norm(V, axis=1, keepdims=True)
+    cos_angle = np.cos(np.radians(angle_deg))
+    best_full, worst_full = nearest_and_worst(V, dirs, misfit, cos_angle)
+    best, worst = nearest_and_worst(V, dirs, misfit, cos_angle, band_chord(np.radians(angle_deg)))
+    np.testing.assert_array_equal(worst, worst_full)
+    within = best_full >= cos_angle  # the nearest direction within the angle: found, exactly
+    np.testing.assert_array_equal(best[within], best_full[within])
+    assert np.all(best[~within] < cos_angle)

@@ -1,0 +1,86 @@
+"""The loop's filter step (one compiled call: the instrument's kinematics kernel, the eye
+model as a distance field, the constraint stack) equals the filter's Python API on the
+same step's FilterInputs (the log's record; distances from the shapes' own methods)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from eval.boundary_experiment import adversarial_starts
+from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
+from planning import SurgeryScenario
+from safety import SafetyFilter
+from test_closed_loop import model_from_spiral_beams
+
+QDOT_TOL = 1e-9  # rad/s: the same rows from distances computed two ways (to rounding); only the solver's rounding differs
+
+
+@pytest.fixture(scope="module")
+def setup():
+    scenario = SurgeryScenario()
+    model, coverage = model_from_spiral_beams(scenario)
+    loop = ClosedLoop(scenario)
+    starts = adversarial_starts(loop, model.shape, 12, np.random.default_rng(5))
+    snaps = {
+        "prior": ModelSnapshot("prior", None, 0.0, np.nan, 0, coverage.view()),
+        "ellipsoid": ModelSnapshot("ellipsoid", model.shape, 0.0, 0.01, model.n_points, coverage.view(model.shape)),
+        "sphere": ModelSnapshot("sphere", model.sphere, 0.0, 0.3, model.n_points, coverage.view(model.sphere)),
+        "no coverage": ModelSnapshot("ellipsoid", model.shape, 0.0, 0.01, model.n_points, None),
+    }
+    return loop, starts, snaps
+
+
+def api(loop, t, q, command, snap, sensor_t):
+    return SafetyFilter(loop.config.filter)(loop.filter.inputs(t, q, command, snap, sensor_t)[0])
+
+
+def assert_same(out, ref):
+    assert out.ok == ref.ok and out.reason == ref.reason
+    np.testing.assert_allclose(out.qdot, ref.qdot, rtol=0, atol=QDOT_TOL)
+    assert out.active == ref.active and out.cutter_allowed == ref.cutter_allowed and out.intervened == ref.intervened
+    assert out.min_clearance_mm == pytest.approx(ref.min_clearance_mm, abs=1e-12, nan_ok=True)
+
+
+@settings(max_examples=120, deadline=None)
+@given(start=st.integers(0, 11), kind=st.sampled_from(["prior", "ellipsoid", "sphere", "no coverage"]),
+       dq=st.lists(st.floats(-0.02, 0.02), min_size=6, max_size=6),
+       v=st.lists(st.floats(-25.0, 25.0), min_size=3, max_size=3), roll=st.floats(-3.0, 3.0))
+def test_the_loop_step_equals_the_api_on_its_inputs(setup, start, kind, dq, v, roll):
+    loop, starts, snaps = setup
+    q, command = starts[start] + np.array(dq), np.array([*v, roll])
+    loop.filter.stack.reset()  # no remembered active set: the API has none either
+    out = loop.filter.filter_step(0.001, q, command, snaps[kind], 0.0)[0]
+    assert_same(out, api(loop, 0.001, q, command, snaps[kind], 0.0))
+
+
+def test_faults_are_worded_by_the_step_that_finds_them(setup):
+    loop, starts, snaps = setup
+    snap, q = snaps["ellipsoid"], starts[0]
+    stale = loop.config.filter.max_sensor_age_s + 0.01
+    cases = [([np.nan, 0.0, 0.0, 0.0], 0.0, "non-finite v_cmd_W"), ([500.0, 0.0, 0.0, 0.0], 0.0, "absurd command speed"),
+             ([1.0, 0.0, 0.0, 0.0], -stale, "stale sensor")]
+    for command, sensor_t, reason in cases:
+        out = loop.filter.filter_step(0.001, q, np.array(command), snap, sensor_t)[0]
+        assert not out.ok and out.reason.startswith(reason) and not out.qdot.any()
+        assert api(loop, 0.001, q, np.array(command), snap, sensor_t).reason.startswith(reason)
+    out = loop.filter.filter_step(0.001, np.full(6, np.nan), np.zeros(4), snap, 0.0)[0]
+    assert not out.ok and out.reason == "non-finite q" and not out.qdot.any()
+
+
+def test_both_compiled_outcomes_occur(setup):
+    loop, starts, snaps = setup
+    step, snap, q = loop.filter.filter_step, snaps["ellipsoid"], starts[0]
+    slow = step(0.001, q, np.array([0.1, 0.0, 0.0, 0.0]), snap, 0.0)[0]  # the equality optimum holds
+    fast = step(0.001, q, np.array([0.0, 0.0, 60.0, 0.0]), snap, 0.0)[0]  # the tip speed polytope binds
+    assert slow.ok and not slow.active and fast.ok and "tip_speed" in fast.active
+
+
+def test_trust_angle_180_trusts_everything(setup):
+    loop, starts, snaps = setup
+    wide = ClosedLoop(loop.scenario, LoopConfig(trust_angle_deg=180.0))
+    command = np.array([1.0, 0.0, 0.0, 0.0])
+    out = wide.filter.filter_step(0.001, starts[0], command, snaps["ellipsoid"], 0.0)[0]
+    assert_same(out, SafetyFilter(wide.config.filter)(wide.filter.inputs(0.001, starts[0], command, snaps["ellipsoid"],
+                                                                         0.0)[0]))

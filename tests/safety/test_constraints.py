@@ -1,0 +1,108 @@
+"""Each constraint's rows from geometry whose answer is known, and the assembly's checks."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numba import njit
+
+from safety import ConstraintStack, FilterConfig
+from safety.constraints import JointPositionLimits, JointSpeedLimits, KeepOut, PointBarrier, RcmEquality, TipSpeedLimit
+from safety.constraints.point_barrier import NON_FINITE_FIELD, fill_point_barrier
+from safety.constraints.rcm import fill_rcm
+from safety.constraints.tip_speed import FACE_NORMALS, REACH, fill_tip_speed
+
+
+def buffers(rows: int, n: int):
+    return np.zeros((rows, n)), np.zeros(rows), np.zeros(rows, dtype=np.int64)
+
+
+def test_the_tip_speed_polytope_holds_the_ball_and_stays_within_the_limit():
+    G, h, ids = buffers(26, 3)
+    assert fill_tip_speed(TipSpeedLimit(20.0).params(), np.eye(3), G, h, ids, 0, 7) == 26
+    np.testing.assert_allclose(G, FACE_NORMALS)
+    np.testing.assert_allclose(h, 20.0 / REACH)
+    np.testing.assert_array_equal(ids, 7 + np.arange(26))
+    # every unit direction at the face distance is inside; the largest vertex reach stays <= the limit
+    rng = np.random.default_rng(0)
+    u = rng.standard_normal((2000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    assert np.all(G @ (u * 20.0 / REACH).T <= h[:, None] + 1e-9)
+    s = np.max(np.linalg.norm(u, axis=1) / np.max(G @ u.T / h[:, None], axis=0))  # reach of the polytope along u
+    assert 0.87 * 20.0 <= s * 1.0 <= 20.0
+
+
+def test_a_point_barrier_row_is_the_barrier_condition():
+    # a point 1.0 mm inside a field whose gradient is +z, Jacobian identity: the row allows an
+    # outward speed of gain (h - d_safe - k u) along -z
+    b = PointBarrier("g", "f", d_safe_mm=0.5, gain_per_s=20.0, max_recovery_mm_s=5.0, sigma_factor=2.0)
+    G, h, ids = buffers(1, 3)
+    point_h = np.full(1, np.nan)
+    m = fill_point_barrier(b.params(), np.zeros((1, 3)), np.eye(3)[None], 0, 1, np.array([1.0]),
+                           np.array([[0.0, 0.0, 1.0]]), np.array([0.1]), G, h, ids, 0, 3, point_h)
+    assert m == 1 and ids[0] == 3 and point_h[0] == 1.0
+    np.testing.assert_allclose(G[0], [0.0, 0.0, -1.0])
+    assert h[0] == pytest.approx(20.0 * (1.0 - 0.5 - 2.0 * 0.1))
+    # below the margin the recovery is capped at max_recovery
+    m = fill_point_barrier(b.params(), np.zeros((1, 3)), np.eye(3)[None], 0, 1, np.array([-3.0]),
+                           np.array([[0.0, 0.0, 1.0]]), np.zeros(1), G, h, ids, 0, 0, point_h)
+    assert h[0] == -5.0
+
+
+def test_rows_out_of_reach_are_screened_and_infinity_means_no_boundary_and_nan_refuses():
+    b = PointBarrier("g", "f", screen_reach_mm=1.0, always_first=1)
+    G, h, ids = buffers(3, 3)
+    P, J = np.zeros((3, 3)), np.tile(np.eye(3), (3, 1, 1))
+    g = np.tile([0.0, 0.0, 1.0], (3, 1))
+    # point 0 far but always kept, point 1 far (left out), point 2 near
+    assert fill_point_barrier(b.params(), P, J, 0, 3, np.array([5.0, 5.0, 1.0]), g, np.zeros(3), G, h, ids, 0, 0,
+                              np.zeros(3)) == 2
+    np.testing.assert_array_equal(ids[:2], [0, 2])
+    point_h = np.zeros(3)
+    assert fill_point_barrier(b.params(), P, J, 0, 3, np.array([np.inf, 1.0, 1.0]), g, np.zeros(3), G, h, ids, 0, 0,
+                              point_h) == 2 and point_h[0] == np.inf
+    assert fill_point_barrier(b.params(), P, J, 0, 3, np.array([np.nan, 1.0, 1.0]), g, np.zeros(3), G, h, ids, 0, 0,
+                              point_h) == -NON_FINITE_FIELD
+    # a keep-out reads the field from outside: +inf is inside the keep-out, a fault
+    assert fill_point_barrier(KeepOut("g", "f").params(), P, J, 0, 3, np.array([np.inf, -1.0, -1.0]), g, np.zeros(3),
+                              G, h, ids, 0, 0, point_h) == -NON_FINITE_FIELD
+
+
+def test_the_rcm_rows_hold_the_trocar_and_correct_a_lateral_error():
+    # shaft along x through the origin; the trocar 0.1 mm off along y: b = gain * 0.1 on the y row
+    A, b = np.zeros((2, 3)), np.zeros(2)
+    c = RcmEquality(np.array([0.0, 0.1, 0.0]), gain_per_s=50.0)
+    assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), A, b, 0) == 2
+    np.testing.assert_allclose(A, [[0, 1, 0], [0, 0, 1]])
+    np.testing.assert_allclose(b, [5.0, 0.0])
+
+
+def test_joint_bounds_intersect():
+    from safety.constraints.joint_limits import fill_joint_position
+    from safety.constraints.joint_speed import fill_joint_speed
+
+    lb, ub = np.full(2, -np.inf), np.full(2, np.inf)
+    fill_joint_speed(JointSpeedLimits(np.array([1.0, 2.0])).params(), lb, ub)
+    # joint 0 0.05 rad from its upper limit (margin 0): ub = gain * 0.05 = 0.5 rad/s
+    c = JointPositionLimits(np.array([-1.0, -1.0]), np.array([1.0, 1.0]), gain_per_s=10.0, margin_rad=0.0)
+    fill_joint_position(c.params(), np.array([0.95, 0.0]), lb, ub)
+    np.testing.assert_allclose(lb, [-1.0, -2.0])
+    np.testing.assert_allclose(ub, [0.5, 2.0])
+
+
+@njit(cache=True)
+def fill_unknown(sp, weird, G, h, ids, m, id0):
+    return m
+
+
+def test_the_assembly_refuses_what_it_cannot_wire():
+    class Weird(TipSpeedLimit):
+        filler = staticmethod(fill_unknown)
+
+    with pytest.raises(ValueError, match="unknown argument 'weird'"):
+        ConstraintStack([Weird()], {}, {}, FilterConfig(), n_joints=3)
+    with pytest.raises(ValueError, match="point group 'nowhere'"):
+        ConstraintStack([PointBarrier("nowhere", "eye")], {"boundary": 2}, {"eye": fill_unknown}, FilterConfig())
+    with pytest.raises(ValueError, match="no field kernel for slot 'eye'"):
+        ConstraintStack([PointBarrier("boundary", "eye")], {"boundary": 2}, {}, FilterConfig())
+    with pytest.raises(ValueError, match="module-level numba"):
+        ConstraintStack([PointBarrier("boundary", "eye")], {"boundary": 2}, {"eye": lambda fp, P: None}, FilterConfig())
