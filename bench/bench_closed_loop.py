@@ -80,7 +80,8 @@ def _sensor_ms_per_simulated_s(loop: ClosedLoop, q0: np.ndarray, duration_s: flo
     from pydrake.systems.framework import DiagramBuilder
     from pydrake.systems.primitives import ConstantVectorSource, DiscreteTimeIntegrator
 
-    from planning.iioct_sensor import IioctSensor, IioctSensorSystem
+    from eval.systems.sensor import IioctSensorSystem
+    from planning.iioct import IioctSensor
 
     def wall_s(with_sensor: bool) -> float:
         b = DiagramBuilder()

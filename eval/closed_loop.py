@@ -30,9 +30,10 @@ from pydrake.systems.primitives import DiscreteTimeIntegrator
 from eval.loop_config import LoopConfig
 from eval.systems.filter import FilterSystem, Step
 from eval.systems.model import AdaptiveModelSystem, ModelSnapshot, semi_axes_mm, snapshot_of
+from eval.systems.sensor import IioctSensorSystem
 from models import AdaptiveEyeModel
 from models.coverage import DirectionCoverage
-from planning.iioct_sensor import IioctSensor, IioctSensorSystem
+from planning.iioct import IioctSensor
 from planning.robot import Robot
 from safety.margins import conservative_prior
 

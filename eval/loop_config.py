@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planning.instrument_points import MonitoredPointsConfig
-from planning.iioct_sensor import rate_ratio
+from planning.iioct import rate_ratio
 from safety import FilterConfig
 from safety.margins import UncertaintyMargins
 

@@ -83,6 +83,12 @@ def chain_pose_into(S, q, R, p, work):
         _times_joint(S, i, q[i], R, p, work)
 
 
+@numba.njit(cache=True, inline="always")
+def _rotated(R, v0, v1, v2, r):
+    """Row r of R (v0, v1, v2)."""
+    return R[r, 0] * v0 + R[r, 1] * v1 + R[r, 2] * v2
+
+
 @numba.njit(cache=True)
 def _apply(R, p, R_home, p_home):
     """(R R_home, R p_home + p)."""
@@ -90,9 +96,19 @@ def _apply(R, p, R_home, p_home):
     p_WF = p.copy()
     for r in range(3):
         for k in range(3):
-            R_WF[r, k] = R[r, 0] * R_home[0, k] + R[r, 1] * R_home[1, k] + R[r, 2] * R_home[2, k]
-        p_WF[r] += R[r, 0] * p_home[0] + R[r, 1] * p_home[1] + R[r, 2] * p_home[2]
+            R_WF[r, k] = _rotated(R, R_home[0, k], R_home[1, k], R_home[2, k], r)
+        p_WF[r] += _rotated(R, p_home[0], p_home[1], p_home[2], r)
     return R_WF, p_WF
+
+
+@numba.njit(cache=True)
+def frame_axis_into(R, p, R_home, p_home, axis, O, U, m):
+    """O[m], U[m] <- the origin (mm) and axis `axis` (0 x, 1 y, 2 z) in W of the frame
+    with home pose (R_home, p_home) on the product (R, p) of the exponentials
+    (chain_pose_into): that column of `_apply`'s pose, by the same arithmetic."""
+    for r in range(3):
+        U[m, r] = _rotated(R, R_home[0, axis], R_home[1, axis], R_home[2, axis], r)
+        O[m, r] = p[r] + _rotated(R, p_home[0], p_home[1], p_home[2], r)
 
 
 @numba.njit(cache=True)

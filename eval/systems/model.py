@@ -17,7 +17,7 @@ from pydrake.systems.framework import LeafSystem
 from models import AdaptiveEyeModel
 from models.coverage import DirectionCoverage
 from models.transition import PredictiveCriteria
-from planning.iioct_sensor import NO_SAMPLE_YET
+from planning.iioct import NO_SAMPLE_YET
 from safety.margins import UncertaintyMargins
 
 ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of the 2 kHz stream, ~0.4 MB/s
@@ -77,7 +77,7 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
 
 
 class AdaptiveModelSystem(LeafSystem):
-    """Feeds each packet of sensor samples (input "packet", a planning.iioct_sensor
+    """Feeds each packet of sensor samples (input "packet", a planning.iioct
     SensorPacket, its samples in time order as IioctSensorSystem delivers them) to an
     AdaptiveEyeModel: one update per packet with the valid points of its samples not
     seen before; state and output "snapshot" (ModelSnapshot). Runs at the packet rate,

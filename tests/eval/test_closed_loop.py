@@ -184,7 +184,7 @@ def test_the_model_system_takes_the_valid_points_of_each_packets_new_samples(emm
     those valid points directly takes."""
     from pydrake.common.value import AbstractValue
 
-    from planning.iioct_sensor import IioctSensor
+    from planning.iioct import IioctSensor
 
     loop, _ = emmetropic
     q = deep_start(loop)
