@@ -3,9 +3,10 @@
 The 1 kHz loop asks for a few frame poses and Jacobians per step. Drake answers each
 in 10-50 us from Python (SetPositions, CalcPoseInWorld, the Jacobian calls and their
 argument conversions); the arithmetic is well under a microsecond. So the chain is
-taken from the plant once, as a product of exponentials (Lynch & Park, Modern
-Robotics, ch. 4): the joints' screw axes in W at q = 0 (the columns of the plant's
-spatial Jacobian there) and each frame's home pose, and evaluated by one compiled call.
+generated from the plant once, as a product of exponentials (Lynch & Park, Modern
+Robotics, ch. 4): each revolute joint's screw axis in W at q = 0 (its axis and its
+frame's origin there) and each frame's home pose, the plant's (hence the URDF's) only,
+and evaluated by one compiled call.
 
     X_WB(q) = exp([S_1] q_1) ... exp([S_6] q_6) X_WB(0)
     J_s(q)  = [Ad_{e_1..e_{i-1}} S_i]_i   (space Jacobian: twists about W's origin)
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from pydrake.multibody.tree import JacobianWrtVariable
+from pydrake.multibody.tree import RevoluteJoint
 
 MM_PER_M = 1000.0
 
@@ -174,11 +175,13 @@ class Chain:
     welded to the world (their pose never changes)."""
 
     def __init__(self, plant, frames: dict):
-        context = plant.CreateDefaultContext()
+        context = plant.CreateDefaultContext()  # q = 0
         n = plant.num_positions()
-        joints = [j for j in plant.GetJointIndices() if plant.get_joint(j).num_positions() > 0]
-        by_all = set.intersection(*(set(plant.GetBodiesKinematicallyAffectedBy([j])) for j in joints))
-        by_any = set(plant.GetBodiesKinematicallyAffectedBy(joints))
+        joints = [plant.get_joint(j) for j in plant.GetJointIndices() if plant.get_joint(j).num_positions() > 0]
+        if len(joints) != n or not all(isinstance(j, RevoluteJoint) for j in joints):
+            raise ValueError(f"Chain needs a revolute joint per position, got {[type(j).__name__ for j in joints]}")
+        by_all = set.intersection(*(set(plant.GetBodiesKinematicallyAffectedBy([j.index()])) for j in joints))
+        by_any = set(plant.GetBodiesKinematicallyAffectedBy([j.index() for j in joints]))
         self.homes, self.fixed = {}, set()
         for name, frame in frames.items():
             X = frame.CalcPoseInWorld(context)
@@ -188,18 +191,14 @@ class Chain:
                 self.fixed.add(name)
             elif body not in by_all:
                 raise ValueError(f"Chain: frame {name!r} moves with some joints only; its body must follow all of them")
-        moving = [f for name, f in frames.items() if name not in self.fixed]
-        if not moving:
+        if len(self.fixed) == len(frames):
             raise ValueError("Chain needs at least one frame that moves with the joints")
-        J = plant.CalcJacobianSpatialVelocity(context, JacobianWrtVariable.kQDot, moving[0], np.zeros(3),
-                                              plant.world_frame(), plant.world_frame())
-        p_W = moving[0].CalcPoseInWorld(context).translation()
-        S = np.array(J, dtype=float)
-        for i in range(n):  # the twist about W's origin: v_0 = v_F - w x p_WF
-            S[3:, i] = MM_PER_M * (S[3:, i] - np.cross(S[:3, i], p_W))
-        norms = np.linalg.norm(S[:3], axis=0)
-        if not np.allclose(norms, 1.0, atol=1e-12):
-            raise ValueError(f"Chain needs a revolute joint per position; axis norms {norms}")
+        S = np.empty((6, n))
+        for joint in joints:  # the twist of a unit rotation about the joint's axis: (w, p x w), p on the axis
+            X_WJ = joint.frame_on_child().CalcPoseInWorld(context)  # at q = 0 the joint's two frames coincide
+            w = X_WJ.rotation().matrix() @ joint.revolute_axis()
+            i = joint.position_start()
+            S[:3, i], S[3:, i] = w, np.cross(MM_PER_M * X_WJ.translation(), w)
         self.S = np.ascontiguousarray(S)
         self.n = n
         # the product runs base to tip in the order of q: hold it to the plant at one posture
