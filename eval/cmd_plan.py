@@ -66,12 +66,12 @@ def spec_of(args):
 
 def roll_of(robot, q, p_WC) -> float:
     """The instrument's roll about the shaft at q (planning.ik.roll_direction_W convention)."""
-    from planning.ik import _signed_angle
+    from planning.ik import signed_angle
 
     R, p = robot.pose("I", q)
     u = R[:, 0]
     h = np.cross([0.0, 0.0, 1.0], u)
-    return _signed_angle(h / np.linalg.norm(h), R[:, 1], u)
+    return signed_angle(h / np.linalg.norm(h), R[:, 1], u)
 
 
 def main(args) -> int:

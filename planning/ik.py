@@ -74,7 +74,7 @@ def rcm_ik(robot: Robot, p_WT_mm, p_WC_mm, q_seed, *, roll_rad: float | None = N
     def checked(q_try):  # (polished solution or None, why not)
         q_sol = polish(robot, q_try, p_T, p_C)
         if y_W is not None:  # J6 turns about the shaft: restore the roll the polish disturbed
-            q_sol[5] += _signed_angle(robot.pose("I", q_sol)[0][:, 1], y_W, (p_T - p_C) / np.linalg.norm(p_T - p_C))
+            q_sol[5] += signed_angle(robot.pose("I", q_sol)[0][:, 1], y_W, (p_T - p_C) / np.linalg.norm(p_T - p_C))
         tip_err = float(np.linalg.norm(robot.point("T", np.zeros(3), q_sol) - p_T))
         rcm_err = robot.rcm_error_mm(q_sol, p_C)
         if np.all(robot.joint_margin_rad(q_sol) >= 0) and rcm_err <= rcm_tol_mm and tip_err <= tip_tol_mm:
@@ -114,12 +114,12 @@ def _closed_form_guess(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: n
         return None
     q = exact[np.argmin(np.abs((exact - q_seed + np.pi) % (2 * np.pi) - np.pi).sum(axis=1))].copy()
     if y_W is not None:  # J6 turns about the shaft: the exact roll in closed form
-        q[5] += _signed_angle(robot.pose("I", q)[0][:, 1], y_W, u)
+        q[5] += signed_angle(robot.pose("I", q)[0][:, 1], y_W, u)
         q[5] = q_seed[5] + (q[5] - q_seed[5] + np.pi) % (2 * np.pi) - np.pi  # the turn nearest the seed
     return q
 
 
-def _signed_angle(a: np.ndarray, b: np.ndarray, axis: np.ndarray) -> float:
+def signed_angle(a: np.ndarray, b: np.ndarray, axis: np.ndarray) -> float:
     """Angle (rad) turning a onto b about the unit axis (both perpendicular to it)."""
     return float(np.arctan2(np.cross(a, b) @ axis, a @ b))
 

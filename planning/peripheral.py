@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planning.closed_form import shaft_ik
-from planning.ik import IKFailure, _signed_angle, rcm_ik
+from planning.ik import IKFailure, rcm_ik, signed_angle
 from planning.instrument_points import instrument_points
 from planning.robot import Robot
 from planning.scan import plan_ik_scan, start_posture
@@ -180,7 +180,7 @@ def port_roll_rad(p_WT: np.ndarray, p_WC: np.ndarray, normal_in_W: np.ndarray) -
     out = -normal_in_W
     m = out - (out @ u) * u
     y = -m / np.linalg.norm(m)  # the port is at -y: y points away from the retina
-    return _signed_angle(h, y, u)
+    return signed_angle(h, y, u)
 
 
 @dataclass(frozen=True, eq=False)
