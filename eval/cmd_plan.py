@@ -4,7 +4,7 @@ it through the closed loop (safety filter on) against the TRUE eye.
 The model is built as the system would build it (spiral scan through the loop); the
 band, its reachability from the trocar and the serpentine path come from
 planning.peripheral; the path runs as a TipPathCommand (tip positions and port rolls of
-the planned joint trajectory). Writes plan.json (issue 7's keys + the reachability
+the planned joint trajectory). Writes plan.json (coverage, clearances, timing, the reachability
 reasons, the second-trocar suggestion and the path's figures), coverage.png (the band
 as azimuth x height: why each cell is or is not reachable, and the path) and plan.mcap
 (the execution's log).
