@@ -171,6 +171,7 @@ class Chain:
     """The plant's serial chain of revolute joints with the home poses of `frames`.
 
     `S` (6, n): screw axes in W at q = 0 (angular; linear at W's origin, mm/rad);
+    `p_WJ` (n, 3) mm: the joints' frame origins in W at q = 0 (on their axes);
     `homes`: {name: (R (3, 3), p (3,) mm)} at q = 0; `fixed`: the names of frames
     welded to the world (their pose never changes)."""
 
@@ -193,12 +194,13 @@ class Chain:
                 raise ValueError(f"Chain: frame {name!r} moves with some joints only; its body must follow all of them")
         if len(self.fixed) == len(frames):
             raise ValueError("Chain needs at least one frame that moves with the joints")
-        S = np.empty((6, n))
+        S, self.p_WJ = np.empty((6, n)), np.empty((n, 3))
         for joint in joints:  # the twist of a unit rotation about the joint's axis: (w, p x w), p on the axis
             X_WJ = joint.frame_on_child().CalcPoseInWorld(context)  # at q = 0 the joint's two frames coincide
             w = X_WJ.rotation().matrix() @ joint.revolute_axis()
             i = joint.position_start()
-            S[:3, i], S[3:, i] = w, np.cross(MM_PER_M * X_WJ.translation(), w)
+            self.p_WJ[i] = MM_PER_M * X_WJ.translation()
+            S[:3, i], S[3:, i] = w, np.cross(self.p_WJ[i], w)
         self.S = np.ascontiguousarray(S)
         self.n = n
         # the product runs base to tip in the order of q: hold it to the plant at one posture

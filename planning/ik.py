@@ -109,7 +109,7 @@ def _closed_form_guess(robot: Robot, p_T: np.ndarray, p_C: np.ndarray, q_seed: n
     """The exact closed-form solution (6,) rad of the seed's branch (nearest to the seed; J6
     kept, or turned to the roll y_W when given), or None when the closed form has none."""
     u = (p_T - p_C) / np.linalg.norm(p_T - p_C)
-    exact = shaft_ik(p_T, u, robot.tip_offset_mm, q_seed[5])
+    exact = shaft_ik(robot.arm, p_T, u, q_seed[5])
     if not len(exact):
         return None
     q = exact[np.argmin(np.abs((exact - q_seed + np.pi) % (2 * np.pi) - np.pi).sum(axis=1))].copy()

@@ -18,7 +18,6 @@ from numba import njit
 from planning.chain import frame_pose_and_jacobian, rigid_points
 from planning.robot import RCM_GAIN_PER_S, Robot
 
-PORT_I_MM = np.array([91.7, -0.25, 0.0])  # cutter port in I (meca500.urdf "port_frame")
 _NAMES = ("tip", "port") + tuple(f"shaft{k}" for k in range(20))  # n_shaft <= 20
 _LENS_NAMES = tuple(f"lens{k}" for k in range(64))
 
@@ -134,7 +133,7 @@ def kinematics_arguments(robot: Robot, p_WC, config: MonitoredPointsConfig, rcm_
     p_home_I) and (p_WC, tip_x, port_I, spacing, n_shaft, min_depth, lens offsets, gain)."""
     R_h, p_h = robot.chain.homes["I"]
     head = (robot.chain.S, R_h, p_h)
-    tail = (np.asarray(p_WC, dtype=float), float(robot.tip_offset_mm), PORT_I_MM, float(config.shaft_spacing_mm),
+    tail = (np.asarray(p_WC, dtype=float), float(robot.tip_offset_mm), robot.p_IP, float(config.shaft_spacing_mm),
             int(config.n_shaft), float(config.min_depth_past_trocar_mm),
             np.asarray(config.lens_offsets_mm, dtype=float).reshape(-1), float(rcm_gain_per_s))
     return head, tail

@@ -148,7 +148,7 @@ def cell_reasons(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.nd
         elif port[i] > spec.port_max_deg:
             reasons[i] = "port"
         else:
-            Q = shaft_ik(t, u, robot.tip_offset_mm)
+            Q = shaft_ik(robot.arm, t, u)
             ok = len(Q) and np.any(np.min(np.minimum(Q[:, :5] - robot.q_lower[:5], robot.q_upper[:5] - Q[:, :5]), axis=1) >= margin)
             if not ok:
                 reasons[i] = "reach"

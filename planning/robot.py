@@ -24,6 +24,7 @@ from pydrake.multibody.tree import FixedOffsetFrame
 from pydrake.systems.framework import DiagramBuilder
 
 from planning.chain import MM_PER_M, Chain, rigid_points
+from planning.closed_form import arm_lengths
 
 URDF = files("planning") / "data" / "meca500.urdf"
 EYE_SDF = files("planning") / "data" / "eye.sdf"
@@ -59,8 +60,11 @@ class Robot:
         self.q_lower = self.plant.GetPositionLowerLimits().copy()
         self.q_upper = self.plant.GetPositionUpperLimits().copy()
         self.qdot_max = self.plant.GetVelocityUpperLimits().copy()
-        R_WF, p_WF = self.pose("F", np.zeros(6))
-        self.tip_offset_mm = float(np.linalg.norm(self.pose("T", np.zeros(6))[1] - p_WF))  # along the flange x axis
+        self.arm = arm_lengths(self.chain)  # the closed form's lengths (planning.closed_form.shaft_ik)
+        self.tip_offset_mm = self.arm.tip_offset_mm  # flange -> tip along the flange x axis
+        # the cutter port P in the instrument frame I, mm (the plant's fixed offset, unrounded by W)
+        X_IP = self._frames["P"].CalcPose(self.plant.CreateDefaultContext(), self._frames["I"])
+        self.p_IP = MM_PER_M * X_IP.translation()
 
     def _add_scenario(self, scenario) -> None:
         """Weld the eye at X_WE, add the trocar frame C (with a small marker) on it and the

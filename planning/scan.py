@@ -55,7 +55,7 @@ def start_posture(robot: Robot, p_WT, p_WC) -> np.ndarray:
     """(6,) rad: the RCM posture at the first target on the closed-form branch with the
     largest smallest joint margin (J6 = 0), refined by the Drake IK."""
     p_T, p_C = np.asarray(p_WT, dtype=float), np.asarray(p_WC, dtype=float)
-    cands = shaft_ik(p_T, (p_T - p_C) / np.linalg.norm(p_T - p_C), robot.tip_offset_mm)
+    cands = shaft_ik(robot.arm, p_T, (p_T - p_C) / np.linalg.norm(p_T - p_C))
     if not len(cands):
         raise IKFailure(f"tip target p_WT_mm = {np.round(p_T, 3)} is out of the arm's reach through p_WC_mm = {np.round(p_C, 3)}")
     margins = np.minimum(cands - robot.q_lower, robot.q_upper - cands).min(axis=1)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planning.instrument_points import PORT_I_MM, MonitoredPointsConfig, instrument_points
+from planning.instrument_points import MonitoredPointsConfig, instrument_points
 
 
 def test_points_jacobians_and_rcm_rows_match_drake(setup):
@@ -14,7 +14,8 @@ def test_points_jacobians_and_rcm_rows_match_drake(setup):
         ip = instrument_points(robot, q, scenario.p_WC)
         np.testing.assert_allclose(ip.P_W[0], robot.pose("T", q)[1], atol=1e-9)
         np.testing.assert_allclose(ip.J_tip, robot.jacobian("T", np.zeros(3), q), atol=1e-9)
-        np.testing.assert_allclose(ip.J_W[1], robot.jacobian("I", PORT_I_MM, q), atol=1e-9)
+        np.testing.assert_allclose(ip.P_W[1], robot.pose("P", q)[1], atol=1e-9)  # the port: the plant's frame P
+        np.testing.assert_allclose(ip.J_W[1], robot.jacobian("P", np.zeros(3), q), atol=1e-9)
         for name, p, J in zip(ip.names[2:], ip.P_W[2:], ip.J_W[2:]):
             x = robot.pose("I", q)[0].T @ (p - robot.pose("I", q)[1])
             np.testing.assert_allclose(J, robot.jacobian("I", x, q), atol=1e-9)
