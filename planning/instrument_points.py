@@ -16,7 +16,7 @@ import numpy as np
 from numba import njit
 
 from planning.chain import frame_pose_and_jacobian, rigid_points
-from planning.robot import RCM_GAIN_PER_S, Robot
+from planning.robot import Robot
 
 _NAMES = ("tip", "port") + tuple(f"shaft{k}" for k in range(20))  # n_shaft <= 20
 _LENS_NAMES = tuple(f"lens{k}" for k in range(64))
@@ -58,8 +58,10 @@ class InstrumentPoints:
     `names`, `P_W` (k, 3), `J_W` (k, 3, 6): the points kept inside the retina (first "tip",
     then "port", then "shaft<i>"); `lens_names`, `L_W` (m, 3), `J_L` (m, 3, 6): shaft
     points kept outside the lens; `J_tip` (3, 6); `J_roll` (1, 6): the roll rate about the
-    shaft; `rcm_A` (2, 6), `rcm_b` (2,) mm/s: the RCM rows (Robot.rcm_rows);
-    `p_WI`, `u_W`: the shaft axis; `rcm_error_mm`: the trocar's distance from it.
+    shaft; `R_WI` (3, 3), `p_WI` (3,) mm: the instrument body's pose (x along the shaft,
+    towards the tip: `u_W`); `J_C` (3, 6) mm/rad: the Jacobian of the shaft's material
+    point at the trocar (the RCM's rows are safety.constraints.RcmEquality's);
+    `rcm_error_mm`: the trocar's distance from the shaft axis.
     """
 
     names: tuple
@@ -70,20 +72,19 @@ class InstrumentPoints:
     J_L: np.ndarray
     J_tip: np.ndarray
     J_roll: np.ndarray
-    rcm_A: np.ndarray
-    rcm_b: np.ndarray
+    R_WI: np.ndarray
+    J_C: np.ndarray
     p_WI: np.ndarray
     u_W: np.ndarray
     rcm_error_mm: float
 
 
 @njit(cache=True)
-def instrument_kinematics(S, R_home_I, p_home_I, q, p_WC, tip_x, port_I, shaft_spacing, n_shaft, min_depth, lens_offsets,
-                          rcm_gain):
+def instrument_kinematics(S, R_home_I, p_home_I, q, p_WC, tip_x, port_I, shaft_spacing, n_shaft, min_depth, lens_offsets):
     """One posture's monitored points in one compiled pass: (P_W (k + m + 1, 3) mm, J_W
     (k + m + 1, 3, n) mm/rad: tip, port, the k - 2 shaft points kept, the m lens points,
-    then the shaft's point at the trocar; k, m; J_roll (n,) rad/rad; rcm_A (2, n) mm/rad;
-    rcm_b (2,) mm/s; rcm_error_mm; R_WI, p_WI mm). Chain (S, home pose of I) as
+    then the shaft's point at the trocar; k, m; J_roll (n,) rad/rad; the trocar's distance
+    from the shaft axis mm; R_WI, p_WI mm). Chain (S, home pose of I) as
     planning.chain; q (n,) rad; p_WC (3,) mm; the rest as MonitoredPointsConfig, mm."""
     R_WI, p_WI, J = frame_pose_and_jacobian(S, q, R_home_I, p_home_I)
     d = np.empty(3)
@@ -113,39 +114,32 @@ def instrument_kinematics(S, R_home_I, p_home_I, q, p_WC, tip_x, port_I, shaft_s
     P_W, J_W = rigid_points(R_WI, p_WI, J, P_I)
     n = q.shape[0]
     J_roll = np.zeros(n)
-    rcm_A = np.zeros((2, n))
-    rcm_b = np.zeros(2)
     err2 = 0.0
-    for a in range(2):  # the shaft's two lateral directions: columns 1 and 2 of R_WI
+    for a in range(2):  # the trocar's offset from the shaft axis along the shaft's lateral directions
         e = R_WI[0, a + 1] * d[0] + R_WI[1, a + 1] * d[1] + R_WI[2, a + 1] * d[2]
-        rcm_b[a] = rcm_gain * e
         err2 += e * e
-        for j in range(n):
-            rcm_A[a, j] = (R_WI[0, a + 1] * J_W[k + m, 0, j] + R_WI[1, a + 1] * J_W[k + m, 1, j]
-                           + R_WI[2, a + 1] * J_W[k + m, 2, j])
     for j in range(n):
         J_roll[j] = R_WI[0, 0] * J[0, j] + R_WI[1, 0] * J[1, j] + R_WI[2, 0] * J[2, j]
-    return P_W, J_W, k, m, J_roll, rcm_A, rcm_b, np.sqrt(err2), R_WI, p_WI
+    return P_W, J_W, k, m, J_roll, np.sqrt(err2), R_WI, p_WI
 
 
-def kinematics_arguments(robot: Robot, p_WC, config: MonitoredPointsConfig, rcm_gain_per_s: float = RCM_GAIN_PER_S) -> tuple:
+def kinematics_arguments(robot: Robot, p_WC, config: MonitoredPointsConfig) -> tuple:
     """instrument_kinematics' arguments but q, in its order around q: (S, R_home_I,
-    p_home_I) and (p_WC, tip_x, port_I, spacing, n_shaft, min_depth, lens offsets, gain)."""
+    p_home_I) and (p_WC, tip_x, port_I, spacing, n_shaft, min_depth, lens offsets)."""
     R_h, p_h = robot.chain.homes["I"]
     head = (robot.chain.S, R_h, p_h)
     tail = (np.asarray(p_WC, dtype=float), float(robot.tip_offset_mm), robot.p_IP, float(config.shaft_spacing_mm),
             int(config.n_shaft), float(config.min_depth_past_trocar_mm),
-            np.asarray(config.lens_offsets_mm, dtype=float).reshape(-1), float(rcm_gain_per_s))
+            np.asarray(config.lens_offsets_mm, dtype=float).reshape(-1))
     return head, tail
 
 
-def instrument_points(robot: Robot, q, p_WC, config: MonitoredPointsConfig = MonitoredPointsConfig(),
-                      rcm_gain_per_s: float = RCM_GAIN_PER_S) -> InstrumentPoints:
-    """The monitored points, their Jacobians and the RCM rows at q (6,) rad, trocar p_WC (3,) mm."""
+def instrument_points(robot: Robot, q, p_WC, config: MonitoredPointsConfig = MonitoredPointsConfig()) -> InstrumentPoints:
+    """The monitored points, their Jacobians and the shaft's pose at q (6,) rad, trocar p_WC (3,) mm."""
     q = robot.checked_joint_angles(q)
-    head, tail = kinematics_arguments(robot, p_WC, config, rcm_gain_per_s)
-    P, J, k, m, J_roll, rcm_A, rcm_b, err, R_WI, p_WI = instrument_kinematics(*head, q, *tail)
+    head, tail = kinematics_arguments(robot, p_WC, config)
+    P, J, k, m, J_roll, err, R_WI, p_WI = instrument_kinematics(*head, q, *tail)
     return InstrumentPoints(
         names=_NAMES[:k], P_W=P[:k], J_W=J[:k], lens_names=_LENS_NAMES[:m], L_W=P[k:k + m], J_L=J[k:k + m],
-        J_tip=J[0], J_roll=J_roll[None, :], rcm_A=rcm_A, rcm_b=rcm_b, p_WI=p_WI, u_W=R_WI[:, 0], rcm_error_mm=float(err),
+        J_tip=J[0], J_roll=J_roll[None, :], R_WI=R_WI, J_C=J[k + m], p_WI=p_WI, u_W=R_WI[:, 0], rcm_error_mm=float(err),
     )

@@ -12,12 +12,12 @@ import numpy as np
 from numba import njit
 
 from planning.instrument_points import MonitoredPointsConfig, instrument_kinematics, kinematics_arguments
-from planning.robot import RCM_GAIN_PER_S, Robot
+from planning.robot import Robot
 
 POINT_GROUPS = ("tip_port", "shaft", "lens", "trocar")
 GROUP_CAPACITY = {"tip_port": 2, "shaft": 20, "lens": 64, "trocar": 1}
-# params: S (36), R_home_I (9), p_home_I (3), p_WC (3), tip_x, port_I (3), spacing, n_shaft, min depth, rcm gain, lens offsets
-_HEAD = 36 + 9 + 3 + 3 + 1 + 3 + 1 + 1 + 1 + 1
+# params: S (36), R_home_I (9), p_home_I (3), p_WC (3), tip_x, port_I (3), spacing, n_shaft, min depth, lens offsets
+_HEAD = 36 + 9 + 3 + 3 + 1 + 3 + 1 + 1 + 1
 
 
 @njit(cache=True)
@@ -25,9 +25,9 @@ def step_kinematics(kp, q):
     """(P (K, 3) mm, J (K, 3, n) mm/rad, ranges (4, 2) int: each group's [start, stop) in
     P, J_tip (3, n), J_roll (1, n) rad/rad, R_WI (3, 3), p_WI (3,) mm, the RCM error mm)
     at q (n,) rad; kp from step_kinematics_params."""
-    P, J, k, m, J_roll, _, _, err, R_WI, p_WI = instrument_kinematics(
+    P, J, k, m, J_roll, err, R_WI, p_WI = instrument_kinematics(
         kp[0:36].reshape((6, 6)), kp[36:45].reshape((3, 3)), kp[45:48], q, kp[48:51], kp[51], kp[52:55], kp[55],
-        int(kp[56]), kp[57], kp[_HEAD:], kp[58])
+        int(kp[56]), kp[57], kp[_HEAD:])
     ranges = np.empty((4, 2), dtype=np.int64)
     ranges[0, 0], ranges[0, 1] = 0, 2
     ranges[1, 0], ranges[1, 1] = 2, k
@@ -36,14 +36,12 @@ def step_kinematics(kp, q):
     return P, J, ranges, J[0].copy(), J_roll.reshape((1, q.shape[0])), R_WI, p_WI, err
 
 
-def step_kinematics_params(robot: Robot, p_WC, config: MonitoredPointsConfig,
-                           rcm_gain_per_s: float = RCM_GAIN_PER_S) -> np.ndarray:
+def step_kinematics_params(robot: Robot, p_WC, config: MonitoredPointsConfig) -> np.ndarray:
     """step_kinematics' kp for this robot, trocar p_WC (3,) mm and monitored points."""
-    (S, R_h, p_h), (p_WC, tip_x, port_I, spacing, n_shaft, min_depth, lens, gain) = kinematics_arguments(
-        robot, p_WC, config, rcm_gain_per_s)
+    (S, R_h, p_h), (p_WC, tip_x, port_I, spacing, n_shaft, min_depth, lens) = kinematics_arguments(robot, p_WC, config)
     return np.ascontiguousarray(np.concatenate([
         np.asarray(S, dtype=float).reshape(36), np.asarray(R_h, dtype=float).reshape(9), np.asarray(p_h, dtype=float),
-        p_WC, [tip_x], port_I, [spacing, n_shaft, min_depth, gain], lens]), dtype=float)
+        p_WC, [tip_x], port_I, [spacing, n_shaft, min_depth], lens]), dtype=float)
 
 
 def point_names(group: str, count: int) -> tuple:

@@ -34,6 +34,7 @@ from planning.scan import start_posture
 from planning.step_kinematics import GROUP_CAPACITY, POINT_GROUPS, point_names, step_kinematics, step_kinematics_params
 from safety import ConstraintStack, FilterInputs, PointKinematics, default_constraints
 from safety.constraints import RcmEquality
+from safety.constraints.rcm import fill_rcm
 
 JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
 
@@ -93,6 +94,7 @@ class FilterSystem(LeafSystem):
         super().__init__()
         self.robot, self.config, self.prior = robot, config, prior
         self.constraints = loop_constraints(robot, config)
+        self._rcm = next(c for c in self.constraints if isinstance(c, RcmEquality))
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
                                      {"eye": model_field_kernel, "eye_shaft": model_field_kernel,
                                       "lens": model_field_kernel}, config.filter, kinematics=step_kinematics,
@@ -171,6 +173,8 @@ class FilterSystem(LeafSystem):
         ip = instrument_points(robot, q, robot.p_WC, self.config.points)
         model, kind = (self.prior, None) if snap.shape is None else (snap.shape, snap.kind)
         k = 2 if kind is None else len(ip.names)
+        rcm_A, rcm_b = np.zeros((2, 6)), np.zeros(2)
+        fill_rcm(self._rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, rcm_A, rcm_b, 0)  # the loop's RCM rows
         trusted, misfit = np.ones(k, dtype=bool), np.zeros(k)
         if kind is not None and snap.coverage is not None:
             trusted[:2] = snap.coverage.angle_from_data_rad(ip.P_W[:2]) <= np.radians(self.config.trust_angle_deg)
@@ -181,7 +185,7 @@ class FilterSystem(LeafSystem):
             boundary_points=[PointKinematics(n, p, J, bool(tr), float(m))
                              for n, p, J, tr, m in zip(ip.names[:k], ip.P_W[:k], ip.J_W[:k], trusted, misfit)],
             model=model, model_time_s=t_s if kind is None else snap.t_s, sensor_time_s=sensor_t_s,
-            rcm_A=ip.rcm_A, rcm_b=ip.rcm_b, lens=self.lens,
+            rcm_A=rcm_A, rcm_b=rcm_b, lens=self.lens,
             lens_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.lens_names, ip.L_W, ip.J_L)],
             margin_mm=snap.margin_mm(self.config.margins), J_roll=ip.J_roll,
             roll_rate_cmd=float(command[3]), fallback=None if kind is None else self.prior,

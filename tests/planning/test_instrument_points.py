@@ -7,7 +7,7 @@ import pytest
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 
 
-def test_points_jacobians_and_rcm_rows_match_drake(setup):
+def test_points_jacobians_and_the_trocar_point_match_drake(setup):
     scenario, robot, q0 = setup
     rng = np.random.default_rng(0)
     for q in q0 + 0.02 * rng.standard_normal((5, 6)):
@@ -19,9 +19,11 @@ def test_points_jacobians_and_rcm_rows_match_drake(setup):
         for name, p, J in zip(ip.names[2:], ip.P_W[2:], ip.J_W[2:]):
             x = robot.pose("I", q)[0].T @ (p - robot.pose("I", q)[1])
             np.testing.assert_allclose(J, robot.jacobian("I", x, q), atol=1e-9)
-        A, b = robot.rcm_rows(q, scenario.p_WC)
-        np.testing.assert_allclose(ip.rcm_A, A, atol=1e-9)
-        np.testing.assert_allclose(ip.rcm_b, b, atol=1e-9)
+        R, p = robot.pose("I", q)
+        np.testing.assert_allclose(ip.R_WI, R, atol=1e-12)
+        np.testing.assert_allclose(ip.p_WI, p, atol=1e-9)
+        lam = R[:, 0] @ (scenario.p_WC - p)  # the trocar's coordinate along the shaft
+        np.testing.assert_allclose(ip.J_C, robot.jacobian("I", np.array([lam, 0.0, 0.0]), q), atol=1e-9)
         assert ip.rcm_error_mm == pytest.approx(robot.rcm_error_mm(q, scenario.p_WC), abs=1e-12)
 
 

@@ -106,3 +106,22 @@ def test_the_assembly_refuses_what_it_cannot_wire():
         ConstraintStack([PointBarrier("boundary", "eye")], {"boundary": 2}, {}, FilterConfig())
     with pytest.raises(ValueError, match="module-level numba"):
         ConstraintStack([PointBarrier("boundary", "eye")], {"boundary": 2}, {"eye": lambda fp, P: None}, FilterConfig())
+
+
+def test_the_rcm_constraint_and_the_robots_rcm_rows_agree():
+    # the constraint's rows on the loop's kinematics equal the plant's (planning's IK uses those)
+    from planning import SurgeryScenario, start_posture
+    from planning.instrument_points import instrument_points
+    from planning.robot import RCM_GAIN_PER_S, Robot
+
+    scenario = SurgeryScenario()
+    robot = Robot(scenario)
+    q0 = start_posture(robot, scenario.eye_pose.p_WE, scenario.p_WC)
+    c = RcmEquality(np.asarray(scenario.p_WC, dtype=float), RCM_GAIN_PER_S)
+    for q in q0 + 0.02 * np.random.default_rng(0).standard_normal((5, 6)):
+        ip = instrument_points(robot, q, scenario.p_WC)
+        A, b = np.zeros((2, 6)), np.zeros(2)
+        fill_rcm(c.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, A, b, 0)
+        A_ref, b_ref = robot.rcm_rows(q, scenario.p_WC, RCM_GAIN_PER_S)
+        np.testing.assert_allclose(A, A_ref, atol=1e-9)
+        np.testing.assert_allclose(b, b_ref, atol=1e-9)
