@@ -20,7 +20,7 @@ _ARRAYS = ("q", "q_min", "q_max", "qdot_max", "v_cmd_W", "J_tip")
 _OPTIONAL_ARRAYS = ("rcm_A", "rcm_b", "J_roll")
 _POINT_LISTS = ("boundary_points", "lens_points")
 _SHAPES = ("model", "lens", "fallback")
-_OPTIONAL_ON_READ = ("fallback",)  # absent in logs written before it existed
+_OPTIONAL_ON_READ = ("fallback",)  # a log may lack them: read as None
 _NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
 
 

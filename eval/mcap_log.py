@@ -1,11 +1,17 @@
-"""The run log: an MCAP file (JSON messages) that Foxglove opens and `vitreoguard replay`
-re-runs, and a reader that tolerates the truncated tail of a killed run.
+"""The run log: an MCAP file that Foxglove opens and `vitreoguard replay` re-runs, and a
+reader that tolerates the truncated tail of a killed run.
 
-Channels (schemas in eval.mcap_schemas): "/filter/config" once at the start;
+Channels (schemas in eval.mcap_schemas, JSON): "/filter/config" once at the start;
 "/robot/joint_states", "/oct/ascan", "/oct/distance", "/model", "/filter/inputs",
-"/filter/outputs", "/filter/status", "/clearance" (mm, s, rad; W frame); "/tf"
-(foxglove.FrameTransforms) and "/scene" (foxglove.SceneUpdate) in metres. Log and
-publish times are the simulation time in ns.
+"/filter/outputs", "/filter/status", "/clearance" (mm, s, rad; W frame), each message
+with its simulation time `t` (s). Foxglove's well-known types (eval.mcap_scene,
+foxglove-sdk, protobuf): "/tf" (foxglove.FrameTransforms), "/scene"
+(foxglove.SceneUpdate) in metres, "/log" (foxglove.Log: run events).
+
+Times: a message's log and publish time (and a Foxglove message's timestamp) is the
+run's wall-clock start (`RunLogger.start_ns`, ns since the epoch, also in the file's
+"time" metadata as start_time_ns) + its simulation time; the simulation time itself is
+the message's `t` (the scene's entities carry it as metadata 'sim_time_s').
 
 Crash safety: the writer closes its chunk and flushes the file whenever a second of
 simulation or wall time has passed since the last flush, so a killed run leaves every
@@ -21,19 +27,28 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.exceptions import EndOfFile
-from mcap.records import Channel, Header, Message, Schema
+from foxglove import Channel, Context, Schema, open_mcap
+from foxglove.channels import FrameTransformsChannel, LogChannel, SceneUpdateChannel
+from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
+from mcap.records import Channel as ChannelRecord
+from mcap.records import Header, Message, Metadata
+from mcap.records import Schema as SchemaRecord
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
 
 from eval import mcap_codec as codec
+from eval import mcap_scene as scene
+from eval.mcap_scene import M_PER_MM, quaternion_xyzw  # noqa: F401  (part of this module's interface)
 from eval.mcap_schemas import CHANNELS
 from safety import FilterConfig, FilterInputs, FilterOutput
 
-M_PER_MM = 1e-3  # Foxglove's 3D panel works in metres
 MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first and last 8 bytes of every MCAP file
+# the length the writer gives the chunk it is still filling (set when the chunk is finished):
+# a killed writer's file ends in one
+UNFINISHED_RECORD_LENGTH = b"\xff" * 8
 _KIND_INDEX = {"prior": 0, "sphere": 1, "ellipsoid": 2}
 _JSON = json.JSONEncoder(allow_nan=False, separators=(",", ":"))  # one encoder: json.dumps with options builds one per call
+_FOXGLOVE_CHANNELS = {"/tf": FrameTransformsChannel, "/scene": SceneUpdateChannel, "/log": LogChannel}
 
 
 class LogReadError(ValueError):
@@ -45,7 +60,7 @@ class TruncatedLogError(LogReadError):
 
 
 def time_ns(t_s) -> int:
-    """Log time in ns of a simulation time t_s (s, finite, >= 0)."""
+    """Simulation time t_s (s, finite, >= 0) in ns."""
     t = float(t_s)
     if not (math.isfinite(t) and t >= 0.0):
         raise ValueError(f"t_s must be a finite time >= 0 s, got {t_s!r}")
@@ -57,76 +72,41 @@ def _opt(x) -> float | None:
     return None if x is None or not math.isfinite(float(x)) else float(x)
 
 
-def quaternion_xyzw(R) -> list[float]:
-    """Unit quaternion [x, y, z, w] (w >= 0) of the rotation matrix R (3, 3)."""
-    R = np.asarray(R, dtype=float)
-    q = np.empty(4)
-    tr = np.trace(R)
-    if tr > 0.0:  # the branch with the largest component keeps the division well conditioned
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q[:] = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q[i] = 0.25 * s
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-        q[3] = (R[k, j] - R[j, k]) / s
-    q /= np.linalg.norm(q)
-    return (q if q[3] >= 0 else -q).tolist()
-
-
-def _stamp(ns: int) -> dict:
-    return {"sec": ns // 1_000_000_000, "nsec": ns % 1_000_000_000}
-
-
-def _vec(p_mm) -> dict:
-    x, y, z = (float(v) * M_PER_MM for v in p_mm)
-    return {"x": x, "y": y, "z": z}
-
-
-def _pose(p_mm, R=np.eye(3)) -> dict:
-    return {"position": _vec(p_mm), "orientation": dict(zip("xyzw", quaternion_xyzw(R)))}
-
-
-def _entity(ns: int, id_: str, spheres=(), lines=()) -> dict:
-    empty = {k: [] for k in ("metadata", "arrows", "cubes", "cylinders", "triangles", "texts", "models")}
-    return {"timestamp": _stamp(ns), "frame_id": "W", "id": id_, "lifetime": {"sec": 0, "nsec": 0},
-            "frame_locked": False, **empty, "spheres": list(spheres), "lines": list(lines)}
-
-
-def _shape_sphere(shape, color) -> dict:
-    """A Foxglove sphere primitive (an ellipsoid when the sizes differ) of a Sphere or Ellipsoid."""
-    radii = np.full(3, shape.radius) if hasattr(shape, "radius") else shape.radii
-    R = getattr(shape, "rotation", np.eye(3))
-    return {"pose": _pose(shape.center, R), "size": _vec(2.0 * radii), "color": color}
-
-
 class RunLogger:
     """Writes one run's MCAP log; use as a context manager (`with RunLogger(path, cfg) as log:`).
 
     `filter_config` is logged once on "/filter/config" (replay rebuilds the filter from it);
-    `flush_every_s` bounds what a killed run can lose, in simulation and in wall time (s).
+    `flush_every_s` bounds what a killed run can lose, in simulation and in wall time (s);
+    `metadata` goes to the file's "run" metadata; `start_ns` is the run's wall-clock start
+    (ns since the epoch; default: now), to which the simulation time is added for log times.
+    The writer is foxglove-sdk's (zstd chunks, CRCs of chunks and data section).
     """
 
     def __init__(self, path, filter_config: FilterConfig | None = None, flush_every_s: float = 1.0,
-                 metadata: dict | None = None):
+                 metadata: dict | None = None, start_ns: int | None = None):
         if not (math.isfinite(flush_every_s) and flush_every_s > 0):
             raise ValueError(f"flush_every_s must be finite and > 0 s, got {flush_every_s}")
         self.path = Path(path)
         self.flush_every_s = float(flush_every_s)
-        self._file = open(self.path, "wb")
-        # the data-section CRC lets a reader detect any damaged byte of a complete log
-        self._writer = Writer(self._file, compression=CompressionType.ZSTD, enable_data_crcs=True)
-        self._writer.start(profile="", library="vitreoguard")
-        self._channels = {}
-        for topic, (name, schema) in CHANNELS.items():
-            sid = self._writer.register_schema(name, "jsonschema", json.dumps(schema).encode())
-            self._channels[topic] = self._writer.register_channel(topic, "json", sid)
+        self.start_ns = time.time_ns() if start_ns is None else int(start_ns)
+        if self.start_ns < 0:
+            raise ValueError(f"start_ns must be >= 0 ns since the epoch, got {start_ns}")
+        # this log's channels only (several logs may be open at once); kept: its channels close with it
+        self._context = context = Context()
+        options = MCAPWriteOptions(compression=MCAPCompression.Zstd, compression_threads=0, profile="",
+                                   calculate_chunk_crcs=True, calculate_data_section_crc=True)
+        self._writer = open_mcap(self.path, allow_overwrite=True, context=context, writer_options=options)
+        self._closed = False
+        self._channels = {topic: Channel(topic, schema=Schema(name=name, encoding="jsonschema", data=json.dumps(schema).encode()),
+                                         message_encoding="json", context=context)
+                          for topic, (name, schema) in CHANNELS.items()}
+        self._foxglove = {topic: cls(topic, context=context) for topic, cls in _FOXGLOVE_CHANNELS.items()}
+        self._writer.write_metadata("time", {"start_time_ns": str(self.start_ns),
+                                             "log_time": "start_time_ns + simulation time (ns)"})
         if metadata:
-            self._writer.add_metadata("run", {str(k): str(v) for k, v in metadata.items()})
+            self._writer.write_metadata("run", {str(k): str(v) for k, v in metadata.items()})
         self.steps = 0
+        self._last_ns = 0  # simulation time of the newest message
         self._last_flush = (0.0, time.monotonic())
         self._write("/filter/config", 0, codec.config_to_json(filter_config or FilterConfig()))
         self._writer.flush()
@@ -134,21 +114,34 @@ class RunLogger:
     def __enter__(self) -> RunLogger:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None and not self._closed:  # say in the log why it ends here
+            self.log_event(self._last_ns * 1e-9, f"run ended early: {exc_type.__name__}", "error")
         self.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
 
     def close(self) -> None:
         """Write the summary (indexes, statistics) and close the file; idempotent."""
-        if self._file.closed:
+        if self._closed:
             return
-        self._writer.finish()
-        self._file.close()
+        self._closed = True
+        self._writer.close()
 
     def _write(self, topic: str, ns: int, msg: dict) -> None:
-        if self._file.closed:
+        if self._closed:
             raise ValueError(f"the run log {self.path} is closed")
-        data = _JSON.encode(msg).encode()
-        self._writer.add_message(self._channels[topic], ns, data, ns)
+        self._last_ns = ns
+        self._channels[topic].log(_JSON.encode(msg).encode(), log_time=self.start_ns + ns)
+
+    def _write_foxglove(self, topic: str, ns: int, message) -> None:
+        if self._closed:
+            raise ValueError(f"the run log {self.path} is closed")
+        self._last_ns = ns
+        self._foxglove[topic].log(message, log_time=self.start_ns + ns)
+        self._maybe_flush(ns)
 
     def _log(self, topic: str, ns: int, msg: dict) -> None:
         self._write(topic, ns, msg)
@@ -230,67 +223,60 @@ class RunLogger:
     def log_frames(self, t_s, X_W: dict) -> None:
         """Poses X_WA (4, 4) homogeneous, mm, of frames A ("F", "T", "S", "C", "E", ...) in W, as /tf."""
         ns = time_ns(t_s)
-        transforms = []
-        for name, X in X_W.items():
-            X = np.asarray(X, dtype=float)
-            if X.shape != (4, 4) or not np.all(np.isfinite(X)):
-                raise ValueError(f"X_W[{name!r}] must be a finite (4, 4) pose, got shape {X.shape}")
-            transforms.append({"timestamp": _stamp(ns), "parent_frame_id": "W", "child_frame_id": str(name),
-                               "translation": _vec(X[:3, 3]), "rotation": dict(zip("xyzw", quaternion_xyzw(X[:3, :3])))})
-        self._write("/tf", ns, {"transforms": transforms})
-        self._maybe_flush(ns)
+        self._write_foxglove("/tf", ns, scene.frame_transforms(self.start_ns + ns, X_W))
 
     def log_scene(self, t_s, eye=None, beam=None, p_W_trocar=None, lens=None) -> None:
         """The 3D scene in W: the eye model `eye` (Sphere/Ellipsoid, translucent), the lens
         keep-out `lens`, the OCT `beam` as (p_W_start, p_W_end) mm, the trocar point."""
         ns = time_ns(t_s)
-        entities = []
-        if eye is not None:
-            color = {"r": 1.0, "g": 0.55, "b": 0.1, "a": 0.25} if hasattr(eye, "radius") else {"r": 0.1, "g": 0.8, "b": 0.9, "a": 0.25}
-            entities.append(_entity(ns, "eye_model", spheres=[_shape_sphere(eye, color)]))
-        if lens is not None:
-            entities.append(_entity(ns, "lens", spheres=[_shape_sphere(lens, {"r": 0.3, "g": 0.3, "b": 1.0, "a": 0.3})]))
-        if beam is not None:
-            line = {"type": 0, "pose": _pose(np.zeros(3)), "thickness": 2.0, "scale_invariant": True,
-                    "points": [_vec(beam[0]), _vec(beam[1])], "color": {"r": 1.0, "g": 0.0, "b": 0.0, "a": 1.0},
-                    "colors": [], "indices": []}
-            entities.append(_entity(ns, "beam", lines=[line]))
-        if p_W_trocar is not None:
-            trocar = {"pose": _pose(p_W_trocar), "size": _vec(np.full(3, 1.0)), "color": {"r": 1.0, "g": 0.9, "b": 0.0, "a": 1.0}}
-            entities.append(_entity(ns, "trocar", spheres=[trocar]))
-        self._write("/scene", ns, {"deletions": [], "entities": entities})
-        self._maybe_flush(ns)
+        self._write_foxglove("/scene", ns, scene.scene_update(self.start_ns + ns, float(t_s), eye, beam, p_W_trocar, lens))
+
+    def log_event(self, t_s, text: str, level: str = "info") -> None:
+        """A run event (`text`, level "debug" | "info" | "warning" | "error") on "/log"."""
+        ns = time_ns(t_s)
+        self._write_foxglove("/log", ns, scene.log_message(self.start_ns + ns, text, level))
 
 
 class _WholeReads:
     """A file whose short reads raise EndOfFile: a file cut inside a record (a killed
-    writer) then reads as truncated rather than as garbage."""
+    writer) then reads as truncated rather than as garbage. `last` is the last read's data."""
 
     def __init__(self, f):
-        self._f = f
+        self._f, self.last = f, b""
 
     def read(self, n: int = -1) -> bytes:
         data = self._f.read(n)
         if n is not None and 0 < n != len(data):
             raise EndOfFile()
+        self.last = data
         return data
 
 
 @dataclass
 class RunLog:
-    """A log's decoded messages: `messages[topic]` is a list of (log_time_ns, dict);
-    `schemas[topic]` the schema name; `truncated` True when the file ends early."""
+    """A log's messages: `messages[topic]` is a list of (log_time_ns, message), the
+    message a dict on JSON channels, its encoded bytes on others (Foxglove's protobuf
+    types); `schemas[topic]` the schema name; `metadata[name]` the metadata records;
+    `truncated` True when the file ends early."""
 
     messages: dict = field(default_factory=dict)
     schemas: dict = field(default_factory=dict)
+    metadata: dict = field(default_factory=dict)
     truncated: bool = False
+
+    @property
+    def start_ns(self) -> int:
+        """The run's wall-clock start (ns since the epoch; 0 in logs whose log time is the
+        simulation time alone): log time - start_ns = simulation time."""
+        return int(self.metadata.get("time", {}).get("start_time_ns", 0))
 
     def count(self, topic: str) -> int:
         return len(self.messages.get(topic, ()))
 
 
 def read_log(path, topics=None, allow_truncated: bool = False) -> RunLog:
-    """Read the run log at `path` by streaming its records (no summary needed).
+    """Read the run log at `path` by streaming its records (no summary needed): JSON
+    messages decoded, others (Foxglove's protobuf types) as their bytes.
 
     `topics`: decode only these (None: all). A file that ends before its footer (a killed
     run) raises LogReadError unless `allow_truncated`, when everything up to the last
@@ -303,7 +289,7 @@ def read_log(path, topics=None, allow_truncated: bool = False) -> RunLog:
     except OSError as exc:
         raise LogReadError(f"cannot open {path}: {exc.strerror or exc}") from None
     log = RunLog()
-    channels, schemas, header = {}, {}, False
+    channels, schemas, header = {}, {}, False  # channel id -> (topic, JSON?); schema id -> name
     with f:
         start = f.read(len(MCAP_MAGIC))
         if start != MCAP_MAGIC:
@@ -311,25 +297,31 @@ def read_log(path, topics=None, allow_truncated: bool = False) -> RunLog:
             raise LogReadError(f"{path}: not an MCAP file ({what})")
         f.seek(0)
         try:
-            for rec in StreamReader(_WholeReads(f), validate_crcs=True, record_size_limit=1 << 30).records:
+            stream = _WholeReads(f)
+            for rec in StreamReader(stream, validate_crcs=True, record_size_limit=1 << 30).records:
                 if isinstance(rec, Header):
                     header = True
-                elif isinstance(rec, Schema):
+                elif isinstance(rec, SchemaRecord):
                     schemas[rec.id] = rec.name
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec.topic
+                elif isinstance(rec, ChannelRecord):
+                    channels[rec.id] = (rec.topic, rec.message_encoding == "json")
                     log.schemas[rec.topic] = schemas.get(rec.schema_id, "")
+                elif isinstance(rec, Metadata):
+                    log.metadata[rec.name] = dict(rec.metadata)
                 elif isinstance(rec, Message):
-                    topic = channels.get(rec.channel_id)
+                    topic, is_json = channels.get(rec.channel_id, (None, False))
                     if topic is None:
                         raise LogReadError(f"{path}: message on unknown channel {rec.channel_id}")
                     if topics is not None and topic not in topics:
                         continue
                     try:
-                        log.messages.setdefault(topic, []).append((rec.log_time, json.loads(rec.data)))
+                        msg = json.loads(rec.data) if is_json else bytes(rec.data)
                     except (ValueError, UnicodeDecodeError) as exc:
                         raise LogReadError(f"{path}: undecodable JSON on {topic} at {rec.log_time} ns: {exc}") from None
-        except EndOfFile:
+                    log.messages.setdefault(topic, []).append((rec.log_time, msg))
+        except (EndOfFile, RecordLengthLimitExceeded) as exc:
+            if isinstance(exc, RecordLengthLimitExceeded) and stream.last != UNFINISHED_RECORD_LENGTH:
+                raise LogReadError(f"{path}: corrupt MCAP file: {exc}") from None
             if not header:
                 raise LogReadError(f"{path}: truncated before its MCAP header ({path.stat().st_size} bytes)") from None
             if not allow_truncated:

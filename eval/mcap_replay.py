@@ -107,7 +107,7 @@ def replay(path, tol: float = 1e-9, allow_truncated: bool = False) -> ReplayResu
         except ValueError as exc:
             raise LogReadError(f"{path}: /filter/inputs step {s}: {exc}") from None
     max_diff, mismatches, examples = 0.0, 0, []
-    for (s, _, logged_out, logged_status), x in zip(steps, rebuilt):
+    for (s, logged_in, logged_out, logged_status), x in zip(steps, rebuilt):
         d, diffs = _compare(s, logged_out, logged_status, filt(x))
         if math.isfinite(d):
             max_diff = max(max_diff, d)

@@ -16,10 +16,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from foxglove.messages import LogLevel
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from eval import mcap_codec as codec
 from eval.mcap_log import M_PER_MM, RunLogger, quaternion_xyzw, read_log
+from eval.mcap_scene import MESSAGES as FOXGLOVE_MESSAGES
 from models import AdaptiveEyeModel, Ellipsoid, Sphere
 from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
 
@@ -57,10 +60,11 @@ def toy_step(log: RunLogger, filt: SafetyFilter, k: int, p: np.ndarray) -> np.nd
     return p + DT * out.qdot
 
 
-def write_toy_run(path, steps: int, config: FilterConfig | None = None, flush_every_s: float = 1.0) -> Path:
+def write_toy_run(path, steps: int, config: FilterConfig | None = None, flush_every_s: float = 1.0,
+                  start_ns: int | None = None) -> Path:
     filt = SafetyFilter(config)
     p = np.array([0.0, 0.0, -10.0])
-    with RunLogger(path, filt.config, flush_every_s=flush_every_s) as log:
+    with RunLogger(path, filt.config, flush_every_s=flush_every_s, start_ns=start_ns) as log:
         for k in range(steps):
             p = toy_step(log, filt, k, p)
     return Path(path)
@@ -71,26 +75,91 @@ def toy_log(tmp_path_factory) -> Path:
     return write_toy_run(tmp_path_factory.mktemp("log") / "run.mcap", 300)
 
 
+JSON_TOPICS = TOPICS - set(FOXGLOVE_MESSAGES)
+
+
+def foxglove_class(schema_data: bytes, name: str):
+    """The protobuf message class `name` (e.g. "foxglove.SceneUpdate") of a protobuf
+    schema record's data (a FileDescriptorSet, as foxglove-sdk writes it)."""
+    files = descriptor_pb2.FileDescriptorSet.FromString(schema_data)
+    pool = descriptor_pool.DescriptorPool()
+    for fd in files.file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+
+
+def decode_foxglove(topic: str, data: bytes):
+    """A Foxglove message of `topic` decoded with the SDK's published schema."""
+    schema = FOXGLOVE_MESSAGES[topic].get_schema()
+    return foxglove_class(schema.data, schema.name).FromString(data)
+
+
 def test_the_log_has_every_channel_with_its_schema(toy_log):
     with open(toy_log, "rb") as f:
         reader = make_reader(f)  # mcap's own reader, through the summary
         summary = reader.get_summary()
         topics = {c.topic: c for c in summary.channels.values()}
-        assert set(topics) == TOPICS
-        for c in topics.values():
+        assert set(topics) == TOPICS  # "/log" holds run events: none in a run that ends normally
+        for topic, c in topics.items():
             schema = summary.schemas[c.schema_id]
-            assert c.message_encoding == "json" and schema.encoding == "jsonschema"
-            assert json.loads(schema.data)["type"] == "object"
+            if topic in JSON_TOPICS:
+                assert c.message_encoding == "json" and schema.encoding == "jsonschema"
+                assert json.loads(schema.data)["type"] == "object"
+            else:  # Foxglove's published schema, as foxglove-sdk defines it, and its name
+                published = FOXGLOVE_MESSAGES[topic].get_schema()
+                assert c.message_encoding == schema.encoding == published.encoding == "protobuf"
+                assert (schema.name, schema.data) == (published.name, published.data)
         assert summary.schemas[topics["/tf"].schema_id].name == "foxglove.FrameTransforms"
         assert summary.schemas[topics["/scene"].schema_id].name == "foxglove.SceneUpdate"
         counts = {topics_id: n for topics_id, n in summary.statistics.channel_message_counts.items()}
         by_topic = {c.topic: counts.get(cid, 0) for cid, c in summary.channels.items()}
         assert by_topic["/filter/inputs"] == by_topic["/filter/outputs"] == by_topic["/filter/status"] == 300
         assert by_topic["/filter/config"] == 1 and by_topic["/scene"] == by_topic["/tf"] == 30
-        for schema, channel, message in reader.iter_messages():
-            m = json.loads(message.data)
-            if "t" in m:  # log time is the simulation time in ns
-                assert message.log_time == round(m["t"] * 1e9) == message.publish_time
+
+
+def test_log_times_are_the_runs_wall_clock_start_plus_the_simulation_time(tmp_path):
+    """Foxglove shows the run at the date it ran (not in 1970); the simulation time stays
+    in the messages (`t`, and the scene entities' 'sim_time_s')."""
+    before = time.time_ns()
+    path = write_toy_run(tmp_path / "clock.mcap", 100)
+    after = time.time_ns()
+    log = read_log(path)
+    start = log.start_ns
+    assert before <= start <= after
+    assert log.metadata["time"]["start_time_ns"] == str(start)
+    for topic in JSON_TOPICS - {"/filter/config"}:
+        for log_time, m in log.messages[topic]:
+            assert log_time == start + round(m["t"] * 1e9)
+    assert log.messages["/filter/config"][0][0] == start
+    with open(path, "rb") as f:
+        assert all(m.publish_time == m.log_time for _, _, m in make_reader(f).iter_messages())
+    for (log_time, data), (_, inputs) in zip(log.messages["/scene"], log.messages["/filter/inputs"][::10]):
+        entities = decode_foxglove("/scene", data).entities
+        assert {kv.key: kv.value for kv in entities[0].metadata} == {"sim_time_s": repr(inputs["t"])}
+        assert all(e.timestamp.seconds * 10**9 + e.timestamp.nanos == log_time for e in entities)
+    for log_time, data in log.messages["/tf"]:
+        (transform,) = decode_foxglove("/tf", data).transforms
+        assert transform.timestamp.seconds * 10**9 + transform.timestamp.nanos == log_time
+    given = read_log(write_toy_run(tmp_path / "given.mcap", 5, start_ns=1_700_000_000_123_456_789))
+    assert given.start_ns == 1_700_000_000_123_456_789
+    assert given.messages["/filter/inputs"][3][0] == 1_700_000_000_123_456_789 + 3_000_000
+
+
+def test_a_run_stopped_by_an_exception_says_so_in_its_closed_log(tmp_path):
+    """Ctrl-C (KeyboardInterrupt) or an error inside `with RunLogger(...)`: the log is
+    complete (summary written) and ends with a foxglove.Log event naming the cause."""
+    filt, p = SafetyFilter(), np.array([0.0, 0.0, -10.0])
+    with pytest.raises(KeyboardInterrupt):
+        with RunLogger(tmp_path / "stopped.mcap", filt.config) as log:
+            for k in range(50):
+                p = toy_step(log, filt, k, p)
+            raise KeyboardInterrupt
+    assert log.closed
+    stopped = read_log(tmp_path / "stopped.mcap")  # not truncated: it was closed
+    (log_time, data), = stopped.messages["/log"]
+    event = decode_foxglove("/log", data)
+    assert event.message == "run ended early: KeyboardInterrupt" and event.level == LogLevel.Error.value
+    assert log_time == stopped.messages["/filter/inputs"][-1][0]  # at the last step's time
 
 
 _JSON_TYPES = {"object": dict, "array": list, "string": str, "boolean": bool, "null": type(None),
@@ -120,11 +189,19 @@ def schema_violations(value, schema, where="") -> list[str]:
 
 
 def test_every_message_matches_its_schema(toy_log):
-    """Every field a message carries is declared with its type in the channel's schema (what
-    Foxglove's panels offer for plotting), and the required ones are present."""
+    """Every field a JSON message carries is declared with its type in the channel's schema
+    (what Foxglove's panels offer for plotting), and the required ones are present; every
+    Foxglove message decodes with Foxglove's published schema (foxglove-sdk's), with no
+    field that schema lacks."""
     with open(toy_log, "rb") as f:
         for schema, channel, message in make_reader(f).iter_messages():
-            assert schema_violations(json.loads(message.data), json.loads(schema.data), channel.topic) == []
+            if channel.topic in JSON_TOPICS:
+                assert schema_violations(json.loads(message.data), json.loads(schema.data), channel.topic) == []
+            else:
+                m = decode_foxglove(channel.topic, message.data)
+                assert m.SerializeToString() == message.data  # nothing unknown to the schema
+                m.DiscardUnknownFields()
+                assert m.SerializeToString() == message.data
 
 
 def test_filter_messages_hold_the_step(toy_log):
@@ -156,20 +233,23 @@ def test_the_run_pushes_the_filter_to_its_boundary(toy_log):
 
 def test_foxglove_geometry_is_in_metres(toy_log):
     log = read_log(toy_log)
-    (_, tf), (_, scene) = log.messages["/tf"][5], log.messages["/scene"][5]
+    (_, tf), (scene_time, scene) = log.messages["/tf"][5], log.messages["/scene"][5]
+    tf, scene = decode_foxglove("/tf", tf), decode_foxglove("/scene", scene)
     x = codec.inputs_from_json(log.messages["/filter/inputs"][50][1])  # the same time: step 50
-    (transform,) = tf["transforms"]
-    assert (transform["parent_frame_id"], transform["child_frame_id"]) == ("W", "T")
-    np.testing.assert_allclose([transform["translation"][a] for a in "xyz"], M_PER_MM * x.q, atol=1e-15)
-    entities = {e["id"]: e for e in scene["entities"]}
+    (transform,) = tf.transforms
+    assert (transform.parent_frame_id, transform.child_frame_id) == ("W", "T")
+    np.testing.assert_allclose([getattr(transform.translation, a) for a in "xyz"], M_PER_MM * x.q, atol=1e-15)
+    entities = {e.id: e for e in scene.entities}
     assert set(entities) == {"eye_model", "lens", "beam", "trocar"}
-    eye_size = entities["eye_model"]["spheres"][0]["size"]
-    assert [eye_size[a] for a in "xyz"] == pytest.approx([0.024] * 3)  # 2 x 12 mm, in metres
-    lens_size = entities["lens"]["spheres"][0]["size"]
-    assert [lens_size[a] for a in "xyz"] == pytest.approx([0.009, 0.009, 0.004])
-    beam = entities["beam"]["lines"][0]["points"]
-    assert beam[1]["z"] - beam[0]["z"] == pytest.approx(-0.003)
-    assert all(e["frame_id"] == "W" and e["timestamp"] == {"sec": 0, "nsec": 50_000_000} for e in entities.values())
+    eye_size = entities["eye_model"].spheres[0].size
+    assert [getattr(eye_size, a) for a in "xyz"] == pytest.approx([0.024] * 3)  # 2 x 12 mm, in metres
+    lens_size = entities["lens"].spheres[0].size
+    assert [getattr(lens_size, a) for a in "xyz"] == pytest.approx([0.009, 0.009, 0.004])
+    beam = entities["beam"].lines[0].points
+    assert beam[1].z - beam[0].z == pytest.approx(-0.003)
+    assert all(e.frame_id == "W" for e in entities.values())
+    assert all(e.timestamp.seconds * 10**9 + e.timestamp.nanos == scene_time == log.start_ns + 50_000_000
+               for e in entities.values())
 
 
 def _matrix_of(q):
@@ -232,8 +312,8 @@ def test_model_updates_and_run_metadata_are_logged(tmp_path):
     assert m["sphere"]["radius"] == pytest.approx(12.0, abs=1e-9)
     assert set(m["criteria"]) == set(update.criteria) and all(set(c) == {"value", "met"} for c in m["criteria"].values())
     with open(tmp_path / "m.mcap", "rb") as f:
-        (meta,) = make_reader(f).iter_metadata()
-    assert meta.name == "run" and meta.metadata == {"scenario": "toy", "seed": "3"}
+        meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert meta["run"] == {"scenario": "toy", "seed": "3"} and set(meta["time"]) == {"start_time_ns", "log_time"}
 
 
 def test_bad_arguments_are_refused_by_name(tmp_path):

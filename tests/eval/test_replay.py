@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,7 +98,37 @@ def test_a_tampered_output_is_detected(tmp_path, capsys):
     assert report["mismatches"] == 1 and not report["ok"]
     assert report["max_abs_diff"] == pytest.approx(1e-6, rel=1e-6)
     assert report["examples"][0]["step"] == 17
+    assert report["examples"][0]["t"] == 17 * DT  # the mismatching step's time, not the last step's
+    assert f"step 17 (t = {17 * DT} s)" in out
     assert run_cli(capsys, log, "--tol", "2e-6")[0] == 0  # within a looser tolerance
+
+
+def test_each_mismatch_reports_its_own_time(tmp_path):
+    """Two tampered steps: each example carries its step's logged time."""
+    filt, p = SafetyFilter(), np.array([0.0, 0.0, -10.0])
+    with RunLogger(tmp_path / "two.mcap", filt.config) as log:
+        for k in range(30):
+            x = toy_inputs(p, [1.0, 2.0, -8.0], k * DT)
+            out = filt(x)
+            log.log_filter_step(x, out._replace(qdot=out.qdot + 1e-3) if k in (4, 11) else out)
+            p = p + DT * out.qdot
+    result = replay(tmp_path / "two.mcap")
+    assert [(e["step"], e["t"]) for e in result.examples] == [(4, 4 * DT), (11, 11 * DT)]
+
+
+# a log in the format of commit 9d08e3a (`vitreoguard demo --scenarios 1`'s boundary.mcap:
+# the first adversarial scenario, 0.5 s): log times are the simulation time alone, "/tf" and
+# "/scene" are JSON, the writer is mcap's. Its filter-step records must stay readable.
+MAIN_LOG = Path(__file__).resolve().parents[1] / "data" / "boundary_main_9d08e3a.mcap"
+
+
+def test_a_log_in_the_9d08e3a_format_still_replays(tmp_path, capsys):
+    log = read_log(MAIN_LOG)
+    assert log.start_ns == 0 and log.count("/filter/inputs") == 489
+    assert isinstance(log.messages["/scene"][0][1], dict)  # JSON there, decoded as such
+    code, out, _ = run_cli(capsys, MAIN_LOG, "--out", tmp_path)
+    assert code == 0 and "489 steps" in out and "all match" in out
+    assert json.loads((tmp_path / "replay.json").read_text())["max_abs_diff"] <= 1e-9
 
 
 def test_a_changed_verdict_is_detected_even_with_equal_rates(tmp_path, capsys):
