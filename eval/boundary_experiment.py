@@ -7,12 +7,14 @@ Units: mm, s, rad (times in us where named); frame W.
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from eval.closed_loop import ClosedLoop, LoopRun
 from eval.commands import AdversarialCommand, TipPathCommand
+from eval.progress import progress_bar
 from models import AdaptiveEyeModel
 from models.metrics import mae_exact
 from models.transition import PredictiveCriteria
@@ -41,11 +43,37 @@ def spiral_path_W(scenario: SurgeryScenario, pitch_mm: float, revolutions: float
     return scenario.eye_pose.to_W(scenario.spiral_E(pitch_mm, revolutions, spacing_mm))
 
 
+class _SimTimeProgress:
+    """A command source that advances a progress bar by each whole second of simulation
+    time it is asked for, and otherwise is `source`."""
+
+    def __init__(self, source, bar):
+        self._source, self._bar, self._next_s = source, bar, 1.0
+
+    def __call__(self, t_s: float, p_WT, q):
+        if t_s >= self._next_s:
+            self._bar.update(1)
+            self._next_s += 1.0
+        return self._source(t_s, p_WT, q)
+
+
+def run_with_progress(loop: ClosedLoop, source, q0, duration_s: float, desc: str | None, **run_kwargs) -> LoopRun:
+    """loop.run(source, q0, duration_s, **run_kwargs) with a progress bar labelled `desc`
+    over the simulated seconds (none when `desc` is None)."""
+    if desc is None:
+        return loop.run(source, q0, duration_s, **run_kwargs)
+    with progress_bar(math.ceil(duration_s), f"{desc}, simulated s", unit="s") as bar:
+        return loop.run(_SimTimeProgress(source, bar), q0, duration_s, **run_kwargs)
+
+
 def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: float = 1.5,
-                          revolutions: float = 6.0, logger=None, truth_grid: int = 100) -> SpiralBuild:
+                          revolutions: float = 6.0, logger=None, truth_grid: int = 100,
+                          progress: str | None = None) -> SpiralBuild:
     """Scan the spiral (pitch, revolutions) at `speed_mm_s` through `loop` from the IK
     posture at its start, building a fresh AdaptiveEyeModel from the sensor's points;
-    MAEs in the exact form against a truth_grid^2 sampling of the true retina."""
+    MAEs in the exact form against a truth_grid^2 sampling of the true retina.
+    `progress`: the label of a progress bar (eval.progress, stderr) over the scan's
+    simulated seconds, or None for none."""
     scenario = loop.scenario
     P = spiral_path_W(scenario, pitch_mm, revolutions)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
@@ -55,7 +83,8 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: 
     path = TipPathCommand(times, P)
     q0 = start_posture(loop.robot, P[0], scenario.p_WC)
     model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), loop.new_coverage()
-    run = loop.run(path, q0, float(times[-1]) + 0.05, model=model, coverage=coverage, logger=logger)
+    run = run_with_progress(loop, path, q0, float(times[-1]) + 0.05, progress, model=model, coverage=coverage,
+                            logger=logger)
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)
     trans = _transition_fraction(run, times[-1])
     return SpiralBuild(model, coverage, run, model.kind,

@@ -1,19 +1,22 @@
 """The `vitreoguard` command line: one subcommand per experiment.
 
 Each subcommand lives in its own module that exposes `register(subparsers)`; the
-module adds its parser and sets `func(args) -> int`. Bad input raises
-`eval.io.UsageError`, which becomes a one-line message and exit code 2.
+module adds its parser and sets `func(args) -> int`. A flag outside its range is refused
+while parsing (eval.cli_args), other bad input raises `eval.io.UsageError`: either way a
+one-line message and exit code 2, before anything is written. Ctrl-C stops a run
+cleanly: open logs are closed, one line says so, exit code 130.
 """
 from __future__ import annotations
 
-import argparse
 import importlib
 import sys
+from importlib.metadata import PackageNotFoundError, version
 
 import matplotlib
 
 matplotlib.use("Agg")  # figures are files; no display is needed or assumed
 
+from eval.cli_args import Parser
 from eval.io import UsageError
 
 SUBCOMMAND_MODULES = (
@@ -27,15 +30,25 @@ SUBCOMMAND_MODULES = (
     "eval.cmd_sensor",
     "eval.cmd_plan",
 )
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
 
 
-def build_parser() -> argparse.ArgumentParser:
+def package_version() -> str:
+    """The installed vitreoguard distribution's version ('unknown' when not installed)."""
+    try:
+        return version("vitreoguard")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def build_parser() -> Parser:
     """Return the top-level parser with every subcommand registered."""
-    parser = argparse.ArgumentParser(
-        prog="vitreoguard",
-        description="Adaptive iiOCT eye model and virtual boundary (mm, s, rad).",
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = Parser(prog="vitreoguard",
+                    description="Adaptive iiOCT eye model and virtual boundary. Units: mm, s, rad (deg and um where "
+                                "a flag's name says so).")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {package_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in SUBCOMMAND_MODULES:
         importlib.import_module(name).register(sub)
     return parser
@@ -43,13 +56,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Entry point of the console script; returns the process exit code."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    command = "vitreoguard"
     try:
+        parser = build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # --help, --version, or a refused argument (already reported)
+            return exc.code if isinstance(exc.code, int) else EXIT_USAGE
+        command = f"vitreoguard {args.command}"
         return int(args.func(args) or 0)
     except UsageError as exc:
-        print(f"vitreoguard {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        print(f"{command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"\n{command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

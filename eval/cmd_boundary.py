@@ -2,7 +2,7 @@
 
 Builds the eye model with a spiral scan through the closed loop (robot, iiOCT sensor,
 adaptive model, safety filter), then runs N seeded adversarial scenarios against it and
-writes boundary.json (the keys of issue 6, plus the sphere phase and the spiral), the
+writes boundary.json (the campaign's figures, the sphere phase and the spiral), the
 plots boundary_clearance.png and boundary_activity.png, and the MCAP logs spiral.mcap
 (the model-building scan) and boundary.mcap (the first adversarial scenario);
 `vitreoguard replay` re-runs their filter steps.
@@ -13,24 +13,34 @@ from typing import NamedTuple
 
 import numpy as np
 
-from eval.io import UsageError, prepare_out_dir, save_figure, write_json
+from eval.cli_args import SEED, choice, integer, number
+from eval.io import prepare_out_dir, save_figure, write_json
+from eval.progress import phase, progress_bar
 from models.eyes import EYE_SHAPES
 
-LIMITS = {"scenarios": (1, 100000), "duration_s": (0.05, 10.0), "spiral_speed_mm_s": (1.0, 17.0),
-          "spiral_revolutions": (1.0, 18.0), "sphere_scenarios": (0, 100000)}
+COMPILE_PHASE = "compiling / loading the control loop's kernels"
+SCENARIOS = integer(1, 100_000)
+SPHERE_SCENARIOS = integer(0, 100_000)
+DURATION_S = number(0.05, 10.0, "s")
+SPIRAL_SPEED = number(1.0, 17.0, "mm/s")
+SPIRAL_REVOLUTIONS = number(1.0, 18.0, "revolutions")
 
 
 def register(sub) -> None:
     p = sub.add_parser("boundary", help="spiral-built model + N adversarial scenarios: boundary.json, plots, MCAP")
-    p.add_argument("--shape", default="emmetropic", help=f"true eye: one of {' '.join(EYE_SHAPES)}")
-    p.add_argument("--scenarios", type=int, default=100, help="adversarial scenarios once the model is built")
-    p.add_argument("--sphere-scenarios", type=int, default=None,
-                   help="scenarios in the sphere phase (model from 1.5 spiral turns); default min(N, 50)")
-    p.add_argument("--seed", type=int, default=0, help="seed of starts, adversaries and sensor noise")
-    p.add_argument("--duration-s", type=float, default=0.5, help="length of one scenario, s")
-    p.add_argument("--spiral-speed-mm-s", type=float, default=15.0, help="tip speed of the model-building spiral, mm/s")
-    p.add_argument("--spiral-revolutions", type=float, default=6.0,
-                   help="revolutions of the model-building spiral (pitch 9 mm / revolutions; 1-18)")
+    p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
+                   help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    p.add_argument("--scenarios", type=SCENARIOS, default=100,
+                   help=f"adversarial scenarios once the model is built, {SCENARIOS.range}")
+    p.add_argument("--sphere-scenarios", type=SPHERE_SCENARIOS, default=None,
+                   help=f"scenarios in the sphere phase (model from 1.5 spiral turns), {SPHERE_SCENARIOS.range}; "
+                        "default min(--scenarios, 50)")
+    p.add_argument("--seed", type=SEED, default=0, help=f"seed of starts, adversaries and sensor noise, {SEED.range}")
+    p.add_argument("--duration-s", type=DURATION_S, default=0.5, help=f"length of one scenario, {DURATION_S.range}")
+    p.add_argument("--spiral-speed-mm-s", type=SPIRAL_SPEED, default=15.0,
+                   help=f"tip speed of the model-building spiral, {SPIRAL_SPEED.range}")
+    p.add_argument("--spiral-revolutions", type=SPIRAL_REVOLUTIONS, default=6.0,
+                   help=f"revolutions of the model-building spiral over its 9 mm radius, {SPIRAL_REVOLUTIONS.range}")
     p.add_argument("--sensor-mode", choices=("distance", "ascan"), default="distance",
                    help="iiOCT in the loop: extractor error model (fast) or full A-scans")
     p.add_argument("--out", default="out/boundary", help="output directory")
@@ -38,14 +48,9 @@ def register(sub) -> None:
 
 
 def validate(args) -> None:
-    if args.shape not in EYE_SHAPES:
-        raise UsageError(f"unknown shape {args.shape!r}; choose from {', '.join(EYE_SHAPES)}")
+    """The defaults that depend on other flags (the flags' ranges are checked while parsing)."""
     if args.sphere_scenarios is None:
-        args.sphere_scenarios = min(args.scenarios, 50) if isinstance(args.scenarios, int) else 0
-    for name, (lo, hi) in LIMITS.items():
-        v = getattr(args, name)
-        if not (np.isfinite(v) and lo <= v <= hi):
-            raise UsageError(f"--{name.replace('_', '-')} must be in [{lo}, {hi}], got {v}")
+        args.sphere_scenarios = min(args.scenarios, 50)
 
 
 class BoundaryRun(NamedTuple):
@@ -58,34 +63,41 @@ class BoundaryRun(NamedTuple):
     loop: object
 
 
-def run_boundary(args, out, progress=print, keep_build: bool = False):
-    """The experiment of `args` (validated); writes logs and plots into `out`; returns
-    boundary.json's content (a BoundaryRun with `keep_build`)."""
-    from eval.boundary_experiment import build_model_by_spiral, run_campaign
+def make_loop(scenario, config=None, **kwargs):
+    """eval.closed_loop.ClosedLoop(scenario, config, **kwargs) under a progress phase: its
+    construction compiles the control loop's kernels on a first run (numba, minutes)."""
     from eval.closed_loop import ClosedLoop, LoopConfig
+
+    with phase(COMPILE_PHASE):
+        return ClosedLoop(scenario, LoopConfig() if config is None else config, **kwargs)
+
+
+def run_boundary(args, out, keep_build: bool = False):
+    """The experiment of `args` (validated); writes logs and plots into `out`; returns
+    boundary.json's content (a BoundaryRun with `keep_build`). Progress goes to stderr."""
+    from eval.boundary_experiment import build_model_by_spiral, run_campaign
+    from eval.closed_loop import LoopConfig
     from eval.mcap_log import RunLogger
     from planning import SurgeryScenario
 
-    scenario = SurgeryScenario(eye_name=args.shape)
     config = LoopConfig(sensor_mode=args.sensor_mode)
-    loop = ClosedLoop(scenario, config, sensor_seed=args.seed)
+    loop = make_loop(SurgeryScenario(eye_name=args.shape), config, sensor_seed=args.seed)
     meta = {"shape": args.shape, "seed": args.seed}
+    pitch_mm = 9.0 / args.spiral_revolutions
     with RunLogger(out / "spiral.mcap", config.filter, metadata={**meta, "run": "spiral"}) as log:
-        progress(f"building the model: spiral at {args.spiral_speed_mm_s:g} mm/s on the {args.shape} eye ...")
-        build = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=9.0 / args.spiral_revolutions,
-                                      revolutions=args.spiral_revolutions, logger=log)
-    progress(f"  {build.kind_final}, EF MAE {build.ef_mae_um:.1f} um, SF MAE {build.sf_mae_um:.1f} um; "
-             f"{args.scenarios} adversarial scenarios of {args.duration_s:g} s ...")
-    step = max(args.scenarios // 10, 1)
-    with RunLogger(out / "boundary.mcap", config.filter, metadata={**meta, "run": "adversarial scenario 0"}) as log:
+        build = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=args.spiral_revolutions,
+                                      logger=log, progress=f"spiral scan ({args.shape} eye)")
+    with RunLogger(out / "boundary.mcap", config.filter, metadata={**meta, "run": "adversarial scenario 0"}) as log, \
+            progress_bar(args.scenarios, "adversarial scenarios", unit="scenario") as bar:
         campaign = run_campaign(loop, build.model, build.coverage, args.scenarios, args.seed, args.duration_s, logger=log,
-                                progress=lambda i, n: progress(f"  {i}/{n}") if i % step == 0 else None)
+                                progress=lambda i, n: bar.update())
     sphere = None
     if args.sphere_scenarios:
-        progress(f"sphere phase: model from 1.5 spiral turns, {args.sphere_scenarios} scenarios ...")
-        partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=9.0 / args.spiral_revolutions,
-                                        revolutions=1.5)
-        sphere_campaign = run_campaign(loop, partial.model, partial.coverage, args.sphere_scenarios, args.seed + 1, args.duration_s)
+        partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=1.5,
+                                        progress="sphere phase: spiral of 1.5 turns")
+        with progress_bar(args.sphere_scenarios, "sphere-phase scenarios", unit="scenario") as bar:
+            sphere_campaign = run_campaign(loop, partial.model, partial.coverage, args.sphere_scenarios, args.seed + 1,
+                                           args.duration_s, progress=lambda i, n: bar.update())
         sphere = {"model_kind": partial.kind_final, "sf_mae_um": partial.sf_mae_um, **sphere_campaign.summary()}
     s = campaign.summary()
     spiral = build.run

@@ -12,17 +12,23 @@ import argparse
 
 import numpy as np
 
-from eval.io import UsageError, prepare_out_dir, write_json
+from eval.cli_args import SEED, choice, integer
+from eval.io import prepare_out_dir, write_json
 from models.eyes import EYE_SHAPES
+
+SCENARIOS = integer(1, 1000)
+ROWS = integer(2, 1000)
 
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="closed loop on the default eye: spiral scan, transition, adversarial teleoperation")
     p.add_argument("--out", default="out/demo", help="output directory")
-    p.add_argument("--shape", default="emmetropic", help=f"one of: {' '.join(EYE_SHAPES)}")
-    p.add_argument("--seed", type=int, default=0, help="seed of the sensor noise, starts and adversary")
-    p.add_argument("--scenarios", type=int, default=20, help="adversarial scenarios of 0.5 s after the scan")
-    p.add_argument("--rows", type=int, default=10, help="rows of the model history table")
+    p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
+                   help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    p.add_argument("--seed", type=SEED, default=0, help=f"seed of the sensor noise, starts and adversary, {SEED.range}")
+    p.add_argument("--scenarios", type=SCENARIOS, default=20,
+                   help=f"adversarial scenarios of 0.5 s after the scan, {SCENARIOS.range}")
+    p.add_argument("--rows", type=ROWS, default=10, help=f"rows of the model history table, {ROWS.range}")
     p.add_argument("--meshcat", action="store_true",
                    help="then replay the scan and the first 3 scenarios in Meshcat (robot, true retina, model and "
                         "boundary as they changed, beam, tip path) and wait")
@@ -47,12 +53,6 @@ def _history_rows(build, rows: int) -> list[dict]:
 
 
 def main(args) -> int:
-    if args.shape not in EYE_SHAPES:
-        raise UsageError(f"unknown shape {args.shape!r}; choose from {', '.join(EYE_SHAPES)}")
-    if args.rows < 2:
-        raise UsageError(f"--rows must be >= 2, got {args.rows}")
-    if not 1 <= args.scenarios <= 1000:
-        raise UsageError(f"--scenarios must be in [1, 1000], got {args.scenarios}")
     out = prepare_out_dir(args.out)
     from eval.cmd_boundary import run_boundary
 

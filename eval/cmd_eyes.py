@@ -5,6 +5,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from eval.io import prepare_out_dir, save_figure, write_json
+from eval.progress import phase
 from models.eyes import EYE_SHAPES, make_eye
 from models.sampling import unit_sphere_grid
 
@@ -61,7 +62,8 @@ def figure_eyes():
 
 def main(args) -> int:
     out = prepare_out_dir(args.out)
-    fig, stats = figure_eyes()
+    with phase("rendering the six eye shapes"):
+        fig, stats = figure_eyes()
     write_json(out / "eyes.json", stats)
     save_figure(fig, out / "eyes.png")
     print(f"wrote {out / 'eyes.png'} and {out / 'eyes.json'}")

@@ -1,15 +1,17 @@
 """`vitreoguard paper`: reproduce (and beat) the paper's simulation results, Table 2 and Fig. 5."""
 from __future__ import annotations
 
+import multiprocessing
 import os
-from concurrent.futures import ProcessPoolExecutor
+import signal
 
 import numpy as np
 
+from eval.cli_args import choice, integer, number
 from eval.io import UsageError, prepare_out_dir, save_figure, write_atomic, write_json
 from eval.paper_experiment import ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, decision, optimal_transition, run_shape
 from eval.paper_figures import fig5
-from eval.progress import Progress
+from eval.progress import progress_bar
 from models.eyes import EYE_SHAPES, EyePose
 from models.robust_fit import RobustFitConfig
 from models.transition import CRITERIA
@@ -19,38 +21,36 @@ FITS = ("least-squares", "robust")  # --fit: the paper's ellipsoid fit, or model
 METRIC_KEYS = {"mmae": ("ef", "mmae"), "sf_fmae": ("sf", "fmae"), "sf_mae": ("sf", "mae"), "ef_fmae": ("ef", "fmae"), "ef_mae": ("ef", "mae")}
 
 
+SEEDS = integer(1, 100)
+NOISE_UM = number(0.0, 500.0, "um")
+STRIDE = integer(1, 50)
+GRID = integer(10, 2000)
+JOBS = integer(1, 64)
+
+
 def register(sub) -> None:
     p = sub.add_parser("paper", help="the paper's simulation experiment: table2.json/.md and fig5_<shape>.png")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--shapes", nargs="+", default=list(EYE_SHAPES), help=f"subset of: {' '.join(EYE_SHAPES)}")
-    p.add_argument("--seeds", type=int, default=1, help="number of noise seeds (>= 1); figures are means")
-    p.add_argument("--noise-um", type=float, default=20.0, help="SD of the distance noise, um (>= 0)")
+    p.add_argument("--shapes", nargs="+", type=choice("shape", EYE_SHAPES), default=list(EYE_SHAPES),
+                   help=f"true eyes to scan, any of: {' '.join(EYE_SHAPES)}")
+    p.add_argument("--seeds", type=SEEDS, default=1, help=f"number of noise seeds, {SEEDS.range}; figures are means")
+    p.add_argument("--noise-um", type=NOISE_UM, default=20.0, help=f"SD of the distance noise, {NOISE_UM.range}")
     p.add_argument("--criterion", choices=sorted(CRITERIA), default="predictive", help="transition criterion that drives the model")
-    p.add_argument("--pose", choices=["nominal", "anatomical"], default="nominal", help="eye placement: on the scan axis, or tilted 11 deg and decentred")
+    p.add_argument("--pose", choices=["nominal", "anatomical"], default="nominal",
+                   help="eye placement: on the scan axis, or tilted 11 deg and decentred")
     p.add_argument("--fit", choices=list(FITS), default="least-squares",
                    help="ellipsoid fit: the paper's least squares, or ours, robust to pathological patches (models.robust_fit)")
-    p.add_argument("--stride", type=int, default=1, help="use every k-th A-scan (1: all 5,093)")
-    p.add_argument("--grid", type=int, default=500, help="n x n sampling of the surfaces for Table 2 (paper: 500)")
-    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1), help="worker processes")
+    p.add_argument("--stride", type=STRIDE, default=1,
+                   help=f"use every k-th A-scan of the 5,093, {STRIDE.range} (1: all)")
+    p.add_argument("--grid", type=GRID, default=500,
+                   help=f"n x n sampling of the surfaces for Table 2, n in {GRID.range} (paper: 500)")
+    p.add_argument("--jobs", type=JOBS, default=min(2, os.cpu_count() or 1), help=f"worker processes, {JOBS.range}")
     p.set_defaults(func=main)
 
 
 def _validate(args) -> None:
-    unknown = [s for s in args.shapes if s not in EYE_SHAPES]
-    if unknown:
-        raise UsageError(f"unknown shape(s) {', '.join(unknown)}; choose from {', '.join(EYE_SHAPES)}")
-    if args.seeds < 1:
-        raise UsageError(f"--seeds must be >= 1, got {args.seeds}")
-    if not np.isfinite(args.noise_um) or args.noise_um < 0:
-        raise UsageError(f"--noise-um must be finite and >= 0, got {args.noise_um}")
-    if args.stride < 1:
-        raise UsageError(f"--stride must be >= 1, got {args.stride}")
-    if args.grid < 10:
-        raise UsageError(f"--grid must be >= 10, got {args.grid}")
-    if args.jobs < 1:
-        raise UsageError(f"--jobs must be >= 1, got {args.jobs}")
     if args.fit == "robust" and args.noise_um <= 0:
-        raise UsageError("--fit robust needs --noise-um > 0: its cut-off is 4.685 noise SDs")
+        raise UsageError("--fit robust needs --noise-um > 0 um: its cut-off is 4.685 noise SDs")
 
 
 def _mean_or_none(values):
@@ -164,16 +164,22 @@ def _task(job):
     return run_shape(shape, seed, args_dict["noise_um"], pose, args_dict["stride"], grid=args_dict["grid"], robust=robust)
 
 
+def _ignore_sigint() -> None:
+    """Workers leave Ctrl-C to the parent, which stops them (no traceback per worker)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def main(args) -> int:
     _validate(args)
     out = prepare_out_dir(args.out)
     jobs = [(s, seed, vars(args) | {"func": None}) for s in args.shapes for seed in range(args.seeds)]
-    progress = Progress(len(jobs), "paper")
     runs = {}
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        for (shape, seed, _), run in zip(jobs, pool.map(_task, jobs)):
+    # on any exit from the block (Ctrl-C included) the pool's workers are terminated
+    with multiprocessing.Pool(args.jobs, initializer=_ignore_sigint) as pool, \
+            progress_bar(len(jobs), "paper: shapes x seeds", unit="run") as bar:
+        for (shape, seed, _), run in zip(jobs, pool.imap(_task, jobs)):
             runs.setdefault(shape, []).append(run)
-            progress.step(f"{shape} seed {seed}")
+            bar.update()
     results = {shape: aggregate(rs, args.criterion, args.fit) for shape, rs in runs.items()}
     figures = {}
     for shape, r in results.items():

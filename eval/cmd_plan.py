@@ -11,52 +11,82 @@ as azimuth x height: why each cell is or is not reachable, and the path) and pla
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import math
+import re
 
 import numpy as np
 
+from eval.cli_args import SEED, choice, number
 from eval.io import UsageError, prepare_out_dir, save_figure, write_json
+from eval.progress import phase
 from models.eyes import EYE_SHAPES
 
 REASON_COLORS = {"ok": "tab:green", "lens": "tab:blue", "port": "tab:orange", "reach": "tab:red", "shaft": "tab:purple"}
 
 
+# planning.peripheral.BandSpec's parameters (named in its messages) -> the flags that set them
+FLAG_OF_PARAMETER = {"spacing_mm": "--sweep-mm", "standoff_mm": "--standoff-mm", "tip_speed_mm_s": "--tip-speed-mm-s",
+                     "band z_E range": "--band", "z_min": "z0", "z_max": "z1", "z_min_E": "z0", "z_max_E": "z1",
+                     "trust_angle_deg": "--trust-angle-deg"}
+_PARAMETER = re.compile(r"\b(" + "|".join(sorted(map(re.escape, FLAG_OF_PARAMETER), key=len, reverse=True)) + r")\b")
+POSITIVE_MM = number(0.0, None, "mm", lo_open=True)
+POSITIVE_MM_S = number(0.0, None, "mm/s", lo_open=True)
+TRUST_ANGLE = number(0.0, 180.0, "deg", lo_open=True)
+
+
+def flags_named(message: str) -> str:
+    """`message` with planning's parameter names replaced by the flags that set them."""
+    return _PARAMETER.sub(lambda m: FLAG_OF_PARAMETER[m.group(1)], message)
+
+
+def band_range(text: str) -> tuple[float, float]:
+    """Type of --band: 'z0,z1' (mm, finite, z0 < z1)."""
+    try:
+        z0, z1 = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be 'z0,z1' in mm with z0 < z1, got {text!r}") from None
+    if not (math.isfinite(z0) and math.isfinite(z1) and z0 < z1):
+        raise argparse.ArgumentTypeError(f"must be 'z0,z1' in mm with finite z0 < z1, got {text!r}")
+    return z0, z1
+
+
 def register(sub) -> None:
     p = sub.add_parser("plan", help="peripheral vitrectomy path on the fitted model, executed through the filter")
-    p.add_argument("--shape", default="emmetropic", help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
+                   help=f"true eye: one of {' '.join(EYE_SHAPES)}")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--standoff-mm", type=float, default=1.0, help="shaving standoff inside the model, mm (> 0.6)")
-    p.add_argument("--band", default="0,5", help="band z_E range 'z0,z1' in mm (equator 0, ora serrata 5)")
-    p.add_argument("--sweep-mm", type=float, default=1.0, help="cutter sweep width = ring spacing, mm")
-    p.add_argument("--tip-speed-mm-s", type=float, default=5.0, help="shaving tip speed, mm/s")
-    p.add_argument("--seed", type=int, default=0, help="sensor noise seed of the model-building scan")
+    p.add_argument("--standoff-mm", type=POSITIVE_MM, default=1.0,
+                   help="shaving standoff inside the model, mm: above the filter's boundary + 0.1 mm (0.6 mm for "
+                        "the ellipsoid) and at most 5 mm")
+    p.add_argument("--band", type=band_range, default="0,5", metavar="Z0,Z1",
+                   help="band z_E range 'z0,z1' in mm (equator 0, ora serrata 5); |z_E| below the smallest retinal "
+                        "semi-axis minus the standoff")
+    p.add_argument("--sweep-mm", type=POSITIVE_MM, default=1.0, help="cutter sweep width = ring spacing, [0.2, 5] mm")
+    p.add_argument("--tip-speed-mm-s", type=POSITIVE_MM_S, default=5.0, help="shaving tip speed, [0.1, 20] mm/s")
+    p.add_argument("--seed", type=SEED, default=0, help=f"sensor noise seed of the model-building scan, {SEED.range}")
     p.add_argument("--no-execute", action="store_true", help="plan only (no closed-loop execution)")
-    p.add_argument("--trust-angle-deg", type=float, default=180.0,
-                   help="during the shaving the filter trusts the model this far (deg, from the eye centre) from "
-                        "measured directions; beyond, the conservative prior also bounds the tip. Default 180: the "
-                        "band is never measured (the fibre looks along the shaft), so shaving it rests on the global "
-                        "model's extrapolation, as planning does; 10, the teleoperation default, holds the tip back")
+    p.add_argument("--trust-angle-deg", type=TRUST_ANGLE, default=180.0,
+                   help=f"during the shaving the filter trusts the model this far (from the eye centre, "
+                        f"{TRUST_ANGLE.range}) from measured directions; beyond, the conservative prior also bounds the "
+                        "tip. 180: the band is never measured (the fibre looks along the shaft), so shaving it rests "
+                        "on the global model's extrapolation, as planning does; 10, the teleoperation default, holds "
+                        "the tip back")
     p.set_defaults(func=main)
 
 
 def spec_of(args):
+    """The planning.peripheral.BandSpec of the flags; UsageError naming the flag at fault."""
     from planning.peripheral import BandSpec
+    from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
 
-    try:
-        z0, z1 = (float(v) for v in str(args.band).split(","))
-    except ValueError:
-        raise UsageError(f"--band must be 'z0,z1' in mm, got {args.band!r}") from None
-    if args.shape not in EYE_SHAPES:
-        raise UsageError(f"unknown shape {args.shape!r}; choose from {', '.join(EYE_SHAPES)}")
-    if not (np.isfinite(args.trust_angle_deg) and 0.0 < args.trust_angle_deg <= 180.0):
-        raise UsageError(f"--trust-angle-deg must be in (0, 180], got {args.trust_angle_deg}")
+    z0, z1 = args.band
     try:
         spec = BandSpec(z_min_E=z0, z_max_E=z1, spacing_mm=args.sweep_mm, standoff_mm=args.standoff_mm,
                         tip_speed_mm_s=args.tip_speed_mm_s)
     except ValueError as exc:
-        raise UsageError(str(exc)) from None
-    from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
-
+        raise UsageError(flags_named(str(exc))) from None
     limit = SMALLEST_RETINAL_SEMI_AXIS_MM - spec.standoff_mm  # checked before any motion; the model re-checks
     if not (-limit < z0 and z1 < limit):
         raise UsageError(f"--band {z0:g},{z1:g} lies outside the model of any eye we simulate "
@@ -76,8 +106,9 @@ def roll_of(robot, q, p_WC) -> float:
 
 def main(args) -> int:
     spec = spec_of(args)
-    from eval.boundary_experiment import build_model_by_spiral
-    from eval.closed_loop import ClosedLoop, LoopConfig, semi_axes_mm
+    from eval.boundary_experiment import build_model_by_spiral, run_with_progress
+    from eval.closed_loop import LoopConfig, semi_axes_mm
+    from eval.cmd_boundary import make_loop
     from eval.commands import TipPathCommand
     from eval.mcap_log import RunLogger
     from planning import SurgeryScenario
@@ -85,9 +116,8 @@ def main(args) -> int:
     from planning.peripheral import REASONS, coverage, plan_path, second_trocar
 
     scenario = SurgeryScenario(eye_name=args.shape)
-    loop = ClosedLoop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg), sensor_seed=args.seed)
-    print(f"building the model (spiral through the loop) on the {args.shape} eye ...")
-    build = build_model_by_spiral(loop)
+    loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg), sensor_seed=args.seed)
+    build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye)")
     trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
     if trusted.shape is None:
         radii = semi_axes_mm(build.model.shape)
@@ -102,9 +132,10 @@ def main(args) -> int:
                          f"stepping in); use at least {boundary + 0.2:.2f} mm")
     spec = dataclasses.replace(spec, boundary_mm=boundary)  # the whole instrument plans outside it
     try:
-        plan = plan_path(loop.robot, scenario, model, spec)
+        with phase("planning the shaving path (band, reachability, joint trajectory)"):
+            plan = plan_path(loop.robot, scenario, model, spec)
     except (ValueError, IKFailure) as exc:
-        raise UsageError(f"cannot plan: {exc}") from None
+        raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
     out = prepare_out_dir(args.out)
     robot, traj = loop.robot, plan.trajectory
     ts = np.arange(traj.start_time(), traj.end_time(), 0.02)
@@ -131,11 +162,11 @@ def main(args) -> int:
         "second_trocar": second_trocar(robot, scenario, band, spec),
     }
     if not args.no_execute:
-        print(f"executing {result['duration_s']:.1f} s of shaving through the closed loop ...")
         roll = np.unwrap([roll_of(robot, q, scenario.p_WC) for q in Q])
         command = TipPathCommand(ts - ts[0], tips, roll_rad=roll)
         with RunLogger(out / "plan.mcap", loop.config.filter, metadata={"shape": args.shape, "run": "peripheral plan"}) as log:
-            run = loop.run(command, Q[0], result["duration_s"] + 0.2, model=build.model, coverage=build.coverage, logger=log)
+            run = run_with_progress(loop, command, Q[0], result["duration_s"] + 0.2, "shaving through the closed loop",
+                                    model=build.model, coverage=build.coverage, logger=log)
         result["min_true_clearance_mm"] = float(run.true_clearance_mm.min())
         result["filter_intervention_fraction"] = float(run.intervened.mean())
         result["execution"] = {"failsafe_stops": run.failsafe_stops, "max_rcm_error_um": float(1e3 * np.nanmax(run.rcm_error_mm)),

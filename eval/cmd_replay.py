@@ -8,18 +8,20 @@ nothing is written. Replay never commands a robot.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
+from eval.cli_args import number
 from eval.io import UsageError, prepare_out_dir, write_json
 from eval.mcap_log import LogReadError, TruncatedLogError
 from eval.mcap_replay import replay
+
+TOL = number(0.0, None, "rad/s")
 
 
 def register(sub) -> None:
     p = sub.add_parser("replay", help="re-run the safety filter on a run log (MCAP) and compare: replay.json")
     p.add_argument("file", help="run log written by eval.mcap_log.RunLogger (.mcap)")
-    p.add_argument("--tol", type=float, default=1e-9, help="largest accepted |qdot difference|, rad/s (>= 0)")
+    p.add_argument("--tol", type=TOL, default=1e-9, help=f"largest accepted |qdot difference|, {TOL.range}")
     p.add_argument("--out", default=None, help="output directory (default: the log's directory)")
     p.add_argument("--allow-truncated", action="store_true",
                    help="replay a killed run's log up to its last complete step instead of refusing it")
@@ -27,8 +29,6 @@ def register(sub) -> None:
 
 
 def main(args) -> int:
-    if not (math.isfinite(args.tol) and args.tol >= 0):
-        raise UsageError(f"--tol must be a finite number >= 0 rad/s, got {args.tol}")
     path = Path(args.file)
     if not path.is_file():
         raise UsageError(f"{path}: no such file")

@@ -2,7 +2,7 @@
 whole chain A-scan -> distance -> point (reported joints, calibrated sensor pose) ->
 adaptive model, on one eye shape.
 
-Writes sensor.json (issue 5's keys: distance bias and SD against the true distance, the
+Writes sensor.json (distance bias and SD against the true distance, the
 invalid fraction, the outliers the model's gate rejected, the final EF and SF MAE in the
 exact form against the true retina, the final kind) and ascans.png (example A-scans at
 normal and oblique incidence and with a floater: raw, reference response, detected and
@@ -12,43 +12,42 @@ from __future__ import annotations
 
 import numpy as np
 
-from eval.io import UsageError, prepare_out_dir, save_figure, write_json
+from eval.cli_args import SEED, choice, number
+from eval.io import prepare_out_dir, save_figure, write_json
 from models.eyes import EYE_SHAPES
 
-LIMITS = {"outliers": (0.0, 0.5), "speed_mm_s": (1.0, 17.0), "revolutions": (1.0, 18.0)}
+OUTLIERS = number(0.0, 0.5, "(fraction)")
+SPEED = number(1.0, 17.0, "mm/s")
+REVOLUTIONS = number(1.0, 18.0, "revolutions")
 
 
 def register(sub) -> None:
     p = sub.add_parser("sensor", help="spiral scan through robot + iiOCT + model: sensor.json, ascans.png")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--shape", default="emmetropic", help=f"true eye: one of {' '.join(EYE_SHAPES)}")
-    p.add_argument("--seed", type=int, default=0, help="speckle, noise and floater seed")
+    p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
+                   help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    p.add_argument("--seed", type=SEED, default=0, help=f"speckle, noise and floater seed, {SEED.range}")
     p.add_argument("--mode", choices=("ascan", "distance"), default="ascan",
-                   help="full A-scans (default) or the extractor's error model")
-    p.add_argument("--outliers", type=float, default=0.0, help="fraction of samples with a floater on the beam (0-0.5)")
-    p.add_argument("--speed-mm-s", type=float, default=15.0, help="tip speed along the spiral, mm/s")
-    p.add_argument("--revolutions", type=float, default=6.0, help="spiral revolutions over its 9 mm radius")
+                   help="full A-scans or the extractor's error model")
+    p.add_argument("--outliers", type=OUTLIERS, default=0.0,
+                   help=f"fraction of samples with a floater on the beam, {OUTLIERS.range}")
+    p.add_argument("--speed-mm-s", type=SPEED, default=15.0, help=f"tip speed along the spiral, {SPEED.range}")
+    p.add_argument("--revolutions", type=REVOLUTIONS, default=6.0,
+                   help=f"spiral revolutions over its 9 mm radius, {REVOLUTIONS.range}")
     p.set_defaults(func=main)
-
-
-def validate(args) -> None:
-    if args.shape not in EYE_SHAPES:
-        raise UsageError(f"unknown shape {args.shape!r}; choose from {', '.join(EYE_SHAPES)}")
-    for name, (lo, hi) in LIMITS.items():
-        v = getattr(args, name)
-        if not (np.isfinite(v) and lo <= v <= hi):
-            raise UsageError(f"--{name.replace('_', '-')} must be in [{lo}, {hi}], got {v}")
 
 
 def run_sensor(args) -> dict:
     """The chain on args.shape; sensor.json's content."""
     from eval.boundary_experiment import build_model_by_spiral
-    from eval.closed_loop import ClosedLoop, LoopConfig
+    from eval.closed_loop import LoopConfig
+    from eval.cmd_boundary import make_loop
     from planning import SurgeryScenario
 
     scenario = SurgeryScenario(eye_name=args.shape)
-    loop = ClosedLoop(scenario, LoopConfig(sensor_mode=args.mode), sensor_seed=args.seed, floater_rate=args.outliers)
-    build = build_model_by_spiral(loop, args.speed_mm_s, pitch_mm=9.0 / args.revolutions, revolutions=args.revolutions)
+    loop = make_loop(scenario, LoopConfig(sensor_mode=args.mode), sensor_seed=args.seed, floater_rate=args.outliers)
+    build = build_model_by_spiral(loop, args.speed_mm_s, pitch_mm=9.0 / args.revolutions, revolutions=args.revolutions,
+                                  progress=f"spiral scan ({args.shape} eye, {args.mode} mode)")
     ms = loop.model
     err = np.array(ms.errors_mm)
     clean = err[np.abs(err) < 0.2] if args.outliers > 0 else err  # bias/SD of the extractor, not of the floaters
@@ -70,7 +69,6 @@ def run_sensor(args) -> dict:
 
 
 def main(args) -> int:
-    validate(args)
     out = prepare_out_dir(args.out)
     result = run_sensor(args)
     save_figure(ascans_figure(args.seed), out / "ascans.png")

@@ -14,6 +14,9 @@ settings.register_profile("deterministic", derandomize=True, print_blob=True)
 settings.register_profile("explore", max_examples=500, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
+# no progress bars or spinners in test output (eval.progress), subprocesses included
+os.environ["VITREOGUARD_NO_PROGRESS"] = "1"
+
 
 def _surface_grid(center, radii, rotation, n_theta: int, n_phi: int) -> np.ndarray:
     """(n_theta + 1, n_phi + 1, 3) points x = c + R diag(radii) u(theta, phi), poles included."""

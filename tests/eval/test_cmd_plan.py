@@ -23,7 +23,7 @@ def test_plan_writes_the_contract(tmp_path):
     assert (out / "coverage.png").stat().st_size > 10_000
 
 
-@pytest.mark.parametrize("argv, message", [(["--standoff-mm", "0.4"], "standoff_mm"), (["--band", "x"], "--band"),
+@pytest.mark.parametrize("argv, message", [(["--standoff-mm", "0.4"], "--standoff-mm must be in (0.6, 5] mm"), (["--band", "x"], "--band"),
                                            (["--band", "9,12"], "outside the model"), (["--shape", "egg"], "unknown shape")])
 def test_bad_plans_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
     out = tmp_path / "never"

@@ -1,0 +1,111 @@
+"""The command line's argument types and parser class.
+
+Each type parses one flag's text and checks its range; a bad value raises
+argparse.ArgumentTypeError, which the parser reports as one line naming the flag and the
+allowed range (exit code 2) while the arguments are parsed, before any output folder
+exists. `Parser` prints only that line (no usage block) and shows every default in --help.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+
+SEED_MAX = 2**32 - 1
+
+
+def _g(x) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def lo_ok(v, lo, is_open: bool) -> bool:
+    return lo is None or (v > lo if is_open else v >= lo)
+
+
+def hi_ok(v, hi, is_open: bool) -> bool:
+    return hi is None or (v < hi if is_open else v <= hi)
+
+
+class _Ranged:
+    """A parser of numbers in [lo, hi] (an open end with lo_open / hi_open; None: unbounded)."""
+
+    def __init__(self, kind, lo=None, hi=None, unit: str = "", lo_open: bool = False, hi_open: bool = False):
+        self.kind, self.lo, self.hi, self.unit = kind, lo, hi, unit
+        self.lo_open, self.hi_open = lo_open, hi_open
+
+    @property
+    def range(self) -> str:
+        """The allowed range as text, e.g. '[0, 500] um', '>= 1' or 'finite, mm'."""
+        lo, hi = self.lo, self.hi
+        if lo is None and hi is None:
+            text = "finite,"
+        elif hi is None:
+            text = f"{'>' if self.lo_open else '>='} {_g(lo)}"
+        elif lo is None:
+            text = f"{'<' if self.hi_open else '<='} {_g(hi)}"
+        else:
+            text = f"{'(' if self.lo_open else '['}{_g(lo)}, {_g(hi)}{')' if self.hi_open else ']'}"
+        return f"{text} {self.unit}".rstrip(" ,")
+
+    def __call__(self, text: str):
+        span = self.range
+        what = "an integer" if self.kind is int else "a number"
+        what = f"{what} ({span})" if span.startswith("finite") else f"{what} {'' if span[0] in '<>' else 'in '}{span}"
+        try:
+            v = self.kind(text)
+        except (TypeError, ValueError):
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
+        ok = math.isfinite(v)
+        if ok and lo_ok(v, self.lo, self.lo_open) and hi_ok(v, self.hi, self.hi_open):
+            return v
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text}")
+
+    def __repr__(self) -> str:  # argparse names the type in some messages
+        return "integer" if self.kind is int else "number"
+
+
+def integer(lo: int, hi: int | None = None, unit: str = "") -> _Ranged:
+    """Type of an integer flag in [lo, hi] (hi None: no upper bound)."""
+    return _Ranged(int, lo, hi, unit)
+
+
+def number(lo: float | None, hi: float | None, unit: str, lo_open: bool = False, hi_open: bool = False) -> _Ranged:
+    """Type of a finite float flag in [lo, hi] (ends open with lo_open / hi_open)."""
+    return _Ranged(float, lo, hi, unit, lo_open, hi_open)
+
+
+SEED = integer(0, SEED_MAX)
+
+
+def choice(name: str, options) -> callable:
+    """Type of a flag that takes one of `options` (strings): 'unknown <name> ...; choose from ...'."""
+    options = tuple(options)
+
+    def parse(text: str) -> str:
+        if text not in options:
+            raise argparse.ArgumentTypeError(f"unknown {name} {text!r}; choose from {', '.join(options)}")
+        return text
+
+    parse.__name__ = name
+    return parse
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows '(default: ...)' after every flag that has a default (not after required ones
+    or those whose default is 'none')."""
+
+    def _get_help_string(self, action):
+        if action.required or action.default is None or action.default is argparse.SUPPRESS:
+            return action.help
+        return super()._get_help_string(action)
+
+
+class Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line, 'prog: error: message (see prog --help)',
+    exit code 2; its subparsers are of the same class and format their help alike."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")

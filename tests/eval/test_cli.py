@@ -1,0 +1,148 @@
+"""The command line as a new user meets it: flags refused in one line before anything is
+written, every default and unit in --help, --version, Ctrl-C, and plan's messages naming
+flags."""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+from importlib.metadata import version
+from pathlib import Path
+
+import pytest
+from test_mcap_log import decode_foxglove
+
+from eval.cli import build_parser, main
+from eval.cli_args import SEED_MAX, _Ranged
+from eval.mcap_log import read_log
+
+ROOT = Path(__file__).resolve().parents[2]
+NEEDS_OUT = {"paper", "eyes", "calibrate", "scan", "sensor", "plan"}  # --out is required
+
+
+def run_main(capsys, *argv):
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def subparsers() -> dict:
+    parser = build_parser()
+    (action,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return dict(action.choices)
+
+
+@pytest.mark.parametrize("command", ["demo", "boundary", "sensor", "plan"])
+def test_a_negative_seed_is_one_line_naming_the_flag_and_its_range(command, tmp_path, capsys):
+    out = tmp_path / "never"
+    code, stdout, err = run_main(capsys, command, "--seed", "-1", "--out", out)
+    assert code == 2 and stdout == ""
+    assert err.count("\n") == 1, err  # one line
+    assert err.startswith(f"vitreoguard {command}: error: argument --seed: ")
+    assert f"[0, {SEED_MAX}]" in err and "got -1" in err
+    assert not out.exists()
+
+
+# (command, flag, a bad value, what the message names): every numeric flag of every subcommand
+BAD_NUMBERS = [
+    ("demo", "--scenarios", "0", "[1, 1000]"), ("demo", "--rows", "1", "[2, 1000]"), ("demo", "--seed", "x", "integer"),
+    ("boundary", "--scenarios", "-3", "[1, 100000]"), ("boundary", "--sphere-scenarios", "-1", "[0, 100000]"),
+    ("boundary", "--duration-s", "nan", "[0.05, 10] s"), ("boundary", "--spiral-speed-mm-s", "100", "[1, 17] mm/s"),
+    ("boundary", "--spiral-revolutions", "inf", "[1, 18]"), ("boundary", "--seed", "1e3", "integer"),
+    ("sensor", "--outliers", "0.9", "[0, 0.5]"), ("sensor", "--speed-mm-s", "0", "[1, 17] mm/s"),
+    ("sensor", "--revolutions", "18.5", "[1, 18]"), ("sensor", "--seed", str(SEED_MAX + 1), f"[0, {SEED_MAX}]"),
+    ("plan", "--standoff-mm", "-1", "> 0 mm"), ("plan", "--sweep-mm", "nan", "> 0 mm"),
+    ("plan", "--tip-speed-mm-s", "0", "> 0 mm/s"), ("plan", "--trust-angle-deg", "181", "(0, 180] deg"),
+    ("plan", "--band", "5,0", "z0 < z1"), ("plan", "--band", "1", "'z0,z1' in mm"), ("plan", "--seed", "-2", "[0, "),
+    ("calibrate", "--poses", "9", "[10, 10000]"), ("calibrate", "--noise-um", "-1", "[0, 500] um"),
+    ("calibrate", "--offset-um", "inf", "[0, 500] um"), ("calibrate", "--tilt-deg", "6", "[0, 5] deg"),
+    ("calibrate", "--seed", "-1", f"[0, {SEED_MAX}]"),
+    ("scan", "--tip-speed-mm-s", "60", "[0.1, 50] mm/s"), ("scan", "--revolutions", "0.1", "[0.5, 18]"),
+    ("paper", "--seeds", "0", "[1, 100]"), ("paper", "--noise-um", "-1", "[0, 500] um"),
+    ("paper", "--stride", "0", "[1, 50]"), ("paper", "--grid", "5", "[10, 2000]"), ("paper", "--jobs", "0", "[1, 64]"),
+    ("replay", "--tol", "-1", ">= 0 rad/s"),
+]
+
+
+def test_the_table_covers_every_numeric_flag():
+    flags = {(name, a.option_strings[-1]) for name, p in subparsers().items() for a in p._actions
+             if isinstance(a.type, _Ranged) or a.dest == "band"}
+    assert flags == {(c, f) for c, f, _, _ in BAD_NUMBERS}
+
+
+@pytest.mark.parametrize("command, flag, value, names", BAD_NUMBERS)
+def test_every_numeric_flag_is_checked_before_anything_is_written(command, flag, value, names, tmp_path, capsys):
+    out = tmp_path / "never"
+    argv = [command, flag, value, "--out", out] if command != "replay" else [command, tmp_path / "x.mcap", flag, value]
+    code, stdout, err = run_main(capsys, *argv)
+    assert code == 2 and stdout == ""
+    assert err.count("\n") == 1 and f"argument {flag}: must be" in err and names in err, err
+    assert not out.exists() and os.listdir(tmp_path) == []
+
+
+def test_help_shows_every_default_and_every_numbers_unit_or_range():
+    for name, parser in subparsers().items():
+        text = parser.format_help()
+        for action in parser._actions:
+            if action.default in (None, argparse.SUPPRESS) or action.required or not action.option_strings:
+                continue
+            shown = str(action.default) if not isinstance(action.default, list) else str(action.default)
+            assert f"(default: {shown})" in " ".join(text.split()), (name, action.dest)
+            if isinstance(action.type, _Ranged):  # its unit, and its range (plan: the planner's, in words)
+                help_text = " ".join(action.help.split())
+                assert action.type.unit in help_text, (name, action.dest)
+                assert action.type.range in help_text or (name == "plan" and "mm" in help_text), (name, action.dest)
+    demo = " ".join(subparsers()["demo"].format_help().split())
+    assert "(default: 20)" in demo and "[1, 1000]" in demo and "(default: emmetropic)" in demo
+
+
+def test_version_comes_from_the_package_metadata(capsys):
+    code, out, _ = run_main(capsys, "--version")
+    assert code == 0 and out == f"vitreoguard {version('vitreoguard')}\n"
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["--standoff-mm", "0.55"], "--standoff-mm"), (["--sweep-mm", "9"], "--sweep-mm"),
+    (["--tip-speed-mm-s", "30"], "--tip-speed-mm-s"),
+])
+def test_plan_names_the_flags_not_the_planners_parameters(argv, flag, tmp_path, capsys):
+    code, _, err = run_main(capsys, "plan", "--out", tmp_path / "never", "--no-execute", *argv)
+    assert code == 2 and err.count("\n") == 1
+    assert err.startswith(f"vitreoguard plan: error: {flag} must be in ") and " mm" in err, err
+    for parameter in ("spacing_mm", "standoff_mm", "tip_speed_mm_s", "z_min", "z_max"):
+        assert parameter not in err
+    assert not (tmp_path / "never").exists()
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_run_cleanly(tmp_path):
+    """SIGINT during the logged spiral: exit 130, one 'interrupted' line and no traceback
+    on stderr, nothing on stdout, and the open log closed (complete, its last event the
+    interruption)."""
+    out = tmp_path / "run"
+    env = {**os.environ, "VITREOGUARD_NO_PROGRESS": "1"}
+    child = subprocess.Popen([sys.executable, "-m", "eval.cli", "boundary", "--scenarios", "5", "--out", str(out)],
+                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a terminal
+    try:
+        deadline = time.monotonic() + 600.0  # a first run compiles the loop's kernels
+        log = out / "spiral.mcap"
+        while not (log.exists() and log.stat().st_size > 200_000):  # the spiral is under way
+            assert child.poll() is None and time.monotonic() < deadline, "the run did not get to its spiral"
+            time.sleep(0.2)
+        child.send_signal(signal.SIGINT)
+        stdout, stderr = child.communicate(timeout=120)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    assert child.returncode == 130, stderr
+    assert stderr.strip() == "vitreoguard boundary: interrupted" and stdout == ""
+    spiral = read_log(log)  # closed: not truncated
+    assert not spiral.truncated and spiral.count("/filter/inputs") > 0
+    (_, event), = spiral.messages["/log"]
+    assert decode_foxglove("/log", event).message == "run ended early: KeyboardInterrupt"
+    assert not (out / "boundary.json").exists()
