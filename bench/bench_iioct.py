@@ -1,4 +1,4 @@
-"""iiOCT sensor figures (issue 5): per-A-scan synthesis and extraction time."""
+"""iiOCT sensor figures: per-A-scan synthesis and extraction time."""
 from __future__ import annotations
 
 import numpy as np

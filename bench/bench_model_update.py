@@ -1,4 +1,4 @@
-"""Eye model figures (issue 2): per-A-scan update time, batch fits, signed-distance
+"""Eye model figures: per-A-scan update time, batch fits, signed-distance
 throughput, and Drake's ComputeSignedDistanceToPoint on the same ellipsoid."""
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Eye model figures (issue 2): per-A-scan model update, batch fits, signed-distance
+"""Eye model figures: per-A-scan model update, batch fits, signed-distance
 throughput, and Drake's ComputeSignedDistanceToPoint (the design's peer) on the same
 ellipsoid: accuracy against our exact distance and time per point."""
 from __future__ import annotations

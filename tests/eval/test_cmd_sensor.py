@@ -26,11 +26,11 @@ def clean_run(tmp_path_factory):
 
 def test_the_full_chain_meets_the_extraction_and_model_targets(clean_run):
     """A-scans -> distances -> points (calibration error of the paper's calibration) ->
-    model: extraction |bias| <= 5 um and SD <= 20 um (issue 5), and EF MAE <= 50 um even
-    on this shorter spiral (5 turns; the command's default is 6). Fewer turns are not
-    enough: the calibration error's imprint on the points depends on the instrument's
-    orientations along the path, and on 3 turns the EF MAE ranged 39-57 um across
-    filter changes that left the path's extent the same (4 turns: 48, 5: 38, 6: 37 um)."""
+    model: extraction |bias| <= 5 um and SD <= 20 um, and EF MAE <= 50 um even on this
+    shorter spiral (5 turns; the command's default is 6). Fewer turns are not enough: the
+    calibration error's imprint on the points depends on the instrument's orientations
+    along the path, which 3 or 4 turns sample too sparsely for a steady EF MAE (3 turns:
+    39-57 um for paths of the same extent; 4 turns: 48, 5: 38, 6: 37 um)."""
     r, out = clean_run
     assert KEYS <= set(r)
     assert abs(r["distance_bias_um"]) <= 5.0 and r["distance_sd_um"] <= 20.0
@@ -40,8 +40,8 @@ def test_the_full_chain_meets_the_extraction_and_model_targets(clean_run):
 
 
 def test_floaters_on_5_percent_of_the_beams_change_the_ef_mae_by_at_most_10_percent(clean_run, tmp_path):
-    """Issue 5: floaters (35-55 dB sheets in the vitreous, the retina is 45 dB) on 5 % of
-    the A-scans; same seed otherwise."""
+    """Floaters (35-55 dB sheets in the vitreous, the retina is 45 dB) on 5 % of the
+    A-scans; same seed otherwise."""
     clean, _ = clean_run
     dirty, _ = run(tmp_path, "--outliers", "0.05")
     assert dirty["kind_final"] == "ellipsoid"
@@ -72,13 +72,12 @@ def clean_distance_run(tmp_path_factory):
 @pytest.mark.parametrize("seed", [0, 3])
 def test_confident_wrong_distances_on_5_percent_of_the_samples_leave_the_loop_model_intact(
         clean_distance_run, seed, tmp_path):
-    """The worst case beyond the issue: in "distance" mode a floater is a CONFIDENT wrong
-    distance (0.5 mm to the retina's), which only the model's gate can turn away. The
-    gated points alone may mark the measured directions: a turned-away floater once
-    counted as retina measured 8.6 mm inside the model, that misfit became the tip's
-    margin, and the filter stopped the spiral (EF MAE 1.4 mm). Seed 3 (and 0) put a
-    floater on the very first A-scan, which the gate once kept unchecked (EF MAE 226 /
-    56 um); on seed 0 the claim once held by luck at 10 %."""
+    """The worst case: in "distance" mode a floater is a CONFIDENT wrong distance (0.5 mm
+    to the retina's), which only the model's gate can turn away. Only the gated points
+    may mark the measured directions: a turned-away floater counted as retina would put
+    a misfit of 8.6 mm into the tip's margin and stop the spiral (EF MAE 1.4 mm). Seeds
+    3 and 0 put a floater on the very first A-scan, which the gate must check too (kept
+    unchecked: EF MAE 226 / 56 um)."""
     dirty, _ = run(tmp_path, "--mode", "distance", "--outliers", "0.05", "--seed", str(seed))
     assert clean_distance_run["kind_final"] == dirty["kind_final"] == "ellipsoid"
     assert dirty["outliers_rejected"] > 0
