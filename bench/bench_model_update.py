@@ -8,10 +8,10 @@ import numpy as np
 
 from bench.timing import summary_us, time_calls_us
 from models import AdaptiveEyeModel, Ellipsoid, fit_ellipsoid, fit_sphere
+from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
-from models.paper_scan import paper_scan
-from models.robust_fit import RobustFitConfig
-from models.transition import PredictiveCriteria
+from models.fit.robust_fit import RobustFitConfig
+from models.scan.paper_scan import paper_scan
 
 RADII = np.array([11.455, 11.365, 10.148])
 
@@ -47,8 +47,8 @@ def _drake_signed_distance(Q_mm: np.ndarray):
 def run() -> None:
     eye = make_eye("emmetropic")
     points = paper_scan(eye, seed=0).points
-    _update_times(points[:500], None, 1)  # warm-up: loads the compiled kernels (models._kernels) once
-    _update_times(points[:500], PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.robust_fit
+    _update_times(points[:500], None, 1)  # warm-up: loads the compiled kernels once
+    _update_times(points[:500], PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.fit.robust_fit
     variants = (("paper criteria", None, None), ("predictive criteria", PredictiveCriteria(), None),
                 ("predictive, robust EF", PredictiveCriteria(), RobustFitConfig()))
     for name, criteria, robust in variants:

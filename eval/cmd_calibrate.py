@@ -1,6 +1,6 @@
 """`vitreoguard calibrate`: the paper's plate calibration of the sensor pose, and its Fig. 3.
 
-Simulates the plate calibration (flange poses from `models.calibration.sample_flange_poses`
+Simulates the plate calibration (flange poses from `models.calibration.plate.sample_flange_poses`
 until the Meca500 plant provides reachable ones; true sensor pose offset from the
 nominal one; N(0, noise) distances), recovers the sensor pose with SLSQP and writes
 `calibration.json` (recovered vs true) and `fig3_sensitivity.png` (sphere-diameter
@@ -15,7 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from eval.io import UsageError, prepare_out_dir, save_figure, write_json
-from models.calibration import (
+from models.calibration.plate import (
     Plane,
     SensorPose,
     calibrate_sensor,
@@ -25,8 +25,9 @@ from models.calibration import (
     position_error_um,
     sample_flange_poses,
 )
-from models.calibration_sensitivity import SPHERE_RADIUS_MM, diameter_error_um, diameter_sensitivity, sphere_eye
-from models.paper_scan import paper_scan
+from models.calibration.sensitivity import SPHERE_RADIUS_MM, diameter_error_um, diameter_sensitivity, sphere_eye
+from models.scan.paper_scan import paper_scan
+
 
 def nominal_sensor() -> SensorPose:
     """The nominal iiOCT sensor pose in the flange frame, from the robot model

@@ -2,12 +2,12 @@
 
 Millimetres everywhere; points in whatever frame the caller uses (W or E).
 """
-from models.adaptive import AdaptiveEyeModel, ModelUpdate
-from models.ellipsoid import Ellipsoid
-from models.ellipsoid_fit import EllipsoidFit, IncrementalEllipsoidFit, fit_ellipsoid
-from models.sphere import Sphere, fit_sphere
-from models.sphere_kalman import SphereKalmanFilter
-from models.transition import PaperCriteria
+from models.adaptive.model import AdaptiveEyeModel, ModelUpdate
+from models.adaptive.transition import PaperCriteria
+from models.fit.ellipsoid_fit import EllipsoidFit, IncrementalEllipsoidFit, fit_ellipsoid
+from models.fit.sphere_kalman import SphereKalmanFilter
+from models.shapes.ellipsoid import Ellipsoid
+from models.shapes.sphere import Sphere, fit_sphere
 
 __all__ = [
     "AdaptiveEyeModel",

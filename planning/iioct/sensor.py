@@ -24,7 +24,7 @@ from functools import lru_cache
 import numpy as np
 
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
-from models.rays import incidences_rad
+from models.shapes.rays import incidences_rad
 from planning.iioct.error_model import extractor_error_model
 from planning.iioct.kernels import (DISTANCE_REASONS, NO_RETINA, all_finite, beam_points, distance_packet,
                                     packet_geometry, sensor_beams)
