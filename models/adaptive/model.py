@@ -139,15 +139,14 @@ class AdaptiveEyeModel:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
         no entry, if no point was finite and passed the gate).
 
-        Points as a float array (one A-scan's or a packet's, non-finite rows allowed) take
-        the general path's kernels in one compiled call (models._kernels.packet_update), the
-        same numbers, here; anything else, and the robust fit (it reweights), the general
-        path (_update_general). The sphere filter, the ellipsoid fit and the scan range all
-        take the first point as their origin: ef.p0 stands for the three (set here from the
-        kernel's when it took the first point)."""
-        if (self._robust or type(P) is not np.ndarray or P.dtype != _FLOAT64 or P.ndim not in (1, 2)
-                or P.shape[-1] != 3):
-            return self._update_general(P)
+        One compiled call does the update (models.adaptive.update_kernel.packet_update):
+        the gate, the sphere filter, the scan range and, for the least-squares ellipsoid,
+        the scatter matrix, the refit and the residuals; the robust fit (it reweights its
+        points) takes the kept points after it. The sphere filter, the ellipsoid fit and
+        the scan range all take the first point as their origin: ef.p0 stands for the three
+        (set here from the kernel's when it took the first point)."""
+        if not (type(P) is np.ndarray and P.dtype == _FLOAT64 and P.ndim in (1, 2) and P.shape[-1] == 3):
+            P = as_points(P, "P", allow_nonfinite=True)
         if P.ndim == 1:
             P = P.reshape(1, 3)
         self.n_received += len(P)
@@ -159,11 +158,12 @@ class AdaptiveEyeModel:
         out = np.empty(OUT_SIZE)
         kept = np.empty((len(P) + 1, 3))
         p0 = np.zeros(3) if ef.p0 is None else ef.p0  # without a point yet: the kernel writes the first one
+        refit = not self._robust  # the least-squares fit's refit is in the kernel; the robust one's below
         n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = packet_update(
             P, n, p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
-            g.params, g.counts, g.last, g.scales, g.recent, sf.information, sf.information_vector, ef.S,
-            ef.spread_checked_at, ef.SPREAD_RECHECK, scan.X, scan.block_r, scan.diameter_mm, self._prev_radii,
-            self._has_prev, LENGTH_SCALE_MM, kept, out)
+            g.params, g.counts, g.last, g.scales, g.recent, sf.information, sf.information_vector, refit, ef.S,
+            ef.spread_checked_at if refit else 0, ef.SPREAD_RECHECK if refit else 0, scan.X, scan.block_r,
+            scan.diameter_mm, self._prev_radii, self._has_prev, LENGTH_SCALE_MM, kept, out)
         self.n_rejected_nonfinite += n_nonfinite
         self.last_accepted = kept[:k]
         if k == 0:
@@ -172,42 +172,24 @@ class AdaptiveEyeModel:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)
-        if code:
-            fit = EllipsoidFit(FIT_STATUS[code])
+        v_sf = out[OUT_V_SF:OUT_V_EF]
+        if not refit:
+            ef.add(self.last_accepted)
+            fit = ef.fit()
+            sf_res, ef_res, axis_change = fit_summary(
+                ef.S, out[OUT_STATE:OUT_V_SF] if sf_ok else _NO_STATE, sf_ok, fit.v if fit.ok else _NO_QUADRIC, fit.ok,
+                fit.radii if fit.ok else _NO_RADII, self._prev_radii, fit.ok and self._has_prev, v_sf, LENGTH_SCALE_MM)
+        elif code:
+            fit = ef.record(EllipsoidFit(FIT_STATUS[code]), check, took=k)
         else:  # centre, semi-axes and rotation in a read-only copy of their own: the Ellipsoid holds them (of_fit)
             ell = out[OUT_CENTER:OUT_SF_CENTER].copy()
             ell.flags.writeable = False
             r, R = OUT_RADII - OUT_CENTER, OUT_ROTATION - OUT_CENTER  # where the semi-axes and the rotation begin
-            fit = EllipsoidFit("ok", ell[:r], ell[r:R], ell[R:].reshape(3, 3), out[OUT_V_EF:OUT_CENTER])
-        ef.record(fit, check, took=k)
+            fit = ef.record(EllipsoidFit("ok", ell[:r], ell[r:R], ell[R:].reshape(3, 3), out[OUT_V_EF:OUT_CENTER]),
+                            check, took=k)
         if sf_ok:
-            return self._evaluate(fit, out[OUT_V_SF:OUT_V_EF], (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res,
-                                  axis_change)
+            return self._evaluate(fit, v_sf, (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res, axis_change)
         return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
-
-    def _update_general(self, P) -> ModelUpdate | None:
-        """`update` of any points P, or with the robust fit: the kernels one by one."""
-        P = as_points(P, "P", allow_nonfinite=True)
-        self.n_received += len(P)
-        finite = np.isfinite(P).all(axis=1)
-        if not finite.all():
-            self.n_rejected_nonfinite += int((~finite).sum())
-            P = P[finite]
-        if self._gate is not None:
-            P = self._gate.admit(P, self._current, self._ef.p0, self.n_points)
-        self.last_accepted = P
-        if len(P) == 0:
-            return None
-        self._sf.absorb(P)
-        self._ef.add(P)
-        self._range.add(P)
-        fit = self._ef.fit()
-        sf_ok = self._sf.state is not None
-        v_sf = np.empty(10)
-        sf_res, ef_res, axis_change = fit_summary(
-            self._ef.S, self._sf.state if sf_ok else _NO_STATE, sf_ok, fit.v if fit.ok else _NO_QUADRIC, fit.ok,
-            fit.radii if fit.ok else _NO_RADII, self._prev_radii, fit.ok and self._has_prev, v_sf, LENGTH_SCALE_MM)
-        return self._evaluate(fit, v_sf if sf_ok else None, self._sf.center_radius, sf_res, ef_res, axis_change)
 
     def _evaluate(self, fit, v_sf, sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
         """The criteria, the transition and the history entry of an update whose fits are

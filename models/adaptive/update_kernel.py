@@ -52,22 +52,25 @@ OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTE
 
 @njit(cache=True)
 def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_scales, g_recent,
-                  Y, y, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, out):
+                  Y, y, refit, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, out):
     """The adaptive model's update by the points P (N, 3) mm (one A-scan's or a packet's), in
-    one call: the kernels of the batch update, in its order. A model of n points, p0 (mm)
-    the origin of every part (its first point; when n = 0 the first point kept here is
-    written to p0), skips the non-finite rows of P, gates the others (gate_points, when
-    `gate_on`; `quadric` the current model about p0) and copies those it keeps to
-    kept[:K] (kept: (N + 1, 3): the gate may add its pending first point); if K > 0 it absorbs
-    them into the sphere filter (Y, y), the scatter matrix S and the scan range (X with
-    room for K more rows, block_r, `diameter` mm), refits the ellipsoid (with the spread
-    test when spread_check_due(checked_at, n + K, recheck)) and summarises the fits
-    (fit_summary), all state updated in place.
+    one call. A model of n points, p0 (mm) the origin of every part (its first point; when
+    n = 0 the first point kept here is written to p0), skips the non-finite rows of P,
+    gates the others (gate_points, when `gate_on`; `quadric` the current model about p0)
+    and copies those it keeps to kept[:K] (kept: (N + 1, 3): the gate may add its pending
+    first point); if K > 0 it absorbs them into the sphere filter (Y, y) and the scan range
+    (X with room for K more rows, block_r, `diameter` mm) and, when `refit`, into the
+    scatter matrix S, refits the ellipsoid (with the spread test when
+    spread_check_due(checked_at, n + K, recheck)) and summarises the fits (fit_summary),
+    all state updated in place. Without `refit` the caller fits the ellipsoid to kept[:K]
+    itself (the robust fit, models.fit.robust_fit, reweights its points).
 
     Returns (non-finite count, K, spread test run, sphere ok, fit status code, diameter mm,
     sphere residual mm, ellipsoid residual mm, axis change, sphere radius mm); with K > 0,
-    `out` (OUT_SIZE,) receives the sphere state, the sphere's quadric, the fit's quadric,
-    centre, semi-axes and rotation (row-major), and the sphere's centre (mm).
+    `out` (OUT_SIZE,) receives the sphere state and centre (mm) and, when `refit`, the
+    sphere's quadric and the fit's quadric, centre, semi-axes and rotation (row-major).
+    The fit's values are 0 (status, spread test) or NaN (residuals, axis change) without
+    `refit`.
     """
     m = 0
     for i in range(P.shape[0]):  # row 0 is left for the gate's pending first point
@@ -92,16 +95,18 @@ def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g
     if n == 0:
         p0[0], p0[1], p0[2] = A[0, 0], A[0, 1], A[0, 2]
     state, sf_ok = sphere_absorb(Y, y, A, p0, scale, n + k)
-    add_design_rows(S, A, p0, scale)
     diameter = diameter_after_adding(X, block_r, n, A, p0, diameter)
+    out[OUT_STATE:OUT_V_SF] = state
+    radius = sphere_center_radius(state, p0, scale, out[OUT_SF_CENTER:OUT_SIZE]) if sf_ok else np.nan
+    if not refit:
+        return n_nonfinite, k, False, sf_ok, 0, diameter, np.nan, np.nan, np.nan, radius
+    add_design_rows(S, A, p0, scale)
     check = spread_check_due(checked_at, n + k, recheck)
     code, v, center, radii, R = fit_ellipsoid_scatter(S, p0, scale, check)
-    v_sf = out[OUT_V_SF:OUT_V_EF]
-    sf_res, ef_res, axis_change = fit_summary(S, state, sf_ok, v, code == 0, radii, prev_radii, has_prev, v_sf, scale)
-    out[OUT_STATE:OUT_V_SF] = state
+    sf_res, ef_res, axis_change = fit_summary(S, state, sf_ok, v, code == 0, radii, prev_radii, has_prev,
+                                              out[OUT_V_SF:OUT_V_EF], scale)
     out[OUT_V_EF:OUT_CENTER] = v
     out[OUT_CENTER:OUT_RADII] = center
     out[OUT_RADII:OUT_ROTATION] = radii
     out[OUT_ROTATION:OUT_SF_CENTER] = R.ravel()
-    radius = sphere_center_radius(state, p0, scale, out[OUT_SF_CENTER:OUT_SIZE]) if sf_ok else np.nan
     return n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius
