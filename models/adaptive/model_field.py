@@ -21,7 +21,8 @@ import numpy as np
 from numba import njit
 
 from models.adaptive.coverage_kernels import nearest_and_worst
-from models.shapes.ellipsoid_distance import generic_distance_and_gradient
+from models.shapes.ellipsoid_distance import ellipsoid_distance_and_gradient
+from models.shapes.field import FieldKernel
 from models.shapes.sphere import sphere_distance_and_gradient
 
 NONE, SPHERE, ELLIPSOID = 0, 1, 2
@@ -40,10 +41,7 @@ def model_field_kernel(fp, P):
         return np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M)
     center, rotation, radii = fp[1:4], fp[4:13].reshape((3, 3)), fp[13:16]
     if kind == ELLIPSOID:
-        h, g, generic = generic_distance_and_gradient(center, rotation, radii, P)
-        for i in range(M):
-            if not generic[i]:
-                h[i] = np.nan
+        h, g = ellipsoid_distance_and_gradient(center, rotation, radii, P)
     else:
         h, g = sphere_distance_and_gradient(center, radii[0], P)
     margin, fallback, has_coverage = fp[16], fp[17] != 0.0, fp[22] != 0.0
@@ -107,9 +105,9 @@ class ModelField:
         """No boundary: +inf everywhere."""
         return cls(None)
 
-    def field_kernel(self):
-        """(kernel, params): model_field_kernel and this field's packed parameters."""
-        return model_field_kernel, self.params
+    def field_kernel(self) -> FieldKernel:
+        """FieldKernel(model_field_kernel, this field's packed parameters) (models.shapes.field)."""
+        return FieldKernel(model_field_kernel, self.params)
 
     def signed_distance_gradient_uncertainty(self, P) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """((M,) mm, (M, 3), (M,) mm) at P (M, 3) mm."""

@@ -8,6 +8,8 @@ overhangs, and their radial functions are continuous (no cracks).
 """
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 from numba import njit
 
@@ -16,6 +18,7 @@ from models.eyes.radial import RadialFunction, ellipsoid_radial
 from models.eyes.star_march import MARCH_STEP_MM, star_hits
 from models.eyes.star_surface import StarSurface
 from models.shapes.ellipsoid import Ellipsoid, ellipsoid_hits
+from models.shapes.field import FieldKernel, exact_uncertainty
 from models.shapes.rays import UNIT_TOL, as_rays
 from models.shapes.validation import as_points
 
@@ -98,16 +101,38 @@ class Eye:
 
     def signed_distance(self, Q) -> np.ndarray:
         """(M,) signed distance (mm) of Q (M, 3) in W to the retina; > 0 inside."""
-        Q_E = self.pose.to_E(as_points(Q, "Q"))
-        if self._star is None:
-            return self._ellipsoid_E.signed_distance(Q_E)
-        return self._star.signed_distance_and_gradient(Q_E)[0]
+        return self.signed_distance_and_gradient(Q)[0]
 
     def gradient(self, Q) -> np.ndarray:
         """(M, 3) unit gradient of the signed distance in W (inward at the closest point)."""
+        return self.signed_distance_and_gradient(Q)[1]
+
+    def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) signed distance mm, > 0 inside; (M, 3) unit gradient in W) of Q (M, 3) in W,
+        from one closest-point search in E."""
         Q_E = self.pose.to_E(as_points(Q, "Q"))
-        g = self._ellipsoid_E.gradient(Q_E) if self._star is None else self._star.signed_distance_and_gradient(Q_E)[1]
-        return g @ self.pose.R_WE.T
+        shape = self._ellipsoid_E if self._star is None else self._star
+        d, g = shape.signed_distance_and_gradient(Q_E)
+        return d, g @ self.pose.R_WE.T
+
+    def uncertainty(self, Q) -> np.ndarray:
+        """(M,) zeros (mm): the distance is exact (+inf for a non-finite point)."""
+        return exact_uncertainty(np.ascontiguousarray(as_points(Q, "Q", allow_nonfinite=True)))
+
+    def field_kernel(self) -> FieldKernel:
+        """The compiled distance field in W (models.shapes.field) of an ellipsoidal eye: its
+        retinal ellipsoid's (`ellipsoid`), equal to this eye's methods to rounding (they
+        take the points to E first). TypeError for a composite eye: its closest-point
+        search runs on a surface cloud with no compiled form as one parameter array, so
+        callers use the methods."""
+        if self._star is not None:
+            raise TypeError(f"the {self.name} eye has no compiled distance field: its closest-point search needs "
+                            "its surface cloud; use signed_distance_and_gradient")
+        return self._ellipsoid_W.field_kernel()
+
+    @cached_property
+    def _ellipsoid_W(self) -> Ellipsoid:
+        return self.ellipsoid
 
     def surface_normal(self, P_W) -> np.ndarray:
         """(M, 3) unit inward normals in W at retina points P_W (M, 3) (points on the

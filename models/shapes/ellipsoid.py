@@ -1,13 +1,16 @@
-"""Ellipsoids: the frozen result type with exact signed distance (Eberly), and the
-compiled beam cast on a placed ellipsoid (`ellipsoid_hits`)."""
+"""Ellipsoids: the frozen result type with exact signed distance (Eberly), a distance field
+(models.shapes.field) with its compiled kernel, and the compiled beam cast on a placed
+ellipsoid (`ellipsoid_hits`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from numba import njit
 
-from models.shapes.ellipsoid_distance import closest_point_first_octant, generic_distance_and_gradient
+from models.shapes.ellipsoid_distance import closest_point_first_octant, ellipsoid_distance_and_gradient
+from models.shapes.field import FieldKernel, exact_uncertainty, field_params
 from models.shapes.rays import incidence_rad, rays_in_frame
 from models.shapes.sphere import sample_quadric_surface
 from models.shapes.validation import as_points, as_rotation, as_vector3
@@ -58,6 +61,9 @@ class Ellipsoid:
                         copy=center.flags.writeable or radii.flags.writeable or rotation.flags.writeable)
         return ellipsoid
 
+    def __deepcopy__(self, memo) -> Ellipsoid:
+        return self  # immutable: a copy would only turn its read-only arrays writeable
+
     @property
     def volume(self) -> float:
         """Enclosed volume in mm^3."""
@@ -80,11 +86,6 @@ class Ellipsoid:
         X = closest_point_first_octant(self.radii[order], Y) * signs
         return self.center + X @ self.rotation[:, order].T
 
-    def _inside_value(self, Q: np.ndarray) -> np.ndarray:
-        """(x-c)^T A (x-c) - 1: < 0 inside, > 0 outside."""
-        L = (Q - self.center) @ self.rotation / self.radii
-        return np.einsum("ij,ij->i", L, L) - 1.0
-
     def signed_distance(self, Q) -> np.ndarray:
         """(M,) exact signed distance (mm) of Q (M, 3) mm; > 0 inside."""
         return self.signed_distance_and_gradient(Q)[0]
@@ -94,22 +95,22 @@ class Ellipsoid:
         return self.signed_distance_and_gradient(Q)[1]
 
     def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
-        """((M,) signed distance mm, (M, 3) unit gradient) from one closest-point search
-        (compiled for points off the smallest axis's plane, which is all but measure zero)."""
-        Q = as_points(Q, "Q")
-        d, g, generic = generic_distance_and_gradient(self.center, self.rotation, self.radii, Q)
-        if not generic.all():
-            rest = ~generic
-            d[rest], g[rest] = self._distance_and_gradient_from_closest_point(Q[rest])
-        return d, g
+        """((M,) signed distance mm, (M, 3) unit gradient) from one compiled closest-point
+        search for every point (ellipsoid_distance_and_gradient)."""
+        return ellipsoid_distance_and_gradient(self.center, self.rotation, self.radii, as_points(Q, "Q"))
 
-    def _distance_and_gradient_from_closest_point(self, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """signed_distance_and_gradient through closest_point: every case, axes included."""
-        X = self.closest_point(Q)
-        d = np.linalg.norm(Q - X, axis=1)
-        L = (X - self.center) @ self.rotation / self.radii**2
-        n = -(L @ self.rotation.T)
-        return np.where(self._inside_value(Q) < 0.0, d, -d), n / np.linalg.norm(n, axis=1, keepdims=True)
+    def uncertainty(self, Q) -> np.ndarray:
+        """(M,) zeros (mm): the distance is exact (+inf for a non-finite point)."""
+        return exact_uncertainty(np.ascontiguousarray(as_points(Q, "Q", allow_nonfinite=True)))
+
+    def field_kernel(self) -> FieldKernel:
+        """The compiled distance field (models.shapes.field): ellipsoid_field with params
+        [center (3,) mm, rotation row-major (9,), radii (3,) mm]."""
+        return FieldKernel(ellipsoid_field, self._field_params)
+
+    @cached_property
+    def _field_params(self) -> np.ndarray:
+        return field_params(self.center, self.rotation, self.radii)
 
     def sample_surface(self, n_theta: int, n_phi: int, z_max: float | None = None) -> np.ndarray:
         """(n_theta * n_phi, 3) surface points, equal-area in direction (u_z and azimuth
@@ -127,6 +128,15 @@ class Ellipsoid:
         Lo = (O - self.center) @ self.rotation / self.radii
         Ld = D @ self.rotation / self.radii
         return _unit_sphere_roots(np.ascontiguousarray(Lo), np.ascontiguousarray(Ld))
+
+
+@njit(cache=True)
+def ellipsoid_field(params, P):
+    """The FieldKernel kernel of an Ellipsoid, params [center (3,) mm, rotation row-major (9,),
+    radii (3,) mm]: (h (M,) mm, g (M, 3), u (M,) mm) at the points P (M, 3) mm,
+    ellipsoid_distance_and_gradient's (h, g)."""
+    h, g = ellipsoid_distance_and_gradient(params[0:3], params[3:12].reshape(3, 3), params[12:15], P)
+    return h, g, exact_uncertainty(P)
 
 
 @njit(cache=True, error_model="numpy")

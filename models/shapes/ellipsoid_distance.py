@@ -1,4 +1,5 @@
-"""Closest points on an axis-aligned ellipsoid (Eberly's construction, root by safeguarded Newton), vectorised.
+"""Closest points on an ellipsoid and its exact signed distance (Eberly's construction, root
+by safeguarded Newton): one compiled query for every point, and the closest points in NumPy.
 
 Reference: D. Eberly, "Distance from a point to an ellipse, an ellipsoid, or a
 hyperellipsoid". For semi-axes e0 >= e1 >= e2 and a query y in the first octant
@@ -115,15 +116,40 @@ def _shifted_root_row(E20, E21, E22, e0, e1, e2, y0, y1, y2, em2):
 
 
 @njit(cache=True)
-def generic_distance_and_gradient(center, rotation, radii, Q):
+def _planar_closest_point(E20, E21, E22, e0, e1, e2, y0, y1):
+    """(x0, x1, x2): the closest point, in the first octant, on the ellipsoid with squared
+    semi-axes E2i (E20 >= E21 >= E22) and semi-axes ei to the query (y0, y1, 0) >= 0 on the
+    plane of its smallest axis (closest_point_first_octant's second branch, in scalars).
+    Between the foci (the t = -e2^2 case) the closest point leaves the plane; elsewhere it
+    is the 2-D ellipse's of semi-axes (e0, e1)."""
+    d0, d1 = E20 - E22, E21 - E22
+    if (y0 == 0.0 or d0 > 0.0) and (y1 == 0.0 or d1 > 0.0):
+        xb0 = E20 * y0 / d0 if y0 > 0.0 else 0.0
+        xb1 = E21 * y1 / d1 if y1 > 0.0 else 0.0
+        disc = 1.0 - ((xb0 / e0) ** 2 + (xb1 / e1) ** 2)
+        if disc > 0.0:
+            return xb0, xb1, e2 * np.sqrt(disc)
+    if y1 > 0.0:  # the ellipse's root with its smaller axis e1 (a third axis of 1 mm, inactive)
+        u = _shifted_root_row(E20, E21, 1.0, np.sqrt(E20), np.sqrt(E21), 1.0, y0, y1, 0.0, E21)
+        return E20 * y0 / (u + (E20 - E21)), E21 * y1 / (u + (E21 - E21)), 0.0
+    d = E20 - E21  # on the longest axis: its end, or the point between the ellipse's foci
+    x0 = E20 * y0 / d if d > 0.0 else np.inf
+    if x0 < e0:
+        return x0, e1 * np.sqrt(max(1.0 - (x0 / e0) ** 2, 0.0)), 0.0
+    return e0, 0.0, 0.0
+
+
+@njit(cache=True)
+def ellipsoid_distance_and_gradient(center, rotation, radii, Q):
     """(d (M,) signed distance mm, > 0 inside; g (M, 3) unit inward normal at the closest
-    point; generic (M,) bool) for the ellipsoid (center, rotation, radii) in the points'
-    frame, in one compiled pass: the control loop's query, a few points per call.
-    Rows off the plane of the smallest axis (the generic case of Eberly's construction,
-    zero coordinates of the other axes included) are answered here; the others (generic
-    False, measure zero) are left to closest_point_first_octant. Written in scalars (the
-    axes sorted by a stable insertion sort, largest first: argsort(-radii) "mergesort"'s
-    order), allocating only the outputs."""
+    point) of the points Q (M, 3) mm to the ellipsoid (center (3,) mm, rotation (3, 3) with
+    the semi-axes' directions as columns, radii (3,) mm) in the points' frame, in one
+    compiled pass for every point: off the plane of the smallest axis the generic case of
+    Eberly's construction (zero coordinates of the other axes included), on it
+    `_planar_closest_point`. At the centre the closest point is the + end of the smallest
+    axis. Non-finite rows give NaN. Written in scalars (the axes sorted by a stable
+    insertion sort, largest first: argsort(-radii) "mergesort"'s order), allocating only
+    the outputs."""
     o0, o1, o2 = 0, 1, 2
     if radii[o1] > radii[o0]:
         o0, o1 = o1, o0
@@ -136,21 +162,23 @@ def generic_distance_and_gradient(center, rotation, radii, Q):
     M = Q.shape[0]
     d = np.zeros(M)
     g = np.zeros((M, 3))
-    generic = np.zeros(M, dtype=np.bool_)
     for m in range(M):
+        if not (np.isfinite(Q[m, 0]) and np.isfinite(Q[m, 1]) and np.isfinite(Q[m, 2])):
+            d[m] = g[m, 0] = g[m, 1] = g[m, 2] = np.nan
+            continue
         q0, q1, q2 = Q[m, 0] - center[0], Q[m, 1] - center[1], Q[m, 2] - center[2]
         L0 = 0.0 + q0 * rotation[0, o0] + q1 * rotation[1, o0] + q2 * rotation[2, o0]  # coordinates on the sorted axes
         L1 = 0.0 + q0 * rotation[0, o1] + q1 * rotation[1, o1] + q2 * rotation[2, o1]
         L2 = 0.0 + q0 * rotation[0, o2] + q1 * rotation[1, o2] + q2 * rotation[2, o2]
         y0, y1, y2 = abs(L0), abs(L1), abs(L2)
         k = 0.0 + (L0 / e0) ** 2 + (L1 / e1) ** 2 + (L2 / e2) ** 2
-        if not y2 > 0.0:  # on the smallest axis's plane: the closest point may leave it
-            continue
-        generic[m] = True
-        u = _shifted_root_row(E20, E21, E22, e0, e1, e2, y0, y1, y2, E22)
-        x0 = E20 * y0 / (u + (E20 - E22))
-        x1 = E21 * y1 / (u + (E21 - E22))
-        x2 = E22 * y2 / (u + (E22 - E22))
+        if y2 > 0.0:
+            u = _shifted_root_row(E20, E21, E22, e0, e1, e2, y0, y1, y2, E22)
+            x0 = E20 * y0 / (u + (E20 - E22))
+            x1 = E21 * y1 / (u + (E21 - E22))
+            x2 = E22 * y2 / (u + (E22 - E22))
+        else:  # on the smallest axis's plane: the closest point may leave it
+            x0, x1, x2 = _planar_closest_point(E20, E21, E22, e0, e1, e2, y0, y1)
         dist = np.sqrt(0.0 + (y0 - x0) ** 2 + (y1 - x1) ** 2 + (y2 - x2) ** 2)
         x0 = x0 if L0 >= 0.0 else -x0
         x1 = x1 if L1 >= 0.0 else -x1
@@ -162,7 +190,7 @@ def generic_distance_and_gradient(center, rotation, radii, Q):
         n2 = 0.0 - rotation[2, o0] * x0 / E20 - rotation[2, o1] * x1 / E21 - rotation[2, o2] * x2 / E22
         norm = np.sqrt(0.0 + n0 * n0 + n1 * n1 + n2 * n2)
         g[m, 0], g[m, 1], g[m, 2] = n0 / norm, n1 / norm, n2 / norm
-    return d, g, generic
+    return d, g
 
 
 def closest_point_first_octant(e: np.ndarray, Y: np.ndarray) -> np.ndarray:

@@ -1,11 +1,14 @@
-"""Spheres: the frozen result type and the batch linear least-squares fit."""
+"""Spheres: the frozen result type, a distance field (models.shapes.field) with its compiled
+kernel, and the batch linear least-squares fit."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numba import njit
 
+from models.shapes.field import FieldKernel, exact_uncertainty, field_params
 from models.shapes.sampling import unit_sphere_grid
 from models.shapes.validation import as_points, as_positive, as_vector3
 
@@ -13,11 +16,15 @@ from models.shapes.validation import as_points, as_positive, as_vector3
 @njit(cache=True)
 def sphere_distance_and_gradient(center, radius, Q):
     """((M,) signed distance mm, > 0 inside; (M, 3) unit gradient, the inward normal, +z
-    at the centre by convention) of points Q (M, 3) mm to the sphere (center, radius)."""
+    at the centre by convention) of points Q (M, 3) mm to the sphere (center, radius); NaN
+    for a non-finite point."""
     M = Q.shape[0]
     d = np.empty(M)
     g = np.empty((M, 3))
     for m in range(M):
+        if not (np.isfinite(Q[m, 0]) and np.isfinite(Q[m, 1]) and np.isfinite(Q[m, 2])):
+            d[m] = g[m, 0] = g[m, 1] = g[m, 2] = np.nan
+            continue
         v0, v1, v2 = center[0] - Q[m, 0], center[1] - Q[m, 1], center[2] - Q[m, 2]
         n = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
         d[m] = radius - n
@@ -26,6 +33,14 @@ def sphere_distance_and_gradient(center, radius, Q):
         else:
             g[m, 0], g[m, 1], g[m, 2] = v0 / n, v1 / n, v2 / n
     return d, g
+
+
+@njit(cache=True)
+def sphere_field(params, P):
+    """The FieldKernel kernel of a Sphere, params [cx, cy, cz, r] (mm): (h (M,) mm, g (M, 3),
+    u (M,) mm) at the points P (M, 3) mm, sphere_distance_and_gradient's (h, g)."""
+    h, g = sphere_distance_and_gradient(params[0:3], params[3], P)
+    return h, g, exact_uncertainty(P)
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,10 +59,26 @@ class Sphere:
         object.__setattr__(self, "center", c)
         object.__setattr__(self, "radius", as_positive(self.radius, "radius"))
 
+    def __deepcopy__(self, memo) -> Sphere:
+        return self  # immutable: a copy would only turn its read-only centre writeable
+
     @property
     def volume(self) -> float:
         """Enclosed volume in mm^3."""
         return 4.0 / 3.0 * np.pi * self.radius**3
+
+    def uncertainty(self, Q) -> np.ndarray:
+        """(M,) zeros (mm): the distance is exact (+inf for a non-finite point)."""
+        return exact_uncertainty(np.ascontiguousarray(as_points(Q, "Q", allow_nonfinite=True)))
+
+    def field_kernel(self) -> FieldKernel:
+        """The compiled distance field (models.shapes.field): sphere_field with params
+        [cx, cy, cz, r] (mm)."""
+        return FieldKernel(sphere_field, self._field_params)
+
+    @cached_property
+    def _field_params(self) -> np.ndarray:
+        return field_params(self.center, self.radius)
 
     def signed_distance(self, Q) -> np.ndarray:
         """(M,) exact signed distance (mm) of points Q (M, 3) mm; > 0 inside."""
