@@ -1,21 +1,21 @@
-"""The distance extractor's error model: bias, SD and invalid probability as functions
-of the true distance and the incidence, tabulated once per process by running the full
-A-scan chain (models.iioct), interpolated bilinearly and drawn by compiled kernels.
-
-Units: mm, rad.
+"""The iiOCT extractor's error model: bias, SD and invalid probability of the extracted
+distance as functions of the true distance (mm) and the incidence (rad), tabulated once per
+process by running the full chain (models.iioct: synthesis and extraction), interpolated
+bilinearly, and drawn from in compiled code (the 1 kHz closed loop's "distance" mode).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
-import numba
 import numpy as np
+from numba import njit
 
-from models.iioct import DistanceExtractor, OctEngine, synthesize_ascan
+from models.iioct.ascan import OctEngine, synthesize_ascan
+from models.iioct.segmentation import DistanceExtractor
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _grid_cell(grid, x):
     """(i, u): the cell [grid[i], grid[i + 1]] of x (clamped to the grid's first and last
     cells) and x's fraction u in [0, 1] across it (clamped)."""
@@ -23,7 +23,7 @@ def _grid_cell(grid, x):
     return i, min(max((x - grid[i]) / (grid[i + 1] - grid[i]), 0.0), 1.0)
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _cell(D, A, d, a):
     """(i, j, u, v): the cell [D[i], D[i + 1]] x [A[j], A[j + 1]] of the grid D x A that
     holds (d, a) and the fractions u, v across it (both clamped as in `_grid_cell`)."""
@@ -32,7 +32,7 @@ def _cell(D, A, d, a):
     return i, j, u, v
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _bilinear_at(tables, cell, k):
     """Table k of `tables` (len(D), len(A), K) interpolated bilinearly in `cell` (`_cell`)."""
     i, j, u, v = cell
@@ -40,7 +40,7 @@ def _bilinear_at(tables, cell, k):
             + (1 - u) * v * tables[i, j + 1, k] + u * v * tables[i + 1, j + 1, k])
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def bilinear(D, A, tables, d, a):
     """(M, K) the K tables (len(D), len(A), K) interpolated bilinearly at the M points
     (d[m], a[m]), clamped at the grid's edges."""
@@ -52,7 +52,7 @@ def bilinear(D, A, tables, d, a):
     return out
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def draw_one(D, A, tables, d, a, uniform, normal):
     """(extracted distance mm, NaN when invalid; valid) of one sample at the true distance
     d mm and incidence a rad from its draws `uniform` in [0, 1) and `normal` (standard):
@@ -64,7 +64,7 @@ def draw_one(D, A, tables, d, a, uniform, normal):
     return d + _bilinear_at(tables, cell, 1) + _bilinear_at(tables, cell, 2) * normal, True
 
 
-@numba.njit(cache=True)
+@njit(cache=True)
 def _draw(D, A, tables, d, a, uniform, normal):
     """((M,) extracted distances mm, NaN where invalid; (M,) valid): `draw_one` of the M
     samples (true distances d mm, incidences a rad, draws uniform and normal (M,))."""

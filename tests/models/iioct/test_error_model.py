@@ -1,10 +1,10 @@
-"""The extractor's error model: tabulated from the extractor, interpolated bilinearly
-(clamped at the grid's edges), drawn with the tabulated invalid fraction, bias and SD."""
+"""The extractor's error model (models.iioct.error_model): tabulated from the full chain,
+interpolated bilinearly and clamped, drawn with its bias, SD and invalid fraction."""
 from __future__ import annotations
 
 import numpy as np
 
-from planning.iioct import extractor_error_model
+from models.iioct.error_model import extractor_error_model
 
 
 def test_the_error_model_is_tabulated_from_the_extractor():
