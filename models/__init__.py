@@ -1,9 +1,9 @@
-"""What we know about the eye, in plain NumPy/SciPy (no Drake): shapes, fits, the adaptive model.
+"""What we know about the eye, in plain NumPy/SciPy/numba (no Drake): shapes, fits, the adaptive model.
 
 Millimetres everywhere; points in whatever frame the caller uses (W or E).
 """
 from models.adaptive.model import AdaptiveEyeModel, ModelUpdate
-from models.adaptive.transition import PaperCriteria
+from models.adaptive.transition import PaperCriteria, PredictiveCriteria
 from models.fit.ellipsoid_fit import EllipsoidFit, IncrementalEllipsoidFit, fit_ellipsoid
 from models.fit.sphere_kalman import SphereKalmanFilter
 from models.shapes.ellipsoid import Ellipsoid
@@ -16,6 +16,7 @@ __all__ = [
     "IncrementalEllipsoidFit",
     "ModelUpdate",
     "PaperCriteria",
+    "PredictiveCriteria",
     "Sphere",
     "SphereKalmanFilter",
     "fit_ellipsoid",

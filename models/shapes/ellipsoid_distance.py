@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from models.shapes.field import field_outputs
+
 _MAX_STEPS = 200  # safeguarded Newton: quadratic near the root, never slower than bisection
 _EPS = float(np.finfo(float).eps)
 
@@ -159,12 +161,9 @@ def ellipsoid_distance_and_gradient(center, rotation, radii, Q):
             o0, o1 = o1, o0
     e0, e1, e2 = radii[o0], radii[o1], radii[o2]
     E20, E21, E22 = e0 * e0, e1 * e1, e2 * e2
-    M = Q.shape[0]
-    d = np.zeros(M)
-    g = np.zeros((M, 3))
-    for m in range(M):
-        if not (np.isfinite(Q[m, 0]) and np.isfinite(Q[m, 1]) and np.isfinite(Q[m, 2])):
-            d[m] = g[m, 0] = g[m, 1] = g[m, 2] = np.nan
+    d, g, finite = field_outputs(Q)
+    for m in range(Q.shape[0]):
+        if not finite[m]:
             continue
         q0, q1, q2 = Q[m, 0] - center[0], Q[m, 1] - center[1], Q[m, 2] - center[2]
         L0 = 0.0 + q0 * rotation[0, o0] + q1 * rotation[1, o0] + q2 * rotation[2, o0]  # coordinates on the sorted axes

@@ -48,12 +48,32 @@ class DistanceField(Protocol):
 
 
 @njit(cache=True)
+def finite_row(P, m) -> bool:
+    """Whether the point in row m of P (M, 3) is finite (the fields answer NaN otherwise)."""
+    return np.isfinite(P[m, 0]) and np.isfinite(P[m, 1]) and np.isfinite(P[m, 2])
+
+
+@njit(cache=True)
+def field_outputs(P):
+    """(h (M,), g (M, 3), finite (M,) bool): a field's output arrays for the points P (M, 3)
+    mm, NaN in the rows of the non-finite points (the field's answer there) and 0 in the
+    others, and which rows are finite."""
+    M = P.shape[0]
+    h, g, finite = np.zeros(M), np.zeros((M, 3)), np.ones(M, dtype=np.bool_)
+    for m in range(M):
+        if not finite_row(P, m):
+            h[m] = g[m, 0] = g[m, 1] = g[m, 2] = np.nan
+            finite[m] = False
+    return h, g, finite
+
+
+@njit(cache=True)
 def exact_uncertainty(P):
     """(M,) the uncertainty (mm) of an exact field at the points P (M, 3) mm: 0, and +inf
     where a point is not finite."""
     u = np.zeros(P.shape[0])
     for m in range(P.shape[0]):
-        if not (np.isfinite(P[m, 0]) and np.isfinite(P[m, 1]) and np.isfinite(P[m, 2])):
+        if not finite_row(P, m):
             u[m] = np.inf
     return u
 

@@ -8,7 +8,7 @@ from functools import cached_property
 import numpy as np
 from numba import njit
 
-from models.shapes.field import FieldKernel, exact_uncertainty, field_params
+from models.shapes.field import FieldKernel, exact_uncertainty, field_outputs, field_params
 from models.shapes.sampling import unit_sphere_grid
 from models.shapes.validation import as_points, as_positive, as_vector3
 
@@ -18,12 +18,9 @@ def sphere_distance_and_gradient(center, radius, Q):
     """((M,) signed distance mm, > 0 inside; (M, 3) unit gradient, the inward normal, +z
     at the centre by convention) of points Q (M, 3) mm to the sphere (center, radius); NaN
     for a non-finite point."""
-    M = Q.shape[0]
-    d = np.empty(M)
-    g = np.empty((M, 3))
-    for m in range(M):
-        if not (np.isfinite(Q[m, 0]) and np.isfinite(Q[m, 1]) and np.isfinite(Q[m, 2])):
-            d[m] = g[m, 0] = g[m, 1] = g[m, 2] = np.nan
+    d, g, finite = field_outputs(Q)
+    for m in range(Q.shape[0]):
+        if not finite[m]:
             continue
         v0, v1, v2 = center[0] - Q[m, 0], center[1] - Q[m, 1], center[2] - Q[m, 2]
         n = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)

@@ -56,11 +56,11 @@ def test_queries_equal_a_k_d_tree_reference(seed, angle_deg):
     view = cov.view(Sphere(c, 11.5))
     Q = c + rng.normal(0.0, 5.0, (12, 3))
     U = (Q - c) / np.linalg.norm(Q - c, axis=1, keepdims=True)
-    tree = cKDTree(view._dirs)
+    tree = cKDTree(view.sorted_directions)
     chord, _ = tree.query(U)
     np.testing.assert_allclose(view.angle_from_data_rad(Q), 2.0 * np.arcsin(chord / 2.0), atol=1e-7)
     r = 2.0 * np.sin(0.5 * np.radians(angle_deg))
-    ref = [max((view._misfit[j] for j in idx), default=0.0) for idx in tree.query_ball_point(U, r)]
+    ref = [max((view.misfits_mm[j] for j in idx), default=0.0) for idx in tree.query_ball_point(U, r)]
     np.testing.assert_allclose(view.local_misfit_mm(Q, np.radians(angle_deg)), ref, atol=1e-12)
 
 
@@ -139,12 +139,12 @@ def test_a_rebuilt_view_holds_the_covered_bins_and_their_misfits_exactly(kind):
     order = np.argsort(cov._dirs[covered][:, 2], kind="stable")
     assert view.n_covered == covered.sum() > 300
     np.testing.assert_array_equal(inside_depth_upper_mm(shape, inner), _numpy_depth(shape, inner))
-    np.testing.assert_array_equal(view._dirs, cov._dirs[covered][order])
-    np.testing.assert_array_equal(view._misfit, _numpy_depth(shape, inner)[order])
+    np.testing.assert_array_equal(view.sorted_directions, cov._dirs[covered][order])
+    np.testing.assert_array_equal(view.misfits_mm, _numpy_depth(shape, inner)[order])
     sorted_here = CoverageView(c, cov._dirs[covered], _numpy_depth(shape, inner))
-    np.testing.assert_array_equal(view._dirs, sorted_here._dirs)
-    np.testing.assert_array_equal(view._misfit, sorted_here._misfit)
-    assert view._misfit.max() > 0.0  # points inside the shape: misfits to compare
+    np.testing.assert_array_equal(view.sorted_directions, sorted_here.sorted_directions)
+    np.testing.assert_array_equal(view.misfits_mm, sorted_here.misfits_mm)
+    assert view.misfits_mm.max() > 0.0  # points inside the shape: misfits to compare
 
 
 @settings(max_examples=60, deadline=None)

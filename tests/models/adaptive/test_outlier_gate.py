@@ -51,7 +51,7 @@ def test_ellipsoid_accuracy_survives_five_percent_floaters(emmetropic_runs):
     clean = mae_exact(models["clean"].ellipsoid, truth).mean
     dirty = mae_exact(models["dirty"].ellipsoid, truth).mean
     ungated = mae_exact(models["ungated"].ellipsoid, truth).mean
-    assert abs(dirty - clean) <= 0.10 * clean + 1e-3  # issue 5: within 10 % (1 um floor: noise level)
+    assert abs(dirty - clean) <= 0.10 * clean + 1e-3  # within 10 % (1 um floor: noise level)
     assert ungated > 10 * clean  # without the gate the floaters wreck the fit
 
 
@@ -79,9 +79,10 @@ def test_gate_parameters_are_checked():
 @pytest.mark.parametrize("batch", [1, 7, 10, 23])
 def test_the_robust_residual_follows_the_data_whatever_the_batch_size(batch):
     """The gate's residual is the median of the recent accepted distances, refreshed every
-    RESIDUAL_REFRESH accepted points. It once refreshed only when the count of accepted
-    points hit a multiple of 16 exactly, which packets of 10 with a rejection now and
-    then could skip for hundreds of points: a stale, wide gate let wrong points in."""
+    RESIDUAL_REFRESH accepted points whatever the batches: a refresh only when the count
+    of accepted points hits a multiple of 16 exactly would be skipped for hundreds of
+    points by packets of 10 with a rejection now and then, and a stale, wide gate lets
+    wrong points in."""
     rng = np.random.default_rng(batch)
     state = GateState(OutlierGate(min_points=0))
     sphere = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -1.0])  # unit sphere (scaled: 10 mm)
@@ -99,8 +100,8 @@ def test_the_robust_residual_follows_the_data_whatever_the_batch_size(batch):
 
 def test_in_a_batch_each_jump_is_measured_from_the_last_kept_point():
     """A floater 2 mm in front of the retina is turned away by its jump; the A-scan after it
-    is compared with the last KEPT point (it used to be compared with the floater and
-    turned away too). The very first batch is gated the same way from its first point."""
+    is compared with the last KEPT point, not with the floater (which would turn it away
+    too). The very first batch is gated the same way from its first point."""
     state = GateState(OutlierGate())
     retina = np.array([[0.0, 0.0, -10.0], [0.01, 0.0, -10.0], [0.02, 0.0, -8.0], [0.03, 0.0, -10.0],
                        [0.04, 0.0, -10.0]])

@@ -1,4 +1,4 @@
-"""Plate calibration of the sensor pose: exact recovery, the issue's targets, invariances.
+"""Plate calibration of the sensor pose: exact recovery, the design's targets, invariances.
 
 Physics behind the tolerances: distance noise N(0, 20 um) along the beam appears in
 the point-to-plane residual scaled by the cosine of the incidence angle, so the RMS

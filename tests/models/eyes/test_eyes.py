@@ -2,7 +2,7 @@
 overhangs, ray casting, exact distances, pose equivariance, the paper's sampling.
 
 Tolerances: ray casts are bisected to machine precision and the ellipsoidal shapes are
-closed-form, so dimensions are checked to 1e-9 mm; issue 2 asks ray hits on composite
+closed-form, so dimensions are checked to 1e-9 mm; the design asks ray hits on composite
 shapes to lie within 1 um of the retina. The composite distances come from a local
 optimiser, so they are checked against a brute-force sampling with the bound
 |d| <= d_ref <= |d| + h (h: covering radius of the sampling; triangle inequality).
@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from models.eyes import EYE_SHAPES, EyePose, make_eye
 
 EXACT_MM = 1e-9
-HIT_MM = 1e-3  # 1 um (issue 2)
+HIT_MM = 1e-3  # 1 um (design.md)
 DESIGN_RADII = {
     "emmetropic": [11.455, 11.365, 10.148],
     "myopic": [12.295, 11.965, 11.948],

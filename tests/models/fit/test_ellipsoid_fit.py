@@ -2,7 +2,7 @@
 
 Tolerances: noise-free data define the quadric exactly, so the only error is float64
 round-off amplified by the conditioning of a partial scan (~1e-12 mm observed on eye
-sized surfaces up to 300 mm from the origin); issue 2 asks for 1e-6 mm. The
+sized surfaces up to 300 mm from the origin); the design asks for 1e-6 mm. The
 Li-Griffiths objective sum Q(p)^2 and its constraint 4J - I^2 = 1 are rigid-motion
 invariants of the quadric (I, J are invariants of its quadratic part), so even on noisy
 data a moved cloud must give the moved fit, to the same round-off level.

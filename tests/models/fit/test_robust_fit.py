@@ -3,7 +3,7 @@
 Bounds. The distance noise is N(0, sigma = 20 um) along the beam; the biweight's cut-off
 is 4.685 sigma, and a normal error of at most that noise exceeds it with probability
 2 Phi(-4.685) = 2.8e-6, so on a regular eye essentially no point loses its weight and the
-robust fit must be as good as the least-squares one: both within the issue's 10 um EF MAE
+robust fit must be as good as the least-squares one: both within the design's 10 um EF MAE
 target. On the pathological eyes the best an ellipsoid can do is the globe they are built
 on; its MAE against their retina (the "floor") is the pathology's mean depth over the
 reference surface (detached 35.6 um, staphyloma 97.3 um). The robust fit must come within

@@ -1,7 +1,7 @@
 """SphereKalmanFilter: the information-form filter equals the batch fit_sphere at every step.
 
 Both solve the same linear least-squares problem (|p|^2 = 2 p.c + k), so any batching
-must give the batch answer up to float64 round-off: 1e-6 mm (issue 2's tolerance),
+must give the batch answer up to float64 round-off: 1e-6 mm (the design's tolerance),
 observed ~1e-11 mm on 20 um noisy eye-sized patches up to 300 mm from the origin.
 """
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The simulated iiOCT sensor: A-scan physics, distance extraction accuracy, validity.
 
-Tolerances come from the issue's targets (|bias| <= 5 um, SD <= 20 um at normal
+Tolerances come from the design's targets (|bias| <= 5 um, SD <= 20 um at normal
 incidence over the working range) and from the synthesis's own physics.
 """
 from __future__ import annotations

@@ -30,7 +30,7 @@ CASES = {
 }
 # Cases whose axis coordinates are exact in float64: on-axis and in-plane queries stay
 # exactly on the axes/planes. In a generic rotation they land ~1e-16 mm off them, which
-# meets the bug pinned by test_distance_is_continuous_across_the_plane_of_the_shortest_axis.
+# is what test_distance_is_continuous_across_the_plane_of_the_shortest_axis holds to.
 EXACT_AXES = [name for name, e in CASES.items() if np.all(np.isin(e.rotation, (-1.0, 0.0, 1.0)))]
 
 

@@ -3,7 +3,7 @@
 Exact cases: the distance to a sphere is analytic (r - |q - c|), so the brute-force
 reference (tests/conftest.py) is checked with its derived bounds and every other figure
 to float64 round-off. fit_sphere solves a linear least-squares problem that noise-free
-points satisfy exactly: recovery to 1e-6 mm (issue 2), observed ~1e-12 mm.
+points satisfy exactly: recovery to 1e-6 mm (design.md), observed ~1e-12 mm.
 """
 from __future__ import annotations
 
