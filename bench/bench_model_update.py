@@ -1,17 +1,20 @@
-"""Eye model figures: per-A-scan update time, batch fits, signed-distance
-throughput, and Drake's ComputeSignedDistanceToPoint on the same ellipsoid."""
+"""Eye model figures: per-A-scan update time, the fits' small linear algebra against
+np.linalg, batch fits, signed-distance throughput, and Drake's
+ComputeSignedDistanceToPoint on the same ellipsoid."""
 from __future__ import annotations
 
 import time
 
 import numpy as np
+from numba import njit
 
 from bench.timing import summary_us, time_calls_us
 from models import AdaptiveEyeModel, Ellipsoid, fit_ellipsoid, fit_sphere
+from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
-from models.paper_scan import paper_scan
-from models.robust_fit import RobustFitConfig
-from models.transition import PredictiveCriteria
+from models.fit.robust_fit import RobustFitConfig
+from models.fit.small_linalg import cholesky, eigh_sym, lower_inverse, pivoted_solve
+from models.scan.paper_scan import paper_scan
 
 RADII = np.array([11.455, 11.365, 10.148])
 
@@ -20,6 +23,71 @@ def _update_times(points, criteria, batch: int, robust: RobustFitConfig | None =
     m = AdaptiveEyeModel(criteria, robust=robust)
     chunks = [points[i:i + batch] for i in range(0, len(points), batch)]
     return time_calls_us(lambda i: m.update(chunks[i]), len(chunks)) / batch
+
+
+@njit
+def _loop_cholesky(A, n, lapack):
+    s = 0.0
+    for _ in range(n):
+        s += np.linalg.cholesky(A)[-1, -1] if lapack else cholesky(A)[0][-1, -1]
+    return s
+
+
+@njit
+def _loop_lower_inverse(L, n, lapack):
+    s = 0.0
+    for _ in range(n):
+        s += np.linalg.inv(L)[-1, 0] if lapack else lower_inverse(L)[-1, 0]
+    return s
+
+
+@njit
+def _loop_solve(A, b, n, lapack):
+    s = 0.0
+    for _ in range(n):
+        s += np.linalg.solve(A, b)[0] if lapack else pivoted_solve(A.copy(), b, 1e-300)[0]
+    return s
+
+
+@njit
+def _loop_eigh(A, n, lapack):
+    s = 0.0
+    for _ in range(n):
+        s += np.linalg.eigh(A)[0][0] if lapack else eigh_sym(A)[0][0]
+    return s
+
+
+def _per_call_us(loop, args: tuple, lapack: bool, n: int = 20000) -> float:
+    """Microseconds per call in the compiled loop(*args, n, lapack): the fastest of 5 runs,
+    after a warm-up that compiles it."""
+    loop(*args, 10, lapack)
+    best = np.inf
+    for _ in range(5):
+        t0 = time.perf_counter()
+        loop(*args, n, lapack)
+        best = min(best, time.perf_counter() - t0)
+    return 1e6 * best / n
+
+
+def small_linalg_figures(points: np.ndarray) -> None:
+    """The fits' hand-written small linear algebra (models.fit.small_linalg) against
+    np.linalg inside numba, per call on warm compiled code, on symmetric positive definite
+    matrices of the sizes the fits use, and the eigensolver on the 3x3 matrices of a fit
+    of the retinal points `points` (N, 3) mm."""
+    rng = np.random.default_rng(0)
+    for k in (4, 6):
+        B = rng.normal(size=(k, k))
+        A = B @ B.T + k * np.eye(k)
+        L, b = np.linalg.cholesky(A), rng.normal(size=k)
+        figures = [(name, _per_call_us(loop, args, False), _per_call_us(loop, args, True)) for name, loop, args in (
+            ("Cholesky", _loop_cholesky, (A,)), ("lower-triangular inverse", _loop_lower_inverse, (L,)),
+            ("pivoted solve", _loop_solve, (A, b)), ("symmetric eigensolver", _loop_eigh, (A,)))]
+        print(f"  small linear algebra {k}x{k}, hand-written / np.linalg per call: "
+              + ", ".join(f"{name} {hand:.2f} / {lapack:.2f} us" for name, hand, lapack in figures))
+    fit = fit_ellipsoid(points)  # the 3x3 matrices of a fit: its quadric's and its points' covariance
+    for name, A in (("quadric", fit.rotation @ np.diag(fit.radii**-2.0) @ fit.rotation.T), ("covariance", np.cov(points.T))):
+        print(f"  symmetric eigensolver on a fit's 3x3 {name}, hand-written / np.linalg.eigh per call: "
+              f"{_per_call_us(_loop_eigh, (A,), False):.2f} / {_per_call_us(_loop_eigh, (A,), True):.2f} us")
 
 
 def _drake_signed_distance(Q_mm: np.ndarray):
@@ -47,8 +115,8 @@ def _drake_signed_distance(Q_mm: np.ndarray):
 def run() -> None:
     eye = make_eye("emmetropic")
     points = paper_scan(eye, seed=0).points
-    _update_times(points[:500], None, 1)  # warm-up: loads the compiled kernels (models._kernels) once
-    _update_times(points[:500], PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.robust_fit
+    _update_times(points[:500], None, 1)  # warm-up: loads the compiled kernels once
+    _update_times(points[:500], PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.fit.robust_fit
     variants = (("paper criteria", None, None), ("predictive criteria", PredictiveCriteria(), None),
                 ("predictive, robust EF", PredictiveCriteria(), RobustFitConfig()))
     for name, criteria, robust in variants:
@@ -60,6 +128,7 @@ def run() -> None:
         print(f"    the same, per update the fastest of the 3 passes (work alone):    {summary_us(passes.min(axis=0))}")
     t = _update_times(points, None, 10)
     print(f"  AdaptiveEyeModel.update, 10 A-scans per call (200 Hz), per A-scan:       {summary_us(t)}")
+    small_linalg_figures(points)
 
     P = Ellipsoid(np.zeros(3), RADII).sample_surface(50, 100, z_max=3.0) + np.random.default_rng(0).normal(0, 0.02, (5000, 3))
     for fit in (fit_ellipsoid, fit_sphere):

@@ -10,7 +10,7 @@ import numpy as np
 from bench.timing import summary_us, time_calls_us
 from models import AdaptiveEyeModel, Ellipsoid, fit_ellipsoid, fit_sphere
 from models.eyes import make_eye
-from models.paper_scan import paper_scan
+from models.scan.paper_scan import paper_scan
 
 MM_PER_M = 1e3
 

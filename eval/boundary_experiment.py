@@ -16,8 +16,8 @@ from eval.closed_loop import ClosedLoop, LoopRun
 from eval.commands import AdversarialCommand, TipPathCommand
 from eval.progress import progress_bar
 from models import AdaptiveEyeModel
+from models.adaptive.transition import PredictiveCriteria
 from models.metrics import mae_exact
-from models.transition import PredictiveCriteria
 from planning import IKFailure, SurgeryScenario, start_posture
 
 VIOLATION_MM = 0.45  # true clearance below this is a violation (0.5 mm boundary, 50 um tolerance)
@@ -30,7 +30,7 @@ class SpiralBuild:
     """The model built by the spiral through the loop and how the scan went."""
 
     model: object  # models.AdaptiveEyeModel, in W
-    coverage: object  # models.coverage.DirectionCoverage of its points
+    coverage: object  # models.adaptive.coverage.DirectionCoverage of its points
     run: LoopRun
     kind_final: str
     transition_at: float | None  # fraction of the spiral's duration, or None

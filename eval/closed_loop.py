@@ -32,7 +32,7 @@ from eval.systems.filter import FilterSystem, Step
 from eval.systems.model import AdaptiveModelSystem, ModelSnapshot, semi_axes_mm, snapshot_of
 from eval.systems.sensor import IioctSensorSystem
 from models import AdaptiveEyeModel
-from models.coverage import DirectionCoverage
+from models.adaptive.coverage import DirectionCoverage
 from planning.iioct import IioctSensor
 from planning.robot import Robot
 from safety.margins import conservative_prior

@@ -1,6 +1,6 @@
 """`vitreoguard calibrate`: the paper's plate calibration of the sensor pose, and its Fig. 3.
 
-Simulates the plate calibration (flange poses from `models.calibration.sample_flange_poses`
+Simulates the plate calibration (flange poses from `models.calibration.plate.sample_flange_poses`
 until the Meca500 plant provides reachable ones; true sensor pose offset from the
 nominal one; N(0, noise) distances), recovers the sensor pose with SLSQP and writes
 `calibration.json` (recovered vs true) and `fig3_sensitivity.png` (sphere-diameter
@@ -17,7 +17,7 @@ import numpy as np
 from eval.cli_args import SEED, integer, number
 from eval.io import prepare_out_dir, save_figure, write_json
 from eval.progress import phase
-from models.calibration import (
+from models.calibration.plate import (
     Plane,
     SensorPose,
     calibrate_sensor,
@@ -27,8 +27,9 @@ from models.calibration import (
     position_error_um,
     sample_flange_poses,
 )
-from models.calibration_sensitivity import SPHERE_RADIUS_MM, diameter_error_um, diameter_sensitivity, sphere_eye
-from models.paper_scan import paper_scan
+from models.calibration.sensitivity import SPHERE_RADIUS_MM, diameter_error_um, diameter_sensitivity, sphere_eye
+from models.scan.paper_scan import paper_scan
+
 
 
 def nominal_sensor() -> SensorPose:

@@ -7,7 +7,7 @@ import numpy as np
 from eval.io import prepare_out_dir, save_figure, write_json
 from eval.progress import phase
 from models.eyes import EYE_SHAPES, make_eye
-from models.sampling import unit_sphere_grid
+from models.shapes.sampling import unit_sphere_grid
 
 # the plane of each cross-section: (in-plane horizontal axis in E, label)
 _SECTION = {"staphyloma": (np.array([1.0, 0.0, 0.0]), "x (temporal)"), "detached": (np.array([0.0, 1.0, 0.0]), "y (superior)")}

@@ -12,11 +12,11 @@ from eval.io import UsageError, prepare_out_dir, save_figure, write_atomic, writ
 from eval.paper_experiment import ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, decision, optimal_transition, run_shape
 from eval.paper_figures import fig5
 from eval.progress import progress_bar
+from models.adaptive.transition import CRITERIA
 from models.eyes import EYE_SHAPES, EyePose
-from models.robust_fit import RobustFitConfig
-from models.transition import CRITERIA
+from models.fit.robust_fit import RobustFitConfig
 
-FITS = ("least-squares", "robust")  # --fit: the paper's ellipsoid fit, or models.robust_fit
+FITS = ("least-squares", "robust")  # --fit: the paper's ellipsoid fit, or models.fit.robust_fit
 # table2.json key -> (which fit, which PaperMetrics field)
 METRIC_KEYS = {"mmae": ("ef", "mmae"), "sf_fmae": ("sf", "fmae"), "sf_mae": ("sf", "mae"), "ef_fmae": ("ef", "fmae"), "ef_mae": ("ef", "mae")}
 
@@ -39,7 +39,7 @@ def register(sub) -> None:
     p.add_argument("--pose", choices=["nominal", "anatomical"], default="nominal",
                    help="eye placement: on the scan axis, or tilted 11 deg and decentred")
     p.add_argument("--fit", choices=list(FITS), default="least-squares",
-                   help="ellipsoid fit: the paper's least squares, or ours, robust to pathological patches (models.robust_fit)")
+                   help="ellipsoid fit: the paper's least squares, or ours, robust to pathological patches (models.fit.robust_fit)")
     p.add_argument("--stride", type=STRIDE, default=1,
                    help=f"use every k-th A-scan of the 5,093, {STRIDE.range} (1: all)")
     p.add_argument("--grid", type=GRID, default=500,

@@ -18,7 +18,7 @@ from bisect import bisect_right
 
 import numpy as np
 
-from models._validation import as_points, as_positive, as_vector3
+from models.shapes.validation import as_points, as_positive, as_vector3
 
 ADVERSARY_MODES = ("push", "along", "port_side", "lens", "random")
 # how often each mode is drawn: mostly attacks on the retina, some on the lens

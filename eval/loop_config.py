@@ -27,7 +27,7 @@ class LoopConfig:
     conservative prior bounds the motion.
     Afterwards the tip or the port, further than `trust_angle_deg` (seen from the eye
     centre) from every measured direction, keeps the prior's clearance too: the fit's
-    extrapolation is only as good as the eye is regular (models.coverage); nearer, its
+    extrapolation is only as good as the eye is regular (models.adaptive.coverage); nearer, its
     margin grows by the model's measured misfit there (how far inside the model the
     retina was measured within `misfit_angle_deg`: a detachment the sphere averages away).
     `extra_constraints`: safety.constraints objects the filter stacks after the standard

@@ -180,7 +180,7 @@ class RunLogger:
     def log_model(self, t_s, kind: str, sphere=None, ellipsoid=None, n_points: int = 0, criteria=None) -> None:
         """The eye model (W, mm): `kind` "prior" | "sphere" | "ellipsoid", its current
         `sphere` and `ellipsoid` (either may be None), the points it holds and its
-        transition `criteria` {name: (value, met)} (models.adaptive.ModelUpdate.criteria)."""
+        transition `criteria` {name: (value, met)} (models.adaptive.model.ModelUpdate.criteria)."""
         if kind not in _KIND_INDEX:
             raise ValueError(f"kind must be one of {sorted(_KIND_INDEX)}, got {kind!r}")
         crit = {str(k): {"value": _opt(v[0]), "met": bool(v[1])} for k, v in (criteria or {}).items()}
@@ -189,7 +189,7 @@ class RunLogger:
             "sphere": codec.shape_to_json(sphere), "ellipsoid": codec.shape_to_json(ellipsoid), "criteria": crit})
 
     def log_model_update(self, t_s, update) -> None:
-        """log_model from a models.adaptive.ModelUpdate (one history entry)."""
+        """log_model from a models.adaptive.model.ModelUpdate (one history entry)."""
         self.log_model(t_s, update.kind, update.sphere, update.ellipsoid, update.n_points, update.criteria)
 
     def log_filter_step(self, inputs: FilterInputs, output: FilterOutput, true_eye=None) -> None:

@@ -1,6 +1,6 @@
 """The paper's simulation experiment (Table 2, Fig. 5) on one eye shape and noise seed.
 
-The scan is the `paper` scenario (models.paper_scan); the points go one A-scan at a
+The scan is the `paper` scenario (models.scan.paper_scan); the points go one A-scan at a
 time into AdaptiveEyeModel. Errors are in mm, positions along the scan are fractions
 of the spiral in [0, 1] (point index / number of points).
 """
@@ -11,12 +11,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from models import AdaptiveEyeModel
+from models.adaptive.outlier_gate import OutlierGate
+from models.adaptive.transition import CRITERIA, PaperCriteria
 from models.eyes import EyePose, make_eye
+from models.fit.robust_fit import RobustFitConfig
 from models.metrics import PaperMetrics, mae_exact, paper_metrics
-from models.outlier_gate import OutlierGate
-from models.paper_scan import paper_scan
-from models.robust_fit import RobustFitConfig
-from models.transition import CRITERIA, PaperCriteria
+from models.scan.paper_scan import paper_scan
 
 # Table 2 of the paper (simulation), mm: mean, SD.
 PAPER_TABLE2 = {
@@ -82,7 +82,7 @@ def run_shape(
     `grid` x `grid` sampling for the final Table 2 metrics (the paper: 500).
     `keep_history` keeps the model history (of the first criterion) in the result;
     `robust`: None for the paper's least-squares ellipsoid, else the robust fit's
-    settings (models.robust_fit).
+    settings (models.fit.robust_fit).
     """
     eye = make_eye(shape, pose)
     points = paper_scan(eye, noise_um=noise_um, seed=seed).points[:: int(stride)]

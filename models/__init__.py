@@ -1,13 +1,13 @@
-"""What we know about the eye, in plain NumPy/SciPy (no Drake): shapes, fits, the adaptive model.
+"""What we know about the eye, in plain NumPy/SciPy/numba (no Drake): shapes, fits, the adaptive model.
 
 Millimetres everywhere; points in whatever frame the caller uses (W or E).
 """
-from models.adaptive import AdaptiveEyeModel, ModelUpdate
-from models.ellipsoid import Ellipsoid
-from models.ellipsoid_fit import EllipsoidFit, IncrementalEllipsoidFit, fit_ellipsoid
-from models.sphere import Sphere, fit_sphere
-from models.sphere_kalman import SphereKalmanFilter
-from models.transition import PaperCriteria
+from models.adaptive.model import AdaptiveEyeModel, ModelUpdate
+from models.adaptive.transition import PaperCriteria, PredictiveCriteria
+from models.fit.ellipsoid_fit import EllipsoidFit, IncrementalEllipsoidFit, fit_ellipsoid
+from models.fit.sphere_kalman import SphereKalmanFilter
+from models.shapes.ellipsoid import Ellipsoid
+from models.shapes.sphere import Sphere, fit_sphere
 
 __all__ = [
     "AdaptiveEyeModel",
@@ -16,6 +16,7 @@ __all__ = [
     "IncrementalEllipsoidFit",
     "ModelUpdate",
     "PaperCriteria",
+    "PredictiveCriteria",
     "Sphere",
     "SphereKalmanFilter",
     "fit_ellipsoid",

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from models._validation import as_points
+from models.shapes.validation import as_points
 
 
 @dataclass(frozen=True)

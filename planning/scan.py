@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
-from models._validation import as_positive
+from models.shapes.validation import as_positive
 from planning.closed_form import shaft_ik
 from planning.diffik import rcm_joint_velocity
 from planning.ik import IKFailure, rcm_ik

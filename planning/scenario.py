@@ -24,9 +24,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from models import Ellipsoid
-from models._validation import as_vector3
 from models.eyes import EyePose, make_eye
-from models.spiral import archimedean_spiral
+from models.scan.spiral import archimedean_spiral
+from models.shapes.validation import as_vector3
 
 # Trocar on the pars plana, about 3.5-4 mm behind the limbus, 8 mm off the visual axis.
 TROCAR_P_EC_MM = (8.0, 0.0, 7.2)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from models import Sphere
-from models._validation import as_vector3, check_positive
+from models.shapes.validation import as_vector3, check_positive
 
 SMALLEST_RETINAL_SEMI_AXIS_MM = 9.548  # hyperopic +4 D length semi-axis (models.eyes)
 

@@ -20,7 +20,7 @@ import qpsolvers
 from numba import njit
 from scipy import sparse
 
-from models._kernels import pivoted_solve
+from models.fit.small_linalg import pivoted_solve
 
 SPARSE_SOLVERS = {"clarabel", "osqp", "scs", "piqp", "highs"}  # take CSC matrices natively
 _DAQP_INF = 1e30  # DAQP's "no bound"

@@ -3,7 +3,7 @@
 Each step asks the command source for the tip velocity and roll rate at the joint
 angles it filters, then runs the filter's compiled step (safety.ConstraintStack built
 from the loop's constraints, with the instrument's kinematics kernel): the points, the
-eye model as a distance field (models.model_field: the model's shape, its phase margin,
+eye model as a distance field (models.adaptive.model_field: the model's shape, its phase margin,
 the misfit measured near each point, and the prior where the model has no data near
 the tip or the port), the lens, the RCM and the joint limits, in one call. A fault
 gives zero velocity and the reason from the same call.
@@ -24,8 +24,8 @@ from pydrake.systems.framework import LeafSystem
 
 from eval.loop_config import LoopConfig
 from eval.systems.model import ModelSnapshot
-from models.coverage import band_chord
-from models.model_field import ModelField, model_field_kernel
+from models.adaptive.coverage import band_chord
+from models.adaptive.model_field import ModelField, model_field_kernel
 from planning.chain import frame_position
 from planning.diffik import DrakeDiffIK
 from planning.instrument_points import instrument_points

@@ -15,8 +15,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from models import AdaptiveEyeModel
-from models.coverage import DirectionCoverage
-from models.transition import PredictiveCriteria
+from models.adaptive.coverage import DirectionCoverage
+from models.adaptive.transition import PredictiveCriteria
 from planning.iioct import NO_SAMPLE_YET
 from safety.margins import UncertaintyMargins
 
@@ -34,7 +34,7 @@ class ModelSnapshot(NamedTuple):
     t_s: float
     residual_mm: float
     n_points: int
-    coverage: object = None  # models.coverage.CoverageView of the measured directions
+    coverage: object = None  # models.adaptive.coverage.CoverageView of the measured directions
 
     def __deepcopy__(self, memo) -> ModelSnapshot:
         return self  # immutable (the shapes are frozen): Drake copies abstract state values often

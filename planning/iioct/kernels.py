@@ -16,8 +16,8 @@ import numba
 import numpy as np
 
 from models.eyes import retina_hits
+from models.iioct.error_model import draw_one
 from planning.chain import chain_pose_into, frame_axis_into
-from planning.iioct.error_model import draw_one
 
 DISTANCE_MODE_CONFIDENCE = 0.9  # of a valid "distance" mode sample
 DISTANCE_REASONS = ("", "no_retina", "low_confidence")  # the reasons of `distance_packet`'s codes

@@ -13,7 +13,7 @@ Two modes, the same geometry (planning.iioct.kernels):
 - "ascan": synthesise the A-scan (models.iioct) and extract the distance: the full chain;
 - "distance": draw the extracted distance from the extractor's error model (bias, SD and
   invalid probability as functions of distance and incidence, tabulated once per process
-  by running the full chain; see `ExtractorErrorModel`): what the 1 kHz closed loop uses.
+  by running the full chain; see models.iioct.error_model): what the 1 kHz closed loop uses.
 
 Units: mm, s, rad; frame W.
 """
@@ -24,8 +24,8 @@ from functools import lru_cache
 import numpy as np
 
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
-from models.rays import incidences_rad
-from planning.iioct.error_model import extractor_error_model
+from models.iioct.error_model import extractor_error_model
+from models.shapes.rays import incidences_rad
 from planning.iioct.kernels import (DISTANCE_REASONS, NO_RETINA, all_finite, beam_points, distance_packet,
                                     packet_geometry, sensor_beams)
 from planning.iioct.packet import BAD_JOINT_STATE, PER_SAMPLE_ARRAYS, SensorPacket, SensorSample, scattered

@@ -14,8 +14,8 @@ from eval.commands import TipPathCommand, VelocityReplayCommand
 from eval.mcap_log import RunLogger
 from eval.mcap_replay import replay
 from models import AdaptiveEyeModel, Ellipsoid
-from models.coverage import DirectionCoverage
-from models.transition import PredictiveCriteria
+from models.adaptive.coverage import DirectionCoverage
+from models.adaptive.transition import PredictiveCriteria
 from planning import SurgeryScenario, start_posture
 from safety import FilterConfig
 
@@ -287,7 +287,7 @@ def test_an_ellipsoid_that_is_no_eye_gives_way_to_the_sphere_fit():
     (radius 10.6 mm), with the sphere's residual; with no eye-sized fit it keeps the prior."""
     from eval.closed_loop import snapshot_of
     from models.eyes import make_eye
-    from models.paper_scan import paper_scan
+    from models.scan.paper_scan import paper_scan
 
     model = AdaptiveEyeModel()
     for p in paper_scan(make_eye("pointed"), seed=0).points:
@@ -309,7 +309,7 @@ def test_the_snapshot_holds_the_models_own_shapes_once_trusted():
     update holds the same objects."""
     from eval.closed_loop import snapshot_of
     from models.eyes import make_eye
-    from models.paper_scan import paper_scan
+    from models.scan.paper_scan import paper_scan
 
     points = paper_scan(make_eye("emmetropic"), seed=0).points
     model, coverage = AdaptiveEyeModel(), DirectionCoverage(np.zeros(3))

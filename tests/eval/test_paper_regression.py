@@ -18,7 +18,7 @@ import pytest
 from eval.cli import main as cli_main
 from eval.paper_experiment import MAX_LAG, decision, optimal_transition, run_shape
 from models.eyes import EyePose
-from models.robust_fit import RobustFitConfig
+from models.fit.robust_fit import RobustFitConfig
 
 NOISE_MEAN_ABS_UM = 20.0 * np.sqrt(2.0 / np.pi)
 
@@ -102,7 +102,7 @@ def test_cli_unwritable_output_exits_2(tmp_path, capsys):
 @pytest.mark.parametrize("shape", ["emmetropic", "myopic", "hyperopic", "pointed", "detached", "staphyloma"])
 def test_robust_fit_decides_every_shape_in_time(shape, pose):
     """`paper --fit robust --seeds 1` (seed 0, every A-scan): with the robust ellipsoid
-    (models.robust_fit) the ellipsoid ends up better than the sphere on all six shapes,
+    (models.fit.robust_fit) the ellipsoid ends up better than the sphere on all six shapes,
     pathologies included, and the predictive criteria switch to it no earlier than the
     optimal point and within the issue's 10 % of the spiral after it, also with the eye
     tilted 11 deg and decentred. (The lag is the target itself; on other noise seeds the

@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 from scipy.interpolate import RegularGridInterpolator
 
 from models.iioct import Floater, synthesize_ascan
+from models.iioct.error_model import extractor_error_model
 from planning import Robot, SurgeryScenario, start_posture
-from planning.iioct import (BAD_JOINT_STATE, DISTANCE_MODE_CONFIDENCE, IioctSensor, SensorPacket,
-                            extractor_error_model)
+from planning.iioct import BAD_JOINT_STATE, DISTANCE_MODE_CONFIDENCE, IioctSensor, SensorPacket
 from planning.iioct.kernels import row_runs, sensor_beams
 
 

@@ -1,0 +1,229 @@
+"""The adaptive eye model: a sphere at first, an ellipsoid once the data supports it."""
+from __future__ import annotations
+
+import copy
+from typing import NamedTuple
+
+import numpy as np
+
+from models.adaptive.outlier_gate import GateState, OutlierGate
+from models.adaptive.scan_range import ScanRange
+from models.adaptive.transition import FitSnapshot, PaperCriteria
+from models.adaptive.update_kernel import (
+    OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE, OUT_STATE, OUT_V_EF, OUT_V_SF, fit_summary, packet_update,
+)
+from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, IncrementalEllipsoidFit
+from models.fit.quadric_kernels import FIT_STATUS
+from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig
+from models.fit.sphere_kalman import SphereKalmanFilter
+from models.shapes.ellipsoid import Ellipsoid
+from models.shapes.sphere import Sphere
+from models.shapes.validation import as_points
+
+
+class ModelUpdate(NamedTuple):
+    """One entry of the model history (mm, frame of the measured points).
+
+    `n_points`: points in the model; `n_received`: points offered so far, including the
+    non-finite and gated ones (so entries can be matched to A-scans);
+    `criteria` maps each criterion name to (value, met); `ef_status` is "ok" or why the
+    ellipsoid fit failed at this update (the previous good fit is kept). A NamedTuple:
+    one is made per A-scan, so it must be cheap.
+    """
+
+    n_points: int
+    kind: str
+    scan_range_mm: float
+    sf_residual_mm: float
+    ef_residual_mm: float
+    axis_change: float
+    criteria: dict
+    ef_status: str
+    sphere_center: np.ndarray | None
+    sphere_radius: float
+    ellipsoid_center: np.ndarray | None
+    ellipsoid_radii: np.ndarray | None
+    ellipsoid_rotation: np.ndarray | None
+    n_received: int = 0
+
+    @property
+    def sphere(self) -> Sphere | None:
+        return None if self.sphere_center is None else Sphere(self.sphere_center, self.sphere_radius)
+
+    @property
+    def ellipsoid(self) -> Ellipsoid | None:
+        if self.ellipsoid_center is None:
+            return None
+        return Ellipsoid(self.ellipsoid_center, self.ellipsoid_radii, self.ellipsoid_rotation)
+
+
+class AdaptiveEyeModel:
+    """Retina model from measured retinal points: sphere (Kalman filter) -> ellipsoid.
+
+    `update(P)` absorbs a batch of points (N, 3) mm (any N, including one A-scan's
+    point); non-finite points are skipped and counted in `n_rejected_nonfinite`; points
+    the innovation gate (`gate`, an OutlierGate; None disables it) finds too far from
+    the current model are skipped and counted in `n_rejected_outliers`. Each
+    call with at least one finite point is one update: the sphere filter and the
+    ellipsoid scatter matrix absorb the points (O(1) each), the ellipsoid is refitted,
+    and the transition criteria are evaluated; the model switches to the ellipsoid when
+    they all hold (and back, for a reversible criterion that asks for it).
+    `kind` is "sphere" or "ellipsoid"; `shape` the current Sphere or Ellipsoid (None
+    before 4 points); `history` one ModelUpdate per update; `last_accepted` the points
+    (K, 3) mm the last call took in (finite and past the gate).
+    """
+
+    def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate(), robust: RobustFitConfig | None = None):
+        """`criteria`: PaperCriteria (default, the paper's) or PredictiveCriteria, or any
+        object with the same `initial_state`/`evaluate` interface (models.adaptive.transition);
+        `gate`: the innovation gate against outliers (None: accept every finite point);
+        `robust`: None for the paper's least-squares ellipsoid, or the settings of the
+        robust one that down-weights pathological patches (models.fit.robust_fit)."""
+        self.criteria = PaperCriteria() if criteria is None else criteria
+        self.gate = gate
+        self._gate = None if gate is None else GateState(gate)
+        self._current = None  # quadric of the current model, in the fits' scaled coordinates
+        self.n_received = 0
+        self._sf = SphereKalmanFilter()
+        self._robust = robust is not None
+        self._ef = RobustEllipsoidFit(robust) if self._robust else IncrementalEllipsoidFit()
+        self._range = ScanRange()
+        self._memory = self.criteria.initial_state()
+        self._prev_radii = np.zeros(3)  # sorted semi-axes of the previous fit (mm), valid when _has_prev
+        self._has_prev = False
+        self.kind = "sphere"
+        self.transition_index: int | None = None
+        self.n_rejected_nonfinite = 0
+        self.history: list[ModelUpdate] = []
+        self.last_accepted = np.zeros((0, 3))
+
+    def __deepcopy__(self, memo) -> AdaptiveEyeModel:
+        """An independent copy (it updates without touching this model) that shares the
+        history's entries: an entry is never changed once made (each model appends its
+        own), and copying the thousands of a spiral-built model's was ~50 ms of its ~53
+        ms copy, once per scenario of a campaign (eval.boundary_experiment)."""
+        new = object.__new__(type(self))
+        memo[id(self)] = new
+        for name, value in vars(self).items():
+            setattr(new, name, list(value) if name == "history" else copy.deepcopy(value, memo))
+        return new
+
+    @property
+    def n_points(self) -> int:
+        return self._sf.n_points
+
+    @property
+    def sphere(self) -> Sphere | None:
+        """The sphere fit (mm, frame of the points): the same object until the model takes
+        points (SphereKalmanFilter.sphere)."""
+        return self._sf.sphere
+
+    @property
+    def ellipsoid(self) -> Ellipsoid | None:
+        last = self._ef.last_ok
+        return None if last is None else last.ellipsoid
+
+    @property
+    def shape(self) -> Sphere | Ellipsoid | None:
+        return self.ellipsoid if self.kind == "ellipsoid" else self.sphere
+
+    @property
+    def n_rejected_outliers(self) -> int:
+        return 0 if self._gate is None else self._gate.n_rejected
+
+    @property
+    def scan_range_mm(self) -> float:
+        return self._range.diameter_mm
+
+    def update(self, P) -> ModelUpdate | None:
+        """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
+        no entry, if no point was finite and passed the gate).
+
+        One compiled call does the update (models.adaptive.update_kernel.packet_update):
+        the gate, the sphere filter, the scan range and, for the least-squares ellipsoid,
+        the scatter matrix, the refit and the residuals; the robust fit (it reweights its
+        points) takes the kept points after it. The sphere filter, the ellipsoid fit and
+        the scan range all take the first point as their origin: ef.p0 stands for the three
+        (set here from the kernel's when it took the first point)."""
+        if not (type(P) is np.ndarray and P.dtype == _FLOAT64 and P.ndim in (1, 2) and P.shape[-1] == 3):
+            P = as_points(P, "P", allow_nonfinite=True)
+        if P.ndim == 1:
+            P = P.reshape(1, 3)
+        self.n_received += len(P)
+        sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
+        n = sf.n_points  # the scan range's too: all three take the same points
+        scan.reserve(len(P) + 1)  # the gate may add its pending first point
+        g = _NO_GATE if gate is None else gate
+        current = self._current
+        out = np.empty(OUT_SIZE)
+        kept = np.empty((len(P) + 1, 3))
+        p0 = np.zeros(3) if ef.p0 is None else ef.p0  # without a point yet: the kernel writes the first one
+        refit = not self._robust  # the least-squares fit's refit is in the kernel; the robust one's below
+        n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = packet_update(
+            P, n, p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
+            g.params, g.counts, g.last, g.scales, g.recent, sf.information, sf.information_vector, refit, ef.S,
+            ef.spread_checked_at if refit else 0, ef.SPREAD_RECHECK if refit else 0, scan.X, scan.block_r,
+            scan.diameter_mm, self._prev_radii, self._has_prev, LENGTH_SCALE_MM, kept, out)
+        self.n_rejected_nonfinite += n_nonfinite
+        self.last_accepted = kept[:k]
+        if k == 0:
+            return None
+        if ef.p0 is None:
+            ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
+        sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
+        scan.took(k, diameter)
+        v_sf = out[OUT_V_SF:OUT_V_EF]
+        if not refit:
+            ef.add(self.last_accepted)
+            fit = ef.fit()
+            sf_res, ef_res, axis_change = fit_summary(
+                ef.S, out[OUT_STATE:OUT_V_SF] if sf_ok else _NO_STATE, sf_ok, fit.v if fit.ok else _NO_QUADRIC, fit.ok,
+                fit.radii if fit.ok else _NO_RADII, self._prev_radii, fit.ok and self._has_prev, v_sf, LENGTH_SCALE_MM)
+        elif code:
+            fit = ef.record(EllipsoidFit(FIT_STATUS[code]), check, took=k)
+        else:  # centre, semi-axes and rotation in a read-only copy of their own: the Ellipsoid holds them (of_fit)
+            ell = out[OUT_CENTER:OUT_SF_CENTER].copy()
+            ell.flags.writeable = False
+            r, R = OUT_RADII - OUT_CENTER, OUT_ROTATION - OUT_CENTER  # where the semi-axes and the rotation begin
+            fit = ef.record(EllipsoidFit("ok", ell[:r], ell[r:R], ell[R:].reshape(3, 3), out[OUT_V_EF:OUT_CENTER]),
+                            check, took=k)
+        if sf_ok:
+            return self._evaluate(fit, v_sf, (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res, axis_change)
+        return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
+
+    def _evaluate(self, fit, v_sf, sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
+        """The criteria, the transition and the history entry of an update whose fits are
+        `fit` (the ellipsoid's EllipsoidFit), v_sf (the sphere's quadric in the fits' scaled
+        coordinates) and sf (its centre mm, radius mm) (both None without a sphere), with
+        residuals (mm) and axis change from fit_summary."""
+        ok = fit.ok
+        self._has_prev = ok
+        ef = self._ef
+        snap = FitSnapshot(
+            self._sf.n_points, self._range.diameter_mm, sf_res, ef_res, axis_change, ef.S, v_sf, fit.v if ok else None,
+            sf, (fit.center, fit.radii, fit.rotation) if ok else None, ef.p0, ef.restarted_at, self._robust)
+        criteria, self._memory = self.criteria.evaluate(snap, self._memory)
+        kind = self.kind
+        if kind == "sphere":
+            if ok and all(met for _, met in criteria.values()):
+                self.kind = kind = "ellipsoid"
+                self.transition_index = len(self.history)
+        elif self.criteria.reversible and self.criteria.wants_sphere(self._memory):
+            self.kind = kind = "sphere"
+            self.transition_index = None
+        last = ef.last_ok
+        self._current = last.v if kind == "ellipsoid" and last is not None else v_sf
+        entry = ModelUpdate(
+            snap.n_points, kind, snap.scan_range_mm, sf_res, ef_res, axis_change, criteria, fit.status,
+            None if sf is None else sf[0], np.nan if sf is None else sf[1],
+            None if last is None else last.center, None if last is None else last.radii,
+            None if last is None else last.rotation, self.n_received)
+        self.history.append(entry)
+        return entry
+
+
+_FLOAT64 = np.dtype(np.float64)
+_NO_GATE = GateState(OutlierGate())  # fills the compiled update's gate arguments when the gate is off (unread)
+_NO_QUADRIC = np.zeros(10)  # stands for an absent quadric in compiled calls (read only with its flag)
+_NO_STATE = np.zeros(4)
+_NO_RADII = np.zeros(3)
