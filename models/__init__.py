@@ -2,6 +2,7 @@
 
 Millimetres everywhere; points in whatever frame the caller uses (W or E).
 """
+import models.compiled_cache  # noqa: F401, I001  (first: numba's cache folder, before any compiled function)
 from models.adaptive.model import AdaptiveEyeModel, ModelUpdate
 from models.adaptive.transition import PaperCriteria, PredictiveCriteria
 from models.fit.ellipsoid_fit import EllipsoidFit, IncrementalEllipsoidFit, fit_ellipsoid

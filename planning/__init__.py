@@ -2,6 +2,7 @@
 
 Millimetres, seconds, radians at every public function; metres only inside Drake.
 """
+import models.compiled_cache  # noqa: F401  (first: numba's cache folder, before any compiled function)
 from planning.diffik import rcm_joint_velocity
 from planning.ik import IKFailure, rcm_ik
 from planning.robot import Robot
