@@ -31,8 +31,9 @@ PLAN_SHAPE = SENSOR_SHAPE = "emmetropic"
 SKIPPABLE = ("boundary", "plan", "sensor")
 
 # formats: name -> (scale applied to the JSON value, decimals); "int", "str" and "bool" print as they are
+# (a missing value prints "n/a"; in a "when" column, whose None means "never", it prints "none")
 FORMATS = {"int": (1, 0), "f1": (1, 1), "f3": (1, 3), "f5": (1, 5), "pct": (100, 1), "pct2": (100, 2),
-           "um_of_mm": (1000, 1), "str": None, "bool": None}
+           "when": (100, 1), "um_of_mm": (1000, 1), "str": None, "bool": None}
 
 # tables: (title, the job(s) they read, explanation, [(column header with unit, JSON path, format)])
 BOUNDARY_SAFETY = [
@@ -44,7 +45,7 @@ BOUNDARY_SAFETY = [
 ]
 BOUNDARY_MODEL = [
     ("shape", "shape", "str"), ("final fitted model", "model.kind", "str"),
-    ("transition (% of spiral)", "model.transition_at", "pct"), ("EF MAE (um)", "model.ef_mae_um", "f1"),
+    ("transition (% of spiral)", "model.transition_at", "when"), ("EF MAE (um)", "model.ef_mae_um", "f1"),
     ("SF MAE (um)", "model.sf_mae_um", "f1"), ("model points", "model.n_points", "int"),
     ("spiral min true clearance (mm)", "spiral.min_true_clearance_mm", "f3"),
     ("sphere phase: scenarios", "sphere_phase.scenarios", "int"),
@@ -57,7 +58,6 @@ BOUNDARY_SPEED = [
     ("filter step p99 (us)", "solve_us.p99", "int"), ("Drake diff. IK median (us)", "drake_diffik_us.median", "int"),
     ("Drake diff. IK p99 (us)", "drake_diffik_us.p99", "int"), ("realtime factor (x)", "realtime_factor", "f1"),
     ("realtime factor, unlogged scenarios (x)", "realtime_factor_unlogged", "f1"),
-    ("spiral realtime factor, logged (x)", "spiral.realtime_factor", "f1"),
 ]
 PLAN_PATH = [
     ("shape", "shape", "str"), ("model", "model_kind", "str"),
@@ -86,8 +86,8 @@ SENSOR = [
 PAPER = [
     ("shape", "shape", "str"), ("EF MAE exact (um)", "ef_mae.0", "um_of_mm"), ("SF MAE exact (um)", "sf_mae.0", "um_of_mm"),
     ("EF MAE sampled (um)", "ef_mae_sampled.0", "um_of_mm"), ("paper's EF MAE (um)", "paper.ef_mae.0", "um_of_mm"),
-    ("transition (% of spiral)", "transition_at", "pct"), ("optimal transition (% of spiral)", "optimal_transition_at", "pct"),
-    ("lag (% of spiral)", "lag", "pct"), ("right", "decision_right", "bool"), ("timely", "timely", "bool"),
+    ("transition (% of spiral)", "transition_at", "when"),
+    ("optimal transition (% of spiral)", "optimal_transition_at", "when"), ("lag (% of spiral)", "lag", "pct"), ("right", "decision_right", "bool"), ("timely", "timely", "bool"),
 ]
 
 TABLES = [
@@ -207,9 +207,9 @@ def run_job(name: str, tool_args: list, log_dir: Path) -> dict:
             "wall_s": wall, "exit": code}
 
 
-def run_all(args, jobs: dict, out: Path) -> tuple[dict, list]:
+def run_all(args, jobs: dict, out: Path, report: str) -> tuple[dict, list]:
     """Run the jobs (`--jobs` at a time; the paper last, with its own worker processes): (the
-    manifest, the names of the runs that failed)."""
+    manifest OUT/runs.json: this `report` command and every run, the names of the runs that failed)."""
     logs = prepare_out_dir(out / "logs")
     for _, d, _ in jobs.values():
         prepare_out_dir(d)
@@ -223,8 +223,8 @@ def run_all(args, jobs: dict, out: Path) -> tuple[dict, list]:
     for entry in done.values():
         entry.update(version=version, commit=commit)
     manifest_path = out / "runs.json"
-    old = json.loads(manifest_path.read_text()) if manifest_path.is_file() else {}
-    manifest = {**old, **done}  # a partial run (--skip) keeps the other tools' entries
+    old = json.loads(manifest_path.read_text()).get("runs", {}) if manifest_path.is_file() else {}
+    manifest = {"report": report, "runs": {**old, **done}}  # a partial run (--skip) keeps the others' entries
     write_json(manifest_path, manifest)
     return manifest, [n for n, e in done.items() if e["exit"] != 0]
 
@@ -240,7 +240,7 @@ def value_at(data, path: str):
 
 def format_cell(value, fmt: str) -> str:
     if value is None:
-        return "n/a"
+        return "none" if fmt == "when" else "n/a"
     if fmt == "str":
         return str(value)
     if fmt == "bool":
@@ -259,7 +259,7 @@ def table_lines(columns: list, rows: list[dict]) -> list[str]:
 def load_results(out: Path, manifest: dict) -> dict:
     """tool -> [(run entry of the manifest, its JSON rows)] for every run that left JSON."""
     found: dict = {}
-    for name, entry in manifest.items():
+    for name, entry in manifest["runs"].items():
         if entry.get("exit") != 0:
             continue
         tool = name.split("-", 1)[0]
@@ -287,8 +287,7 @@ def _command_line(entries: list) -> str:
     return f"`{commands[0]}`"
 
 
-def markdown(found: dict, report_argv: list) -> str:
-    command = " ".join(["python -m eval.results_report", *report_argv])
+def markdown(found: dict, command: str) -> str:
     lines = ["# Results", "",
              f"Written by `{command}` (`make results`) from the JSON the tools wrote; do not edit by hand. "
              "What each figure means: README.md, *Evaluate a virtual boundary* and *Plan a peripheral vitrectomy*.", ""]
@@ -322,15 +321,15 @@ def main(argv=None) -> int:
             manifest = json.loads((out / "runs.json").read_text())
         else:
             out = prepare_out_dir(args.out)
-            manifest, failed = run_all(args, plan_jobs(args), out)
+            report = " ".join(["python -m eval.results_report", *argv])
+            manifest, failed = run_all(args, plan_jobs(args), out, report)
             if failed:
                 print(f"results_report: error: {', '.join(failed)} failed; see {out / 'logs'}; "
                       f"{args.doc} left as it was", file=sys.stderr)
                 return 1
         doc = Path(args.doc)
         prepare_out_dir(doc.parent)
-        report_argv = [a for a in argv if a != "--no-run"]
-        write_atomic(doc, markdown(load_results(out, manifest), report_argv))
+        write_atomic(doc, markdown(load_results(out, manifest), manifest["report"]))
     except UsageError as exc:
         print(f"python -m eval.results_report: error: {exc}", file=sys.stderr)
         return 2

@@ -34,7 +34,7 @@ def tables(markdown: str) -> dict:
 def agrees(cell: str, value, fmt: str) -> bool:
     """The cell shows `value` at the table's precision."""
     if value is None:
-        return cell == "n/a"
+        return cell == ("none" if fmt == "when" else "n/a")
     if fmt == "str":
         return cell == str(value)
     if fmt == "bool":
