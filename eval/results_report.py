@@ -8,7 +8,7 @@ alone: every table says the command that produced it, the date and the package
 version. `--no-run` rewrites the tables from the JSON of an earlier run in `--out`.
 
 Exit codes: 0 written, 1 a tool failed (its log is in OUT/logs; the tables are left as
-they were), 2 bad flags (one line).
+they were), 2 bad flags (one line), 130 interrupted (Ctrl-C).
 """
 from __future__ import annotations
 
@@ -333,6 +333,9 @@ def main(argv=None) -> int:
     except UsageError as exc:
         print(f"python -m eval.results_report: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # the tools' processes get the same Ctrl-C and stop too
+        print("\npython -m eval.results_report: interrupted", file=sys.stderr)
+        return 130
     print(f"wrote {doc}")
     return 0
 
