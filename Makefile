@@ -4,8 +4,10 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= out
+RESULTS_SCENARIOS ?= 1000
+RESULTS_FLAGS ?= --paper
 
-.PHONY: test demo bench clean
+.PHONY: test demo bench results clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -21,6 +23,10 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m bench
+
+# every tool's JSON under $(OUT)/results, then the tables in docs/results.md
+results: $(STAMP)
+	$(BIN)/python -m eval.results_report --out $(OUT)/results --scenarios $(RESULTS_SCENARIOS) $(RESULTS_FLAGS)
 
 clean:
 	rm -rf $(VENV) $(OUT)
