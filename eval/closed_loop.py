@@ -88,7 +88,7 @@ class LoopRun:
 
     @property
     def failsafe_stops(self) -> int:
-        """Steps the filter refused to move (a fault), counted as runs of consecutive steps."""
+        """Steps at which the filter held the robot still (a fault), counted as runs of consecutive steps."""
         bad = ~self.ok
         return int(np.sum(bad[1:] & ~bad[:-1]) + (bad[0] if len(bad) else 0))
 

@@ -198,7 +198,7 @@ class StarSurface:
     """Surface x = rho(u) u (mm) for unit directions u, about the origin of its frame.
 
     `rho` (a RadialFunction) must be positive and continuous; the region inside is
-    {x : |x| < rho(x/|x|)}. `cloud_shape` sets the dense sampling used to seed
+    {x : |x| < rho(x/|x|)}. `cloud_shape` sets the dense sampling that seeds the
     closest-point searches (default ~0.08 mm spacing on an eye-sized surface).
     """
 
