@@ -48,7 +48,7 @@ SPIRAL_DEPTH_Z_E_MM = 0.0
 TIP_CLEARANCE_MM = 0.5
 LENS_CLEARANCE_MM = 0.5
 # Default sensor calibration error (true vs nominal sensor pose, in S): the accuracy the
-# plate calibration reaches (issue 3: 20 um position, 0.1 deg beam direction).
+# plate calibration reaches (models.calibration: 20 um position, 0.1 deg beam direction).
 SENSOR_OFFSET_S_MM = (0.02, 0.0, 0.0)
 SENSOR_ROTVEC_S_RAD = (0.0, np.radians(0.1), 0.0)
 

@@ -17,7 +17,7 @@ SPEC = BandSpec(z_min_E=0.0, z_max_E=3.0, spacing_mm=1.0)
 def setup():
     scenario = SurgeryScenario()
     robot = Robot(scenario)
-    model = scenario.eye.ellipsoid  # a fitted model would differ by micrometres (issue 2)
+    model = scenario.eye.ellipsoid  # a fitted model would differ by micrometres (the ellipsoid fit's MAE)
     return scenario, robot, model, plan_path(robot, scenario, model, SPEC)
 
 
