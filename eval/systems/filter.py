@@ -94,15 +94,16 @@ class FilterSystem(LeafSystem):
         super().__init__()
         self.robot, self.config, self.prior = robot, config, prior
         self.constraints = loop_constraints(robot, config)
+        self.lens = robot.scenario.lens_W
+        lens = self.lens.field_kernel()  # the keep-out ellipsoid's own distance field
         self._rcm = next(c for c in self.constraints if isinstance(c, RcmEquality))
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
                                      {"eye": model_field_kernel, "eye_shaft": model_field_kernel,
-                                      "lens": model_field_kernel}, config.filter, kinematics=step_kinematics,
+                                      "lens": lens.kernel}, config.filter, kinematics=step_kinematics,
                                      point_names=point_names, port=("tip_port", 1))
         self._kp = step_kinematics_params(robot, robot.p_WC, config.points)
         self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
-        self.lens = robot.scenario.lens_W
-        self._lens_field = ModelField(self.lens).params
+        self._lens_field = lens.params
         self._prior_field = ModelField(prior).params
         self._none_field = ModelField.none().params
         chord = max(band_chord(np.radians(config.trust_angle_deg)), band_chord(np.radians(config.misfit_angle_deg)))
