@@ -26,7 +26,7 @@ bench: $(STAMP)
 
 # every tool's JSON under $(OUT)/results, then the tables in docs/results.md
 results: $(STAMP)
-	$(BIN)/python -m eval.results_report --out $(OUT)/results --scenarios $(RESULTS_SCENARIOS) $(RESULTS_FLAGS)
+	$(BIN)/python -m eval.experiments.results_report --out $(OUT)/results --scenarios $(RESULTS_SCENARIOS) $(RESULTS_FLAGS)
 
 clean:
 	rm -rf $(VENV) $(OUT)

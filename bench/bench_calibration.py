@@ -9,7 +9,7 @@ from argparse import Namespace
 
 import numpy as np
 
-from eval.cmd_calibrate import TARGETS, run_calibration
+from eval.cli.calibrate import TARGETS, run_calibration
 
 N_SEEDS = 30
 

@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from bench.timing import summary_us, time_calls_us
-from eval.boundary_experiment import build_model_by_spiral, run_campaign
+from eval.experiments.boundary import build_model_by_spiral, run_campaign
 from eval.closed_loop import ClosedLoop, ModelSnapshot
 from safety import SafetyFilter
 from planning import SurgeryScenario

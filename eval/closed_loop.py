@@ -141,8 +141,8 @@ class ClosedLoop:
     def run(self, source, q0, duration_s: float, model: AdaptiveEyeModel | None = None,
             coverage: DirectionCoverage | None = None, logger=None) -> LoopRun:
         """Simulate `duration_s` s from joint angles q0 (6,) rad under the command `source`
-        (eval.commands), continuing `model` and its `coverage` (fresh ones if None; both
-        updated in place). Logs to `logger` (eval.mcap_log.RunLogger) when given."""
+        (eval.experiments.command_sources), continuing `model` and its `coverage` (fresh ones if None; both
+        updated in place). Logs to `logger` (eval.log.writer.RunLogger) when given."""
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (6,) or not np.all(np.isfinite(q0)):
             raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")

@@ -14,7 +14,7 @@ settings.register_profile("deterministic", derandomize=True, print_blob=True)
 settings.register_profile("explore", max_examples=500, print_blob=True)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
-# no progress bars or spinners in test output (eval.progress), subprocesses included
+# no progress bars or spinners in test output (eval.cli.progress), subprocesses included
 os.environ["VITREOGUARD_NO_PROGRESS"] = "1"
 
 

@@ -86,7 +86,7 @@ class FilterSystem(LeafSystem):
     confidence, t_s], read for the log's beam only); state and output "qdot" (zero-order
     hold; the integrator, updating at the same instants, applies a step's qdot from the
     next step on: one control period of actuation latency, the same at every step). The
-    command source (`source`, set by `reset`: eval.commands' signature) is called inside
+    command source (`source`, set by `reset`: eval.experiments.command_sources' signature) is called inside
     the step. With a logger, each step's FilterInputs (`inputs`) go to the log, which
     `vitreoguard replay` re-runs through safety.SafetyFilter."""
 

@@ -101,7 +101,7 @@ class AdaptiveEyeModel:
         """An independent copy (it updates without touching this model) that shares the
         history's entries: an entry is never changed once made (each model appends its
         own), and copying the thousands of a spiral-built model's was ~50 ms of its ~53
-        ms copy, once per scenario of a campaign (eval.boundary_experiment)."""
+        ms copy, once per scenario of a campaign (eval.experiments.boundary)."""
         new = object.__new__(type(self))
         memo[id(self)] = new
         for name, value in vars(self).items():

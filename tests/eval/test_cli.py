@@ -16,8 +16,8 @@ import pytest
 from test_mcap_log import decode_foxglove
 
 from eval.cli import build_parser, main
-from eval.cli_args import SEED_MAX, _Ranged
-from eval.mcap_log import read_log
+from eval.cli.args import SEED_MAX, _Ranged
+from eval.log.writer import read_log
 
 ROOT = Path(__file__).resolve().parents[2]
 NEEDS_OUT = {"paper", "eyes", "calibrate", "scan", "sensor", "plan"}  # --out is required
@@ -123,15 +123,12 @@ def test_ctrl_c_stops_a_run_cleanly(tmp_path):
     on stderr, nothing on stdout, and the open log closed (complete, its last event the
     interruption)."""
     out = tmp_path / "run"
-    # the child compiles the loop's kernels into its own numba cache: it neither loads nor
-    # writes the shared one (a kernel whose cached form breaks on loading stays the other
-    # tests' concern)
-    env = {**os.environ, "VITREOGUARD_NO_PROGRESS": "1", "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    env = {**os.environ, "VITREOGUARD_NO_PROGRESS": "1"}
     child = subprocess.Popen([sys.executable, "-m", "eval.cli", "boundary", "--scenarios", "5", "--out", str(out)],
                              cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                              preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a terminal
     try:
-        deadline = time.monotonic() + 900.0  # the child compiles the loop's kernels (1-3 min)
+        deadline = time.monotonic() + 900.0  # on a fresh cache the child compiles the loop's kernels (1-3 min)
         log = out / "spiral.mcap"
         while not (log.exists() and log.stat().st_size > 200_000):  # the spiral is under way
             assert child.poll() is None and time.monotonic() < deadline, "the run did not get to its spiral"

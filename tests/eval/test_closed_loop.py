@@ -8,11 +8,11 @@ import copy
 import numpy as np
 import pytest
 
-from eval.boundary_experiment import VIOLATION_MM, adversarial_starts, run_campaign
+from eval.experiments.boundary import VIOLATION_MM, adversarial_starts, run_campaign
 from eval.closed_loop import ClosedLoop, LoopConfig
-from eval.commands import TipPathCommand, VelocityReplayCommand
-from eval.mcap_log import RunLogger
-from eval.mcap_replay import replay
+from eval.experiments.command_sources import TipPathCommand, VelocityReplayCommand
+from eval.log.writer import RunLogger
+from eval.log.replay import replay
 from models import AdaptiveEyeModel, Ellipsoid
 from models.adaptive.coverage import DirectionCoverage
 from models.adaptive.transition import PredictiveCriteria
@@ -268,7 +268,7 @@ def test_an_ascan_mode_run_logs_a_scans_at_20_hz(emmetropic, tmp_path):
     """The log holds A-scans: in "ascan" mode one in ASCAN_LOG_EVERY (20 Hz of the
     2 kHz stream), each the engine's full length, beside every distance."""
     from eval.systems.model import ASCAN_LOG_EVERY
-    from eval.mcap_log import read_log
+    from eval.log.writer import read_log
 
     loop, state = emmetropic
     ascan_loop = ClosedLoop(loop.scenario, LoopConfig(sensor_mode="ascan"))

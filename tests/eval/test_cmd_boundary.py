@@ -7,7 +7,7 @@ import json
 import pytest
 
 from eval.cli import main
-from eval.mcap_replay import replay
+from eval.log.replay import replay
 
 KEYS = {"scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
         "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor"}

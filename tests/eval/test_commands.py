@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from eval.commands import ADVERSARY_MODES, AdversarialCommand, TipPathCommand, VelocityReplayCommand
+from eval.experiments.command_sources import ADVERSARY_MODES, AdversarialCommand, TipPathCommand, VelocityReplayCommand
 
 C = np.array([100.0, 0.0, 80.0])
 LENS = C + [0.0, 0.0, 7.8]

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from eval.boundary_experiment import adversarial_starts
+from eval.experiments.boundary import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
 from planning import SurgeryScenario
 from safety import SafetyFilter

@@ -8,7 +8,7 @@ from pydrake.geometry import Meshcat
 from scipy.spatial.transform import Rotation
 
 from eval.closed_loop import ClosedLoop, ModelSnapshot
-from eval.commands import VelocityReplayCommand
+from eval.experiments.command_sources import VelocityReplayCommand
 from eval.loop_view import direction_grid, eye_surface_mm, model_surface_mm, show_loop
 from models import Ellipsoid, Sphere
 from planning import SurgeryScenario, start_posture

@@ -20,9 +20,9 @@ from foxglove.messages import LogLevel
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
-from eval import mcap_codec as codec
-from eval.mcap_log import M_PER_MM, RunLogger, quaternion_xyzw, read_log
-from eval.mcap_scene import MESSAGES as FOXGLOVE_MESSAGES
+from eval.log import codec
+from eval.log.writer import M_PER_MM, RunLogger, quaternion_xyzw, read_log
+from eval.log.scene import MESSAGES as FOXGLOVE_MESSAGES
 from models import AdaptiveEyeModel, Ellipsoid, Sphere
 from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
 
@@ -368,7 +368,7 @@ _CHILD = """
 import sys, numpy as np
 sys.path[:0] = [{root!r}, {here!r}]
 from test_mcap_log import toy_step
-from eval.mcap_log import RunLogger
+from eval.log.writer import RunLogger
 from safety import SafetyFilter
 filt, p = SafetyFilter(), np.array([0.0, 0.0, -10.0])
 log = RunLogger({path!r})

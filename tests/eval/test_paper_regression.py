@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from eval.cli import main as cli_main
-from eval.paper_experiment import MAX_LAG, decision, optimal_transition, run_shape
+from eval.experiments.paper import MAX_LAG, decision, optimal_transition, run_shape
 from models.eyes import EyePose
 from models.fit.robust_fit import RobustFitConfig
 

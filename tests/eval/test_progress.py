@@ -1,4 +1,4 @@
-"""eval.progress: bars and phase spinners on a terminal's stderr, nothing elsewhere."""
+"""eval.cli.progress: bars and phase spinners on a terminal's stderr, nothing elsewhere."""
 from __future__ import annotations
 
 import io
@@ -7,8 +7,8 @@ import time
 
 import pytest
 
-from eval import progress
-from eval.progress import ENV_DISABLE, phase, progress_bar
+from eval.cli import progress
+from eval.cli.progress import ENV_DISABLE, phase, progress_bar
 
 
 class Terminal(io.StringIO):

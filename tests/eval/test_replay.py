@@ -13,8 +13,8 @@ from mcap.writer import Writer
 from test_mcap_log import DT, toy_inputs, write_toy_run
 
 from eval.cli import main
-from eval.mcap_log import RunLogger, read_log
-from eval.mcap_replay import replay
+from eval.log.writer import RunLogger, read_log
+from eval.log.replay import replay
 from models import Ellipsoid
 from safety import FilterConfig, PointKinematics, SafetyFilter
 

@@ -1,4 +1,4 @@
-"""`python -m eval.results_report`: the tables hold the numbers of the tools' own JSON, each
+"""`python -m eval.experiments.results_report`: the tables hold the numbers of the tools' own JSON, each
 table says the command, date and version that produced it, and bad flags exit 2 on one line."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from eval import results_report as rr
+from eval.experiments import results_report as rr
 
 
 def tables(markdown: str) -> dict:
@@ -117,7 +117,7 @@ def test_no_run_rewrites_the_same_tables(report, tmp_path):
 ])
 def test_bad_flags_exit_2_with_one_line(argv, message, tmp_path):
     doc = tmp_path / "results.md"
-    r = subprocess.run([sys.executable, "-m", "eval.results_report", "--out", str(tmp_path / "out"), "--doc", str(doc),
+    r = subprocess.run([sys.executable, "-m", "eval.experiments.results_report", "--out", str(tmp_path / "out"), "--doc", str(doc),
                         *argv], capture_output=True, text=True, cwd=rr.ROOT, timeout=120)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()

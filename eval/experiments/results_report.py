@@ -1,4 +1,4 @@
-"""`python -m eval.results_report`: run the tools and write the results tables (docs/results.md).
+"""`python -m eval.experiments.results_report`: run the tools and write the results tables (docs/results.md).
 
 Runs `vitreoguard boundary` on every shape (N adversarial scenarios, N/10 in the sphere
 phase, seed 11; `--jobs` of them at a time, each in its own process), `vitreoguard plan`
@@ -22,7 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from eval.io import UsageError, prepare_out_dir, write_atomic, write_json
+from eval.cli.io import UsageError, prepare_out_dir, write_atomic, write_json
 from models.eyes import EYE_SHAPES
 
 ROOT = Path(__file__).resolve().parent.parent  # the checkout whose tools are run
@@ -131,7 +131,7 @@ def _bounded_int(lo: int, hi: int):
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-    p = _Parser(prog="python -m eval.results_report", description="Run the tools (boundary on every shape, plan, sensor, optionally paper) and write the "
+    p = _Parser(prog="python -m eval.experiments.results_report", description="Run the tools (boundary on every shape, plan, sensor, optionally paper) and write the "
                             "results tables from their JSON.")
     p.add_argument("--out", default="out/results", help="folder for the tools' outputs and logs (default: %(default)s)")
     p.add_argument("--doc", default=str(ROOT / "docs" / "results.md"),
@@ -321,7 +321,7 @@ def main(argv=None) -> int:
             manifest = json.loads((out / "runs.json").read_text())
         else:
             out = prepare_out_dir(args.out)
-            report = " ".join(["python -m eval.results_report", *argv])
+            report = " ".join(["python -m eval.experiments.results_report", *argv])
             manifest, failed = run_all(args, plan_jobs(args), out, report)
             if failed:
                 print(f"results_report: error: {', '.join(failed)} failed; see {out / 'logs'}; "
@@ -331,10 +331,10 @@ def main(argv=None) -> int:
         prepare_out_dir(doc.parent)
         write_atomic(doc, markdown(load_results(out, manifest), manifest["report"]))
     except UsageError as exc:
-        print(f"python -m eval.results_report: error: {exc}", file=sys.stderr)
+        print(f"python -m eval.experiments.results_report: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # the tools' processes get the same Ctrl-C and stop too
-        print("\npython -m eval.results_report: interrupted", file=sys.stderr)
+        print("\npython -m eval.experiments.results_report: interrupted", file=sys.stderr)
         return 130
     print(f"wrote {doc}")
     return 0

@@ -13,9 +13,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from eval.cli_args import SEED, choice, integer, number
-from eval.io import prepare_out_dir, save_figure, write_json
-from eval.progress import phase, progress_bar
+from eval.cli.args import SEED, choice, integer, number
+from eval.cli.io import prepare_out_dir, save_figure, write_json
+from eval.cli.progress import phase, progress_bar
 from models.eyes import EYE_SHAPES
 
 COMPILE_PHASE = "compiling / loading the control loop's kernels"
@@ -75,9 +75,9 @@ def make_loop(scenario, config=None, **kwargs):
 def run_boundary(args, out, keep_build: bool = False):
     """The experiment of `args` (validated); writes logs and plots into `out`; returns
     boundary.json's content (a BoundaryRun with `keep_build`). Progress goes to stderr."""
-    from eval.boundary_experiment import build_model_by_spiral, run_campaign
+    from eval.experiments.boundary import build_model_by_spiral, run_campaign
     from eval.closed_loop import LoopConfig
-    from eval.mcap_log import RunLogger
+    from eval.log.writer import RunLogger
     from planning import SurgeryScenario
 
     config = LoopConfig(sensor_mode=args.sensor_mode)

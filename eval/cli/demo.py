@@ -12,8 +12,8 @@ import argparse
 
 import numpy as np
 
-from eval.cli_args import SEED, choice, integer
-from eval.io import prepare_out_dir, write_json
+from eval.cli.args import SEED, choice, integer
+from eval.cli.io import prepare_out_dir, write_json
 from models.eyes import EYE_SHAPES
 
 SCENARIOS = integer(1, 1000)
@@ -54,7 +54,7 @@ def _history_rows(build, rows: int) -> list[dict]:
 
 def main(args) -> int:
     out = prepare_out_dir(args.out)
-    from eval.cmd_boundary import run_boundary
+    from eval.cli.boundary import run_boundary
 
     boundary_args = argparse.Namespace(shape=args.shape, scenarios=args.scenarios, sphere_scenarios=0, seed=args.seed,
                                        duration_s=0.5, spiral_speed_mm_s=15.0, spiral_revolutions=6.0,

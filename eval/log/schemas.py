@@ -1,7 +1,7 @@
 """JSON schemas of the run log's own channels (MCAP, JSON message encoding).
 
 They carry mm, s, rad (W frame) and the simulation time `t` in s. Foxglove's
-well-known types ("/tf", "/scene", "/log") are not here: eval.mcap_scene builds them
+well-known types ("/tf", "/scene", "/log") are not here: eval.log.scene builds them
 with foxglove-sdk's message classes, whose schemas are Foxglove's published ones.
 """
 from __future__ import annotations

@@ -4,8 +4,8 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
-from eval.io import prepare_out_dir, save_figure, write_json
-from eval.progress import phase
+from eval.cli.io import prepare_out_dir, save_figure, write_json
+from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES, make_eye
 from models.shapes.sampling import unit_sphere_grid
 

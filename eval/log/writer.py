@@ -1,10 +1,10 @@
 """The run log: an MCAP file that Foxglove opens and `vitreoguard replay` re-runs, and a
 reader that tolerates the truncated tail of a killed run.
 
-Channels (schemas in eval.mcap_schemas, JSON): "/filter/config" once at the start;
+Channels (schemas in eval.log.schemas, JSON): "/filter/config" once at the start;
 "/robot/joint_states", "/oct/ascan", "/oct/distance", "/model", "/filter/inputs",
 "/filter/outputs", "/filter/status", "/clearance" (mm, s, rad; W frame), each message
-with its simulation time `t` (s). Foxglove's well-known types (eval.mcap_scene,
+with its simulation time `t` (s). Foxglove's well-known types (eval.log.scene,
 foxglove-sdk, protobuf): "/tf" (foxglove.FrameTransforms), "/scene"
 (foxglove.SceneUpdate) in metres, "/log" (foxglove.Log: run events).
 
@@ -36,10 +36,10 @@ from mcap.records import Header, Message, Metadata
 from mcap.records import Schema as SchemaRecord
 from mcap.stream_reader import StreamReader
 
-from eval import mcap_codec as codec
-from eval import mcap_scene as scene
-from eval.mcap_scene import M_PER_MM, quaternion_xyzw  # noqa: F401  (part of this module's interface)
-from eval.mcap_schemas import CHANNELS
+from eval.log import codec
+from eval.log import scene
+from eval.log.scene import M_PER_MM, quaternion_xyzw  # noqa: F401  (part of this module's interface)
+from eval.log.schemas import CHANNELS
 from safety import FilterConfig, FilterInputs, FilterOutput
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"  # the first and last 8 bytes of every MCAP file

@@ -2,7 +2,7 @@
 
 Each subcommand lives in its own module that exposes `register(subparsers)`; the
 module adds its parser and sets `func(args) -> int`. A flag outside its range is refused
-while parsing (eval.cli_args), other bad input raises `eval.io.UsageError`: either way a
+while parsing (eval.cli.args), other bad input raises `eval.cli.io.UsageError`: either way a
 one-line message and exit code 2, before anything is written. Ctrl-C stops a run
 cleanly: open logs are closed, one line says so, exit code 130.
 """
@@ -16,19 +16,19 @@ import matplotlib
 
 matplotlib.use("Agg")  # figures are files; no display is needed or assumed
 
-from eval.cli_args import Parser
-from eval.io import UsageError
+from eval.cli.args import Parser
+from eval.cli.io import UsageError
 
 SUBCOMMAND_MODULES = (
-    "eval.cmd_demo",
-    "eval.cmd_paper",
-    "eval.cmd_eyes",
-    "eval.cmd_calibrate",
-    "eval.cmd_replay",
-    "eval.cmd_scan",
-    "eval.cmd_boundary",
-    "eval.cmd_sensor",
-    "eval.cmd_plan",
+    "eval.cli.demo",
+    "eval.cli.paper",
+    "eval.cli.eyes",
+    "eval.cli.calibrate",
+    "eval.cli.replay",
+    "eval.cli.scan",
+    "eval.cli.boundary",
+    "eval.cli.sensor",
+    "eval.cli.plan",
 )
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
@@ -71,7 +71,3 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"\n{command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -10,17 +10,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from eval.cli_args import number
-from eval.io import UsageError, prepare_out_dir, write_json
-from eval.mcap_log import LogReadError, TruncatedLogError
-from eval.mcap_replay import replay
+from eval.cli.args import number
+from eval.cli.io import UsageError, prepare_out_dir, write_json
+from eval.log.writer import LogReadError, TruncatedLogError
+from eval.log.replay import replay
 
 TOL = number(0.0, None, "rad/s")
 
 
 def register(sub) -> None:
     p = sub.add_parser("replay", help="re-run the safety filter on a run log (MCAP) and compare: replay.json")
-    p.add_argument("file", help="run log written by eval.mcap_log.RunLogger (.mcap)")
+    p.add_argument("file", help="run log written by eval.log.writer.RunLogger (.mcap)")
     p.add_argument("--tol", type=TOL, default=1e-9, help=f"largest accepted |qdot difference|, {TOL.range}")
     p.add_argument("--out", default=None, help="output directory (default: the log's directory)")
     p.add_argument("--allow-truncated", action="store_true",

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from eval.cli_args import number
-from eval.io import prepare_out_dir, save_figure, write_json
-from eval.progress import phase
+from eval.cli.args import number
+from eval.cli.io import prepare_out_dir, save_figure, write_json
+from eval.cli.progress import phase
 
 TIP_SPEED = number(0.1, 50.0, "mm/s")
 REVOLUTIONS = number(0.5, 18.0, "revolutions")

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from eval import mcap_codec as codec
-from eval.mcap_log import LogReadError, read_log
+from eval.log import codec
+from eval.log.writer import LogReadError, read_log
 from safety import SafetyFilter
 
 TOPICS = ("/filter/config", "/filter/inputs", "/filter/outputs", "/filter/status")

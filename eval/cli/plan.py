@@ -18,9 +18,9 @@ import re
 
 import numpy as np
 
-from eval.cli_args import SEED, choice, number
-from eval.io import UsageError, prepare_out_dir, save_figure, write_json
-from eval.progress import phase
+from eval.cli.args import SEED, choice, number
+from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
+from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES
 
 REASON_COLORS = {"ok": "tab:green", "lens": "tab:blue", "port": "tab:orange", "reach": "tab:red", "shaft": "tab:purple"}
@@ -106,11 +106,11 @@ def roll_of(robot, q, p_WC) -> float:
 
 def main(args) -> int:
     spec = spec_of(args)
-    from eval.boundary_experiment import build_model_by_spiral, run_with_progress
+    from eval.experiments.boundary import build_model_by_spiral, run_with_progress
     from eval.closed_loop import LoopConfig, semi_axes_mm
-    from eval.cmd_boundary import make_loop
-    from eval.commands import TipPathCommand
-    from eval.mcap_log import RunLogger
+    from eval.cli.boundary import make_loop
+    from eval.experiments.command_sources import TipPathCommand
+    from eval.log.writer import RunLogger
     from planning import SurgeryScenario
     from planning.ik import IKFailure
     from planning.peripheral import REASONS, coverage, plan_path, second_trocar

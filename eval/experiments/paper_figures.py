@@ -4,7 +4,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
-from eval.paper_experiment import ACCURACY_REQUIRED_MM
+from eval.experiments.paper import ACCURACY_REQUIRED_MM
 
 _CRITERION_STYLE = {"scan_range": ("tab:purple", ":"), "residual": ("tab:brown", ":"), "temporal": ("tab:pink", ":")}
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from eval.closed_loop import ClosedLoop, LoopRun
-from eval.commands import AdversarialCommand, TipPathCommand
-from eval.progress import progress_bar
+from eval.experiments.command_sources import AdversarialCommand, TipPathCommand
+from eval.cli.progress import progress_bar
 from models import AdaptiveEyeModel
 from models.adaptive.transition import PredictiveCriteria
 from models.metrics import mae_exact
@@ -72,7 +72,7 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: 
     """Scan the spiral (pitch, revolutions) at `speed_mm_s` through `loop` from the IK
     posture at its start, building a fresh AdaptiveEyeModel from the sensor's points;
     MAEs in the exact form against a truth_grid^2 sampling of the true retina.
-    `progress`: the label of a progress bar (eval.progress, stderr) over the scan's
+    `progress`: the label of a progress bar (eval.cli.progress, stderr) over the scan's
     simulated seconds, or None for none."""
     scenario = loop.scenario
     P = spiral_path_W(scenario, pitch_mm, revolutions)

@@ -7,11 +7,11 @@ import signal
 
 import numpy as np
 
-from eval.cli_args import choice, integer, number
-from eval.io import UsageError, prepare_out_dir, save_figure, write_atomic, write_json
-from eval.paper_experiment import ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, decision, optimal_transition, run_shape
-from eval.paper_figures import fig5
-from eval.progress import progress_bar
+from eval.cli.args import choice, integer, number
+from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_atomic, write_json
+from eval.experiments.paper import ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, decision, optimal_transition, run_shape
+from eval.experiments.paper_figures import fig5
+from eval.cli.progress import progress_bar
 from models.adaptive.transition import CRITERIA
 from models.eyes import EYE_SHAPES, EyePose
 from models.fit.robust_fit import RobustFitConfig

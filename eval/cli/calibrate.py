@@ -14,9 +14,9 @@ import time
 import matplotlib.pyplot as plt
 import numpy as np
 
-from eval.cli_args import SEED, integer, number
-from eval.io import prepare_out_dir, save_figure, write_json
-from eval.progress import phase
+from eval.cli.args import SEED, integer, number
+from eval.cli.io import prepare_out_dir, save_figure, write_json
+from eval.cli.progress import phase
 from models.calibration.plate import (
     Plane,
     SensorPose,

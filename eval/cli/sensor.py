@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from eval.cli_args import SEED, choice, number
-from eval.io import prepare_out_dir, save_figure, write_json
+from eval.cli.args import SEED, choice, number
+from eval.cli.io import prepare_out_dir, save_figure, write_json
 from models.eyes import EYE_SHAPES
 
 OUTLIERS = number(0.0, 0.5, "(fraction)")
@@ -39,9 +39,9 @@ def register(sub) -> None:
 
 def run_sensor(args) -> dict:
     """The chain on args.shape; sensor.json's content."""
-    from eval.boundary_experiment import build_model_by_spiral
+    from eval.experiments.boundary import build_model_by_spiral
     from eval.closed_loop import LoopConfig
-    from eval.cmd_boundary import make_loop
+    from eval.cli.boundary import make_loop
     from planning import SurgeryScenario
 
     scenario = SurgeryScenario(eye_name=args.shape)

@@ -1,0 +1,1 @@
+"""Run logs: MCAP writing (Foxglove schemas), the filter-step codec, and replay."""
