@@ -34,7 +34,7 @@ def _importable(fn, what: str) -> tuple[str, str]:
     return module, name
 
 
-def _arguments(filler, i: int, kind: str, has_group: bool, has_field: bool, id0: int) -> str:
+def _arguments(filler, i: int, has_group: bool, has_field: bool, id0: int) -> str:
     """The call's argument list of constraint i's filler, by its parameter names."""
     names = list(inspect.signature(filler.py_func).parameters)
     out = []
@@ -75,7 +75,7 @@ def generate(constraints, groups: dict, kernels: dict, kinematics=None, capaciti
             body.append(f"    s{i}, e{i} = ranges[{groups[c.group]}, 0], ranges[{groups[c.group]}, 1]")
         if c.field is not None:
             body.append(f"    fh{i}, fg{i}, fu{i} = K_{c.field}(fp_{c.field}, P[s{i}:e{i}])")
-        args = _arguments(c.filler, i, c.kind, c.group is not None, c.field is not None, id0)
+        args = _arguments(c.filler, i, c.group is not None, c.field is not None, id0)
         if c.kind == "inequality":
             body += [f"    m = F{i}({args})", f"    if m < 0:", f"        return _fault(active, q, CONSTRAINT_FAULT + {i}, -m)"]
             id0 += c.max_rows(capacities.get(c.group, 0))

@@ -83,8 +83,7 @@ class SafetyFilter:
                                     self.config, point_names=lambda g, c: names[g][:c],
                                     port=None if port is None else ("boundary", port), n_joints=n)
             self._stacks[key] = stack
-        stack.constraints = tuple(constraints)  # this call's numbers, the layout compiled once
-        stack.set_params()
+        stack.set_params(constraints)  # this call's numbers, the layout compiled once
         return stack
 
     def __call__(self, x: FilterInputs) -> FilterOutput:

@@ -42,6 +42,7 @@ class ConstraintStack:
                              config.max_sensor_age_s])
         self._size(n_joints)
         self._names_cache: dict = {}
+        self._intervening = {c.name for c in self.constraints if c.intervenes}
 
     def _size(self, n: int) -> None:
         """The workspace for n joints: ids per inequality constraint, buffers for the QP."""
@@ -66,8 +67,15 @@ class ConstraintStack:
         """Forget the previous step's active set (a new run)."""
         self.active[:] = False
 
-    def set_params(self) -> None:
-        """Re-read every constraint's params() (after changing a constraint's numbers)."""
+    def set_params(self, constraints=None) -> None:
+        """Re-read every constraint's params(); with `constraints`, first take those in place
+        of the stack's (the same types, groups and fields in the same order: new numbers,
+        the same compiled step), else ValueError."""
+        if constraints is not None:
+            constraints = tuple(constraints)
+            if [c.key() for c in constraints] != [c.key() for c in self.constraints]:
+                raise ValueError("ConstraintStack.set_params: the constraints must match the stack's, in order")
+            self.constraints = constraints
         self.params = tuple(c.params() for c in self.constraints)
 
     def solve(self, q, command, times, J_tip, J_roll, P, J, ranges, fields: tuple, R_WI=None, p_WI=None,
@@ -124,8 +132,7 @@ class ConstraintStack:
                  off_command: bool) -> FilterOutput:
         """The FilterOutput of a solved step."""
         cutter = port_clearance_mm is not None and bool(port_clearance_mm > self.config.cutter_clearance_mm)
-        owners = {c.name for c in self.constraints if c.intervenes}
-        intervened = bool(off_command or any(a.split(":", 1)[0] in owners for a in result.active))
+        intervened = bool(off_command or any(a.split(":", 1)[0] in self._intervening for a in result.active))
         return FilterOutput(result.x, True, "ok", result.active, float(clearance), cutter, intervened, result.solve_us)
 
     def _port_clearance(self, point_h, ranges) -> float | None:

@@ -156,8 +156,8 @@ class FilterSystem(LeafSystem):
                 eye, shaft = self._prior_field, self._none_field
             else:
                 margin = float(snap.margin_mm(self.config.margins))
-                eye = ModelField(snap.shape, margin, snap.coverage, self.prior, **self._field_options).params
-                shaft = ModelField(snap.shape, margin, snap.coverage, None, **self._field_options).params
+                field = ModelField(snap.shape, margin, snap.coverage, self.prior, **self._field_options)
+                eye, shaft = field.params, field.without_fallback().params
             self._fields, self._key = (eye, shaft, self._lens_field), key
         return self._fields
 

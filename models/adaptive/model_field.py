@@ -100,6 +100,14 @@ class ModelField:
                       np.zeros(len(dirs)) if misfit is None else np.asarray(misfit, dtype=float)]
         self.params = np.ascontiguousarray(np.concatenate(parts), dtype=float)
 
+    def without_fallback(self) -> ModelField:
+        """The same field with no fallback: every point's distance is the shape's."""
+        field = object.__new__(ModelField)
+        field.shape, field.margin_mm, field.coverage, field.fallback = self.shape, self.margin_mm, self.coverage, None
+        field.params = self.params.copy()
+        field.params[17] = 0.0
+        return field
+
     @classmethod
     def none(cls) -> ModelField:
         """No boundary: +inf everywhere."""
