@@ -22,6 +22,8 @@ import inspect
 import os
 import sys
 
+import numpy as np
+
 from models.compiled_cache import compiled_dir
 from safety.constraints.base import CONTEXT, KINDS
 
@@ -50,10 +52,28 @@ def _arguments(filler, i: int, has_group: bool, has_field: bool, id0: int) -> st
     return ", ".join(out)
 
 
-def generate(constraints, groups: dict, kernels: dict, kinematics=None, capacities: dict | None = None) -> str:
+def workspace_layout(n: int, m_cap: int, p_cap: int, k_cap: int) -> tuple[dict, int]:
+    """({name: (start, stop, shape)}, size) of the float workspace for n joints, m_cap
+    inequality rows, p_cap equality rows and k_cap points: H, c, lb, ub, G, h, A, b, point_h."""
+    parts = (("H", (n, n)), ("c", (n,)), ("lb", (n,)), ("ub", (n,)), ("G", (m_cap, n)), ("h", (m_cap,)),
+             ("A", (p_cap, n)), ("b", (p_cap,)), ("point_h", (max(k_cap, 1),)))
+    out, o = {}, 0
+    for name, shape in parts:
+        size = int(np.prod(shape))
+        out[name] = (o, o + size, shape)
+        o += size
+    return out, o
+
+
+def generate(constraints, groups: dict, kernels: dict, kinematics=None, capacities: dict | None = None,
+             layout: tuple = (6, 0, 0, 0), port: tuple | None = None) -> str:
     """The step's Python source for `constraints` (in order), point `groups` (name ->
-    index into `ranges`), field `kernels` (slot -> compiled kernel) and an optional
-    `kinematics` kernel."""
+    index into `ranges`), field `kernels` (slot -> compiled kernel), an optional
+    `kinematics` kernel, and the workspace `layout` (n, m_cap, p_cap, k_cap): the
+    constraints' params come packed in one array (spall, offsets spo), the workspace in
+    one float and one int buffer (wsf, wsi), so that a step's call carries few arguments.
+    `port`: (group index, index in the group) of the point whose clearance the step
+    returns (the cutter interlock's), or None (NaN)."""
     capacities = capacities or {}
     imports = ["import numpy as np", "from numba import njit",
                "from safety.step_core import (ACTIVE_TOL, CFG_DAMPING, CONSTRAINT_FAULT, OK, STEP_FAULT, STEP_OPTIMAL,",
@@ -85,21 +105,30 @@ def generate(constraints, groups: dict, kernels: dict, kinematics=None, capaciti
             body.append(f"    F{i}({args})")
         if c.reports_clearance:
             body += [f"    for r in range(s{i}, e{i}):", "        clearance = min(clearance, point_h[r])"]
-    sp = "".join(f"sp{i}, " for i in range(len(constraints)))
     fp = "".join(f"fp_{s}, " for s in slots)
+    ws, _ = workspace_layout(*layout)
+    m_cap = layout[1]
+    views = "\n".join(f"    {name} = wsf[{a}:{b}]" + (f".reshape({shape})" if len(shape) > 1 else "")
+                      for name, (a, b, shape) in ws.items())
+    views += f"\n    ids = wsi[0:{m_cap}]\n    at_bound = wsi[{m_cap}:{2 * m_cap}]\n"
+    views += "".join(f"    sp{i} = spall[spo[{i}]:spo[{i + 1}]]\n" for i in range(len(constraints)))
+    if port is None:
+        port_line = "    port = np.nan\n"
+    else:
+        g, k = port
+        port_line = (f"    port = point_h[ranges[{g}, 0] + {k}] if ranges[{g}, 0] + {k} < ranges[{g}, 1] else np.nan\n")
     src = "\n".join(imports) + f"""
 
 
 @njit(cache=True)
 def _fault(active, q, fault, detail):
     active[:] = False
-    return STEP_FAULT, fault, detail, np.zeros(q.shape[0]), 0, 0, 0, np.nan, True
+    return STEP_FAULT, fault, detail, np.zeros(q.shape[0]), 0, 0, 0, np.nan, np.nan, True
 
 
 @njit(cache=True)
-def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, {sp}{fp}active, warm, H, c, lb, ub, G, h,
-         ids, A, b, point_h, at_bound):
-    fault = input_fault(q, command, J_tip, P, J, times, cfg)
+def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, spall, spo, {fp}active, warm, wsf, wsi):
+""" + views + f"""    fault = input_fault(q, command, J_tip, P, J, times, cfg)
     if fault != OK:
         return _fault(active, q, fault, 0)
     tracking_cost(J_tip, command[:3], J_roll, np.full(J_roll.shape[0], command[3]), cfg[CFG_DAMPING], H, c)
@@ -112,17 +141,16 @@ def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, {sp}{f
 """ + "\n".join(body) + f"""
     code, x, n_bound = finish(H, c, lb, ub, G[:m], h[:m], A[:p], b[:p], ids[:m], active, warm, at_bound)
     off = off_command(J_tip, x, command) if code == STEP_OPTIMAL else True
-    return code, OK, 0, x, m, p, n_bound, clearance, off
+""" + port_line + """    return code, OK, 0, x, m, p, n_bound, clearance, port, off
 """
     if kinematics is not None:
         imports_k = "from {} import {} as KIN\n".format(*_importable(kinematics, "kinematics kernel"))
         src = imports_k + src + f"""
 
 @njit(cache=True)
-def step_at(q, command, times, cfg, kp, {sp}{fp}active, warm, H, c, lb, ub, G, h, ids, A, b, point_h, at_bound):
+def step_at(q, command, times, cfg, kp, spall, spo, {fp}active, warm, wsf, wsi):
     P, J, ranges, J_tip, J_roll, R_WI, p_WI, rcm_error = KIN(kp, q)
-    r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, {sp}{fp}active, warm, H, c, lb, ub, G,
-             h, ids, A, b, point_h, at_bound)
+    r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, spall, spo, {fp}active, warm, wsf, wsi)
     return r, P, ranges, J_tip, rcm_error
 """
     return src
@@ -131,11 +159,12 @@ def step_at(q, command, times, cfg, kp, {sp}{fp}active, warm, H, c, lb, ub, G, h
 _LOADED: dict[str, object] = {}
 
 
-def assemble(constraints, groups: dict, kernels: dict, kinematics=None, capacities: dict | None = None):
+def assemble(constraints, groups: dict, kernels: dict, kinematics=None, capacities: dict | None = None,
+             layout: tuple = (6, 0, 0, 0), port: tuple | None = None):
     """The generated module (attributes `step`, and `step_at` with kinematics) for these
-    constraints, groups, field kernels and kinematics; written and imported once per
-    distinct source."""
-    src = generate(constraints, groups, kernels, kinematics, capacities)
+    constraints, groups, field kernels, kinematics and workspace layout (generate);
+    written and imported once per distinct source."""
+    src = generate(constraints, groups, kernels, kinematics, capacities, layout, port)
     digest = hashlib.sha256(src.encode()).hexdigest()[:16]
     if digest in _LOADED:
         return _LOADED[digest]

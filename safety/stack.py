@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from safety import step_core as core
-from safety.assembly import assemble
+from safety.assembly import assemble, workspace_layout
 from safety.inputs import FilterConfig, FilterOutput
 from safety.qp import DenseQP, QPResult, solve, solve_by_solver
 
@@ -35,12 +35,13 @@ class ConstraintStack:
         self.constraints, self.groups, self.config = tuple(constraints), dict(groups), config
         self.index = {g: i for i, g in enumerate(self.groups)}
         self.slots = sorted({c.field for c in self.constraints if c.field is not None})
-        self.module = assemble(self.constraints, self.index, kernels, kinematics, self.groups)
-        self._names = point_names or (lambda group, count: tuple(f"{group}{i}" for i in range(count)))
+        self._size(n_joints)
         self._port = port
+        self.module = assemble(self.constraints, self.index, kernels, kinematics, self.groups, self.layout,
+                               None if port is None else (self.index[port[0]], int(port[1])))
+        self._names = point_names or (lambda group, count: tuple(f"{group}{i}" for i in range(count)))
         self.cfg = np.array([config.damping, config.max_command_speed_mm_s, config.max_model_age_s,
                              config.max_sensor_age_s])
-        self._size(n_joints)
         self._names_cache: dict = {}
         self._intervening = {c.name for c in self.constraints if c.intervenes}
 
@@ -57,11 +58,14 @@ class ConstraintStack:
             elif c.kind == "equality":
                 p_cap += rows
         self.active = np.zeros(len(self._id_owner) + 2 * n, dtype=np.bool_)
-        k_cap = sum(self.groups.values())
-        self.ws = (np.zeros((n, n)), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((m_cap, n)), np.zeros(m_cap),
-                   np.zeros(m_cap, dtype=np.int64), np.zeros((p_cap, n)), np.zeros(p_cap), np.zeros(max(k_cap, 1)),
-                   np.zeros(m_cap, dtype=np.int64))
-        self.params = tuple(c.params() for c in self.constraints)
+        self.layout = (n, m_cap, p_cap, sum(self.groups.values()))
+        parts, size = workspace_layout(*self.layout)
+        self.wsf, self.wsi = np.zeros(size), np.zeros(2 * m_cap, dtype=np.int64)
+        v = {name: self.wsf[a:b].reshape(shape) for name, (a, b, shape) in parts.items()}
+        # the step's workspace as views (H, c, lb, ub, G, h, ids, A, b, point_h, rows at bound)
+        self.ws = (v["H"], v["c"], v["lb"], v["ub"], v["G"], v["h"], self.wsi[:m_cap], v["A"], v["b"], v["point_h"],
+                   self.wsi[m_cap:])
+        self.set_params()
 
     def reset(self) -> None:
         """Forget the previous step's active set (a new run)."""
@@ -76,7 +80,9 @@ class ConstraintStack:
             if [c.key() for c in constraints] != [c.key() for c in self.constraints]:
                 raise ValueError("ConstraintStack.set_params: the constraints must match the stack's, in order")
             self.constraints = constraints
-        self.params = tuple(c.params() for c in self.constraints)
+        params = [c.params() for c in self.constraints]
+        self.spo = np.cumsum([0] + [len(p) for p in params]).astype(np.int64)
+        self.spall = np.ascontiguousarray(np.concatenate(params) if params else np.zeros(0), dtype=float)
 
     def solve(self, q, command, times, J_tip, J_roll, P, J, ranges, fields: tuple, R_WI=None, p_WI=None,
               warm: bool = False):
@@ -87,21 +93,21 @@ class ConstraintStack:
         t0 = time.perf_counter()
         R = np.eye(3) if R_WI is None else R_WI
         p = np.zeros(3) if p_WI is None else p_WI
-        r = self.module.step(q, command, times, self.cfg, J_tip, J_roll, P, J, ranges, R, p, *self.params, *fields,
-                             self.active, warm, *self.ws)
+        r = self.module.step(q, command, times, self.cfg, J_tip, J_roll, P, J, ranges, R, p, self.spall, self.spo,
+                             *fields, self.active, warm, self.wsf, self.wsi)
         return self.output(r, q, command, times, J_tip, P, ranges, t0, warm), r
 
     def solve_at(self, q, command, times, kp, fields: tuple):
         """(FilterOutput, raw step result, P, ranges, J_tip, rcm error mm) with the points
         of the kinematics kernel (params kp) at q, warm started from the previous step."""
         t0 = time.perf_counter()
-        r, P, ranges, J_tip, rcm_error = self.module.step_at(q, command, times, self.cfg, kp, *self.params, *fields,
-                                                              self.active, True, *self.ws)
+        r, P, ranges, J_tip, rcm_error = self.module.step_at(q, command, times, self.cfg, kp, self.spall, self.spo,
+                                                              *fields, self.active, True, self.wsf, self.wsi)
         return self.output(r, q, command, times, J_tip, P, ranges, t0, True), r, P, ranges, J_tip, rcm_error
 
     def qp(self, r, ranges) -> DenseQP | None:
         """The QP a step with raw result `r` left in the workspace (None after a fault)."""
-        code, _, _, _, m, p, _, _, _ = r
+        code, _, _, _, m, p, _, _, _, _ = r
         if code == core.STEP_FAULT:
             return None
         H, c, lb, ub, G, h, ids, A, b, _, _ = self.ws
@@ -109,12 +115,11 @@ class ConstraintStack:
                        self.row_names(ids[:m], ranges))
 
     def output(self, r, q, command, times, J_tip, P, ranges, t0: float, warm: bool) -> FilterOutput:
-        code, fault, detail, x, m, p, n_bound, clearance, off = r
-        n = len(q)
+        code, fault, detail, x, m, p, n_bound, clearance, port, off = r
         if code == core.STEP_FAULT:
-            return FilterOutput(np.zeros(n), False, self.fault_reason(fault, detail, q, command, times, P, ranges))
+            return FilterOutput(np.zeros(len(q)), False, self.fault_reason(fault, detail, q, command, times, P, ranges))
         H, c, lb, ub, G, h, ids, A, b, point_h, at_bound = self.ws
-        port = self._port_clearance(point_h, ranges)
+        port = None if port != port else port  # NaN: no port point this step (or no interlock)
         if code == core.STEP_OPTIMAL:
             active = self.active_names(ids[:m], at_bound[:n_bound], ranges) if n_bound else ()
             return self.finished(QPResult(x, "ok", active, 1e6 * (time.perf_counter() - t0)), clearance, port, off)
@@ -123,7 +128,7 @@ class ConstraintStack:
             solve_by_solver(qp, self.config.solver, core.ACTIVE_TOL, t0)
         if not result.ok:
             self.reset()
-            return FilterOutput(np.zeros(n), False, f"QP: {result.reason}", min_clearance_mm=float(clearance))
+            return FilterOutput(np.zeros(len(q)), False, f"QP: {result.reason}", min_clearance_mm=float(clearance))
         if warm:
             core.remember_active(self.active, ids[:m], qp.G, qp.h, lb, ub, result.x, core.ACTIVE_TOL, at_bound)
         return self.finished(result, clearance, port, bool(core.off_command(J_tip, result.x, command)))
@@ -134,14 +139,6 @@ class ConstraintStack:
         cutter = port_clearance_mm is not None and bool(port_clearance_mm > self.config.cutter_clearance_mm)
         intervened = bool(off_command or any(a.split(":", 1)[0] in self._intervening for a in result.active))
         return FilterOutput(result.x, True, "ok", result.active, float(clearance), cutter, intervened, result.solve_us)
-
-    def _port_clearance(self, point_h, ranges) -> float | None:
-        if self._port is None:
-            return None
-        group, i = self._port
-        g = self.index[group]
-        start, stop = ranges[g]
-        return float(point_h[start + i]) if start + i < stop else None
 
     def row_names(self, ids, ranges) -> tuple:
         """The names of G's rows with identities `ids`."""

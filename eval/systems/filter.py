@@ -110,6 +110,7 @@ class FilterSystem(LeafSystem):
         self._field_options = dict(trust_angle_rad=float(np.radians(config.trust_angle_deg)),
                                    misfit_angle_rad=float(np.radians(config.misfit_angle_deg)), band_chord=chord)
         self._key, self._fields = None, ()
+        self._times = np.zeros(3)  # [now, the model's time, the newest sensor sample's] s
         chain = robot.chain
         self._tip_chain = (chain.S, *chain.homes["T"])  # frame_position's (S, R_home, p_home) of the tip T, without q
         self._q = self.DeclareVectorInputPort("q", 6)
@@ -163,7 +164,8 @@ class FilterSystem(LeafSystem):
 
     def filter_step(self, t_s: float, q: np.ndarray, command: np.ndarray, snap: ModelSnapshot, sensor_t_s: float):
         """(FilterOutput, P (K, 3) mm, ranges, J_tip (3, 6) mm/rad, RCM error mm) of one step."""
-        times = np.array([t_s, t_s if snap.shape is None else snap.t_s, sensor_t_s])
+        times = self._times
+        times[0], times[1], times[2] = t_s, t_s if snap.shape is None else snap.t_s, sensor_t_s
         out, _, P, ranges, J_tip, rcm_error = self.stack.solve_at(q, command, times, self._kp, self.fields(snap))
         return out, P, ranges, J_tip, rcm_error
 
