@@ -25,7 +25,7 @@ from pathlib import Path
 from eval.cli.io import UsageError, prepare_out_dir, write_atomic, write_json
 from models.eyes import EYE_SHAPES
 
-ROOT = Path(__file__).resolve().parent.parent  # the checkout whose tools are run
+ROOT = Path(__file__).resolve().parents[2]  # the checkout whose tools are run
 SEED = 11
 PLAN_SHAPE = SENSOR_SHAPE = "emmetropic"
 SKIPPABLE = ("boundary", "plan", "sensor")
