@@ -18,6 +18,7 @@ matplotlib.use("Agg")  # figures are files; no display is needed or assumed
 
 from eval.cli.args import Parser
 from eval.cli.io import UsageError
+from eval.interrupts import is_interrupt
 
 SUBCOMMAND_MODULES = (
     "eval.cli.demo",
@@ -68,6 +69,8 @@ def main(argv=None) -> int:
     except UsageError as exc:
         print(f"{command}: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError, RuntimeError) as exc:
+        if not is_interrupt(exc):  # a genuine error: its traceback
+            raise
         print(f"\n{command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

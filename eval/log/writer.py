@@ -36,6 +36,7 @@ from mcap.records import Header, Message, Metadata
 from mcap.records import Schema as SchemaRecord
 from mcap.stream_reader import StreamReader
 
+from eval.interrupts import is_interrupt
 from eval.log import codec
 from eval.log import scene
 from eval.log.scene import M_PER_MM, quaternion_xyzw  # noqa: F401  (part of this module's interface)
@@ -116,7 +117,8 @@ class RunLogger:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is not None and not self._closed:  # say in the log why it ends here
-            self.log_event(self._last_ns * 1e-9, f"run ended early: {exc_type.__name__}", "error")
+            name = "KeyboardInterrupt" if is_interrupt(exc) else exc_type.__name__
+            self.log_event(self._last_ns * 1e-9, f"run ended early: {name}", "error")
         self.close()
 
     @property

@@ -146,3 +146,16 @@ def test_ctrl_c_stops_a_run_cleanly(tmp_path):
     (_, event), = spiral.messages["/log"]
     assert decode_foxglove("/log", event).message == "run ended early: KeyboardInterrupt"
     assert not (out / "boundary.json").exists()
+
+
+def test_an_interrupt_wrapped_by_compiled_code_is_still_an_interrupt():
+    from eval.interrupts import is_interrupt
+
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as inner:
+            raise SystemError("returned a result with an exception set") from inner
+    except SystemError as exc:
+        assert is_interrupt(exc)
+    assert not is_interrupt(SystemError("other")) and not is_interrupt(None)

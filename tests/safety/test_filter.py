@@ -161,3 +161,11 @@ def test_pruned_rows_do_not_change_the_answer():
         a = FilterInputs(**{**a.__dict__, "boundary_points": a.boundary_points + extra})
         b = FilterInputs(**{**a.__dict__, "model": NoBound(EYE)})
         np.testing.assert_allclose(SafetyFilter()(a).qdot, SafetyFilter()(b).qdot, atol=1e-9)
+
+
+def test_non_finite_points_are_named_by_the_compiled_step():
+    x = inputs([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
+    bad = FilterInputs(**{**x.__dict__, "boundary_points": [PointKinematics("tip", np.array([np.nan, 0.0, 0.0]),
+                                                                            np.eye(3))]})
+    out = SafetyFilter()(bad)
+    assert not out.ok and out.reason == "non-finite kinematics of tip" and not out.qdot.any()
