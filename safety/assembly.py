@@ -52,6 +52,17 @@ def _arguments(filler, i: int, has_group: bool, has_field: bool, id0: int) -> st
     return ", ".join(out)
 
 
+def row_id_bases(constraints, capacities: dict) -> tuple[list, int]:
+    """(each constraint's first row identity, the number of identities): an inequality
+    constraint owns max_rows(its group's capacity) consecutive identities, in order."""
+    bases, id0 = [], 0
+    for c in constraints:
+        bases.append(id0)
+        if c.kind == "inequality":
+            id0 += c.max_rows(capacities.get(c.group, 0))
+    return bases, id0
+
+
 def workspace_layout(n: int, m_cap: int, p_cap: int, k_cap: int) -> tuple[dict, int]:
     """({name: (start, stop, shape)}, size) of the float workspace for n joints, m_cap
     inequality rows, p_cap equality rows and k_cap points: H, c, lb, ub, G, h, A, b, point_h."""
@@ -83,7 +94,8 @@ def generate(constraints, groups: dict, kernels: dict, kinematics=None, capaciti
         if s not in kernels:
             raise ValueError(f"no field kernel for slot {s!r} (constraints read it)")
         imports.append("from {} import {} as K_{}".format(*_importable(kernels[s], f"field kernel of slot {s!r}"), s))
-    body, id0 = [], 0
+    body = []
+    bases, _ = row_id_bases(constraints, capacities)
     for i, c in enumerate(constraints):
         if c.kind not in KINDS:
             raise ValueError(f"constraint {c.name!r}: kind must be one of {KINDS}, got {c.kind!r}")
@@ -95,12 +107,11 @@ def generate(constraints, groups: dict, kernels: dict, kinematics=None, capaciti
             body.append(f"    s{i}, e{i} = ranges[{groups[c.group]}, 0], ranges[{groups[c.group]}, 1]")
         if c.field is not None:
             body.append(f"    fh{i}, fg{i}, fu{i} = K_{c.field}(fp_{c.field}, P[s{i}:e{i}])")
-        args = _arguments(c.filler, i, c.group is not None, c.field is not None, id0)
+        args = _arguments(c.filler, i, c.group is not None, c.field is not None, bases[i])
         if c.kind == "inequality":
-            body += [f"    m = F{i}({args})", f"    if m < 0:", f"        return _fault(active, q, CONSTRAINT_FAULT + {i}, -m)"]
-            id0 += c.max_rows(capacities.get(c.group, 0))
+            body += [f"    m = F{i}({args})", "    if m < 0:", f"        return _fault(active, q, CONSTRAINT_FAULT + {i}, -m)"]
         elif c.kind == "equality":
-            body += [f"    p = F{i}({args})", f"    if p < 0:", f"        return _fault(active, q, CONSTRAINT_FAULT + {i}, -p)"]
+            body += [f"    p = F{i}({args})", "    if p < 0:", f"        return _fault(active, q, CONSTRAINT_FAULT + {i}, -p)"]
         else:
             body.append(f"    F{i}({args})")
         if c.reports_clearance:

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from safety import step_core as core
-from safety.assembly import assemble, workspace_layout
+from safety.assembly import assemble, row_id_bases, workspace_layout
 from safety.inputs import FilterConfig, FilterOutput
 from safety.qp import DenseQP, QPResult, solve, solve_by_solver
 
@@ -48,12 +48,13 @@ class ConstraintStack:
     def _size(self, n: int) -> None:
         """The workspace for n joints: ids per inequality constraint, buffers for the QP."""
         self.n = n
-        self._id_owner, id0 = [], 0
+        bases, n_ids = row_id_bases(self.constraints, self.groups)
+        self._id_owner = [None] * n_ids  # identity -> (constraint index, row within it)
         m_cap = p_cap = 0
         for i, c in enumerate(self.constraints):
             rows = c.max_rows(self.groups.get(c.group, 0))
             if c.kind == "inequality":
-                self._id_owner += [(i, r) for r in range(rows)]
+                self._id_owner[bases[i]:bases[i] + rows] = [(i, r) for r in range(rows)]
                 m_cap += rows
             elif c.kind == "equality":
                 p_cap += rows
@@ -118,11 +119,12 @@ class ConstraintStack:
         code, fault, detail, x, m, p, n_bound, clearance, port, off = r
         if code == core.STEP_FAULT:
             return FilterOutput(np.zeros(len(q)), False, self.fault_reason(fault, detail, q, command, times, P, ranges))
-        H, c, lb, ub, G, h, ids, A, b, point_h, at_bound = self.ws
+        ids, at_bound = self.ws[6], self.ws[10]
         port = None if port != port else port  # NaN: no port point this step (or no interlock)
         if code == core.STEP_OPTIMAL:
             active = self.active_names(ids[:m], at_bound[:n_bound], ranges) if n_bound else ()
             return self.finished(QPResult(x, "ok", active, 1e6 * (time.perf_counter() - t0)), clearance, port, off)
+        H, c, lb, ub, G, h, _, A, b, _, _ = self.ws
         qp = DenseQP(H, c, lb, ub, G[:m], h[:m], A[:p], b[:p], self.row_names(ids[:m], ranges))
         result = solve(qp, self.config.solver) if code == core.STEP_QP_FAILED else \
             solve_by_solver(qp, self.config.solver, core.ACTIVE_TOL, t0)
