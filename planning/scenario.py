@@ -67,19 +67,22 @@ SENSOR_ROTVEC_S_RAD = (0.0, np.radians(0.1), 0.0)
 SURGERY_EYE_POSE = EyePose(Rotation.from_rotvec([0.1554, -0.3715, -0.2814]).as_matrix(), np.array([123.1, 3.1, 80.5]))
 
 
-def default_trocar_E(eye_name: str) -> np.ndarray:
-    """The trocar (mm, E) on the eye `eye_name`: TROCAR_P_EC_MM for the emmetropic eye;
-    for another eye the point in the same direction from the centre at the same depth
-    relative to that eye's retina (a longer myopic eye puts the pars plana further out)."""
+def default_trocar_E(eye_name: str, eye_params: dict | None = None) -> np.ndarray:
+    """The trocar (mm, E) on the eye `eye_name` (with make_eye's shape parameters
+    `eye_params`): TROCAR_P_EC_MM for the emmetropic eye; for another eye the point in the
+    same direction from the centre at the same depth relative to that eye's retina (a
+    longer myopic eye puts the pars plana further out)."""
     p = np.array(TROCAR_P_EC_MM)
     u = p / np.linalg.norm(p)
-    radial = {name: float(np.linalg.norm(make_eye(name).surface_points(u[None])[0])) for name in ("emmetropic", eye_name)}
+    eyes = {"emmetropic": make_eye("emmetropic"), eye_name: make_eye(eye_name, **(eye_params or {}))}
+    radial = {name: float(np.linalg.norm(eye.surface_points(u[None])[0])) for name, eye in eyes.items()}
     return u * (np.linalg.norm(p) + radial[eye_name] - radial["emmetropic"])
 
 
 @dataclass(frozen=True, eq=False)
 class SurgeryScenario:
-    """Eye pose X_WE, trocar p_EC (mm, E; default `default_trocar_E(eye_name)`), eye shape name, lens keep-out (E) and the
+    """Eye pose X_WE, trocar p_EC (mm, E; default `default_trocar_E(eye_name)`), eye shape name and its
+    shape parameters (make_eye's keywords, models.eyes.EYE_PARAMS), lens keep-out (E) and the
     true sensor pose's calibration error (offset mm and rotation vector rad, both in S).
 
     Raises ValueError when the trocar is not in the eye wall (within EYE_WALL_MM of the
@@ -89,6 +92,7 @@ class SurgeryScenario:
     eye_pose: EyePose = SURGERY_EYE_POSE
     p_EC: np.ndarray | None = None
     eye_name: str = "emmetropic"
+    eye_params: dict = field(default_factory=dict)
     sensor_offset_S_mm: np.ndarray = field(default_factory=lambda: np.array(SENSOR_OFFSET_S_MM))
     sensor_rotvec_S_rad: np.ndarray = field(default_factory=lambda: np.array(SENSOR_ROTVEC_S_RAD))
 
@@ -96,10 +100,10 @@ class SurgeryScenario:
         if not isinstance(self.eye_pose, EyePose):
             raise ValueError(f"eye_pose must be a models.eyes.EyePose (X_WE), got {type(self.eye_pose).__name__}")
         if self.p_EC is None:
-            object.__setattr__(self, "p_EC", default_trocar_E(self.eye_name))
+            object.__setattr__(self, "p_EC", default_trocar_E(self.eye_name, self.eye_params))
         for name in ("p_EC", "sensor_offset_S_mm", "sensor_rotvec_S_rad"):
             object.__setattr__(self, name, as_vector3(getattr(self, name), name))
-        object.__setattr__(self, "_eye", make_eye(self.eye_name, self.eye_pose))
+        object.__setattr__(self, "_eye", make_eye(self.eye_name, self.eye_pose, **self.eye_params))
         object.__setattr__(self, "_lens_E", Ellipsoid(np.array(LENS_CENTER_E_MM), np.array(LENS_RADII_MM)))
         sd = float(self._eye.signed_distance(self.p_WC)[0])
         if abs(sd) > EYE_WALL_MM:

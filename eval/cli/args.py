@@ -109,3 +109,51 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def eye_param(text: str) -> tuple[str, float]:
+    """Type of --eye-param: 'NAME=VALUE' with a finite number VALUE (the name is checked
+    against the shape later, by `eye_params`)."""
+    name, sep, value = text.partition("=")
+    try:
+        v = float(value)
+    except ValueError:
+        v = math.nan
+    if not sep or not name.strip() or not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be NAME=VALUE with a finite number VALUE (e.g. height_mm=3), got {text!r}")
+    return name.strip(), v
+
+
+eye_param.__name__ = "eye parameter"
+
+
+def add_eye_param(p) -> None:
+    """Add the repeatable --eye-param NAME=VALUE flag to parser `p`."""
+    from models.eyes import EYE_PARAMS, param_range
+
+    takes = "; ".join(f"{s}: " + ", ".join(f"{k} {param_range(s, k)}" for k in ps) for s, ps in EYE_PARAMS.items())
+    p.add_argument("--eye-param", type=eye_param, action="append", default=[], metavar="NAME=VALUE",
+                   help=f"a shape parameter of the true eye (repeatable; defaults: design.md) - {takes}")
+
+
+def eye_params(pairs, shape: str) -> dict:
+    """The --eye-param pairs as make_eye's keyword parameters for `shape`, checked against
+    models.eyes.EYE_PARAMS and built once; raises eval.cli.io.UsageError on a name the shape
+    does not take, a value out of range or a combination the builder refuses."""
+    from eval.cli.io import UsageError
+    from models.eyes import check_eye_params, make_eye
+
+    def error(message: str):
+        raise UsageError(message)
+
+    params = {}
+    for name, value in pairs:
+        if name in params:
+            error(f"--eye-param {name} given twice")
+        params[name] = value
+    try:
+        params = check_eye_params(shape, params)
+        make_eye(shape, **params)
+    except ValueError as exc:
+        error(f"--eye-param: {exc}")
+    return params

@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from eval.cli.args import SEED, choice, integer, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase, progress_bar
 from models.eyes import EYE_SHAPES
@@ -30,6 +30,7 @@ def register(sub) -> None:
     p = sub.add_parser("boundary", help="spiral-built model + N adversarial scenarios: boundary.json, plots, MCAP")
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    add_eye_param(p)
     p.add_argument("--scenarios", type=SCENARIOS, default=100,
                    help=f"adversarial scenarios once the model is built, {SCENARIOS.range}")
     p.add_argument("--sphere-scenarios", type=SPHERE_SCENARIOS, default=None,
@@ -48,7 +49,9 @@ def register(sub) -> None:
 
 
 def validate(args) -> None:
-    """The defaults that depend on other flags (the flags' ranges are checked while parsing)."""
+    """The defaults that depend on other flags and the eye's shape parameters (the flags'
+    ranges are checked while parsing); raises UsageError."""
+    args.eye_params = eye_params(args.eye_param, args.shape)
     if args.sphere_scenarios is None:
         args.sphere_scenarios = min(args.scenarios, 50)
 
@@ -81,8 +84,8 @@ def run_boundary(args, out, keep_build: bool = False):
     from planning import SurgeryScenario
 
     config = LoopConfig(sensor_mode=args.sensor_mode)
-    loop = make_loop(SurgeryScenario(eye_name=args.shape), config, sensor_seed=args.seed)
-    meta = {"shape": args.shape, "seed": args.seed}
+    loop = make_loop(SurgeryScenario(eye_name=args.shape, eye_params=args.eye_params), config, sensor_seed=args.seed)
+    meta = {"shape": args.shape, "eye_params": args.eye_params, "seed": args.seed}
     pitch_mm = 9.0 / args.spiral_revolutions
     with RunLogger(out / "spiral.mcap", config.filter, metadata={**meta, "run": "spiral"}) as log:
         build = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=args.spiral_revolutions,
@@ -105,7 +108,7 @@ def run_boundary(args, out, keep_build: bool = False):
         **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction",
                              "tracking_rmse_mm_s", "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor",
                              "realtime_factor_unlogged")},
-        "shape": args.shape, "seed": args.seed, "sensor_mode": args.sensor_mode, "scenario_s": args.duration_s,
+        "shape": args.shape, "eye_params": args.eye_params, "seed": args.seed, "sensor_mode": args.sensor_mode, "scenario_s": args.duration_s,
         "violation_threshold_mm": 0.45,
         "lens_violations": s["lens_violations"], "max_rcm_error_um": s["max_rcm_error_um"],
         "free_tracking_error_p99": s["free_tracking_error_p99"],

@@ -58,7 +58,7 @@ def main(args) -> int:
 
     boundary_args = argparse.Namespace(shape=args.shape, scenarios=args.scenarios, sphere_scenarios=0, seed=args.seed,
                                        duration_s=0.5, spiral_speed_mm_s=15.0, spiral_revolutions=6.0,
-                                       sensor_mode="distance")
+                                       sensor_mode="distance", eye_params={})
     print(f"VitreoGuard demo: closed loop on the {args.shape} eye (Meca500 through the trocar, iiOCT at 2 kHz, "
           "filter at 1 kHz)")
     boundary = run_boundary(boundary_args, out, keep_build=True)

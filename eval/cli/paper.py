@@ -7,7 +7,7 @@ import signal
 
 import numpy as np
 
-from eval.cli.args import choice, integer, number
+from eval.cli.args import add_eye_param, choice, eye_params, integer, number
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_atomic, write_json
 from eval.experiments.paper import ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, decision, optimal_transition, run_shape
 from eval.experiments.paper_figures import fig5
@@ -33,6 +33,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--shapes", nargs="+", type=choice("shape", EYE_SHAPES), default=list(EYE_SHAPES),
                    help=f"true eyes to scan, any of: {' '.join(EYE_SHAPES)}")
+    add_eye_param(p)
     p.add_argument("--seeds", type=SEEDS, default=1, help=f"number of noise seeds, {SEEDS.range}; figures are means")
     p.add_argument("--noise-um", type=NOISE_UM, default=20.0, help=f"SD of the distance noise, {NOISE_UM.range}")
     p.add_argument("--criterion", choices=sorted(CRITERIA), default="predictive", help="transition criterion that drives the model")
@@ -49,8 +50,19 @@ def register(sub) -> None:
 
 
 def _validate(args) -> None:
+    """Flag combinations; --eye-param applies to each selected shape that takes the parameter."""
+    from models.eyes import EYE_PARAMS
+
     if args.fit == "robust" and args.noise_um <= 0:
         raise UsageError("--fit robust needs --noise-um > 0 um: its cut-off is 4.685 noise SDs")
+    if len(args.shapes) == 1:
+        args.eye_params = {args.shapes[0]: eye_params(args.eye_param, args.shapes[0])}
+        return
+    for name, _ in args.eye_param:
+        if not any(name in EYE_PARAMS.get(s, {}) for s in args.shapes):
+            raise UsageError(f"--eye-param {name}: none of the shapes {' '.join(args.shapes)} takes it")
+    args.eye_params = {s: eye_params([(k, v) for k, v in args.eye_param if k in EYE_PARAMS.get(s, {})], s)
+                       for s in args.shapes}
 
 
 def _mean_or_none(values):
@@ -161,7 +173,8 @@ def _task(job):
     shape, seed, args_dict = job
     pose = EyePose.anatomical() if args_dict["pose"] == "anatomical" else EyePose()
     robust = RobustFitConfig(noise_sd_mm=1e-3 * args_dict["noise_um"]) if args_dict["fit"] == "robust" else None
-    return run_shape(shape, seed, args_dict["noise_um"], pose, args_dict["stride"], grid=args_dict["grid"], robust=robust)
+    return run_shape(shape, seed, args_dict["noise_um"], pose, args_dict["stride"], grid=args_dict["grid"], robust=robust,
+                     eye_params=args_dict["eye_params"][shape])
 
 
 def _ignore_sigint() -> None:

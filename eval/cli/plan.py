@@ -18,7 +18,7 @@ import re
 
 import numpy as np
 
-from eval.cli.args import SEED, choice, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES
@@ -56,6 +56,7 @@ def register(sub) -> None:
     p = sub.add_parser("plan", help="peripheral vitrectomy path on the fitted model, executed through the filter")
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    add_eye_param(p)
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--standoff-mm", type=POSITIVE_MM, default=1.0,
                    help="shaving standoff inside the model, mm: above the filter's boundary + 0.1 mm (0.6 mm for "
@@ -106,6 +107,7 @@ def roll_of(robot, q, p_WC) -> float:
 
 def main(args) -> int:
     spec = spec_of(args)
+    args.eye_params = eye_params(args.eye_param, args.shape)
     from eval.experiments.boundary import build_model_by_spiral, run_with_progress
     from eval.closed_loop import LoopConfig, semi_axes_mm
     from eval.cli.boundary import make_loop
@@ -115,7 +117,7 @@ def main(args) -> int:
     from planning.ik import IKFailure
     from planning.peripheral import REASONS, coverage, plan_path, second_trocar
 
-    scenario = SurgeryScenario(eye_name=args.shape)
+    scenario = SurgeryScenario(eye_name=args.shape, eye_params=args.eye_params)
     loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg), sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye)")
     trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
@@ -152,7 +154,7 @@ def main(args) -> int:
         "min_joint_margin_deg": float(np.degrees(min(robot.joint_margin_rad(q).min() for q in Q))),
         "filter_intervention_fraction": None,
         "plan_time_s": plan.plan_time_s,
-        "shape": args.shape, "model_kind": trusted.kind, "fitted_kind": build.kind_final, "standoff_mm": spec.standoff_mm,
+        "shape": args.shape, "eye_params": args.eye_params, "model_kind": trusted.kind, "fitted_kind": build.kind_final, "standoff_mm": spec.standoff_mm,
         "boundary_mm": spec.boundary_mm,
         "trust_angle_deg": args.trust_angle_deg,
         "band_z_E_mm": [spec.z_min_E, spec.z_max_E], "cells": int(band.reason.size),

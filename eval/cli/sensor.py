@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eval.cli.args import SEED, choice, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from models.eyes import EYE_SHAPES
 
@@ -26,6 +26,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    add_eye_param(p)
     p.add_argument("--seed", type=SEED, default=0, help=f"speckle, noise and floater seed, {SEED.range}")
     p.add_argument("--mode", choices=("ascan", "distance"), default="ascan",
                    help="full A-scans or the extractor's error model")
@@ -44,7 +45,7 @@ def run_sensor(args) -> dict:
     from eval.cli.boundary import make_loop
     from planning import SurgeryScenario
 
-    scenario = SurgeryScenario(eye_name=args.shape)
+    scenario = SurgeryScenario(eye_name=args.shape, eye_params=args.eye_params)
     loop = make_loop(scenario, LoopConfig(sensor_mode=args.mode), sensor_seed=args.seed, floater_rate=args.outliers)
     build = build_model_by_spiral(loop, args.speed_mm_s, pitch_mm=9.0 / args.revolutions, revolutions=args.revolutions,
                                   progress=f"spiral scan ({args.shape} eye, {args.mode} mode)")
@@ -59,7 +60,7 @@ def run_sensor(args) -> dict:
         "ef_mae_um": build.ef_mae_um,
         "sf_mae_um": build.sf_mae_um,
         "kind_final": build.kind_final,
-        "shape": args.shape, "mode": args.mode, "seed": args.seed, "floater_rate": args.outliers,
+        "shape": args.shape, "eye_params": args.eye_params, "mode": args.mode, "seed": args.seed, "floater_rate": args.outliers,
         "n_samples": ms.n_samples, "n_points": build.model.n_points,
         "distance_error_p99_um": 1e3 * float(np.percentile(np.abs(err), 99)),
         "calibration_error": {"sensor_offset_S_mm": scenario.sensor_offset_S_mm.tolist(),
@@ -69,6 +70,7 @@ def run_sensor(args) -> dict:
 
 
 def main(args) -> int:
+    args.eye_params = eye_params(args.eye_param, args.shape)
     out = prepare_out_dir(args.out)
     result = run_sensor(args)
     save_figure(ascans_figure(args.seed), out / "ascans.png")

@@ -74,6 +74,7 @@ def run_shape(
     criteria: tuple[str, ...] = ("paper", "predictive"),
     keep_history: bool = False,
     robust: RobustFitConfig | None = None,
+    eye_params: dict | None = None,
 ) -> ShapeRun:
     """Scan `shape` along the paper's spiral (every `stride`-th A-scan), fit with each
     transition criterion in `criteria`, and measure Table 2 and the Fig. 5 curves.
@@ -82,9 +83,9 @@ def run_shape(
     `grid` x `grid` sampling for the final Table 2 metrics (the paper: 500).
     `keep_history` keeps the model history (of the first criterion) in the result;
     `robust`: None for the paper's least-squares ellipsoid, else the robust fit's
-    settings (models.fit.robust_fit).
+    settings (models.fit.robust_fit); `eye_params`: make_eye's shape parameters.
     """
-    eye = make_eye(shape, pose)
+    eye = make_eye(shape, pose, **(eye_params or {}))
     points = paper_scan(eye, noise_um=noise_um, seed=seed).points[:: int(stride)]
     n = len(points)
     # consecutive points of a thinned scan lie `stride` times further apart

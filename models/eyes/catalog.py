@@ -10,6 +10,15 @@ from models.eyes.pose import EyePose
 from models.eyes.radial import RadialFunction, bump_radial, ellipsoid_radial, paraboloid_backed_radial, sphere_union_radial
 
 EYE_SHAPES = ("emmetropic", "myopic", "hyperopic", "pointed", "detached", "staphyloma")
+# The shape parameters each composite shape takes: name -> (low, high, default); every range is
+# (low, high] for lengths (a zero-size feature is the healthy eye) and [low, high] for angles.
+# Lengths in mm, angles in deg (from the posterior pole: staphyloma temporal, detachment inferior).
+EYE_PARAMS = {
+    "pointed": {"apex_offset_mm": (0.0, 6.0, 2.0)},
+    "staphyloma": {"depth_mm": (0.0, 4.0, 1.5), "curvature_radius_mm": (7.0, 12.0, 8.4), "blend_mm": (0.0, 3.0, 1.0),
+                   "angle_deg": (0.0, 60.0, 15.0)},
+    "detached": {"height_mm": (0.0, 5.0, 2.0), "base_diameter_mm": (2.0, 16.0, 10.0), "angle_deg": (0.0, 90.0, 40.0)},
+}
 EMMETROPIC_RADII_MM = np.array([11.455, 11.365, 10.148])  # Atchison 2005 (gkaModelEye)
 # Full-dimension growth per dioptre of myopia: width +0.14, height +0.10, length +0.30 mm.
 RADII_PER_MYOPIC_DIOPTRE_MM = np.array([0.07, 0.05, 0.15])
@@ -50,20 +59,45 @@ def detached_rho(radii, centre_dir, height_mm=2.0, base_diameter_mm=10.0) -> Rad
     return bump_radial(radii, u0, alpha_b, height_mm)
 
 
+def param_range(shape: str, name: str) -> str:
+    """The allowed range of shape parameter `name` of `shape` as text, e.g. '(0, 4] mm'."""
+    lo, hi, _ = EYE_PARAMS[shape][name]
+    unit = "deg" if name.endswith("_deg") else "mm"
+    return f"{'[' if unit == 'deg' else '('}{lo:g}, {hi:g}] {unit}"
+
+
+def check_eye_params(shape: str, params: dict) -> dict:
+    """`params` as floats after checking each name and value against EYE_PARAMS[shape];
+    raises ValueError (one line naming the parameter and its range) otherwise."""
+    known = EYE_PARAMS.get(shape, {})
+    out = {}
+    for name, value in params.items():
+        if name not in known:
+            takes = ", ".join(f"{k} {param_range(shape, k)}" for k in known) if known else "no shape parameters"
+            raise ValueError(f"eye shape {shape!r} has no parameter {name!r}; it takes {takes}")
+        lo, hi, _ = known[name]
+        v = float(value)
+        inside = (lo <= v <= hi) if name.endswith("_deg") else (lo < v <= hi)
+        if not (np.isfinite(v) and inside):
+            raise ValueError(f"{shape} {name} must be in {param_range(shape, name)}, got {value}")
+        out[name] = v
+    return out
+
+
 def make_eye(name: str = "emmetropic", pose: EyePose | None = None, **params) -> Eye:
     """Ground-truth eye `name` (one of EYE_SHAPES) placed at `pose` (default: E = W).
 
     Keyword parameters override the defaults of the composite shapes:
     pointed: apex_offset_mm; staphyloma: depth_mm, curvature_radius_mm, blend_mm,
     angle_deg (temporal of the posterior pole); detached: height_mm, base_diameter_mm,
-    angle_deg (inferior of the posterior pole).
+    angle_deg (inferior of the posterior pole). Names and ranges: EYE_PARAMS; a name the
+    shape does not take or a value outside its range raises ValueError.
     """
     if name not in EYE_SHAPES:
         raise ValueError(f"unknown eye shape {name!r}; expected one of {', '.join(EYE_SHAPES)}")
     pose = EyePose() if pose is None else pose
+    params = check_eye_params(name, params)
     if name in ("emmetropic", "myopic", "hyperopic"):
-        if params:
-            raise ValueError(f"{name} takes no shape parameters, got {sorted(params)}")
         return Eye(name, radii_for_refraction({"emmetropic": 0.0, "myopic": -12.0, "hyperopic": 4.0}[name]), pose)
     radii = radii_for_refraction(-12.0)
     if name == "pointed":

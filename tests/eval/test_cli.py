@@ -159,3 +159,40 @@ def test_an_interrupt_wrapped_by_compiled_code_is_still_an_interrupt():
     except SystemError as exc:
         assert is_interrupt(exc)
     assert not is_interrupt(SystemError("other")) and not is_interrupt(None)
+
+
+@pytest.mark.parametrize("command", ["boundary", "sensor", "plan", "paper"])
+@pytest.mark.parametrize("argv, words", [
+    (["--eye-param", "height_mm"], ["argument --eye-param: must be NAME=VALUE"]),
+    (["--eye-param", "height_mm=inf"], ["argument --eye-param: must be NAME=VALUE with a finite number"]),
+    (["--shape", "detached", "--eye-param", "height_mm=9"], ["--eye-param: detached height_mm must be in (0, 5] mm"]),
+    (["--shape", "detached", "--eye-param", "depth_mm=1"], ["no parameter 'depth_mm'", "height_mm (0, 5] mm"]),
+    (["--shape", "detached", "--eye-param", "height_mm=1", "--eye-param", "height_mm=2"], ["height_mm given twice"]),
+])
+def test_a_wrong_eye_parameter_is_one_line_and_nothing_is_written(command, argv, words, tmp_path, capsys):
+    out = tmp_path / "never"
+    if command == "paper":
+        argv = [("--shapes" if a == "--shape" else a) for a in argv]
+    code, stdout, err = run_main(capsys, command, *argv, "--out", out)
+    assert code == 2 and stdout == "" and err.count("\n") == 1, err
+    assert all(w in err for w in words), err
+    assert not out.exists()
+
+
+def test_paper_applies_an_eye_parameter_to_the_shapes_that_take_it_and_refuses_one_none_takes(tmp_path, capsys):
+    code, _, err = run_main(capsys, "paper", "--shapes", "emmetropic", "myopic", "--eye-param", "height_mm=3",
+                            "--out", tmp_path / "never")
+    assert code == 2 and "none of the shapes emmetropic myopic takes it" in err
+    import json
+
+    out = tmp_path / "paper"
+    code, _, _ = run_main(capsys, "paper", "--shapes", "detached", "--eye-param", "height_mm=3.5", "--stride", "50",
+                          "--grid", "40", "--jobs", "1", "--out", out)
+    assert code == 0
+    low = json.loads((out / "table2.json").read_text())["detached"]
+    code, _, _ = run_main(capsys, "paper", "--shapes", "detached", "--eye-param", "height_mm=0.5", "--stride", "50",
+                          "--grid", "40", "--jobs", "1", "--out", tmp_path / "paper2")
+    high = json.loads((tmp_path / "paper2" / "table2.json").read_text())["detached"]
+    # a 3.5 mm detachment is a larger departure from any sphere than a 0.5 mm one: the sphere fit's
+    # error over the reference region grows (the lift covers a 10 mm patch of a ~24 mm globe)
+    assert low["sf_mae"][0] > high["sf_mae"][0]

@@ -75,3 +75,12 @@ def test_bad_trocar_and_tip_targets_are_refused(scenario):
         scenario.tip_targets_W([[-9.0, 0.0, 5.0]])  # straight through the lens from the trocar
     with pytest.raises(ValueError, match="P_ET"):
         scenario.tip_targets_W([[np.nan, 0.0, 0.0]])
+
+
+def test_the_scenario_builds_its_true_eye_with_the_shape_parameters_it_is_given():
+    u = np.array([[0.0, -np.sin(np.radians(25.0)), -np.cos(np.radians(25.0))]])
+    default = SurgeryScenario(eye_name="detached", eye_params={"angle_deg": 25.0})
+    high = SurgeryScenario(eye_name="detached", eye_params={"height_mm": 3.0, "angle_deg": 25.0})
+    p_E = [s.eye_pose.to_E(s.eye.surface_points(u))[0] for s in (default, high)]
+    # the detachment's centre lifts by height_mm: 3.0 mm against the default 2.0 mm
+    assert np.linalg.norm(p_E[0]) - np.linalg.norm(p_E[1]) == pytest.approx(1.0, abs=1e-9)
