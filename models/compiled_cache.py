@@ -6,7 +6,9 @@ with its callee's old code. So the cache lives in a folder named after a digest 
 module of the project's packages: changed code gets a fresh folder and is compiled once
 (about a minute and a half), unchanged code loads in seconds. NUMBA_CACHE_DIR, if set,
 is used as it is; otherwise VITREOGUARD_CACHE_DIR (default ~/.cache/vitreoguard) holds
-the folders, and only the newest few are kept.
+the folders; a folder is removed once it is neither among the newest few nor used for a
+day (several checkouts or processes may run different sources at once: a folder in use is
+never pulled from under them).
 
 Imported first by each of the project's packages, before any compiled function is
 declared (numba reads the folder when a function is decorated).
@@ -16,12 +18,14 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import time
 from pathlib import Path
 
 import numba
 
 PACKAGES = ("models", "safety", "planning", "eval")
-KEEP = 4  # source versions whose compiled code is kept
+KEEP = 4  # source versions whose compiled code is kept whatever their age
+IDLE_S = 86_400.0  # older source versions are removed after a day without use
 
 
 def cache_root() -> Path:
@@ -49,11 +53,14 @@ def compiled_dir() -> Path:
 
 
 def _prune(folder: Path) -> None:
-    """Remove all but the KEEP most recently used source versions' folders (best effort)."""
+    """Remove the source versions' folders beyond the KEEP most recently used that have not
+    been used for IDLE_S (best effort)."""
     try:
+        now = time.time()
         old = sorted((p for p in folder.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime, reverse=True)[KEEP:]
         for p in old:
-            shutil.rmtree(p, ignore_errors=True)
+            if now - p.stat().st_mtime > IDLE_S:
+                shutil.rmtree(p, ignore_errors=True)
     except OSError:
         pass
 
