@@ -30,6 +30,8 @@ SUBCOMMAND_MODULES = (
     "eval.cli.boundary",
     "eval.cli.sensor",
     "eval.cli.plan",
+    "eval.cli.record",
+    "eval.cli.fit",
 )
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it

@@ -1,21 +1,31 @@
-"""`vitreoguard eyes`: render the six ground-truth eye shapes (3-D view and cross-section)."""
+"""`vitreoguard eyes`: render the six ground-truth eye shapes (3-D view and cross-section);
+with --stl DIR, write their lower halves as printable STL phantoms (models.eyes.mesh:
+watertight shells in mm, frame E, the inner surface the retina)."""
 from __future__ import annotations
 
 import matplotlib.pyplot as plt
 import numpy as np
 
-from eval.cli.io import prepare_out_dir, save_figure, write_json
+from eval.cli.args import add_eye_param, number
+from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES, make_eye
 from models.shapes.sampling import unit_sphere_grid
 
 # the plane of each cross-section: (in-plane horizontal axis in E, label)
+WALL = number(0.2, 5.0, "mm")
+EDGE = number(0.05, 2.0, "mm")
 _SECTION = {"staphyloma": (np.array([1.0, 0.0, 0.0]), "x (temporal)"), "detached": (np.array([0.0, 1.0, 0.0]), "y (superior)")}
 
 
 def register(sub) -> None:
     p = sub.add_parser("eyes", help="render the ground-truth eye shapes to eyes.png")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", default=None, help="output directory of eyes.png (required unless --stl)")
+    p.add_argument("--stl", default=None, metavar="DIR",
+                   help="write each shape's lower half (z <= 0 in E) as a watertight STL shell in mm to DIR/<shape>.stl")
+    add_eye_param(p)
+    p.add_argument("--wall-mm", type=WALL, default=1.0, help=f"the STL shell's wall thickness, {WALL.range}")
+    p.add_argument("--edge-mm", type=EDGE, default=0.25, help=f"the STL's facet size, {EDGE.range}")
     p.set_defaults(func=main)
 
 
@@ -60,7 +70,45 @@ def figure_eyes():
     return fig, stats
 
 
+def shape_params(pairs) -> dict:
+    """Per shape, the --eye-param pairs it takes (models.eyes.EYE_PARAMS); UsageError on a
+    name no shape takes, or a value a shape refuses."""
+    from eval.cli.args import eye_params
+    from models.eyes import EYE_PARAMS
+
+    known = {name for ps in EYE_PARAMS.values() for name in ps}
+    unknown = sorted({name for name, _ in pairs} - known)
+    if unknown:
+        raise UsageError(f"--eye-param {unknown[0]}: no shape takes it; shapes take " + ", ".join(sorted(known)))
+    return {shape: eye_params([(n, v) for n, v in pairs if n in EYE_PARAMS.get(shape, {})], shape) for shape in EYE_SHAPES}
+
+
+def write_stl(folder, params: dict, wall_mm: float, edge_mm: float) -> list:
+    """Write DIR/<shape>.stl for the six shapes (lower-half shells); returns the paths."""
+    import trimesh
+
+    from eval.cli.io import write_atomic
+    from models.eyes.mesh import lower_half_shell
+
+    paths = []
+    for name in EYE_SHAPES:
+        mesh = lower_half_shell(make_eye(name, **params[name]), wall_mm, edge_mm)
+        data = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).export(file_type="stl")
+        paths.append(write_atomic(folder / f"{name}.stl", data))
+    return paths
+
+
 def main(args) -> int:
+    if args.out is None and args.stl is None:
+        raise UsageError("give --out (eyes.png) or --stl DIR (STL phantoms), or both")
+    params = shape_params(args.eye_param)
+    if args.stl is not None:
+        folder = prepare_out_dir(args.stl)
+        with phase("meshing the six lower halves"):
+            paths = write_stl(folder, params, args.wall_mm, args.edge_mm)
+        print(f"wrote {len(paths)} STL files to {folder} (mm, eye frame E; inner surface = retina)")
+        if args.out is None:
+            return 0
     out = prepare_out_dir(args.out)
     with phase("rendering the six eye shapes"):
         fig, stats = figure_eyes()

@@ -64,6 +64,12 @@ BAD_NUMBERS = [
     ("paper", "--seeds", "0", "[1, 100]"), ("paper", "--noise-um", "-1", "[0, 500] um"),
     ("paper", "--stride", "0", "[1, 50]"), ("paper", "--grid", "5", "[10, 2000]"), ("paper", "--jobs", "0", "[1, 64]"),
     ("replay", "--tol", "-1", ">= 0 rad/s"),
+    ("record", "--time-offset-ms", "150", "[-100, 100] ms"), ("record", "--revolutions", "0.1", "[0.5, 18]"),
+    ("record", "--speed-mm-s", "0", "[1, 17] mm/s"), ("record", "--sync-s", "0.5", "[1, 10] s"),
+    ("record", "--encoder-noise-urad", "-1", "[0, 1000] urad"), ("record", "--joint-rate-hz", "10", "[50, 1000] Hz"),
+    ("record", "--seed", "-1", f"[0, {SEED_MAX}]"),
+    ("fit", "--max-offset-ms", "0", "[1, 1000] ms"), ("fit", "--icp-max-distance-mm", "9", "[0.01, 5] mm"),
+    ("eyes", "--wall-mm", "0", "[0.2, 5] mm"), ("eyes", "--edge-mm", "3", "[0.05, 2] mm"),
 ]
 
 
