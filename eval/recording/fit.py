@@ -123,7 +123,8 @@ class _Extraction:
 
 def read_recording(path, engine: OctEngine = OctEngine(), joint_topic=None, ascan_topic=None,
                    progress=None) -> tuple[JointStream, OctStream]:
-    """The joint stream and the extracted OCT stream of a bag or a CSV-pair folder."""
+    """The joint stream and the extracted OCT stream of a bag or a CSV-pair folder, both
+    clocks' stamps counted from the first joint state's (s)."""
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"--recording {p} does not exist")
@@ -136,7 +137,8 @@ def read_recording(path, engine: OctEngine = OctEngine(), joint_topic=None, asca
         joints, t_oct = read_bag(p, sink, engine.full_scale, engine.n_samples, joint_topic, ascan_topic, progress)
         d, conf = np.array(sink.d), np.array(sink.c)
     order = np.argsort(t_oct, kind="stable")
-    return joints, OctStream(t_oct[order], d[order], conf[order])
+    t0 = joints.t_s[0]  # times from the first joint state: ROS stamps are ~1.7e9 s
+    return JointStream(joints.t_s - t0, joints.q_rad), OctStream(t_oct[order] - t0, d[order], conf[order])
 
 
 def beams_W(sensor: SensorPose, Q) -> tuple[np.ndarray, np.ndarray]:

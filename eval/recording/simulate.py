@@ -23,6 +23,8 @@ from eval.recording.bag import BagWriter, counts_of
 from models.iioct import synthesize_ascan
 from planning.clock_sync import SYNC_AMPLITUDE_MM, SYNC_CARRIER_HZ, SYNC_DURATION_S, sync_joint_path
 
+# Both clocks count from the same epoch (ROS time of 2025-06-15); a stamp is never negative
+EPOCH_S = 1_750_000_000.0
 NO_RETINA_MM = 1e3  # a retina this far away lies beyond the imaging depth: the scan holds none
 # Meca500 repeatability 5 um at the tip ~300 mm from the shoulder: ~1.7e-5 rad per joint
 ENCODER_NOISE_RAD = 2e-5
@@ -116,8 +118,8 @@ def write_recording(path, spec: RecordingSpec, progress=None, block_s: float = 0
             scans = [synthesize_ascan(d if np.isfinite(d) else NO_RETINA_MM, a if np.isfinite(a) else 0.0, rng,
                                       engine=engine) for d, a in zip(d_true.tolist(), incidence.tolist())]
             # both streams in stamp order: the robot's on its clock (true time), the OCT's offset
-            events = [(float(motion.t[k]), 0, k) for k in k_j] + [(float(T_oct[k]) + spec.time_offset_s, 1, i)
-                                                                   for i, k in enumerate(k_o)]
+            events = [(EPOCH_S + float(motion.t[k]), 0, k) for k in k_j] + [
+                (EPOCH_S + float(T_oct[k]) + spec.time_offset_s, 1, i) for i, k in enumerate(k_o)]
             for stamp, kind, k in sorted(events):
                 if kind == 0:
                     bag.joints(stamp, Q_reported[k])
@@ -145,6 +147,7 @@ def truth_of(spec: RecordingSpec, scenario, robot, motion: TrueMotion, n_ascans:
         "sensor": poses,
         "calibration_error": {"sensor_offset_S_mm": scenario.sensor_offset_S_mm.tolist(),
                               "sensor_rotvec_S_rad": scenario.sensor_rotvec_S_rad.tolist()},
+        "clock_epoch_s": EPOCH_S,
         "sync_true_s": [motion.sync_start_s, motion.sync_end_s],
         "duration_s": float(motion.t[-1]), "n_joint_states": len(motion.t), "n_ascans": n_ascans,
     })

@@ -152,3 +152,38 @@ def test_record_refuses_bad_flags_and_writes_nothing(tmp_path, capsys):
     out = tmp_path / "rec"
     _refused(capsys, ["record", "--out", str(out), "--time-offset-ms", "150"], out, "--time-offset-ms")
     _refused(capsys, ["record", "--out", str(out), "--shape", "myopic", "--eye-param", "height_mm=3"], out, "height_mm")
+
+
+def test_a_csv_pair_with_extracted_distances_is_fitted(tmp_path):
+    """joints.csv + oct.csv (distances the rig extracted): the offset within 0.5 ms."""
+    from eval.recording.simulate import RecordingSpec, scenario_of, true_motion
+    from planning import Robot
+    from planning.iioct import IioctSensor
+
+    spec = RecordingSpec(shape="hyperopic", revolutions=1.0, pitch_mm=9.0, sync_s=2.0)
+    scenario = scenario_of(spec)
+    robot = Robot(scenario)
+    motion = true_motion(robot, scenario, spec)
+    rng = np.random.default_rng(1)
+    T = np.arange(0.0, motion.t[-1], 5e-4)
+    Qt = np.column_stack([np.interp(T, motion.t, motion.q[:, i]) for i in range(6)])
+    d = IioctSensor(robot, mode="ascan").true_geometry(Qt)[0] + 0.01 * rng.standard_normal(len(T))
+    folder = tmp_path / "csv"
+    folder.mkdir()
+    q = motion.q + 2e-5 * rng.standard_normal(motion.q.shape)
+    np.savetxt(folder / "joints.csv", np.column_stack([motion.t, q]), delimiter=",", comments="",
+               header="t_s," + ",".join(f"q{k}_rad" for k in range(1, 7)))
+    np.savetxt(folder / "oct.csv", np.column_stack([T + 0.0088, d]), delimiter=",", comments="", header="t_s,distance_mm")
+    out = tmp_path / "fit"
+    assert main(["fit", "--recording", str(folder), "--out", str(out)]) == 0
+    r = json.loads((out / "fit.json").read_text())
+    assert abs(r["time_offset_ms"] - 8.8) < 0.5 and r["kind"] in ("sphere", "ellipsoid")
+
+
+def test_a_csv_pair_in_degrees_is_refused(tmp_path, capsys):
+    folder = tmp_path / "csv"
+    folder.mkdir()
+    (folder / "joints.csv").write_text("t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg\n0,1,2,3,4,5,6\n")
+    (folder / "oct.csv").write_text("t_s,distance_mm\n0,10\n")
+    out = tmp_path / "out"
+    _refused(capsys, ["fit", "--recording", str(folder), "--out", str(out)], out, "q1_rad")
