@@ -113,6 +113,7 @@ class ClosedLoop:
 
     def __init__(self, scenario, config: LoopConfig = LoopConfig(), sensor_seed: int = 0, floater_rate: float = 0.0):
         self.scenario, self.config = scenario, config
+        self._construction = (scenario, config, sensor_seed, floater_rate)
         self.robot = Robot(scenario)
         self.prior = conservative_prior(scenario.eye_pose.p_WE)
         builder = DiagramBuilder()
@@ -138,16 +139,25 @@ class ClosedLoop:
         self.diagram = builder.Build()
         self.simulator = Simulator(self.diagram)
 
+    def __reduce__(self):
+        """Pickled as its construction: a worker process builds its own diagram (the compiled
+        kernels load from numba's cache)."""
+        return (ClosedLoop, self._construction)
+
     def run(self, source, q0, duration_s: float, model: AdaptiveEyeModel | None = None,
-            coverage: DirectionCoverage | None = None, logger=None) -> LoopRun:
+            coverage: DirectionCoverage | None = None, logger=None, sensor_seed=None) -> LoopRun:
         """Simulate `duration_s` s from joint angles q0 (6,) rad under the command `source`
         (eval.experiments.command_sources), continuing `model` and its `coverage` (fresh ones if None; both
-        updated in place). Logs to `logger` (eval.log.writer.RunLogger) when given."""
+        updated in place). Logs to `logger` (eval.log.writer.RunLogger) when given. `sensor_seed`
+        (an int or a numpy SeedSequence): the sensor's draws start from it (None: they go on
+        from the previous run's)."""
         q0 = np.asarray(q0, dtype=float)
         if q0.shape != (6,) or not np.all(np.isfinite(q0)):
             raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")
         if not (np.isfinite(duration_s) and duration_s > 0):
             raise ValueError(f"duration_s must be > 0 s, got {duration_s}")
+        if sensor_seed is not None:
+            self.sensor.reseed(sensor_seed)
         self.filter.reset(source, logger)
         self.model.reset(AdaptiveEyeModel() if model is None else model,
                          self.new_coverage() if coverage is None else coverage, logger)

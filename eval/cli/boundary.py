@@ -16,6 +16,7 @@ import numpy as np
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase, progress_bar
+from eval.cli.workers import add_worker_flags, workers_of
 from models.eyes import EYE_SHAPES
 
 COMPILE_PHASE = "compiling / loading the control loop's kernels"
@@ -45,6 +46,7 @@ def register(sub) -> None:
     p.add_argument("--sensor-mode", choices=("distance", "ascan"), default="distance",
                    help="iiOCT in the loop: extractor error model (fast) or full A-scans")
     p.add_argument("--out", default="out/boundary", help="output directory")
+    add_worker_flags(p)
     p.set_defaults(func=main)
 
 
@@ -75,9 +77,15 @@ def make_loop(scenario, config=None, **kwargs):
         return ClosedLoop(scenario, LoopConfig() if config is None else config, **kwargs)
 
 
-def run_boundary(args, out, keep_build: bool = False):
+def bar_progress(bar):
+    """A campaign's progress(done, total) callback that moves the tqdm `bar` to `done`."""
+    return lambda done, total: bar.update(done - bar.n)
+
+
+def run_boundary(args, out, keep_build: bool = False, workers=None):
     """The experiment of `args` (validated); writes logs and plots into `out`; returns
-    boundary.json's content (a BoundaryRun with `keep_build`). Progress goes to stderr."""
+    boundary.json's content (a BoundaryRun with `keep_build`). The scenarios run on
+    `workers` (eval.experiments.campaign.Workers; None: this process). Progress goes to stderr."""
     from eval.experiments.boundary import build_model_by_spiral, run_campaign
     from eval.closed_loop import LoopConfig
     from eval.log.writer import RunLogger
@@ -89,18 +97,18 @@ def run_boundary(args, out, keep_build: bool = False):
     pitch_mm = 9.0 / args.spiral_revolutions
     with RunLogger(out / "spiral.mcap", config.filter, metadata={**meta, "run": "spiral"}) as log:
         build = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=args.spiral_revolutions,
-                                      logger=log, progress=f"spiral scan ({args.shape} eye)")
+                                      logger=log, progress=f"spiral scan ({args.shape} eye)", sensor_seed=args.seed)
     with RunLogger(out / "boundary.mcap", config.filter, metadata={**meta, "run": "adversarial scenario 0"}) as log, \
             progress_bar(args.scenarios, "adversarial scenarios", unit="scenario") as bar:
         campaign = run_campaign(loop, build.model, build.coverage, args.scenarios, args.seed, args.duration_s, logger=log,
-                                progress=lambda i, n: bar.update())
+                                progress=bar_progress(bar), workers=workers)
     sphere = None
     if args.sphere_scenarios:
         partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=1.5,
-                                        progress="sphere phase: spiral of 1.5 turns")
+                                        progress="sphere phase: spiral of 1.5 turns", sensor_seed=[args.seed, 1])
         with progress_bar(args.sphere_scenarios, "sphere-phase scenarios", unit="scenario") as bar:
             sphere_campaign = run_campaign(loop, partial.model, partial.coverage, args.sphere_scenarios, args.seed + 1,
-                                           args.duration_s, progress=lambda i, n: bar.update())
+                                           args.duration_s, progress=bar_progress(bar), workers=workers)
         sphere = {"model_kind": partial.kind_final, "sf_mae_um": partial.sf_mae_um, **sphere_campaign.summary()}
     s = campaign.summary()
     spiral = build.run
@@ -129,8 +137,9 @@ def run_boundary(args, out, keep_build: bool = False):
 
 def main(args) -> int:
     validate(args)
+    workers = workers_of(args)
     out = prepare_out_dir(args.out)
-    result = run_boundary(args, out)
+    result = run_boundary(args, out, workers=workers)
     write_json(out / "boundary.json", result)
     print(f"\n{'scenarios':24s} {result['scenarios']}")
     for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import multiprocessing
-import os
 import signal
 
 import numpy as np
@@ -12,6 +11,7 @@ from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_atomic, 
 from eval.experiments.paper import ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, decision, optimal_transition, run_shape
 from eval.experiments.paper_figures import fig5
 from eval.cli.progress import progress_bar
+from eval.cli.workers import add_worker_flags
 from models.adaptive.transition import CRITERIA
 from models.eyes import EYE_SHAPES, EyePose
 from models.fit.robust_fit import RobustFitConfig
@@ -25,7 +25,6 @@ SEEDS = integer(1, 100)
 NOISE_UM = number(0.0, 500.0, "um")
 STRIDE = integer(1, 50)
 GRID = integer(10, 2000)
-JOBS = integer(1, 64)
 
 
 def register(sub) -> None:
@@ -45,7 +44,7 @@ def register(sub) -> None:
                    help=f"use every k-th A-scan of the 5,093, {STRIDE.range} (1: all)")
     p.add_argument("--grid", type=GRID, default=500,
                    help=f"n x n sampling of the surfaces for Table 2, n in {GRID.range} (paper: 500)")
-    p.add_argument("--jobs", type=JOBS, default=min(2, os.cpu_count() or 1), help=f"worker processes, {JOBS.range}")
+    add_worker_flags(p, ray=False)
     p.set_defaults(func=main)
 
 

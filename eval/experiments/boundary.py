@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from eval.closed_loop import ClosedLoop, LoopRun
+from eval.experiments.campaign import Workers, run_tasks, scenario_seed
 from eval.experiments.command_sources import AdversarialCommand, TipPathCommand
 from eval.cli.progress import progress_bar
 from models import AdaptiveEyeModel
@@ -68,12 +69,13 @@ def run_with_progress(loop: ClosedLoop, source, q0, duration_s: float, desc: str
 
 def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: float = 1.5,
                           revolutions: float = 6.0, logger=None, truth_grid: int = 100,
-                          progress: str | None = None) -> SpiralBuild:
+                          progress: str | None = None, sensor_seed=None) -> SpiralBuild:
     """Scan the spiral (pitch, revolutions) at `speed_mm_s` through `loop` from the IK
     posture at its start, building a fresh AdaptiveEyeModel from the sensor's points;
     MAEs in the exact form against a truth_grid^2 sampling of the true retina.
     `progress`: the label of a progress bar (eval.cli.progress, stderr) over the scan's
-    simulated seconds, or None for none."""
+    simulated seconds, or None for none. `sensor_seed`: the sensor's draws start from it
+    (ClosedLoop.run; None: they go on from the loop's previous run)."""
     scenario = loop.scenario
     P = spiral_path_W(scenario, pitch_mm, revolutions)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
@@ -84,7 +86,7 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: 
     q0 = start_posture(loop.robot, P[0], scenario.p_WC)
     model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), loop.new_coverage()
     run = run_with_progress(loop, path, q0, float(times[-1]) + 0.05, progress, model=model, coverage=coverage,
-                            logger=logger)
+                            logger=logger, sensor_seed=sensor_seed)
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)
     trans = _transition_fraction(run, times[-1])
     return SpiralBuild(model, coverage, run, model.kind,
@@ -190,20 +192,42 @@ def _quantiles(x: np.ndarray) -> dict:
     return {"median": float(np.median(x)), "p99": float(np.percentile(x, 99))}
 
 
-def run_campaign(loop: ClosedLoop, model, coverage, n: int, seed: int, duration_s: float = SCENARIO_S,
-                 logger=None, log_runs: int = 1, progress=None) -> Campaign:
-    """n adversarial scenarios of `duration_s` against copies of `model` and its
-    `coverage` (each starts from the same state), seeded; the first `log_runs` go to `logger`."""
-    rng = np.random.default_rng(seed)
-    starts = adversarial_starts(loop, model.shape, n, rng)
-    scenario = loop.scenario
-    campaign = Campaign()
-    for i, q0 in enumerate(starts):
-        adversary = AdversarialCommand(seed * 100003 + i, scenario.eye_pose.p_WE, scenario.lens_W.center,
-                                       loop.config.filter.max_tip_speed_mm_s)
-        campaign.add(loop.run(adversary, q0, duration_s, model=copy.deepcopy(model), coverage=copy.deepcopy(coverage),
-                              logger=logger if i < log_runs else None))
-        if progress is not None:
-            progress(i + 1, n)
-    return campaign
+@dataclass(frozen=True)
+class AdversarialScenario:
+    """Scenario `index` of a campaign (a task of eval.experiments.campaign): a start posture,
+    an adversary and the sensor's draws from scenario_seed(seed, index), `duration_s` s
+    against a copy of `model` and its `coverage`."""
 
+    model: object
+    coverage: object
+    seed: int
+    duration_s: float = SCENARIO_S
+
+    def __call__(self, loop: ClosedLoop, index: int, logger=None) -> LoopRun:
+        start, adversary, sensor = scenario_seed(self.seed, index).spawn(3)
+        q0 = adversarial_starts(loop, self.model.shape, 1, np.random.default_rng(start))[0]
+        scenario = loop.scenario
+        command = AdversarialCommand(adversary, scenario.eye_pose.p_WE, scenario.lens_W.center,
+                                     loop.config.filter.max_tip_speed_mm_s)
+        return loop.run(command, q0, self.duration_s, model=copy.deepcopy(self.model),
+                        coverage=copy.deepcopy(self.coverage), logger=logger, sensor_seed=sensor)
+
+
+def run_campaign(loop: ClosedLoop, model, coverage, n: int, seed: int, duration_s: float = SCENARIO_S,
+                 logger=None, log_runs: int = 1, progress=None, workers: Workers | None = None) -> Campaign:
+    """n adversarial scenarios (AdversarialScenario) of `duration_s` against copies of
+    `model` and its `coverage` (each starts from the same state), seeded per scenario; the
+    first `log_runs` run here and go to `logger`, the others run on `workers`
+    (eval.experiments.campaign.Workers): the same campaign whatever the workers.
+    `progress(done, n)` as scenarios finish."""
+    task, workers = AdversarialScenario(model, coverage, int(seed), float(duration_s)), workers or Workers()
+    logged = min(n, log_runs) if logger is not None else 0
+    runs = [task(loop, i, logger) for i in range(logged)]
+    if progress is not None and logged:
+        progress(logged, n)
+    runs += run_tasks(loop, task, range(logged, n), workers,
+                      None if progress is None else (lambda done, total: progress(logged + done, n)))
+    campaign = Campaign()
+    for run in runs:
+        campaign.add(run)
+    return campaign

@@ -156,7 +156,7 @@ def plan_jobs(args) -> dict:
         for shape in args.shapes:
             d = out / "boundary" / shape
             jobs[f"boundary-{shape}"] = (["boundary", "--shape", shape, "--scenarios", str(args.scenarios),
-                                          "--sphere-scenarios", str(sphere), "--seed", str(SEED), "--out", str(d)],
+                                          "--sphere-scenarios", str(sphere), "--seed", str(SEED), "--jobs", "1", "--out", str(d)],
                                          d, d / "boundary.json")
     if "plan" not in args.skip:
         d = out / "plan"

@@ -89,6 +89,11 @@ class IioctSensor:
             all_finite(q, q)
             self.distance_arrays(q, q, np.zeros(1), np.zeros(1), np.zeros((2, 1)))
 
+    def reseed(self, seed) -> None:
+        """Draw speckle, noise and errors from `seed` (an int or a numpy SeedSequence) from
+        here on: a run seeded alone does not depend on the runs before it."""
+        self._rng = np.random.default_rng(seed)
+
     def reported_beams(self, Q_reported) -> tuple[np.ndarray, np.ndarray]:
         """(origins (M, 3) mm, unit directions (M, 3)) in W of the calibrated beam at the
         reported joint angles Q_reported (M, 6) rad, finite (plus the encoder noise, drawn

@@ -13,11 +13,16 @@ KEYS = {"scenarios", "violations", "contacts", "min_true_clearance_mm", "interve
         "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor"}
 
 
+REDUCED = ["--scenarios", "3", "--sphere-scenarios", "2", "--duration-s", "0.3", "--spiral-revolutions", "2"]
+# figures that depend on the simulation alone, not on wall time: the same whatever runs the scenarios
+SIMULATED = ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
+             "failsafe_stops", "lens_violations", "max_rcm_error_um", "free_tracking_error_p99")
+
+
 @pytest.fixture(scope="module")
 def boundary_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("boundary")
-    code = main(["boundary", "--scenarios", "3", "--sphere-scenarios", "2", "--duration-s", "0.3",
-                 "--spiral-revolutions", "2", "--out", str(out)])
+    code = main(["boundary", *REDUCED, "--jobs", "2", "--out", str(out)])
     return code, out
 
 
@@ -35,6 +40,17 @@ def test_boundary_writes_the_contract(boundary_run):
     assert r["sphere_phase"]["scenarios"] == 2 and r["sphere_phase"]["violations"] == 0
     for name in ("boundary_clearance.png", "boundary_activity.png", "spiral.mcap", "boundary.mcap"):
         assert (out / name).stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_one_worker_gives_the_figures_of_two(boundary_run, tmp_path):
+    _, out = boundary_run
+    assert main(["boundary", *REDUCED, "--jobs", "1", "--out", str(tmp_path)]) == 0
+    one, two = (json.loads((d / "boundary.json").read_text()) for d in (tmp_path, out))
+    for part in (lambda r: r, lambda r: r["sphere_phase"]):
+        for key in SIMULATED:
+            assert part(one)[key] == pytest.approx(part(two)[key], abs=1e-12, rel=0), key
+    assert one["model"] == two["model"]
 
 
 def test_the_first_scenario_log_replays(boundary_run):

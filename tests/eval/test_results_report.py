@@ -92,7 +92,7 @@ def test_each_table_names_its_command_date_and_version(report):
     today = dt.date.today().isoformat()
     version = rr.package_version()
     commands = {"Virtual boundary: safety": "`vitreoguard boundary --shape emmetropic --scenarios 2 --sphere-scenarios 0 "
-                                            "--seed 11 --out", "Peripheral vitrectomy plan: band": "`vitreoguard plan "
+                                            "--seed 11 --jobs 1 --out", "Peripheral vitrectomy plan: band": "`vitreoguard plan "
                 "--shape emmetropic", "iiOCT sensor chain": "`vitreoguard sensor --shape emmetropic"}
     for title, command in commands.items():
         line = found[title][0]
