@@ -76,7 +76,7 @@ class LoopRun:
     command_wall_s: float = 0.0
     model_wall_s: float = 0.0
     filter_wall_s: float = 0.0
-    logged: bool = False  # every step went to an MCAP log (RunLogger): JSON per step, ~1 x real time
+    logged: bool = False  # every step went to an MCAP log (RunLogger): slower than an unlogged run
 
     @property
     def duration_s(self) -> float:

@@ -167,7 +167,7 @@ class Campaign:
             "solve_us": _quantiles(solve),
             "drake_diffik_us": _quantiles(drake),
             "realtime_factor": sim / wall if wall > 0 else None,
-            # the same without the run logged step by step for replay (the first; ~1 x real time)
+            # the same without the run logged step by step for replay (the first)
             "realtime_factor_unlogged": sim_unlogged / wall_unlogged if wall_unlogged > 0 else None,
             "free_tracking_error_p99": float(np.percentile(free_rel, 99)) if len(free_rel) else 0.0,
             "lens_violations": int(sum(np.min(r.lens_clearance_mm) < 0.0 for r in runs)),

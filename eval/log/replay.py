@@ -1,9 +1,12 @@
 """The regression harness: re-run the safety filter on a run log's inputs and compare.
 
-Each logged step ("/filter/inputs", "/filter/outputs", "/filter/status", paired by their
-`step` number) is rebuilt into FilterInputs and filtered again with the logged
+Each logged step is rebuilt into FilterInputs and filtered again with the logged
 configuration ("/filter/config"); a step matches when the joint rates agree within
 `tol` (rad/s, max abs difference) and ok, reason and the cutter interlock are equal.
+A closed loop's log holds compact "/filter/step" records (eval.log.steps), whose
+kinematics are rebuilt on the robot of its "/filter/setup"; a log written through
+RunLogger.log_filter_step holds every input ("/filter/inputs", "/filter/outputs",
+"/filter/status", paired by their `step` number). Both replay.
 """
 from __future__ import annotations
 
@@ -12,11 +15,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from eval.log import codec
+from eval.log import codec, steps
 from eval.log.writer import LogReadError, read_log
 from safety import SafetyFilter
 
 TOPICS = ("/filter/config", "/filter/inputs", "/filter/outputs", "/filter/status")
+COMPACT_TOPICS = (steps.STEP_TOPIC, steps.MODELS_TOPIC, steps.SETUP_TOPIC)
 MAX_REPORTED_MISMATCHES = 20
 
 
@@ -91,7 +95,7 @@ def replay(path, tol: float = 1e-9, allow_truncated: bool = False) -> ReplayResu
     (a truncated log only with `allow_truncated`). `tol`: rad/s, finite, >= 0."""
     if not (math.isfinite(tol) and tol >= 0):
         raise ValueError(f"tol must be finite and >= 0 rad/s, got {tol}")
-    log = read_log(path, topics=TOPICS, allow_truncated=allow_truncated)
+    log = read_log(path, topics=TOPICS + COMPACT_TOPICS, allow_truncated=allow_truncated)
     configs = log.messages.get("/filter/config", [])
     if len(configs) != 1:
         raise LogReadError(f"{path}: expected one /filter/config message, found {len(configs)}")
@@ -99,15 +103,9 @@ def replay(path, tol: float = 1e-9, allow_truncated: bool = False) -> ReplayResu
         filt = SafetyFilter(codec.config_from_json(configs[0][1]))
     except ValueError as exc:
         raise LogReadError(f"{path}: /filter/config: {exc}") from None
-    steps = _logged_steps(log)
-    rebuilt = []
-    for s, logged_in, logged_out, logged_status in steps:  # decode all before running any
-        try:
-            rebuilt.append(codec.inputs_from_json(logged_in))
-        except ValueError as exc:
-            raise LogReadError(f"{path}: /filter/inputs step {s}: {exc}") from None
+    logged = _compact_steps(log, path) if log.count(steps.STEP_TOPIC) else _json_steps(log, path)
     max_diff, mismatches, examples = 0.0, 0, []
-    for (s, logged_in, logged_out, logged_status), x in zip(steps, rebuilt):
+    for s, x, logged_out, logged_status in logged:
         d, diffs = _compare(s, logged_out, logged_status, filt(x))
         if math.isfinite(d):
             max_diff = max(max_diff, d)
@@ -116,5 +114,48 @@ def replay(path, tol: float = 1e-9, allow_truncated: bool = False) -> ReplayResu
         if diffs:
             mismatches += 1
             if len(examples) < MAX_REPORTED_MISMATCHES:
-                examples.append({"step": s, "t": logged_in.get("t"), "differences": diffs})
-    return ReplayResult(len(steps), mismatches, max_diff, log.truncated, examples)
+                examples.append({"step": s, "t": x.t_s, "differences": diffs})
+    return ReplayResult(len(logged), mismatches, max_diff, log.truncated, examples)
+
+
+def _json_steps(log, path) -> list:
+    """(step, FilterInputs, outputs, status) of the /filter/inputs records, all decoded before any runs."""
+    out = []
+    for s, logged_in, logged_out, logged_status in _logged_steps(log):
+        try:
+            out.append((s, codec.inputs_from_json(logged_in), logged_out, logged_status))
+        except ValueError as exc:
+            raise LogReadError(f"{path}: /filter/inputs step {s}: {exc}") from None
+    return out
+
+
+def _compact_steps(log, path) -> list:
+    """(step, FilterInputs, outputs, status) of the /filter/step records: the kinematics
+    rebuilt on the robot of /filter/setup (eval.systems.inputs.StepInputs, the loop's own)."""
+    from eval.systems.inputs import StepInputs
+    from planning.robot import Robot
+
+    setups = log.messages.get(steps.SETUP_TOPIC, [])
+    if len(setups) != 1:
+        raise LogReadError(f"{path}: /filter/step records need one /filter/setup message, found {len(setups)}")
+    try:
+        scenario, points = steps.setup_from_json(setups[0][1])
+        models = {m["index"]: (codec.shape_from_json(m["shape"], "/filter/models shape"), m["kind"])
+                  for _, m in log.messages.get(steps.MODELS_TOPIC, [])}
+    except (ValueError, KeyError, TypeError) as exc:
+        raise LogReadError(f"{path}: {exc}") from None
+    build = StepInputs(Robot(scenario), points)
+    out = []
+    for _, data in log.messages[steps.STEP_TOPIC]:
+        try:
+            m = steps.decode_step(data)
+            if m.model_index not in models:
+                raise ValueError(f"model {m.model_index} is not on /filter/models")
+            shape, kind = models[m.model_index]
+            x = build(m.t, np.array(m.q), np.array([*m.v_cmd_W, m.roll_rate_cmd]), shape, kind, m.model_time_s,
+                      m.sensor_time_s, m.margin_mm, np.array(m.trusted, dtype=bool), np.array(m.misfit_mm))
+        except ValueError as exc:
+            raise LogReadError(f"{path}: /filter/step {len(out)}: {exc}") from None
+        out.append((m.step, x, {"qdot": list(m.qdot)},
+                    {"ok": m.ok, "reason": m.reason, "cutter_allowed": m.cutter_allowed}))
+    return out

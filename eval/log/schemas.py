@@ -74,6 +74,13 @@ CHANNELS = {
     "/filter/status": ("vitreoguard.FilterStatus", obj(
         "filter activity", ("t", "step", "ok", "reason"), t=SIM_TIME, step=INT, ok=BOOL, reason=STR, active=arr(STR),
         n_active=INT, min_clearance_mm=OPT_NUM, cutter_allowed=BOOL, intervened=BOOL, solve_us=NUM)),
+    "/filter/setup": ("vitreoguard.FilterSetup", obj(
+        "the closed loop's scenario (planning.SurgeryScenario fields) and monitored points: replay rebuilds the "
+        "kinematics of /filter/step records from them", ("scenario", "points"), scenario={"type": "object"},
+        points={"type": "object"}, trust_angle_deg=NUM, misfit_angle_deg=NUM)),
+    "/filter/models": ("vitreoguard.FilterModel", obj(
+        "the model the filter used from time t on (W, mm); /filter/step's model_index names it",
+        ("t", "index", "kind"), t=SIM_TIME, index=INT, kind={"type": ["string", "null"]}, shape=SHAPE)),
     "/clearance": ("vitreoguard.Clearance", obj(
         "model clearance of the tip and cutter port (mm; > 0 inside); *_true_mm against the true retina",
         ("t",), t=SIM_TIME, tip_mm=OPT_NUM, port_mm=OPT_NUM, tip_true_mm=OPT_NUM, port_true_mm=OPT_NUM)),

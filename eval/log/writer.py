@@ -39,6 +39,7 @@ from mcap.stream_reader import StreamReader
 from eval.interrupts import is_interrupt
 from eval.log import codec
 from eval.log import scene
+from eval.log import steps as step_records
 from eval.log.scene import M_PER_MM, quaternion_xyzw  # noqa: F401  (part of this module's interface)
 from eval.log.schemas import CHANNELS
 from safety import FilterConfig, FilterInputs, FilterOutput
@@ -102,6 +103,10 @@ class RunLogger:
                                          message_encoding="json", context=context)
                           for topic, (name, schema) in CHANNELS.items()}
         self._foxglove = {topic: cls(topic, context=context) for topic, cls in _FOXGLOVE_CHANNELS.items()}
+        self._step_channel = Channel(step_records.STEP_TOPIC, schema=Schema(
+            name=step_records.STEP_TYPE, encoding="protobuf", data=step_records.FILTER_STEP_SCHEMA),
+            message_encoding="protobuf", context=context)
+        self._setup_logged, self._models = False, []  # the models logged on /filter/models, by index
         self._writer.write_metadata("time", {"start_time_ns": str(self.start_ns),
                                              "log_time": "start_time_ns + simulation time (ns)"})
         if metadata:
@@ -211,6 +216,52 @@ class RunLogger:
         self._write("/clearance", ns, {"t": t, **self._clearances(inputs, true_eye)})
         self.steps += 1
         self._maybe_flush(ns)
+
+    def log_setup(self, setup: dict) -> None:
+        """The closed loop's scenario and monitored points (eval.log.steps.setup_to_json),
+        once per log: what replay rebuilds the kinematics of log_step's records with."""
+        if not self._setup_logged:
+            self._write("/filter/setup", self._last_ns, setup)
+            self._setup_logged = True
+
+    def _model_index(self, ns: int, t_s: float, shape, kind: str | None) -> int:
+        """The index of (shape, kind) on /filter/models, logging it when it is not the last one."""
+        last = self._models[-1] if self._models else None
+        if last is None or last[0] is not shape or last[1] != kind:
+            self._models.append((shape, kind))
+            self._write("/filter/models", ns, {"t": float(t_s), "index": len(self._models) - 1, "kind": kind,
+                                               "shape": codec.shape_to_json(shape)})
+        return len(self._models) - 1
+
+    def log_step(self, t_s, q, command, shape, kind: str | None, model_time_s: float, sensor_time_s: float,
+                 margin_mm: float, trusted, misfit_mm, output) -> None:
+        """One closed-loop filter step as a compact record on /filter/step (eval.log.steps):
+        joint angles q (6,) rad, `command` (4,) [v_W mm/s, roll rad/s], the model `shape`
+        and `kind` (None: the prior) the filter used, the model's and sensor's times (s),
+        `margin_mm`, the boundary points' `trusted` flags and `misfit_mm`, and the filter's
+        `output` (safety.FilterOutput). Needs log_setup first (replay needs it)."""
+        if not self._setup_logged:
+            raise ValueError("log_setup must come before the first log_step: replay rebuilds the kinematics from it")
+        ns = time_ns(t_s)
+        index = self._model_index(ns, t_s, shape, kind)
+        if self._closed:
+            raise ValueError(f"the run log {self.path} is closed")
+        self._last_ns = ns
+        self._step_channel.log(step_records.encode_step(self.steps, float(t_s), q, command, index, model_time_s,
+                                                        sensor_time_s, margin_mm, trusted, misfit_mm, output),
+                               log_time=self.start_ns + ns)
+        self.steps += 1
+        self._maybe_flush(ns)
+
+    def log_clearance(self, t_s, p_W_tip_port, model, true_eye=None) -> None:
+        """"/clearance": the model's (and `true_eye`'s, when given) clearance of the tip and
+        the port at p_W_tip_port (2, 3) mm."""
+        P = np.asarray(p_W_tip_port, dtype=float)
+        out = {}
+        for suffix, shape in (("_mm", model), ("_true_mm", true_eye)):
+            h = shape.signed_distance(P) if shape is not None and np.isfinite(P).all() else (None, None)
+            out.update({"tip" + suffix: _opt(h[0]), "port" + suffix: _opt(h[1])})
+        self._log("/clearance", time_ns(t_s), {"t": float(t_s), **out})
 
     @staticmethod
     def _clearances(inputs: FilterInputs, true_eye) -> dict:

@@ -22,19 +22,19 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
+from eval.log.steps import setup_to_json
 from eval.loop_config import LoopConfig
+from eval.systems.inputs import StepInputs
 from eval.systems.model import ModelSnapshot
 from models.adaptive.coverage import band_chord
 from models.adaptive.model_field import ModelField, model_field_kernel
 from planning.chain import frame_position
 from planning.diffik import DrakeDiffIK
-from planning.instrument_points import instrument_points
 from planning.robot import RCM_GAIN_PER_S, Robot
 from planning.scan import start_posture
 from planning.step_kinematics import GROUP_CAPACITY, POINT_GROUPS, point_names, step_kinematics, step_kinematics_params
-from safety import ConstraintStack, FilterInputs, PointKinematics, default_constraints
+from safety import ConstraintStack, default_constraints
 from safety.constraints import RcmEquality
-from safety.constraints.rcm import fill_rcm
 
 JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
 
@@ -96,7 +96,8 @@ class FilterSystem(LeafSystem):
         self.constraints = loop_constraints(robot, config)
         self.lens = robot.scenario.lens_W
         lens = self.lens.field_kernel()  # the keep-out ellipsoid's own distance field
-        self._rcm = next(c for c in self.constraints if isinstance(c, RcmEquality))
+        self.step_inputs = StepInputs(robot, config.points, prior)
+        self._trust_angle_rad, self._misfit_angle_rad = np.radians(config.trust_angle_deg), np.radians(config.misfit_angle_deg)
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
                                      {"eye": model_field_kernel, "eye_shaft": model_field_kernel,
                                       "lens": lens.kernel}, config.filter, kinematics=step_kinematics,
@@ -142,6 +143,9 @@ class FilterSystem(LeafSystem):
         """A new run: the command source (called source(t_s, p_WT, q) -> (v_W (3,) mm/s,
         roll rad/s) once per step, in time order) and the run's logger (or None)."""
         self.source, self.logger, self.record = source, logger, StepRecord()
+        if logger is not None:
+            logger.log_setup(setup_to_json(self.robot.scenario, self.config.points, self.config.trust_angle_deg,
+                                           self.config.misfit_angle_deg))
         self.wall_s = 0.0  # wall time (s) of its steps since the reset (command source, records and log included)
         self.command_wall_s = 0.0  # of which in the command source
         self.stack.reset()
@@ -170,30 +174,25 @@ class FilterSystem(LeafSystem):
         return out, P, ranges, J_tip, rcm_error
 
     def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
-        """(FilterInputs, InstrumentPoints) of one step, as the log records it for replay;
+        """(FilterInputs, InstrumentPoints) of one step, as replay rebuilds it from the log;
         ValueError on bad joint angles."""
-        robot = self.robot
-        ip = instrument_points(robot, q, robot.p_WC, self.config.points)
-        model, kind = (self.prior, None) if snap.shape is None else (snap.shape, snap.kind)
-        k = 2 if kind is None else len(ip.names)
-        rcm_A, rcm_b = np.zeros((2, 6)), np.zeros(2)
-        fill_rcm(self._rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, rcm_A, rcm_b, 0)  # the loop's RCM rows
+        ip = self.step_inputs.points_at(q)
+        kind = None if snap.shape is None else snap.kind
+        trusted, misfit = self._trust(kind, snap, ip.P_W[:StepInputs.boundary_count(kind, ip)])
+        x = self.step_inputs(t_s, q, command, snap.shape, kind, t_s if kind is None else snap.t_s, sensor_t_s,
+                             snap.margin_mm(self.config.margins), trusted, misfit, ip)
+        return x, ip
+
+    def _trust(self, kind: str | None, snap: ModelSnapshot, P_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(trusted flags, measured misfit mm) of the boundary points P_W (k, 3): the tip and
+        the port are trusted within trust_angle_deg of the measured directions; misfit
+        within misfit_angle_deg (none against the prior)."""
+        k = len(P_W)
         trusted, misfit = np.ones(k, dtype=bool), np.zeros(k)
         if kind is not None and snap.coverage is not None:
-            trusted[:2] = snap.coverage.angle_from_data_rad(ip.P_W[:2]) <= np.radians(self.config.trust_angle_deg)
-            misfit = snap.coverage.local_misfit_mm(ip.P_W[:k], np.radians(self.config.misfit_angle_deg))
-        x = FilterInputs(
-            t_s=t_s, q=np.array(q), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,
-            v_cmd_W=np.array(command[:3]), J_tip=ip.J_tip,
-            boundary_points=[PointKinematics(n, p, J, bool(tr), float(m))
-                             for n, p, J, tr, m in zip(ip.names[:k], ip.P_W[:k], ip.J_W[:k], trusted, misfit)],
-            model=model, model_time_s=t_s if kind is None else snap.t_s, sensor_time_s=sensor_t_s,
-            rcm_A=rcm_A, rcm_b=rcm_b, lens=self.lens,
-            lens_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.lens_names, ip.L_W, ip.J_L)],
-            margin_mm=snap.margin_mm(self.config.margins), J_roll=ip.J_roll,
-            roll_rate_cmd=float(command[3]), fallback=None if kind is None else self.prior,
-        )
-        return x, ip
+            angle, misfit = snap.coverage.angle_and_misfit(P_W, self._misfit_angle_rad, 2)
+            trusted[:2] = angle <= self._trust_angle_rad
+        return trusted, misfit
 
     def _update(self, context, discrete_state) -> None:
         if context.get_time() < self._skip_before_s:  # before the first packet: qdot stays 0
@@ -243,18 +242,22 @@ class FilterSystem(LeafSystem):
             rec.drake_diffik_us.append(1e6 * (time.perf_counter() - t1))
 
     def _log(self, t: float, q, command, snap, sensor_t: float, out, distance_mm: float) -> None:
-        """Every step's filter inputs and outputs; joint states at 100 Hz; frames and the
-        3D scene (model, lens, trocar, the beam to the last measured distance) at 20 Hz."""
+        """Every step's compact record (eval.log.steps: what replay cannot recompute); joint
+        states and clearances at 100 Hz; frames and the 3D scene (model, lens, trocar, the
+        beam to the last measured distance) at 20 Hz."""
         log, k = self.logger, len(self.record.steps)
-        try:
-            x = self.inputs(t, q, command, snap, sensor_t)[0]
-        except ValueError:  # non-finite joint angles: nothing the replay could re-run
-            x = None
-        if x is not None:
-            log.log_filter_step(x, out)
+        P = self.record.steps[-1].points_W  # the compiled step's boundary points: tip, port, shaft
+        kind = None if snap.shape is None else snap.kind
+        model = self.prior if kind is None else snap.shape
+        finite = bool(np.isfinite(q).all())
+        if finite:  # non-finite joint angles: nothing the replay could re-run
+            trusted, misfit = self._trust(kind, snap, P[:2] if kind is None else P)
+            log.log_step(t, q, command, snap.shape, kind, t if kind is None else snap.t_s, sensor_t,
+                         snap.margin_mm(self.config.margins), trusted, misfit, out)
         if k % 10 == 1:
             log.log_joint_states(t, q, out.qdot, JOINT_NAMES)
-        if k % 50 == 1 and x is not None:
+            log.log_clearance(t, P[:2], model)
+        if k % 50 == 1 and finite:
             frames = {}
             for name in ("F", "T", "S", "P"):
                 R, p = self.robot.pose(name, q)
@@ -264,4 +267,4 @@ class FilterSystem(LeafSystem):
             log.log_frames(t, frames)
             o, u = self.robot.beam(q)
             beam = None if not np.isfinite(distance_mm) else (o, o + distance_mm * u)
-            log.log_scene(t, eye=x.model, beam=beam, p_W_trocar=self.robot.p_WC, lens=self.lens)
+            log.log_scene(t, eye=model, beam=beam, p_W_trocar=self.robot.p_WC, lens=self.lens)

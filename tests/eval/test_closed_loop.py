@@ -232,7 +232,7 @@ def test_a_closed_loop_log_replays_bit_for_bit(emmetropic, tmp_path):
     q0 = deep_start(loop)
     with RunLogger(tmp_path / "loop.mcap", loop.config.filter) as log:
         run = loop.run(VelocityReplayCommand([0.0], [[5.0, 0.0, -3.0]]), q0, 0.1, **model.kw(), logger=log)
-    assert run.logged  # its realtime factor holds the log's JSON per step: campaigns report it apart
+    assert run.logged  # its realtime factor holds the log's writes: campaigns report it apart
     result = replay(tmp_path / "loop.mcap")
     assert result.ok and result.steps >= 85 and result.max_abs_diff == 0.0  # 1 kHz from the first packet (11 ms) to 0.1 s
 

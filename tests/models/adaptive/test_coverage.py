@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from models import Sphere
 from models.adaptive.coverage import DirectionCoverage, fibonacci_directions
 
 
@@ -167,3 +168,17 @@ def test_the_z_band_finds_what_the_full_scan_finds(seed, angle_deg, n):
     within = best_full >= cos_angle  # the nearest direction within the angle: found, exactly
     np.testing.assert_array_equal(best[within], best_full[within])
     assert np.all(best[~within] < cos_angle)
+
+
+def test_angle_and_misfit_in_one_scan_are_the_two_queries():
+    rng = np.random.default_rng(4)
+    cov = DirectionCoverage(np.zeros(3))
+    P = rng.normal(size=(400, 3))
+    P = 11.0 * P / np.linalg.norm(P, axis=1, keepdims=True)
+    cov.add(P[P[:, 2] < 0])
+    view = cov.view(Sphere(np.zeros(3), 11.2))  # misfits: how deep inside the sphere each bin's points lie
+    Q = rng.normal(size=(6, 3)) * 5.0
+    for angle in np.radians([3.0, 10.0, 40.0]):
+        a, m = view.angle_and_misfit(Q, angle, 2)
+        np.testing.assert_array_equal(a, view.angle_from_data_rad(Q[:2]))
+        np.testing.assert_array_equal(m, view.local_misfit_mm(Q, angle))
