@@ -21,6 +21,7 @@ from foxglove.messages import (
     LinePrimitiveLineType,
     Log,
     LogLevel,
+    PointCloud,
     Point3,
     Pose,
     Quaternion,
@@ -33,10 +34,11 @@ from foxglove.messages import (
 
 M_PER_MM = 1e-3  # Foxglove's 3D panel works in metres
 # topic -> the foxglove-sdk message class logged on it
-MESSAGES = {"/tf": FrameTransforms, "/scene": SceneUpdate, "/log": Log}
+MESSAGES = {"/tf": FrameTransforms, "/scene": SceneUpdate, "/log": Log, "/oct/points": PointCloud}
 LOG_LEVELS = {"debug": LogLevel.Debug, "info": LogLevel.Info, "warning": LogLevel.Warning, "error": LogLevel.Error}
 EYE_MODEL_COLOR = {"sphere": (1.0, 0.55, 0.1, 0.25), "ellipsoid": (0.1, 0.8, 0.9, 0.25)}
 LENS_COLOR, BEAM_COLOR, TROCAR_COLOR = (0.3, 0.3, 1.0, 0.3), (1.0, 0.0, 0.0, 1.0), (1.0, 0.9, 0.0, 1.0)
+BOUNDARY_COLOR = (1.0, 0.2, 0.2, 0.15)
 
 
 def quaternion_xyzw(R) -> list[float]:
@@ -108,10 +110,12 @@ def frame_transforms(ns: int, X_W: dict) -> FrameTransforms:
     return FrameTransforms(transforms=transforms)
 
 
-def scene_update(ns: int, t_s: float, eye=None, beam=None, p_W_trocar=None, lens=None) -> SceneUpdate:
+def scene_update(ns: int, t_s: float, eye=None, beam=None, p_W_trocar=None, lens=None, boundary=None,
+                 extra=()) -> SceneUpdate:
     """The 3D scene in W at log time ns (simulation time t_s, s, in each entity's metadata
-    'sim_time_s'): the eye model `eye` (Sphere/Ellipsoid, translucent), the lens keep-out
-    `lens`, the OCT `beam` as (p_W_start, p_W_end) mm, the trocar point (mm)."""
+    'sim_time_s'): the eye model `eye` (Sphere/Ellipsoid, translucent), the boundary the
+    filter keeps (`boundary`, a Sphere/Ellipsoid), the lens keep-out `lens`, the OCT `beam`
+    as (p_W_start, p_W_end) mm, the trocar point (mm), and `extra` entities (the robot's)."""
     stamp, meta = timestamp(ns), [KeyValuePair(key="sim_time_s", value=repr(float(t_s)))]
 
     def entity(id_: str, spheres=(), lines=()) -> SceneEntity:
@@ -122,6 +126,8 @@ def scene_update(ns: int, t_s: float, eye=None, beam=None, p_W_trocar=None, lens
     if eye is not None:
         kind = "sphere" if hasattr(eye, "radius") else "ellipsoid"
         entities.append(entity("eye_model", spheres=[_sphere(eye, EYE_MODEL_COLOR[kind])]))
+    if boundary is not None:
+        entities.append(entity("boundary", spheres=[_sphere(boundary, BOUNDARY_COLOR)]))
     if lens is not None:
         entities.append(entity("lens", spheres=[_sphere(lens, LENS_COLOR)]))
     if beam is not None:
@@ -131,7 +137,7 @@ def scene_update(ns: int, t_s: float, eye=None, beam=None, p_W_trocar=None, lens
     if p_W_trocar is not None:
         trocar = SpherePrimitive(pose=_pose(p_W_trocar), size=_vec(np.full(3, 1.0)), color=_color(TROCAR_COLOR))
         entities.append(entity("trocar", spheres=[trocar]))
-    return SceneUpdate(deletions=[], entities=entities)
+    return SceneUpdate(deletions=[], entities=entities + list(extra))
 
 
 def log_message(ns: int, text: str, level: str = "info", name: str = "vitreoguard") -> Log:

@@ -22,6 +22,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
+from eval.log.robot_scene import RobotScene, shrunk
 from eval.log.steps import setup_to_json
 from eval.loop_config import LoopConfig
 from eval.systems.inputs import StepInputs
@@ -97,6 +98,7 @@ class FilterSystem(LeafSystem):
         self.lens = robot.scenario.lens_W
         lens = self.lens.field_kernel()  # the keep-out ellipsoid's own distance field
         self.step_inputs = StepInputs(robot, config.points, prior)
+        self.robot_scene = RobotScene(robot)
         self._trust_angle_rad, self._misfit_angle_rad = np.radians(config.trust_angle_deg), np.radians(config.misfit_angle_deg)
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
                                      {"eye": model_field_kernel, "eye_shaft": model_field_kernel,
@@ -143,6 +145,7 @@ class FilterSystem(LeafSystem):
         """A new run: the command source (called source(t_s, p_WT, q) -> (v_W (3,) mm/s,
         roll rad/s) once per step, in time order) and the run's logger (or None)."""
         self.source, self.logger, self.record = source, logger, StepRecord()
+        self._logged_state = (True, None)  # (ok, model kind) of the last logged step
         if logger is not None:
             logger.log_setup(setup_to_json(self.robot.scenario, self.config.points, self.config.trust_angle_deg,
                                            self.config.misfit_angle_deg))
@@ -257,8 +260,9 @@ class FilterSystem(LeafSystem):
         if k % 10 == 1:
             log.log_joint_states(t, q, out.qdot, JOINT_NAMES)
             log.log_clearance(t, P[:2], model)
+        self._log_events(t, kind, out)
         if k % 50 == 1 and finite:
-            frames = {}
+            frames = self.robot_scene.link_poses(q)
             for name in ("F", "T", "S", "P"):
                 R, p = self.robot.pose(name, q)
                 X = np.eye(4)
@@ -267,4 +271,19 @@ class FilterSystem(LeafSystem):
             log.log_frames(t, frames)
             o, u = self.robot.beam(q)
             beam = None if not np.isfinite(distance_mm) else (o, o + distance_mm * u)
-            log.log_scene(t, eye=model, beam=beam, p_W_trocar=self.robot.p_WC, lens=self.lens)
+            keep = self.config.filter.d_safe_mm + float(snap.margin_mm(self.config.margins))
+            log.log_scene(t, eye=model, beam=beam, p_W_trocar=self.robot.p_WC, lens=self.lens,
+                          boundary=shrunk(model, keep), robot=self.robot_scene)
+
+    def _log_events(self, t: float, kind: str | None, out) -> None:
+        """/log: the filter stopping the robot (a fault: its reason) and resuming, the
+        model the filter trusts changing kind."""
+        log, last_ok, last_kind = self.logger, *self._logged_state
+        if out.ok != last_ok:
+            if out.ok:
+                log.log_event(t, "filter resumed", "info")
+            else:
+                log.log_event(t, f"filter stop: {out.reason}", "warning")
+        if kind != last_kind:
+            log.log_event(t, f"model: {last_kind or 'prior'} -> {kind or 'prior'}", "info")
+        self._logged_state = (out.ok, kind)

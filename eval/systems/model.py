@@ -179,8 +179,11 @@ class AdaptiveModelSystem(LeafSystem):
             # retina measured deep inside the model (it would become every nearby point's margin)
             self.coverage.add(self.model.last_accepted)
             self.update_us.append(1e6 * (time.perf_counter() - t0) / n_valid)
-            if entry is not None and self.logger is not None:
-                self.logger.log_model_update(self._last_t, entry)
+            if self.logger is not None:
+                if len(self.model.last_accepted):
+                    self.logger.log_points(self._last_t, self.model.last_accepted)
+                if entry is not None:
+                    self.logger.log_model_update(self._last_t, entry)
         # the state is what this system last wrote (or the initial snapshot): kept at hand
         if entry is not None or self._written.shape is None:
             self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust)
