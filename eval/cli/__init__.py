@@ -32,6 +32,7 @@ SUBCOMMAND_MODULES = (
     "eval.cli.plan",
     "eval.cli.record",
     "eval.cli.fit",
+    "eval.cli.regress",
 )
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
