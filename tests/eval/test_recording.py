@@ -187,3 +187,13 @@ def test_a_csv_pair_in_degrees_is_refused(tmp_path, capsys):
     (folder / "oct.csv").write_text("t_s,distance_mm\n0,10\n")
     out = tmp_path / "out"
     _refused(capsys, ["fit", "--recording", str(folder), "--out", str(out)], out, "q1_rad")
+
+
+@pytest.mark.parametrize("content, match", [('{"p_FS_mm": [0.092, 0, 0], "u_F": [1, 0, 0]}', "not in mm"),
+                                            ('{"shape": "myopic"}', "not a calibration JSON")])
+def test_a_bad_calibration_is_refused_before_any_work(tmp_path, capsys, content, match):
+    cal = tmp_path / "calibration.json"
+    cal.write_text(content)
+    out = tmp_path / "out"
+    _refused(capsys, ["fit", "--recording", str(tmp_path / "missing"), "--out", str(out), "--calibration", str(cal)],
+             out, match)
