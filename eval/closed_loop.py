@@ -107,6 +107,11 @@ def true_clearances(points_W: list, true_eye) -> np.ndarray:
     return np.minimum.reduceat(d, np.concatenate([[0], np.cumsum(counts)[:-1]]))
 
 
+def _delayed(source, t0_s: float):
+    """The command source called with the time since t0_s."""
+    return lambda t_s, p_WT, q: source(t_s - t0_s, p_WT, q)
+
+
 class ClosedLoop:
     """The diagram on one scenario (planning.SurgeryScenario); `run` simulates it.
     `floater_rate`: fraction of iiOCT samples with a vitreous floater (IioctSensor)."""
@@ -147,34 +152,52 @@ class ClosedLoop:
     def run(self, source, q0, duration_s: float, model: AdaptiveEyeModel | None = None,
             coverage: DirectionCoverage | None = None, logger=None, sensor_seed=None) -> LoopRun:
         """Simulate `duration_s` s from joint angles q0 (6,) rad under the command `source`
-        (eval.experiments.command_sources), continuing `model` and its `coverage` (fresh ones if None; both
-        updated in place). Logs to `logger` (eval.log.writer.RunLogger) when given. `sensor_seed`
-        (an int or a numpy SeedSequence): the sensor's draws start from it (None: they go on
-        from the previous run's)."""
-        q0 = np.asarray(q0, dtype=float)
-        if q0.shape != (6,) or not np.all(np.isfinite(q0)):
-            raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")
-        if not (np.isfinite(duration_s) and duration_s > 0):
-            raise ValueError(f"duration_s must be > 0 s, got {duration_s}")
+        (eval.experiments.command_sources) through the scenario's trocar, continuing `model`
+        and its `coverage` (fresh ones if None; both updated in place). Logs to `logger`
+        (eval.log.writer.RunLogger) when given. `sensor_seed` (an int or a numpy
+        SeedSequence): the sensor's draws start from it (None: they go on from the previous
+        run's)."""
+        return self.run_segments([(self.robot.p_WC, source, q0, duration_s)], model, coverage, logger, sensor_seed)
+
+    def run_segments(self, segments, model: AdaptiveEyeModel | None = None, coverage: DirectionCoverage | None = None,
+                     logger=None, sensor_seed=None) -> LoopRun:
+        """Simulate segments one after the other in one run, each (p_WC (3,) mm: its trocar,
+        source, q0 (6,) rad, duration_s s): the filter's RCM and monitored points follow the
+        segment's trocar (FilterSystem.set_trocar), the joints start it at q0 (a switch of
+        ports happens outside the eye and is not simulated) and its source is called with
+        the time since the segment's start. Simulation time runs on across segments."""
+        segments = [(np.asarray(p, dtype=float), src, np.asarray(q0, dtype=float), float(d)) for p, src, q0, d in segments]
+        for _, _, q0, d in segments:
+            if q0.shape != (6,) or not np.all(np.isfinite(q0)):
+                raise ValueError(f"q0 must be 6 finite joint angles (rad), got {q0}")
+            if not (np.isfinite(d) and d > 0):
+                raise ValueError(f"duration_s must be > 0 s, got {d}")
         if sensor_seed is not None:
             self.sensor.reseed(sensor_seed)
-        self.filter.reset(source, logger)
+        self.filter.reset(None, logger)
         self.model.reset(AdaptiveEyeModel() if model is None else model,
                          self.new_coverage() if coverage is None else coverage, logger)
         context = self.diagram.CreateDefaultContext()
-        self.integrator.set_integral_value(self.integrator.GetMyMutableContextFromRoot(context), q0)
         self.model.GetMyMutableContextFromRoot(context).get_mutable_abstract_state(0).set_value(
             self.model.initial_snapshot())
         self.simulator.reset_context(context)
-        self.simulator.Initialize()
         # the objects alive before the run (the model's history: tens of thousands) are left
         # out of the garbage collector's passes during it; a full pass over them took 0.24 s
         # of a 3.5 s spiral. Objects made during the run are collected as usual.
         gc.freeze()
+        wall, t_end = 0.0, 0.0
         try:
-            t0 = time.perf_counter()
-            self.simulator.AdvanceTo(duration_s)
-            wall = time.perf_counter() - t0
+            for k, (p_WC, source, q0, duration_s) in enumerate(segments):
+                self.filter.set_trocar(p_WC)
+                self.filter.source = source if k == 0 else _delayed(source, t_end)
+                context = self.simulator.get_mutable_context()
+                self.integrator.set_integral_value(self.integrator.GetMyMutableContextFromRoot(context), q0)
+                if k == 0:
+                    self.simulator.Initialize()
+                t0 = time.perf_counter()
+                t_end += duration_s
+                self.simulator.AdvanceTo(t_end)
+                wall += time.perf_counter() - t0
         finally:
             gc.unfreeze()
         self.filter.time_drake_diffik()

@@ -27,17 +27,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from planning.closed_form import shaft_ik
-from planning.ik import IKFailure, rcm_ik, signed_angle
-from planning.instrument_points import instrument_points
 from planning.robot import Robot
-from planning.scan import plan_ik_scan, start_posture
 from planning.scenario import LENS_CLEARANCE_MM, ORA_SERRATA_Z_E_MM
+from planning.sweep import (MAX_JOINT_STEP_RAD, SHAFT_CHECK_DT_S, SHAFT_SLACK_MM, Sweep, plan_sweep,  # noqa: F401
+                            port_roll_rad, shaft_clearances_mm)
 
 REASONS = ("ok", "lens", "port", "reach", "shaft")
 BOUNDARY_MM = 0.5  # the virtual boundary's d_safe: a standoff must leave room above it
-SHAFT_SLACK_MM = 0.2  # monitored points plan this far outside the boundary (the filter stays out)
-MAX_JOINT_STEP_RAD = 1.0  # between neighbouring cells (1 mm apart): more is a branch change
-SHAFT_CHECK_DT_S = 0.005  # the timed path's shaft check: the shaft moves < 0.05 mm between samples at 10 mm/s
+# The port rule: the cutter port (a side window) faces the retina when its normal lies
+# within this angle of the retina's normal, i.e. when the shaft meets the retina at most
+# this steeply. Surgeons shave the vitreous base with the port turned towards the vitreous
+# skirt next to the retina and the cutter held oblique, with the retina brought to it by
+# scleral depression (S. Charles, "Principles and techniques of vitreoretinal surgery",
+# Ryan's Retina, chapter 101; the eophtha.com beginner's guide to vitrectomy); no source
+# gives a number. At 60 deg the window still presents half its area (cos 60 deg) to the
+# retina; a parameter (BandSpec.port_max_deg, `vitreoguard plan --port-angle-deg`).
+PORT_FACING_MAX_DEG = 60.0
 
 
 @dataclass(frozen=True)
@@ -52,7 +57,7 @@ class BandSpec:
     z_max_E: float = ORA_SERRATA_Z_E_MM
     spacing_mm: float = 1.0
     standoff_mm: float = 1.0
-    port_max_deg: float = 30.0
+    port_max_deg: float = PORT_FACING_MAX_DEG
     min_margin_deg: float = 5.0
     tip_speed_mm_s: float = 5.0
     boundary_mm: float = BOUNDARY_MM
@@ -134,6 +139,17 @@ def cell_reasons(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.nd
                  p_EC=None) -> tuple[np.ndarray, np.ndarray]:
     """(reason per cell (M,) in REASONS, port angle deg (M,)) for shaving targets (M, 3) W
     with inward normals, from the scenario's trocar (or the trocar p_EC in E)."""
+    reasons, port, _ = cell_reach(robot, scenario, targets_W, normals_W, spec, p_EC)
+    return reasons, port
+
+
+def cell_reach(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.ndarray, spec: BandSpec,
+               p_EC=None, model=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """cell_reasons' (reasons, port angles deg) and the smallest clearance (mm) of the
+    watched shaft points from `model` at each cell's posture (the closed-form branch with
+    the largest joint margin; inf where none or without a model). With a model, a cell
+    whose shaft comes within spec.boundary_mm + SHAFT_SLACK_MM of it is "shaft" (the
+    sweep's own check, at the cell)."""
     p_EC = scenario.p_EC if p_EC is None else np.asarray(p_EC, dtype=float)
     p_WC = scenario.eye_pose.to_W(p_EC[None])[0]
     U = targets_W - p_WC
@@ -142,6 +158,7 @@ def cell_reasons(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.nd
     lens = _lens_clearance(scenario, p_EC, scenario.eye_pose.to_E(targets_W))
     margin = np.radians(spec.min_margin_deg)
     reasons = np.full(len(targets_W), "ok", dtype=object)
+    shaft = np.full(len(targets_W), np.inf)
     for i, (t, u) in enumerate(zip(targets_W, U)):
         if lens[i] < LENS_CLEARANCE_MM:
             reasons[i] = "lens"
@@ -149,10 +166,14 @@ def cell_reasons(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.nd
             reasons[i] = "port"
         else:
             Q = shaft_ik(robot.arm, t, u)
-            ok = len(Q) and np.any(np.min(np.minimum(Q[:, :5] - robot.q_lower[:5], robot.q_upper[:5] - Q[:, :5]), axis=1) >= margin)
-            if not ok:
+            m = np.min(np.minimum(Q[:, :5] - robot.q_lower[:5], robot.q_upper[:5] - Q[:, :5]), axis=1) if len(Q) else []
+            if not len(Q) or np.max(m) < margin:
                 reasons[i] = "reach"
-    return reasons, port
+            elif model is not None:
+                shaft[i] = shaft_clearances_mm(robot, Q[np.argmax(m)], p_WC, model)[0]
+                if shaft[i] < spec.boundary_mm + SHAFT_SLACK_MM:
+                    reasons[i] = "shaft"
+    return reasons, port, shaft
 
 
 def _lens_clearance(scenario, p_EC: np.ndarray, P_E: np.ndarray, samples: int = 32) -> np.ndarray:
@@ -171,18 +192,6 @@ def plan_band(robot: Robot, scenario, model, spec: BandSpec = BandSpec()) -> Ban
     return Band(az, z, S, N, T, reasons.reshape(S.shape[:2]), port.reshape(S.shape[:2]))
 
 
-def port_roll_rad(p_WT: np.ndarray, p_WC: np.ndarray, normal_in_W: np.ndarray) -> float:
-    """Roll about the shaft (planning.ik.roll_direction_W convention) that turns the
-    cutter port (on the instrument's -y side) toward the retina (outward normal)."""
-    u = (p_WT - p_WC) / np.linalg.norm(p_WT - p_WC)
-    h = np.cross([0.0, 0.0, 1.0], u)
-    h /= np.linalg.norm(h)
-    out = -normal_in_W
-    m = out - (out @ u) * u
-    y = -m / np.linalg.norm(m)  # the port is at -y: y points away from the retina
-    return signed_angle(h, y, u)
-
-
 @dataclass(frozen=True, eq=False)
 class Plan:
     """The shaving path: waypoints (K, 3) W, rolls (K,), joint trajectory q(t), the band,
@@ -196,14 +205,15 @@ class Plan:
     plan_time_s: float
 
 
-def serpentine(band: Band) -> list[tuple[int, int]]:
-    """Reachable cells (ring, azimuth index) ring by ring, alternating direction. Each
-    ring's reachable cells start after its widest unreachable gap, so the path never
-    sweeps across the unreachable side."""
+def serpentine(band: Band, mask=None) -> list[tuple[int, int]]:
+    """The cells of `mask` (n_rings, n_az) bool (default: the reachable ones) as (ring,
+    azimuth index) ring by ring, alternating direction. Each ring's cells start after its
+    widest gap, so the path never sweeps across the cells left out."""
     order = []
     n_az = len(band.azimuth)
+    mask = band.reachable if mask is None else np.asarray(mask, dtype=bool)
     for r in range(len(band.z_E)):
-        ok = band.reachable[r]
+        ok = mask[r]
         if not ok.any():
             continue
         if ok.all():
@@ -229,85 +239,15 @@ def _after_widest_gap(ok: np.ndarray) -> int:
     return (best_end + 1) % n
 
 
-def shaft_clearances_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
-    """(K,) smallest clearance (mm, inside > 0) from `model` of the shaft points the safety
-    filter watches at each posture Q (K, 6) rad (planning.instrument_points: past the
-    trocar, behind the tip and port, which the standoff places); inf at a posture where
-    none is that deep."""
-    Q = np.atleast_2d(np.asarray(Q, dtype=float))
-    shaft = [ip.P_W[[k for k, name in enumerate(ip.names) if name.startswith("shaft")]]
-             for ip in (instrument_points(robot, q, p_WC) for q in Q)]
-    owner = np.repeat(np.arange(len(Q)), [len(P) for P in shaft])
-    out = np.full(len(Q), np.inf)
-    if len(owner):
-        np.minimum.at(out, owner, np.asarray(model.signed_distance(np.vstack(shaft)), dtype=float))
-    return out
-
-
-def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: np.ndarray, p_WC, model,
-                               limit_mm: float) -> np.ndarray:
-    """Indices into P_cells (K, 3) of the cells on whose way (from the previous waypoint of
-    the timed joint trajectory, sampled every SHAFT_CHECK_DT_S) or at whose posture a
-    watched shaft point comes within `limit_mm` of the model. P_used (M, 3): the targets
-    of the trajectory's knots, P_cells in order among them (plan_ik_scan adds midpoints)."""
-    knots = np.asarray(traj.get_segment_times())
-    cell_knot = np.empty(len(P_cells), dtype=int)
-    j = 0
-    for k, p in enumerate(P_cells):  # the midpoints lie between the cells' rows
-        while not np.array_equal(P_used[j], p):
-            j += 1
-        cell_knot[k] = j
-    ts = np.union1d(np.arange(knots[0], knots[-1], SHAFT_CHECK_DT_S), knots)
-    near = ts[shaft_clearances_mm(robot, traj.vector_values(ts).T, p_WC, model) < limit_mm]
-    # a sample belongs to the first cell reached at or after it
-    return np.unique(np.searchsorted(knots[cell_knot], near - 1e-12, side="left"))
-
-
 def plan_path(robot: Robot, scenario, model, spec: BandSpec = BandSpec(), q_start=None) -> Plan:
-    """Plan the shaving path over the reachable band of `model`. Raises ValueError for a
-    bad band or standoff and IKFailure when nothing is reachable."""
+    """Plan the shaving path over the reachable band of `model` from the scenario's trocar.
+    Raises ValueError for a bad band or standoff and IKFailure when nothing is reachable."""
     t0 = time.perf_counter()
     band = plan_band(robot, scenario, model, spec)
-    cells = serpentine(band)
-    limit = spec.boundary_mm + SHAFT_SLACK_MM
-    q = q_start
-    kept, Q = [], []
-    for r, i in cells:  # RCM IK with the port's roll, seeded along the path; a failing cell is "reach"
-        t, n = band.target_W[r, i], band.normal_W[r, i]
-        try:
-            seed = start_posture(robot, t, scenario.p_WC) if q is None else q
-            q = rcm_ik(robot, t, scenario.p_WC, seed, roll_rad=port_roll_rad(t, scenario.p_WC, n))
-        except IKFailure:
-            band.reason[r, i] = "reach"
-            continue
-        jump = np.abs(q - Q[-1]).max() if Q else 0.0
-        if np.min(robot.joint_margin_rad(q)) < np.radians(spec.min_margin_deg) or jump > MAX_JOINT_STEP_RAD:
-            band.reason[r, i] = "reach"  # beyond the margins, or only on another branch (no continuous path)
-            q = Q[-1] if Q else None
-            continue
-        # at the cell and on the way there (a first, cheap look: the joint spline runs close
-        # to the straight line in joint space between neighbouring waypoints)
-        on_way = [q] + ([Q[-1] + f * (q - Q[-1]) for f in (0.25, 0.5, 0.75)] if Q else [])
-        if shaft_clearances_mm(robot, on_way, scenario.p_WC, model).min() < limit:
-            band.reason[r, i] = "shaft"
-            q = Q[-1] if Q else None
-            continue
-        kept.append((r, i))
-        Q.append(q)
-    while True:  # the timed trajectory, densely: drop the cells whose way in still nears the boundary
-        if not kept:
-            raise IKFailure("no cell of the band is reachable from this trocar")
-        P = np.array([band.target_W[r, i] for r, i in kept])
-        roll = np.array([port_roll_rad(band.target_W[r, i], scenario.p_WC, band.normal_W[r, i]) for r, i in kept])
-        traj, P_used, _ = plan_ik_scan(robot, P, scenario.p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q)
-        bad = _cells_too_near_on_the_way(robot, traj, P_used, P, scenario.p_WC, model, limit)
-        if not len(bad):
-            break
-        for k in bad:
-            band.reason[kept[k]] = "shaft"
-        keep = np.setdiff1d(np.arange(len(kept)), bad)
-        kept, Q = [kept[k] for k in keep], [Q[k] for k in keep]
-    return Plan(band, P, roll, traj, P_used, time.perf_counter() - t0)
+    sweep = plan_sweep(robot, band, scenario.p_WC, model, spec, serpentine(band), q_start)
+    for cell, reason in sweep.dropped.items():
+        band.reason[cell] = reason
+    return Plan(band, sweep.targets_W, sweep.roll_rad, sweep.trajectory, sweep.targets_used_W, time.perf_counter() - t0)
 
 
 def coverage(band: Band, path_W: np.ndarray, sweep_mm: float) -> float:
@@ -324,23 +264,3 @@ def coverage(band: Band, path_W: np.ndarray, sweep_mm: float) -> float:
                       + [path_W[-1:]])
     d, _ = cKDTree(dense).query(T)
     return float(np.mean(d <= 0.5 * sweep_mm + 0.05 * sweep_mm))
-
-
-def second_trocar(robot: Robot, scenario, band: Band, spec: BandSpec, n_candidates: int = 12) -> dict:
-    """The trocar on the pars plana circle (same height and radius as the scenario's, other
-    azimuths) that reaches the most of the cells this trocar cannot: its azimuth (deg) and
-    the fraction of the band it adds."""
-    missing = ~band.reachable
-    T, N = band.target_W[missing], band.normal_W[missing]
-    if not len(T):
-        return {"azimuth_deg": None, "adds_fraction": 0.0}
-    p = scenario.p_EC
-    r, z, a0 = np.hypot(p[0], p[1]), p[2], np.arctan2(p[1], p[0])
-    best = (None, 0)
-    for a in a0 + np.linspace(0, 2 * np.pi, n_candidates, endpoint=False)[1:]:
-        cand = np.array([r * np.cos(a), r * np.sin(a), z])
-        reasons, _ = cell_reasons(robot, scenario, T, N, spec, p_EC=cand)
-        n_ok = int(np.sum(reasons == "ok"))
-        if n_ok > best[1]:
-            best = (float(np.degrees(a) % 360.0), n_ok)
-    return {"azimuth_deg": best[0], "adds_fraction": best[1] / band.reason.size}

@@ -27,6 +27,7 @@ from models import Ellipsoid
 from models.eyes import EyePose, make_eye
 from models.scan.spiral import archimedean_spiral
 from models.shapes.validation import as_vector3
+from planning.ports import port_p_EC
 
 # Trocar on the pars plana, about 3.5-4 mm behind the limbus, 8 mm off the visual axis.
 TROCAR_P_EC_MM = (8.0, 0.0, 7.2)
@@ -65,6 +66,17 @@ SENSOR_ROTVEC_S_RAD = (0.0, np.radians(0.1), 0.0)
 # J5 margin by moving the eye (it cannot be better than about 9 deg on both: the shaft's
 # 80 deg cone over the spiral swings the wrist centre across ~200 mm).
 SURGERY_EYE_POSE = EyePose(Rotation.from_rotvec([0.1554, -0.3715, -0.2814]).as_matrix(), np.array([123.1, 3.1, 80.5]))
+# X_WE for the 3-port layout (planning.ports: working ports at 10 and 2 o'clock): the eye
+# of SURGERY_EYE_POSE turned about its visual axis by PORTS_ROLL_DEG, i.e. the robot placed
+# at another angle around the head (Inagaki et al. 2025 choose eye posture and robot pose
+# together for trocar access). The roll is the one of a scan over -180..180 deg in 15 deg
+# steps (planning.ports' reach study: each cell's reasons from both working ports) with the
+# most band cells reachable from one working port or the other with >= 5 deg joint margin:
+# -30 deg puts the 2 o'clock port where the reference trocar is in W (the spiral that
+# builds the model is the reference one) and the 10 o'clock port 120 deg round the eye.
+PORTS_ROLL_DEG = -30.0
+PORTS_EYE_POSE = EyePose(SURGERY_EYE_POSE.R_WE @ Rotation.from_euler("z", PORTS_ROLL_DEG, degrees=True).as_matrix(),
+                         SURGERY_EYE_POSE.p_WE.copy())
 
 
 def default_trocar_E(eye_name: str, eye_params: dict | None = None) -> np.ndarray:
@@ -84,9 +96,12 @@ class SurgeryScenario:
     """Eye pose X_WE, trocar p_EC (mm, E; default `default_trocar_E(eye_name)`), eye shape name and its
     shape parameters (make_eye's keywords, models.eyes.EYE_PARAMS), lens keep-out (E) and the
     true sensor pose's calibration error (offset mm and rotation vector rad, both in S).
+    `ports` (planning.ports.Port, optional): the sclerotomies of a multi-port plan, each
+    placed on this eye by planning.ports.port_p_EC (p_EC_of, p_WC_of by name); `p_EC` is
+    the trocar the robot is built through (the one the model-building scan uses).
 
-    Raises ValueError when the trocar is not in the eye wall (within EYE_WALL_MM of the
-    retina) or the shaft at the trocar would start inside the lens keep-out.
+    Raises ValueError when a trocar is not in the eye wall (within EYE_WALL_MM of the
+    retina) or the shaft at it would start inside the lens keep-out.
     """
 
     eye_pose: EyePose = SURGERY_EYE_POSE
@@ -95,6 +110,7 @@ class SurgeryScenario:
     eye_params: dict = field(default_factory=dict)
     sensor_offset_S_mm: np.ndarray = field(default_factory=lambda: np.array(SENSOR_OFFSET_S_MM))
     sensor_rotvec_S_rad: np.ndarray = field(default_factory=lambda: np.array(SENSOR_ROTVEC_S_RAD))
+    ports: tuple = ()
 
     def __post_init__(self):
         if not isinstance(self.eye_pose, EyePose):
@@ -105,13 +121,34 @@ class SurgeryScenario:
             object.__setattr__(self, name, as_vector3(getattr(self, name), name))
         object.__setattr__(self, "_eye", make_eye(self.eye_name, self.eye_pose, **self.eye_params))
         object.__setattr__(self, "_lens_E", Ellipsoid(np.array(LENS_CENTER_E_MM), np.array(LENS_RADII_MM)))
-        sd = float(self._eye.signed_distance(self.p_WC)[0])
+        self._check_trocar(self.p_EC, "p_EC")
+        reference = default_trocar_E(self.eye_name, self.eye_params)
+        object.__setattr__(self, "_ports", {p.name: port_p_EC(self.eye_name, p, reference, self.eye_params)
+                                            for p in self.ports})
+        if len(self._ports) != len(self.ports):
+            raise ValueError("ports must have distinct names")
+        for port in self.ports:
+            self._check_trocar(self._ports[port.name], f"port {port.name} ({port.clock_hour:g} o'clock, "
+                                                        f"{port.limbus_mm:g} mm behind the limbus)")
+
+    def _check_trocar(self, p_EC: np.ndarray, label: str) -> None:
+        sd = float(self._eye.signed_distance(self.eye_pose.to_W(p_EC[None]))[0])
         if abs(sd) > EYE_WALL_MM:
             where = "outside the eye wall" if sd < 0 else "inside the vitreous, not in the wall"
-            raise ValueError(f"p_EC {self.p_EC} mm is {where}: its distance to the retina is {-sd:+.3f} mm; "
-                             f"a trocar must lie within {EYE_WALL_MM} mm of the retina")
-        if float(self._lens_E.signed_distance(self.p_EC)[0]) > -LENS_CLEARANCE_MM:
-            raise ValueError(f"p_EC {self.p_EC} mm is within {LENS_CLEARANCE_MM} mm of the lens keep-out")
+            raise ValueError(f"{label} at {np.round(p_EC, 3)} mm is {where}: its distance to the retina is "
+                             f"{-sd:+.3f} mm; a trocar must lie within {EYE_WALL_MM} mm of the retina")
+        if float(self._lens_E.signed_distance(p_EC)[0]) > -LENS_CLEARANCE_MM:
+            raise ValueError(f"{label} at {np.round(p_EC, 3)} mm is within {LENS_CLEARANCE_MM} mm of the lens keep-out")
+
+    def p_EC_of(self, name: str) -> np.ndarray:
+        """The trocar (mm, E) of the port `name`; ValueError naming the ports otherwise."""
+        if name not in self._ports:
+            raise ValueError(f"unknown port {name!r}: the ports are {', '.join(self._ports) or 'none'}")
+        return self._ports[name].copy()
+
+    def p_WC_of(self, name: str) -> np.ndarray:
+        """The trocar (mm, W) of the port `name`."""
+        return self.eye_pose.to_W(self.p_EC_of(name)[None])[0]
 
     @property
     def eye(self):

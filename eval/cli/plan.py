@@ -1,13 +1,16 @@
-"""`vitreoguard plan`: plan the peripheral shaving path on the FITTED eye model and execute
-it through the closed loop (safety filter on) against the TRUE eye.
+"""`vitreoguard plan`: plan the shaving of the whole peripheral band (equator to ora serrata,
+all the way round) on the FITTED eye model through the ports of a 3-port vitrectomy, and
+execute it port by port through the closed loop (safety filter on, its RCM on the active
+trocar) against the TRUE eye.
 
-The model is built as the system would build it (spiral scan through the loop); the
-band, its reachability from the trocar and the serpentine path come from
-planning.peripheral; the path runs as a TipPathCommand (tip positions and port rolls of
-the planned joint trajectory). Writes plan.json (coverage, clearances, timing, the reachability
-reasons, the second-trocar suggestion and the path's figures), coverage.png (the band
-as azimuth x height: why each cell is or is not reachable, and the path) and plan.mcap
-(the execution's log).
+The model is built as the system would build it (spiral scan through the loop, through
+the first port); each cell's reachability from each port, the assignment of cells to
+ports, the per-port sweeps and the port switches come from planning.multiport. Writes
+plan.json (band coverage, per-port figures, switches, why cells are not reached,
+clearances, timing), coverage.png (the band unrolled, each cell coloured by the port
+that swept it or the reason it was not reached), plan.mcap (the execution's log),
+plan_trajectory.csv and plan_trajectory/ (a ROS 2 bag, MCAP storage: one
+trajectory_msgs/JointTrajectory per port segment).
 """
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ import argparse
 import dataclasses
 import math
 import re
+import time
 
 import numpy as np
 
@@ -22,18 +26,49 @@ from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES
-
-REASON_COLORS = {"ok": "tab:green", "lens": "tab:blue", "port": "tab:orange", "reach": "tab:red", "shaft": "tab:purple"}
-
+from planning.ports import PARS_PLANA_MM
 
 # planning.peripheral.BandSpec's parameters (named in its messages) -> the flags that set them
 FLAG_OF_PARAMETER = {"spacing_mm": "--sweep-mm", "standoff_mm": "--standoff-mm", "tip_speed_mm_s": "--tip-speed-mm-s",
                      "band z_E range": "--band", "z_min": "z0", "z_max": "z1", "z_min_E": "z0", "z_max_E": "z1",
-                     "trust_angle_deg": "--trust-angle-deg"}
+                     "trust_angle_deg": "--trust-angle-deg", "port_max_deg": "--port-angle-deg"}
 _PARAMETER = re.compile(r"\b(" + "|".join(sorted(map(re.escape, FLAG_OF_PARAMETER), key=len, reverse=True)) + r")\b")
 POSITIVE_MM = number(0.0, None, "mm", lo_open=True)
 POSITIVE_MM_S = number(0.0, None, "mm/s", lo_open=True)
 TRUST_ANGLE = number(0.0, 180.0, "deg", lo_open=True)
+PORT_ANGLE = number(0.0, 90.0, "deg", lo_open=True)
+LIMBUS_MM = number(*PARS_PLANA_MM, "mm")  # the pars plana (planning.ports)
+
+
+def port_clock(text: str) -> tuple[str, float]:
+    """Type of --port-clock: 'NAME=HOUR' with HOUR in [1, 12]."""
+    from planning.ports import STANDARD_LAYOUT
+
+    names = [n for n, *_ in STANDARD_LAYOUT]
+    name, _, hour = text.partition("=")
+    if name not in names:
+        raise argparse.ArgumentTypeError(f"unknown port {name!r}; choose from {', '.join(names)} (as NAME=HOUR)")
+    try:
+        h = float(hour)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be NAME=HOUR with HOUR a clock hour in [1, 12], got {text!r}") from None
+    if not (math.isfinite(h) and 1.0 <= h <= 12.0):
+        raise argparse.ArgumentTypeError(f"clock hour must be in [1, 12], got {hour!r}")
+    return name, h
+
+
+def port_list(text: str) -> tuple[str, ...]:
+    """Type of --ports: comma-separated port names of the 3-port layout, each once."""
+    from planning.ports import STANDARD_LAYOUT
+
+    names = [n for n, *_ in STANDARD_LAYOUT]
+    out = tuple(v.strip() for v in text.split(","))
+    for v in out:
+        if v not in names:
+            raise argparse.ArgumentTypeError(f"unknown port {v!r}; choose from {', '.join(names)}")
+    if len(set(out)) != len(out):
+        raise argparse.ArgumentTypeError(f"each port at most once, got {text!r}")
+    return out
 
 
 def flags_named(message: str) -> str:
@@ -53,7 +88,11 @@ def band_range(text: str) -> tuple[float, float]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("plan", help="peripheral vitrectomy path on the fitted model, executed through the filter")
+    from planning.multiport import DEFAULT_PORTS
+    from planning.peripheral import PORT_FACING_MAX_DEG
+    from planning.ports import REFERENCE_LIMBUS_MM, SIDES
+
+    p = sub.add_parser("plan", help="peripheral vitrectomy of the whole band through the ports, executed through the filter")
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
     add_eye_param(p)
@@ -68,6 +107,19 @@ def register(sub) -> None:
     p.add_argument("--tip-speed-mm-s", type=POSITIVE_MM_S, default=5.0, help="shaving tip speed, [0.1, 20] mm/s")
     p.add_argument("--seed", type=SEED, default=0, help=f"sensor noise seed of the model-building scan, {SEED.range}")
     p.add_argument("--no-execute", action="store_true", help="plan only (no closed-loop execution)")
+    p.add_argument("--side", type=choice("eye side", SIDES), default="right", help="which eye: right or left (the "
+                   "clock hours of the ports: superotemporal 10 / 2, superonasal 2 / 10, infusion 8 / 4)")
+    p.add_argument("--ports", type=port_list, default=",".join(DEFAULT_PORTS), metavar="NAMES",
+                   help="the ports the cutter works through, in visiting order (superonasal, superotemporal, infusion: "
+                        "the infusion port used as a working port)")
+    p.add_argument("--port-clock", type=port_clock, action="append", default=[], metavar="NAME=HOUR",
+                   help="a port's clock hour in [1, 12] (the surgeon's view, 12 superior), repeatable")
+    p.add_argument("--port-limbus-mm", type=LIMBUS_MM, default=REFERENCE_LIMBUS_MM,
+                   help=f"the ports' distance behind the limbus, on the pars plana {LIMBUS_MM.range} (3.0 aphakic, "
+                        "3.5 pseudophakic, 4.0 phakic)")
+    p.add_argument("--port-angle-deg", type=PORT_ANGLE, default=PORT_FACING_MAX_DEG,
+                   help="port rule: the cutter port faces the retina when its normal lies within this angle of the "
+                        f"retina's normal, {PORT_ANGLE.range}")
     p.add_argument("--trust-angle-deg", type=TRUST_ANGLE, default=180.0,
                    help=f"during the shaving the filter trusts the model this far (from the eye centre, "
                         f"{TRUST_ANGLE.range}) from measured directions; beyond, the conservative prior also bounds the "
@@ -85,7 +137,7 @@ def spec_of(args):
     z0, z1 = args.band
     try:
         spec = BandSpec(z_min_E=z0, z_max_E=z1, spacing_mm=args.sweep_mm, standoff_mm=args.standoff_mm,
-                        tip_speed_mm_s=args.tip_speed_mm_s)
+                        tip_speed_mm_s=args.tip_speed_mm_s, port_max_deg=args.port_angle_deg)
     except ValueError as exc:
         raise UsageError(flags_named(str(exc))) from None
     limit = SMALLEST_RETINAL_SEMI_AXIS_MM - spec.standoff_mm  # checked before any motion; the model re-checks
@@ -95,31 +147,54 @@ def spec_of(args):
     return spec
 
 
-def roll_of(robot, q, p_WC) -> float:
-    """The instrument's roll about the shaft at q (planning.ik.roll_direction_W convention)."""
-    from planning.ik import signed_angle
+def shaft_spin_rad(robot, traj, ts: np.ndarray) -> np.ndarray:
+    """(K,) the instrument's turn about its own shaft along the joint trajectory at times
+    ts (s) from the first: the integral of its angular velocity along the shaft, which is
+    what the filter's roll command (rad/s about the shaft) asks for."""
+    Q, dQ = traj.vector_values(ts).T, traj.derivative(1).vector_values(ts).T
+    rate = np.array([robot.pose("I", q)[0][:, 0] @ (robot.spatial_jacobian("I", q)[:3] @ dq) for q, dq in zip(Q, dQ)])
+    return np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(ts))])
 
-    R, p = robot.pose("I", q)
-    u = R[:, 0]
-    h = np.cross([0.0, 0.0, 1.0], u)
-    return signed_angle(h / np.linalg.norm(h), R[:, 1], u)
+
+def ports_of(args, eye_name: str, eye_params: dict):
+    """(every port of the layout, the ports to work through in visiting order, the first
+    one's trocar p_EC mm): UsageError naming the flag at fault."""
+    from planning.ports import port_p_EC, standard_ports
+    from planning.scenario import default_trocar_E
+
+    try:
+        layout = standard_ports(args.side, args.port_limbus_mm, dict(args.port_clock))
+    except ValueError as exc:
+        flag = "--port-limbus-mm" if "limbus" in str(exc) else "--port-clock"
+        raise UsageError(f"{flag}: {exc}") from None
+    by_name = {p.name: p for p in layout}
+    names = args.ports or tuple(p.name for p in sorted((p for p in layout if p.role == "working"),
+                                                       key=lambda p: abs(p.clock_hour - 2.0)))
+    visit = tuple(by_name[n] for n in names)
+    return layout, visit, port_p_EC(eye_name, visit[0], default_trocar_E(eye_name, eye_params), eye_params)
 
 
 def main(args) -> int:
     spec = spec_of(args)
     args.eye_params = eye_params(args.eye_param, args.shape)
-    from eval.experiments.boundary import build_model_by_spiral, run_with_progress
-    from eval.closed_loop import LoopConfig, semi_axes_mm
     from eval.cli.boundary import make_loop
-    from eval.experiments.command_sources import TipPathCommand
+    from eval.cli.plan_export import coverage_figure, write_ros2_trajectories, write_trajectory_csv
+    from eval.closed_loop import LoopConfig, semi_axes_mm
+    from eval.experiments.boundary import build_model_by_spiral
     from eval.log.writer import RunLogger
     from planning import SurgeryScenario
     from planning.ik import IKFailure
-    from planning.peripheral import REASONS, coverage, plan_path, second_trocar
+    from planning.multiport import UNREACHABLE, plan_ports
+    from planning.scenario import PORTS_EYE_POSE
 
-    scenario = SurgeryScenario(eye_name=args.shape, eye_params=args.eye_params)
+    layout, visit, p_EC = ports_of(args, args.shape, args.eye_params)
+    try:
+        scenario = SurgeryScenario(eye_pose=PORTS_EYE_POSE, eye_name=args.shape, eye_params=args.eye_params, p_EC=p_EC,
+                                   ports=layout)
+    except ValueError as exc:
+        raise UsageError(f"--port-clock/--port-limbus-mm: {exc}") from None
     loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg), sensor_seed=args.seed)
-    build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye)")
+    build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
     trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
     if trusted.shape is None:
         radii = semi_axes_mm(build.model.shape)
@@ -134,76 +209,113 @@ def main(args) -> int:
                          f"stepping in); use at least {boundary + 0.2:.2f} mm")
     spec = dataclasses.replace(spec, boundary_mm=boundary)  # the whole instrument plans outside it
     try:
-        with phase("planning the shaving path (band, reachability, joint trajectory)"):
-            plan = plan_path(loop.robot, scenario, model, spec)
+        with phase(f"planning the band through {len(visit)} ports (reachability, assignment, sweeps, switches)"):
+            plan = plan_ports(loop.robot, scenario, model, visit, spec)
     except (ValueError, IKFailure) as exc:
         raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
     out = prepare_out_dir(args.out)
-    robot, traj = loop.robot, plan.trajectory
-    ts = np.arange(traj.start_time(), traj.end_time(), 0.02)
-    Q = traj.vector_values(ts).T
-    tips = np.array([robot.pose("T", q)[1] for q in Q])
-    band = plan.band
+    robot, band = loop.robot, plan.band
+    shape2 = band.reason.shape
+    planned_port_W = []
+    segments = []
+    for seg in plan.segments:
+        traj = seg.sweep.trajectory
+        ts = np.append(np.arange(traj.start_time(), traj.end_time(), 0.02), traj.end_time())
+        Q = traj.vector_values(ts).T
+        planned_port_W.append(np.array([robot.pose("P", q)[1] for q in Q]))
+        tips = np.array([robot.pose("T", q)[1] for q in Q])
+        roll = shaft_spin_rad(robot, traj, ts)
+        segments.append((seg.p_WC, TipPath(ts - ts[0], tips, roll), Q[0], float(ts[-1] - ts[0]) + 0.2, Q, tips))
+    swept_planned = swept_cells(band, np.vstack(planned_port_W), spec.spacing_mm)
+    all_tips = np.vstack([s[5] for s in segments])
+    all_Q = np.vstack([s[4] for s in segments])
+    durations = {}
+    for seg in plan.segments:
+        durations[seg.port.name] = durations.get(seg.port.name, 0.0) + (seg.insert.end_time() + seg.sweep.trajectory.end_time()
+                                                                        + seg.withdraw.end_time())
+    switch_s = sum(sw.move_s for sw in plan.switches)
     result = {
-        "coverage": coverage(band, tips, spec.spacing_mm),
-        "band_reachable": float(band.reachable.mean()),
-        "min_model_clearance_mm": float(np.min(model.signed_distance(tips))),
+        "band_coverage": None,
+        "band_coverage_planned": float(swept_planned.mean()),
+        "planned_cells": int((plan.port_of >= 0).sum()),
+        "planned_cells_swept": None,
+        "cells": int(band.reason.size),
+        "unreachable": {r: int(np.sum((plan.port_of < 0) & (band.reason == r))) for r in UNREACHABLE},
+        "ports": {p.name: {"role": p.role, "clock_hour": p.clock_hour, "limbus_mm": p.limbus_mm,
+                           "cells_assigned": int((plan.port_of == k).sum()),
+                           "reachable_cells": int((plan.reasons_by_port[p.name] == "ok").sum()),
+                           "regions": sum(1 for s in plan.segments if s.port.name == p.name),
+                           "coverage": None, "duration_s": durations.get(p.name, 0.0)}
+                  for k, p in enumerate(plan.ports)},
+        "port_switches": sum(1 for sw in plan.switches if sw.from_port != sw.to_port),
+        "reentries": sum(1 for sw in plan.switches if sw.from_port == sw.to_port),
+        "switches": [{"from": sw.from_port, "to": sw.to_port, "withdraw_s": sw.withdraw_s, "move_s": sw.move_s,
+                      "insert_s": sw.insert_s, "duration_s": sw.duration_s,
+                      "move_min_outside_mm": sw.move_min_outside_mm} for sw in plan.switches],
+        "min_model_clearance_mm": float(np.min(model.signed_distance(all_tips))),
         "min_true_clearance_mm": None,
-        "duration_s": float(traj.end_time() - traj.start_time()),
-        "path_length_mm": float(np.linalg.norm(np.diff(tips, axis=0), axis=1).sum()),
-        "min_joint_margin_deg": float(np.degrees(min(robot.joint_margin_rad(q).min() for q in Q))),
+        "violations": None,
+        "duration_s": float(sum(durations.values()) + switch_s),
+        "shaving_s": float(sum(s.sweep.trajectory.end_time() for s in plan.segments)),
+        "path_length_mm": float(sum(np.linalg.norm(np.diff(s[5], axis=0), axis=1).sum() for s in segments)),
+        "min_joint_margin_deg": float(np.degrees(min(robot.joint_margin_rad(q).min() for q in all_Q))),
         "filter_intervention_fraction": None,
         "plan_time_s": plan.plan_time_s,
-        "shape": args.shape, "eye_params": args.eye_params, "model_kind": trusted.kind, "fitted_kind": build.kind_final, "standoff_mm": spec.standoff_mm,
-        "boundary_mm": spec.boundary_mm,
-        "trust_angle_deg": args.trust_angle_deg,
-        "band_z_E_mm": [spec.z_min_E, spec.z_max_E], "cells": int(band.reason.size),
-        "reasons": {r: int(np.sum(band.reason == r)) for r in REASONS},
-        "max_port_angle_deg_on_path": float(np.max(band.port_deg[band.reachable])) if band.reachable.any() else None,
-        "max_planned_rcm_error_um": float(1e3 * max(robot.rcm_error_mm(q, scenario.p_WC) for q in Q)),
-        "second_trocar": second_trocar(robot, scenario, band, spec),
+        "shape": args.shape, "eye_params": args.eye_params, "side": args.side, "model_kind": trusted.kind,
+        "fitted_kind": build.kind_final,
+        "standoff_mm": spec.standoff_mm, "boundary_mm": spec.boundary_mm, "port_angle_deg": spec.port_max_deg,
+        "trust_angle_deg": args.trust_angle_deg, "band_z_E_mm": [spec.z_min_E, spec.z_max_E],
+        "max_port_angle_deg_on_path": float(np.nanmax(band.port_deg)) if (plan.port_of >= 0).any() else None,
+        "max_planned_rcm_error_um": float(1e3 * max(max(robot.rcm_error_mm(q, s[0]) for q in s[4]) for s in segments)),
     }
+    swept = swept_planned
     if not args.no_execute:
-        roll = np.unwrap([roll_of(robot, q, scenario.p_WC) for q in Q])
-        command = TipPathCommand(ts - ts[0], tips, roll_rad=roll)
         with RunLogger(out / "plan.mcap", loop.config.filter, metadata={"shape": args.shape, "run": "peripheral plan"}) as log:
-            run = run_with_progress(loop, command, Q[0], result["duration_s"] + 0.2, "shaving through the closed loop",
-                                    model=build.model, coverage=build.coverage, logger=log)
+            with phase(f"shaving through the closed loop: {len(segments)} port segments, "
+                       f"{sum(s[3] for s in segments):.0f} simulated s"):
+                run = loop.run_segments([s[:4] for s in segments], model=build.model, coverage=build.coverage, logger=log)
+        ports_W = np.array([robot.pose("P", q)[1] for q in run.q[::5]])
+        swept = swept_cells(band, ports_W, spec.spacing_mm)
+        planned = plan.port_of >= 0
+        result["band_coverage"] = float(swept.mean())
+        result["planned_cells_swept"] = float(swept[planned].mean()) if planned.any() else None
+        for k, p in enumerate(plan.ports):
+            mine = plan.port_of == k
+            result["ports"][p.name]["coverage"] = float(swept[mine].mean()) if mine.any() else None
         result["min_true_clearance_mm"] = float(run.true_clearance_mm.min())
+        result["violations"] = int(np.sum(run.true_clearance_mm < loop.config.filter.d_safe_mm - 0.05))
         result["filter_intervention_fraction"] = float(run.intervened.mean())
         result["execution"] = {"failsafe_stops": run.failsafe_stops, "max_rcm_error_um": float(1e3 * np.nanmax(run.rcm_error_mm)),
-                               "realtime_factor": run.realtime_factor,
-                               "executed_coverage": coverage(band, np.array([robot.pose("T", q)[1] for q in run.q[::20]]),
-                                                             spec.spacing_mm)}
-    save_figure(_coverage_figure(band, tips, scenario, args.shape, result), out / "coverage.png")
+                               "realtime_factor": run.realtime_factor, "steps": int(len(run.t))}
+    start_ns = time.time_ns()
+    write_trajectory_csv(plan, out / "plan_trajectory.csv")
+    write_ros2_trajectories(plan, out / "plan_trajectory", start_ns)
+    cov = result["band_coverage"] if result["band_coverage"] is not None else result["band_coverage_planned"]
+    title = (f"{args.shape} {args.side} eye: band coverage {cov:.0%} through {', '.join(p.name for p in visit)}; "
+             f"{result['port_switches']} port switches, {result['reentries']} re-entries")
+    save_figure(coverage_figure(plan, swept.reshape(shape2), title), out / "coverage.png")
     write_json(out / "plan.json", result)
-    for key in ("coverage", "band_reachable", "min_model_clearance_mm", "min_true_clearance_mm", "duration_s",
-                "path_length_mm", "min_joint_margin_deg", "filter_intervention_fraction", "plan_time_s"):
+    for key in ("band_coverage", "band_coverage_planned", "planned_cells_swept", "port_switches", "min_model_clearance_mm",
+                "min_true_clearance_mm", "violations", "duration_s", "filter_intervention_fraction", "plan_time_s"):
         v = result[key]
         print(f"{key:30s} {v:.4g}" if isinstance(v, float) else f"{key:30s} {v}")
-    print(f"wrote {out / 'plan.json'}, {out / 'coverage.png'}" + ("" if args.no_execute else f", {out / 'plan.mcap'}"))
+    print(f"unreachable                    {result['unreachable']}")
+    print(f"wrote {out / 'plan.json'}, {out / 'coverage.png'}, {out / 'plan_trajectory.csv'}, {out / 'plan_trajectory'}"
+          + ("" if args.no_execute else f", {out / 'plan.mcap'}"))
     return 0
 
 
-def _coverage_figure(band, tips, scenario, shape: str, result: dict):
-    import matplotlib.pyplot as plt
+def TipPath(times_s, tips, roll):
+    """The closed loop's command for one sweep (eval.experiments.command_sources.TipPathCommand)."""
+    from eval.experiments.command_sources import TipPathCommand
 
-    fig, ax = plt.subplots(figsize=(11, 4))
-    A, Z = np.meshgrid(np.degrees(band.azimuth), band.z_E)
-    for reason, color in REASON_COLORS.items():
-        m = band.reason == reason
-        ax.scatter(A[m], Z[m], s=28, marker="s", color=color, label=f"{reason} ({int(m.sum())})")
-    P_E = scenario.eye_pose.to_E(tips)
-    az = np.degrees(np.arctan2(P_E[:, 1], P_E[:, 0])) % 360.0
-    jumps = np.abs(np.diff(az)) > 180.0
-    az_plot = np.where(np.concatenate([[False], jumps]), np.nan, az)
-    ax.plot(az_plot, P_E[:, 2], color="k", lw=0.8, label="planned tip path")
-    ax.set_xlabel("azimuth in the eye frame (deg)")
-    ax.set_ylabel("height z_E (mm): equator 0, ora serrata 5")
-    st = result["second_trocar"]
-    extra = "" if st["azimuth_deg"] is None else f"; a second trocar at {st['azimuth_deg']:.0f} deg adds {st['adds_fraction']:.0%}"
-    ax.set_title(f"{shape}: reachable {result['band_reachable']:.0%} of the band, coverage {result['coverage']:.0%}{extra}",
-                 fontsize=9)
-    ax.legend(fontsize=7, loc="upper right", ncol=5)
-    fig.tight_layout()
-    return fig
+    return TipPathCommand(times_s, tips, roll_rad=roll)
+
+
+def swept_cells(band, ports_W: np.ndarray, sweep_mm: float) -> np.ndarray:
+    """(n_rings, n_az) bool: the cutter port (positions ports_W (K, 3) mm, W, densely
+    sampled) passed within half a sweep width of the cell's shaving target."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(ports_W).query(band.target_W.reshape(-1, 3))
+    return (d <= 0.5 * sweep_mm).reshape(band.reason.shape)

@@ -61,20 +61,22 @@ BOUNDARY_SPEED = [
 ]
 PLAN_PATH = [
     ("shape", "shape", "str"), ("model", "model_kind", "str"),
-    ("coverage (% of reachable cells)", "coverage", "pct"), ("executed coverage (% of reachable cells)",
-                                                              "execution.executed_coverage", "pct"),
+    ("band coverage (% of all band cells)", "band_coverage", "pct"),
+    ("planned cells swept (%)", "planned_cells_swept", "pct"), ("port switches", "port_switches", "int"),
+    ("re-entries", "reentries", "int"),
     ("min model clearance (mm)", "min_model_clearance_mm", "f3"), ("min true clearance (mm)", "min_true_clearance_mm", "f3"),
-    ("duration (s)", "duration_s", "f1"), ("path length (mm)", "path_length_mm", "f1"),
+    ("violations (steps)", "violations", "int"), ("duration (s)", "duration_s", "f1"),
     ("min joint margin (deg)", "min_joint_margin_deg", "f1"),
     ("filter intervention (% of steps)", "filter_intervention_fraction", "pct2"),
     ("failsafe stops (count)", "execution.failsafe_stops", "int"), ("plan time (s)", "plan_time_s", "f1"),
 ]
 PLAN_BAND = [
-    ("shape", "shape", "str"), ("band cells", "cells", "int"), ("reachable (% of cells)", "band_reachable", "pct"),
-    ("ok (cells)", "reasons.ok", "int"), ("lens (cells)", "reasons.lens", "int"), ("port (cells)", "reasons.port", "int"),
-    ("reach (cells)", "reasons.reach", "int"), ("shaft (cells)", "reasons.shaft", "int"),
-    ("second trocar azimuth (deg)", "second_trocar.azimuth_deg", "f1"),
-    ("second trocar adds (% of cells)", "second_trocar.adds_fraction", "pct"),
+    ("shape", "shape", "str"), ("band cells", "cells", "int"), ("planned (cells)", "planned_cells", "int"),
+    ("superonasal (cells)", "ports.superonasal.cells_assigned", "int"),
+    ("superotemporal (cells)", "ports.superotemporal.cells_assigned", "int"),
+    ("shaft (cells)", "unreachable.shaft", "int"), ("reach (cells)", "unreachable.reach", "int"),
+    ("lens (cells)", "unreachable.lens", "int"), ("port (cells)", "unreachable.port", "int"),
+    ("scleral depression (cells)", "unreachable.depression", "int"),
 ]
 SENSOR = [
     ("shape", "shape", "str"), ("mode", "mode", "str"), ("samples", "n_samples", "int"),
@@ -101,11 +103,13 @@ TABLES = [
      "DoDifferentialInverseKinematics on every 10th step's state of the same runs; realtime factor = simulated time / "
      "wall time of the simulations (the first scenario, logged step by step for replay, included; then without it).",
      BOUNDARY_SPEED),
-    ("Peripheral vitrectomy plan: path and execution", "plan", "Coverage: the share of the reachable band cells whose "
-     "shaving target lies within half a sweep width (+5 %) of the planned tip path; executed coverage: the same for the "
-     "tip path the closed loop executed on the true eye.", PLAN_PATH),
-    ("Peripheral vitrectomy plan: band", "plan", "The band from the equator to the ora serrata in 1 mm cells; why each "
-     "cell is (ok) or is not reachable from the trocar, and what a second trocar would add.", PLAN_BAND),
+    ("Peripheral vitrectomy plan: path and execution", "plan", "Band coverage: the share of ALL band cells (equator to "
+     "ora serrata, 360 deg, 1 mm cells) whose shaving target the executed cutter port passed within half a sweep width, "
+     "through the two working ports on the true eye; planned cells swept: the same share of the cells the plan "
+     "assigned to a port; violations: control steps whose true clearance is below 0.45 mm.", PLAN_PATH),
+    ("Peripheral vitrectomy plan: band", "plan", "The band's cells: how many each working port sweeps, and why the "
+     "others are not reached (shaft: the shaft would graze the retina; scleral depression: reachable only with the "
+     "wall indented).", PLAN_BAND),
     ("iiOCT sensor chain", "sensor", "The spiral through robot, simulated iiOCT (full A-scans) and adaptive model; "
      "distance errors against the true distance (median, robust SD, p99 of |error|).", SENSOR),
     ("Paper reproduction (1 seed)", "paper", "The paper's simulation (Table 2, Fig. 5) with the predictive transition "

@@ -136,17 +136,20 @@ def _compact_steps(log, path) -> list:
     from planning.robot import Robot
 
     setups = log.messages.get(steps.SETUP_TOPIC, [])
-    if len(setups) != 1:
-        raise LogReadError(f"{path}: /filter/step records need one /filter/setup message, found {len(setups)}")
+    if not setups:
+        raise LogReadError(f"{path}: /filter/step records need a /filter/setup message, found none")
     try:
-        scenario, points = steps.setup_from_json(setups[0][1])
+        # one robot per setup (a run through several trocars logs a setup per trocar)
+        builds = [(ns, StepInputs(Robot(scenario), points))
+                  for ns, (scenario, points) in ((ns, steps.setup_from_json(d)) for ns, d in setups)]
         models = {m["index"]: (codec.shape_from_json(m["shape"], "/filter/models shape"), m["kind"])
                   for _, m in log.messages.get(steps.MODELS_TOPIC, [])}
     except (ValueError, KeyError, TypeError) as exc:
         raise LogReadError(f"{path}: {exc}") from None
-    build = StepInputs(Robot(scenario), points)
     out = []
-    for _, data in log.messages[steps.STEP_TOPIC]:
+    for ns_step, data in log.messages[steps.STEP_TOPIC]:
+        # the newest setup logged before the step (a setup is logged after the last step of the trocar before)
+        build = next((b for ns, b in reversed(builds) if ns < ns_step), builds[0][1])
         try:
             m = steps.decode_step(data)
             if m.model_index not in models:

@@ -204,11 +204,12 @@ class RunLogger:
         self._maybe_flush(ns)
 
     def log_setup(self, setup: dict) -> None:
-        """The closed loop's scenario and monitored points (eval.log.steps.setup_to_json),
-        once per log: what replay rebuilds the kinematics of log_step's records with."""
-        if not self._setup_logged:
+        """The closed loop's scenario and monitored points (eval.log.steps.setup_to_json):
+        what replay rebuilds the kinematics of the log_step records after it with; logged
+        again only when it changes (another trocar)."""
+        if setup != self._setup_logged:
             self._write("/filter/setup", self._last_ns, setup)
-            self._setup_logged = True
+            self._setup_logged = setup
 
     def _model_index(self, ns: int, t_s: float, shape, kind: str | None) -> int:
         """The index of (shape, kind) on /filter/models, logging it when it is not the last one."""

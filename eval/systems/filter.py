@@ -14,6 +14,7 @@ outside the prior by construction. Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -104,7 +105,9 @@ class FilterSystem(LeafSystem):
                                      {"eye": model_field_kernel, "eye_shaft": model_field_kernel,
                                       "lens": lens.kernel}, config.filter, kinematics=step_kinematics,
                                      point_names=point_names, port=("tip_port", 1))
-        self._kp = step_kinematics_params(robot, robot.p_WC, config.points)
+        self._rcm = next(c for c in self.constraints if isinstance(c, RcmEquality))
+        self.p_WC = np.asarray(robot.p_WC, dtype=float)  # the active trocar (set_trocar)
+        self._kp = step_kinematics_params(robot, self.p_WC, config.points)
         self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
         self._lens_field = lens.params
         self._prior_field = ModelField(prior).params
@@ -141,14 +144,36 @@ class FilterSystem(LeafSystem):
             self.filter_step(0.0, q, np.array([v, 0.0, 0.0, 0.0]), prior, 0.0)
         self.reset(None, None)
 
+    def set_trocar(self, p_WC) -> None:
+        """Make p_WC (3,) mm, W the active trocar: the RCM constraint and the monitored
+        points (which shaft points lie past the trocar) follow it; the same compiled step
+        with new numbers (ConstraintStack.set_params). A run's log gets the new setup."""
+        p_WC = np.array(p_WC, dtype=float)
+        if p_WC.shape != (3,) or not np.all(np.isfinite(p_WC)):
+            raise ValueError(f"p_WC must be 3 finite mm, got {p_WC}")
+        self._rcm = RcmEquality(p_WC, self._rcm.gain_per_s, self._rcm.group, self._rcm.name)
+        self.constraints = [self._rcm if isinstance(c, RcmEquality) else c for c in self.constraints]
+        self.stack.set_params(self.constraints)
+        self.stack.reset()  # the last active set belongs to the other trocar's geometry
+        self.p_WC, self._kp = p_WC, step_kinematics_params(self.robot, p_WC, self.config.points)
+        self.step_inputs.set_trocar(p_WC)
+        if self.logger is not None:
+            self.logger.log_setup(self._setup())
+
+    def _setup(self) -> dict:
+        """The log's setup: the scenario with the active trocar, the monitored points, the trust rules."""
+        scenario = self.robot.scenario
+        if not np.allclose(self.p_WC, scenario.p_WC, atol=1e-9):
+            scenario = dataclasses.replace(scenario, p_EC=scenario.eye_pose.to_E(self.p_WC[None])[0])
+        return setup_to_json(scenario, self.config.points, self.config.trust_angle_deg, self.config.misfit_angle_deg)
+
     def reset(self, source, logger=None) -> None:
         """A new run: the command source (called source(t_s, p_WT, q) -> (v_W (3,) mm/s,
         roll rad/s) once per step, in time order) and the run's logger (or None)."""
         self.source, self.logger, self.record = source, logger, StepRecord()
         self._logged_state = (True, None)  # (ok, model kind) of the last logged step
         if logger is not None:
-            logger.log_setup(setup_to_json(self.robot.scenario, self.config.points, self.config.trust_angle_deg,
-                                           self.config.misfit_angle_deg))
+            logger.log_setup(self._setup())
         self.wall_s = 0.0  # wall time (s) of its steps since the reset (command source, records and log included)
         self.command_wall_s = 0.0  # of which in the command source
         self.stack.reset()
@@ -272,7 +297,7 @@ class FilterSystem(LeafSystem):
             o, u = self.robot.beam(q)
             beam = None if not np.isfinite(distance_mm) else (o, o + distance_mm * u)
             keep = self.config.filter.d_safe_mm + float(snap.margin_mm(self.config.margins))
-            log.log_scene(t, eye=model, beam=beam, p_W_trocar=self.robot.p_WC, lens=self.lens,
+            log.log_scene(t, eye=model, beam=beam, p_W_trocar=self.p_WC, lens=self.lens,
                           boundary=shrunk(model, keep), robot=self.robot_scene)
 
     def _log_events(self, t: float, kind: str | None, out) -> None:

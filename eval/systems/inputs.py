@@ -23,11 +23,15 @@ class StepInputs:
         self.robot, self.points = robot, points
         self.prior = conservative_prior(robot.scenario.eye_pose.p_WE) if prior is None else prior
         self.lens = robot.scenario.lens_W
-        self.rcm = RcmEquality(np.asarray(robot.p_WC, dtype=float), RCM_GAIN_PER_S)  # the loop's (loop_constraints)
+        self.set_trocar(robot.p_WC)
+
+    def set_trocar(self, p_WC) -> None:
+        """The active trocar p_WC (3,) mm, W: the RCM's and the monitored points' (the loop's, loop_constraints)."""
+        self.rcm = RcmEquality(np.array(p_WC, dtype=float), RCM_GAIN_PER_S)
 
     def points_at(self, q):
         """planning.instrument_points.InstrumentPoints at joint angles q (6,) rad; ValueError on bad angles."""
-        return instrument_points(self.robot, q, self.robot.p_WC, self.points)
+        return instrument_points(self.robot, q, self.rcm.p_WC, self.points)
 
     @staticmethod
     def boundary_count(kind: str | None, ip) -> int:

@@ -1,34 +1,93 @@
-"""`vitreoguard plan`: the JSON contract on a reduced band (plan only), bad input."""
+"""`vitreoguard plan`: the JSON contract on a reduced band (plan only), the trajectory
+exports, bad input."""
 from __future__ import annotations
 
+import csv
 import json
 
+import numpy as np
 import pytest
 
 from eval.cli import main
 
-KEYS = {"coverage", "band_reachable", "min_model_clearance_mm", "min_true_clearance_mm", "duration_s", "path_length_mm",
-        "min_joint_margin_deg", "filter_intervention_fraction", "plan_time_s"}
+KEYS = {"band_coverage", "band_coverage_planned", "planned_cells", "planned_cells_swept", "cells", "ports",
+        "port_switches", "reentries", "switches", "unreachable", "min_model_clearance_mm", "min_true_clearance_mm",
+        "violations", "duration_s", "path_length_mm", "min_joint_margin_deg", "filter_intervention_fraction",
+        "plan_time_s"}
 
 
-def test_plan_writes_the_contract(tmp_path):
-    out = tmp_path / "plan"
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    out = tmp_path_factory.mktemp("plan") / "plan"
     assert main(["plan", "--out", str(out), "--band", "0,2", "--no-execute"]) == 0
-    r = json.loads((out / "plan.json").read_text())
-    assert KEYS <= set(r)
-    assert r["coverage"] >= 0.9 and 0.0 < r["band_reachable"] <= 1.0
+    return out, json.loads((out / "plan.json").read_text())
+
+
+def test_plan_writes_the_contract(planned):
+    out, r = planned
+    assert KEYS <= set(r) and "coverage" not in r  # the band's figure has one name
+    assert r["cells"] == 3 * 72  # rings 0, 1, 2 mm; 72 cells of 1 mm round the equator (2 pi 11.455 mm)
+    assert sum(r["unreachable"].values()) + r["planned_cells"] == r["cells"]
+    assert sum(p["cells_assigned"] for p in r["ports"].values()) == r["planned_cells"]
+    assert set(r["ports"]) == {"superonasal", "superotemporal"}  # the working ports; infusion only when asked for
+    assert r["ports"]["superonasal"]["clock_hour"] == 2 and r["ports"]["superotemporal"]["clock_hour"] == 10  # right eye
+    assert r["band_coverage_planned"] >= 0.9 * r["planned_cells"] / r["cells"]
+    assert r["port_switches"] == 1  # each working port visited once
+    assert len(r["switches"]) == r["port_switches"] + r["reentries"]
+    assert all(s["move_min_outside_mm"] > 0 and s["duration_s"] > 0 for s in r["switches"])
     assert r["min_model_clearance_mm"] >= 0.95  # 1 mm standoff, spline within 50 um of the targets
     assert r["min_joint_margin_deg"] >= 4.5 and r["plan_time_s"] < 10.0
     assert r["min_true_clearance_mm"] is None and r["filter_intervention_fraction"] is None  # not executed
     assert (out / "coverage.png").stat().st_size > 10_000
 
 
-@pytest.mark.parametrize("argv, message", [(["--standoff-mm", "0.4"], "--standoff-mm must be in (0.6, 5] mm"), (["--band", "x"], "--band"),
-                                           (["--band", "9,12"], "outside the model"), (["--shape", "egg"], "unknown shape")])
+def test_the_trajectory_csv_is_continuous_and_within_the_speed_limits(planned):
+    from planning.robot import Robot
+
+    out, r = planned
+    with open(out / "plan_trajectory.csv") as f:
+        rows = list(csv.DictReader(f))
+    t = np.array([float(x["t_s"]) for x in rows])
+    Q = np.array([[float(x[f"q{k}_rad"]) for k in range(1, 7)] for x in rows])
+    dQ = np.array([[float(x[f"qdot{k}_rad_s"]) for k in range(1, 7)] for x in rows])
+    assert np.all(np.diff(t) > 0)
+    assert {x["port"] for x in rows if x["phase"] == "sweep"} == {"superonasal", "superotemporal"}
+    robot = Robot()
+    assert np.all(np.abs(dQ) <= robot.qdot_max * 1.001)
+    # no jump: a row's angles follow from the previous one's within what the speed limit allows
+    assert np.all(np.abs(np.diff(Q, axis=0)) <= robot.qdot_max * np.diff(t)[:, None] * 1.01 + 1e-6)
+
+
+def test_the_ros2_bag_holds_one_joint_trajectory_per_port_segment(planned):
+    from rosbags.rosbag2 import Reader
+    from rosbags.typesys import Stores, get_typestore
+
+    from eval.cli.plan_export import JOINT_NAMES, TRAJECTORY_TOPIC
+
+    out, r = planned
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    with Reader(out / "plan_trajectory") as reader:
+        msgs = [ts.deserialize_cdr(raw, conn.msgtype) for conn, _, raw in reader.messages()
+                if conn.topic == TRAJECTORY_TOPIC]
+    assert len(msgs) == 1 + len(r["switches"])  # one per segment
+    for m in msgs:
+        assert tuple(m.joint_names) == JOINT_NAMES and len(m.points) > 10
+        t = [p.time_from_start.sec + 1e-9 * p.time_from_start.nanosec for p in m.points]
+        assert np.all(np.diff(t) > 0) and all(len(p.positions) == 6 for p in m.points)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--standoff-mm", "0.4"], "--standoff-mm must be in (0.6, 5] mm"), (["--band", "x"], "--band"),
+    (["--band", "9,12"], "outside the model"), (["--shape", "egg"], "unknown shape"),
+    (["--ports", "superonasal,nasal"], "unknown port 'nasal'"), (["--port-clock", "superonasal=13"], "[1, 12]"),
+    (["--port-clock", "superonasal=0.5"], "[1, 12]"), (["--port-clock", "lateral=3"], "unknown port"),
+    (["--port-limbus-mm", "2"], "--port-limbus-mm: must be a number in [3, 5] mm"), (["--port-limbus-mm", "6.5"], "[3, 5] mm"),
+    (["--side", "middle"], "unknown eye side")])
 def test_bad_plans_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
     out = tmp_path / "never"
     assert main(["plan", "--out", str(out), "--no-execute", *argv]) == 2
-    assert message in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) <= 2, err  # usage line + one line, no traceback
     assert not out.exists()
 
 

@@ -84,3 +84,24 @@ def test_trust_angle_180_trusts_everything(setup):
     out = wide.filter.filter_step(0.001, starts[0], command, snaps["ellipsoid"], 0.0)[0]
     assert_same(out, SafetyFilter(wide.config.filter)(wide.filter.inputs(0.001, starts[0], command, snaps["ellipsoid"],
                                                                          0.0)[0]))
+
+
+def test_the_rcm_follows_the_active_trocar_without_a_new_filter(setup):
+    """set_trocar changes the RCM constraint's numbers and the monitored points' trocar:
+    the same compiled step, the error and the rows those of the new trocar."""
+    loop, starts, snaps = setup
+    q, module = starts[0], loop.filter.stack.module
+    p_old = loop.filter.p_WC.copy()
+    p_new = p_old + np.array([0.0, 3.0, -1.0])
+    try:
+        loop.filter.set_trocar(p_new)
+        _, _, _, _, err = loop.filter.filter_step(0.001, q, np.zeros(4), snaps["ellipsoid"], 0.0)
+        assert err == pytest.approx(loop.robot.rcm_error_mm(q, p_new), abs=1e-9)
+        x = loop.filter.inputs(0.001, q, np.zeros(4), snaps["ellipsoid"], 0.0)[0]
+        A, b = loop.robot.rcm_rows(q, p_new)  # the loop's gain is the default, RCM_GAIN_PER_S
+        assert np.allclose(np.abs(x.rcm_A), np.abs(A), atol=1e-9) and np.allclose(np.abs(x.rcm_b), np.abs(b), atol=1e-9)
+        assert loop.filter.stack.module is module
+    finally:
+        loop.filter.set_trocar(p_old)
+    with pytest.raises(ValueError, match="p_WC must be 3 finite mm"):
+        loop.filter.set_trocar([0.0, np.nan, 0.0])

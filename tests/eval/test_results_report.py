@@ -69,7 +69,7 @@ def test_the_tables_hold_the_json_numbers(report):
     assert abs(float(speed["filter step p99 (us)"]) - boundary["solve_us"]["p99"]) <= 0.5
     assert abs(float(speed["Drake diff. IK p99 (us)"]) - boundary["drake_diffik_us"]["p99"]) <= 0.5
     path = found["Peripheral vitrectomy plan: path and execution"][1][0]
-    assert abs(float(path["coverage (% of reachable cells)"]) - 100 * plan["coverage"]) <= 0.05
+    assert abs(float(path["band coverage (% of all band cells)"]) - 100 * plan["band_coverage"]) <= 0.05
     assert abs(float(path["min true clearance (mm)"]) - plan["min_true_clearance_mm"]) <= 5e-4
     chain = found["iiOCT sensor chain"][1][0]
     assert abs(float(chain["distance bias (um)"]) - sensor["distance_bias_um"]) <= 0.05

@@ -1,0 +1,160 @@
+"""One trocar's shaving sweep over band cells (planning.peripheral): RCM IK with the
+cutter port turned to the retina, timed within the joint speed limits, the shaft checked
+against the boundary at each cell and along the timed path. Units: mm, s, rad; frame W.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.trajectories import PiecewisePolynomial
+
+from planning.ik import IKFailure, rcm_ik, signed_angle
+from planning.instrument_points import instrument_points
+from planning.robot import Robot
+from planning.scan import plan_ik_scan, start_posture
+
+SHAFT_SLACK_MM = 0.2  # monitored points plan this far outside the boundary (the filter stays out)
+MAX_JOINT_STEP_RAD = 1.0  # between neighbouring cells (1 mm apart): more is a branch change
+SHAFT_CHECK_DT_S = 0.005  # the timed path's shaft check: the shaft moves < 0.05 mm between samples at 10 mm/s
+
+
+def port_roll_rad(p_WT: np.ndarray, p_WC: np.ndarray, normal_in_W: np.ndarray) -> float:
+    """Roll about the shaft (planning.ik.roll_direction_W convention) that turns the
+    cutter port (on the instrument's -y side) toward the retina (outward normal)."""
+    u = (p_WT - p_WC) / np.linalg.norm(p_WT - p_WC)
+    h = np.cross([0.0, 0.0, 1.0], u)
+    h /= np.linalg.norm(h)
+    out = -normal_in_W
+    m = out - (out @ u) * u
+    y = -m / np.linalg.norm(m)  # the port is at -y: y points away from the retina
+    return signed_angle(h, y, u)
+
+
+def shaft_clearances_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
+    """(K,) smallest clearance (mm, inside > 0) from `model` of the shaft points the safety
+    filter watches at each posture Q (K, 6) rad (planning.instrument_points: past the
+    trocar, behind the tip and port, which the standoff places); inf at a posture where
+    none is that deep."""
+    Q = np.atleast_2d(np.asarray(Q, dtype=float))
+    shaft = [ip.P_W[[k for k, name in enumerate(ip.names) if name.startswith("shaft")]]
+             for ip in (instrument_points(robot, q, p_WC) for q in Q)]
+    owner = np.repeat(np.arange(len(Q)), [len(P) for P in shaft])
+    out = np.full(len(Q), np.inf)
+    if len(owner):
+        np.minimum.at(out, owner, np.asarray(model.signed_distance(np.vstack(shaft)), dtype=float))
+    return out
+
+
+def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: np.ndarray, p_WC, model,
+                               limit_mm: float) -> np.ndarray:
+    """Indices into P_cells (K, 3) of the cells on whose way (from the previous waypoint of
+    the timed joint trajectory, sampled every SHAFT_CHECK_DT_S) or at whose posture a
+    watched shaft point comes within `limit_mm` of the model. P_used (M, 3): the targets
+    of the trajectory's knots, P_cells in order among them (plan_ik_scan adds midpoints)."""
+    knots = np.asarray(traj.get_segment_times())
+    cell_knot = np.empty(len(P_cells), dtype=int)
+    j = 0
+    for k, p in enumerate(P_cells):  # the midpoints lie between the cells' rows
+        while not np.array_equal(P_used[j], p):
+            j += 1
+        cell_knot[k] = j
+    ts = np.union1d(np.arange(knots[0], knots[-1], SHAFT_CHECK_DT_S), knots)
+    near = ts[shaft_clearances_mm(robot, traj.vector_values(ts).T, p_WC, model) < limit_mm]
+    # a sample belongs to the first cell reached at or after it
+    return np.unique(np.searchsorted(knots[cell_knot], near - 1e-12, side="left"))
+
+
+def _port_facing_ik(robot: Robot, p_WT, p_WC, normal_W, seed, margin_rad: float):
+    """RCM IK at p_WT with the port turned to the retina, nearest the seed; when J6 would
+    run out of its range (the port turns about the shaft all the way round a ring), the
+    same posture with J6 a full turn back (the roll unwinds between two cells: J6 turns
+    the instrument about its own axis, which moves neither the shaft nor the tip). None
+    when neither lies within the joint margins."""
+    roll = port_roll_rad(p_WT, p_WC, normal_W)
+    for unwind in (0.0, -2 * np.pi, 2 * np.pi):
+        s = np.array(seed, dtype=float)
+        s[5] += unwind
+        try:
+            q = rcm_ik(robot, p_WT, p_WC, s, roll_rad=roll)
+        except IKFailure:
+            continue
+        if np.min(robot.joint_margin_rad(q)) >= margin_rad:
+            return q
+    return None
+
+
+def _branch_step(q, q_prev) -> float:
+    """The largest joint change (rad) between neighbouring cells, J6's full unwinding turn
+    not counted (it keeps the IK branch)."""
+    d = np.abs(np.asarray(q) - q_prev)
+    d[5] = abs((q[5] - q_prev[5] + np.pi) % (2 * np.pi) - np.pi)
+    return float(d.max())
+
+
+@dataclass(frozen=True, eq=False)
+class Sweep:
+    """One trocar's shaving sweep: the cells kept ((ring, azimuth index) in path order), their
+    targets (K, 3) W, port rolls (K,) rad and IK postures (K, 6) rad, the timed joint
+    trajectory through them and its knots' targets (plan_ik_scan adds midpoints), and the
+    cells dropped on the way with their reason ("reach" or "shaft")."""
+
+    cells: list
+    targets_W: np.ndarray
+    roll_rad: np.ndarray
+    Q: np.ndarray
+    trajectory: object  # pydrake PiecewisePolynomial, rad
+    targets_used_W: np.ndarray
+    dropped: dict
+
+
+def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None) -> Sweep:
+    """The timed sweep through the trocar p_WC (3,) mm W over the cells `order` ((ring,
+    azimuth index), in path order) of `band` (planning.peripheral.Band; `spec` its
+    BandSpec): RCM IK with the port's roll seeded along the
+    path, cells beyond the joint margins or only on another IK branch dropped as "reach",
+    cells at or on whose way the watched shaft nears the boundary dropped as "shaft".
+    IKFailure when no cell is left."""
+    limit = spec.boundary_mm + SHAFT_SLACK_MM
+    p_WC = np.asarray(p_WC, dtype=float)
+    q = q_start
+    kept, Q, dropped = [], [], {}
+    for r, i in order:  # RCM IK with the port's roll, seeded along the path; a failing cell is "reach"
+        t, n = band.target_W[r, i], band.normal_W[r, i]
+        q = _port_facing_ik(robot, t, p_WC, n, start_posture(robot, t, p_WC) if q is None else q,
+                            np.radians(spec.min_margin_deg))
+        if q is None:
+            dropped[(r, i)] = "reach"
+            q = Q[-1] if Q else None
+            continue
+        jump = _branch_step(q, Q[-1]) if Q else 0.0
+        if np.min(robot.joint_margin_rad(q)) < np.radians(spec.min_margin_deg) or jump > MAX_JOINT_STEP_RAD:
+            dropped[(r, i)] = "reach"  # beyond the margins, or only on another branch (no continuous path)
+            q = Q[-1] if Q else None
+            continue
+        # at the cell and on the way there (a first, cheap look: the joint spline runs close
+        # to the straight line in joint space between neighbouring waypoints)
+        on_way = [q] + ([Q[-1] + f * (q - Q[-1]) for f in (0.25, 0.5, 0.75)] if Q else [])
+        if shaft_clearances_mm(robot, on_way, p_WC, model).min() < limit:
+            dropped[(r, i)] = "shaft"
+            q = Q[-1] if Q else None
+            continue
+        kept.append((r, i))
+        Q.append(q)
+    while True:  # the timed trajectory, densely: drop the cells whose way in still nears the boundary
+        if not kept:
+            raise IKFailure("no cell of the band is reachable from this trocar")
+        P = np.array([band.target_W[r, i] for r, i in kept])
+        roll = np.array([port_roll_rad(band.target_W[r, i], p_WC, band.normal_W[r, i]) for r, i in kept])
+        if len(kept) == 1:  # one cell: the tip holds it for one sweep width's time
+            dwell = spec.spacing_mm / spec.tip_speed_mm_s
+            return Sweep(kept, P, roll, np.array(Q), PiecewisePolynomial.FirstOrderHold([0.0, dwell], np.array([Q[0], Q[0]]).T),
+                         P[[0, 0]], dropped)
+        traj, P_used, _ = plan_ik_scan(robot, P, p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q)
+        bad = _cells_too_near_on_the_way(robot, traj, P_used, P, p_WC, model, limit)
+        if not len(bad):
+            return Sweep(kept, P, roll, np.array(Q), traj, P_used, dropped)
+        for k in bad:
+            dropped[kept[k]] = "shaft"
+        keep = np.setdiff1d(np.arange(len(kept)), bad)
+        kept, Q = [kept[k] for k in keep], [Q[k] for k in keep]
