@@ -10,11 +10,13 @@ scleral depressor's indentation) would let some port reach it, its reason is
 
 Assignment: ports in the given order (the scenario's trocar's port first, so the
 model-building scan and the first sweep share the trocar); each port is visited once, so
-a plan has (ports used - 1) switches, the fewest for that set of ports. A cell two
-ports reach goes to the one whose shaft meets the retina more tangentially (the smaller
-port angle): neighbouring cells then mostly share a port, so each port's cells form one
-region and its serpentine does not zig-zag across the other's. A cell a port's sweep
-drops (IK branch, shaft) is offered to the ports after it.
+a plan has (ports used - 1) switches, the fewest for that set of ports. A cell several
+working ports reach goes to the one whose straight shaft keeps furthest from the retina
+(the clearance varies smoothly over the band, so each port's cells form few regions and
+its serpentine does not zig-zag across the other's); the infusion port, used as a
+working port, takes only cells no working port reaches. A port sweeps its cells region
+by region; a cell a sweep drops (IK branch, the shaft on the way) gets another pass
+through the same port (a re-entry) or is offered to the ports after it.
 
 A switch is withdraw (the tip back along the shaft to EXIT_MM outside the trocar, at
 INSERT_SPEED_MM_S), move (joint space to the next port's entry posture, quintic timing
@@ -45,7 +47,7 @@ INSERT_SPEED_MM_S = 5.0  # tip speed along the shaft while inserting and withdra
 LINE_STEP_MM = 1.0  # spacing of the insertion line's IK waypoints
 MOVE_CLEARANCE_MM = 5.0  # the tip's arc between ports lies this much further out than its ends
 MAX_SWEEPS_PER_PORT = 8  # passes through one port (each after the first is a re-entry)
-MIN_PASS_CELLS = 3  # a re-entry (withdraw, insert: ~10 s) for fewer cells is not worth it  # peak / mean speed of a rest-to-rest quintic
+MIN_PASS_CELLS = 3  # a re-entry (withdraw, insert: ~10 s) for fewer cells is not worth it
 
 
 @dataclass(frozen=True, eq=False)
@@ -247,8 +249,11 @@ def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec()
     reason = combined_reason([by_port[p.name][0] for p in ports])
     static_miss = (reason != "ok").reshape(shape)
     # the first port to take a cell: of those that reach it, the one whose shaft keeps furthest from the retina
+    # (the infusion port, when used as a working port, takes only what the working ports cannot)
     clear = np.array([np.where(by_port[p.name][0] == "ok", by_port[p.name][2], -np.inf) for p in ports])
-    choice = np.where(np.isfinite(clear.max(axis=0)), np.argmax(clear, axis=0), -1)
+    working = np.array([p.role == "working" for p in ports])
+    first = np.where(np.isfinite(clear[working]).any(axis=0)[None] & ~working[:, None], -np.inf, clear)
+    choice = np.where(np.isfinite(first.max(axis=0)), np.argmax(first, axis=0), -1)
     band = Band(az, z, S, N, T, reason.reshape(shape).copy(), np.full(shape, np.nan))
     port_of = np.full(shape, -1)
     open_cells = np.zeros(shape, dtype=bool)  # dropped by an earlier port's sweep, still to be offered
