@@ -18,6 +18,7 @@ scenarios each; a batch of a 1,000-scenario campaign on 2 workers holds 63 scena
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import multiprocessing
 import os
@@ -169,26 +170,49 @@ def connect_ray(workers: Workers) -> None:
 
 
 class _RayRunner:
-    """A Ray actor holding one loop (built from its pickled construction) and the task.
-    They travel pickled as bytes: Ray's own arrays would arrive read-only."""
+    """A Ray actor (a process of its own) that runs batches of a task on a loop. The loop is
+    built once per construction (its pickled bytes' digest) and kept for the campaigns
+    after it on the same loop; the task comes with each campaign. Both travel pickled as
+    bytes: Ray's own arrays would arrive read-only."""
 
-    def __init__(self, blob: bytes):
-        self.loop, self.task = pickle.loads(blob)
+    def __init__(self):
+        self.loop_key, self.loop, self.task = None, None, None
+
+    def prepare(self, loop_key: str, loop_blob: bytes, task_blob: bytes) -> None:
+        if loop_key != self.loop_key:
+            self.loop, self.loop_key = pickle.loads(loop_blob), loop_key
+        self.task = pickle.loads(task_blob)
 
     def run(self, batch: list) -> tuple[list, list]:
         return batch, [self.task(self.loop, i) for i in batch]
 
 
+_RAY_ACTORS: dict = {"job": None, "actors": []}  # this process's actors in its Ray job, reused by every campaign
+
+
+def _ray_actors(ray, n: int) -> list:
+    """n actors of this process's Ray job (started once: a new actor is a new process
+    that imports everything and loads the compiled kernels again)."""
+    job = ray.get_runtime_context().get_job_id()
+    if _RAY_ACTORS["job"] != job:  # a new Ray session: the old handles are gone
+        _RAY_ACTORS.update(job=job, actors=[])
+    actors = _RAY_ACTORS["actors"]
+    runner = ray.remote(num_cpus=1)(_RayRunner)
+    actors += [runner.remote() for _ in range(n - len(actors))]
+    return actors[:n]
+
+
 def _run_ray(loop, task, indices: list, workers: Workers, progress) -> list:
     connect_ray(workers)
     ray = _ray_module()
-    parts = batches(indices, workers.jobs if workers.ray == LOCAL_RAY else max(1, int(ray.cluster_resources().get("CPU", 1))))
-    n_actors = min(len(parts), max(1, int(ray.cluster_resources().get("CPU", 1))))
-    runner = ray.remote(num_cpus=1)(_RayRunner)
-    blob = ray.put(pickle.dumps((loop, task), protocol=pickle.HIGHEST_PROTOCOL))
-    actors = [runner.remote(blob) for _ in range(n_actors)]
+    cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+    parts = batches(indices, workers.jobs if workers.ray == LOCAL_RAY else cpus)
+    loop_blob = pickle.dumps(loop, protocol=pickle.HIGHEST_PROTOCOL)
+    key = hashlib.sha256(loop_blob).hexdigest()
+    loop_ref, task_ref = ray.put(loop_blob), ray.put(pickle.dumps(task, protocol=pickle.HIGHEST_PROTOCOL))
+    actors = _ray_actors(ray, min(len(parts), cpus))
+    ray.get([a.prepare.remote(key, loop_ref, task_ref) for a in actors])
     results, done, pending, queue = {}, 0, {}, list(reversed(parts))
-    finished = False
     try:
         for actor in actors:  # two batches in flight per actor: one runs while the next is sent
             for _ in range(2):
@@ -204,11 +228,9 @@ def _run_ray(loop, task, indices: list, workers: Workers, progress) -> list:
                 progress(done, len(indices))
             if queue:
                 pending[actor.run.remote(queue.pop())] = actor
-        finished = True
-    finally:
-        for actor in actors:  # done: they exit when their handles go; stopped early: killed now
-            if finished:
-                actor.__ray_terminate__.remote()
-            else:
-                ray.kill(actor)
+    except BaseException:  # Ctrl-C or a failed batch: stop the work in flight
+        for actor in _RAY_ACTORS["actors"]:
+            ray.kill(actor)
+        _RAY_ACTORS["actors"] = []
+        raise
     return [results[i] for i in indices]
