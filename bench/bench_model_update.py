@@ -14,13 +14,15 @@ from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
 from models.fit.robust_fit import RobustFitConfig
 from models.fit.small_linalg import cholesky, eigh_sym, lower_inverse, pivoted_solve
+from models.local.field import LocalField
+from models.local.grid import LocalRetinaModel
 from models.scan.paper_scan import paper_scan
 
 RADII = np.array([11.455, 11.365, 10.148])
 
 
-def _update_times(points, criteria, batch: int, robust: RobustFitConfig | None = None) -> np.ndarray:
-    m = AdaptiveEyeModel(criteria, robust=robust)
+def _update_times(points, criteria, batch: int, robust: RobustFitConfig | None = None, local: bool = False) -> np.ndarray:
+    m = AdaptiveEyeModel(criteria, robust=robust, local=LocalRetinaModel(np.zeros(3)) if local else None)
     chunks = [points[i:i + batch] for i in range(0, len(points), batch)]
     return time_calls_us(lambda i: m.update(chunks[i]), len(chunks)) / batch
 
@@ -112,15 +114,30 @@ def _drake_signed_distance(Q_mm: np.ndarray):
     return out, 1e6 * (time.perf_counter() - t0) / len(Q_mm)
 
 
+def local_field_figures(points: np.ndarray) -> None:
+    """The local model's field at the filter's 12 monitored points per control step."""
+    m = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+    for i in range(0, len(points), 20):
+        m.update(points[i:i + 20])
+    f = LocalField(m.local.params(True))
+    Q = points[::400][:12] * 0.95
+    kernel, params = f.field_kernel()
+    kernel(params, Q)
+    t = time_calls_us(lambda i: kernel(params, Q), 2000)
+    print(f"  local field at 12 points (one control step's tip, port, shaft):        {summary_us(t)}")
+
+
 def run() -> None:
     eye = make_eye("emmetropic")
     points = paper_scan(eye, seed=0).points
     _update_times(points[:500], None, 1)  # warm-up: loads the compiled kernels once
     _update_times(points[:500], PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.fit.robust_fit
-    variants = (("paper criteria", None, None), ("predictive criteria", PredictiveCriteria(), None),
-                ("predictive, robust EF", PredictiveCriteria(), RobustFitConfig()))
-    for name, criteria, robust in variants:
-        passes = np.array([_update_times(points, criteria, 1, robust) for _ in range(3)])
+    _update_times(points[:500], PredictiveCriteria(), 1, local=True)  # and those of models.local
+    variants = (("paper criteria", None, None, False), ("predictive criteria", PredictiveCriteria(), None, False),
+                ("predictive, robust EF", PredictiveCriteria(), RobustFitConfig(), False),
+                ("predictive + local", PredictiveCriteria(), None, True))
+    for name, criteria, robust, local in variants:
+        passes = np.array([_update_times(points, criteria, 1, robust, local) for _ in range(3)])
         for t in passes:
             print(f"  AdaptiveEyeModel.update, one A-scan per call, {name:21s}: {summary_us(t)}   mean {t.mean():6.1f} us")
         # the same update in each pass does the same work: its fastest pass is that work
@@ -128,6 +145,9 @@ def run() -> None:
         print(f"    the same, per update the fastest of the 3 passes (work alone):    {summary_us(passes.min(axis=0))}")
     t = _update_times(points, None, 10)
     print(f"  AdaptiveEyeModel.update, 10 A-scans per call (200 Hz), per A-scan:       {summary_us(t)}")
+    t = _update_times(points, PredictiveCriteria(), 20, local=True)
+    print(f"  the same + local model, 20 A-scans per call (the loop's packet), per A-scan: {summary_us(t)}")
+    local_field_figures(points)
     small_linalg_figures(points)
 
     P = Ellipsoid(np.zeros(3), RADII).sample_surface(50, 100, z_max=3.0) + np.random.default_rng(0).normal(0, 0.02, (5000, 3))

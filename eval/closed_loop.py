@@ -33,6 +33,8 @@ from eval.systems.model import AdaptiveModelSystem, ModelSnapshot, semi_axes_mm,
 from eval.systems.sensor import IioctSensorSystem
 from models import AdaptiveEyeModel
 from models.adaptive.coverage import DirectionCoverage
+from models.adaptive.transition import PredictiveCriteria
+from models.local.grid import LocalRetinaModel
 from planning.iioct import IioctSensor
 from planning.robot import Robot
 from safety.margins import conservative_prior
@@ -175,7 +177,7 @@ class ClosedLoop:
         if sensor_seed is not None:
             self.sensor.reseed(sensor_seed)
         self.filter.reset(None, logger)
-        self.model.reset(AdaptiveEyeModel() if model is None else model,
+        self.model.reset(self.new_model() if model is None else model,
                          self.new_coverage() if coverage is None else coverage, logger)
         context = self.diagram.CreateDefaultContext()
         self.model.GetMyMutableContextFromRoot(context).get_mutable_abstract_state(0).set_value(
@@ -202,6 +204,12 @@ class ClosedLoop:
             gc.unfreeze()
         self.filter.time_drake_diffik()
         return self._collect(wall, logger is not None)
+
+    def new_model(self) -> AdaptiveEyeModel:
+        """A fresh adaptive model with the predictive criteria and, with config.local_model,
+        the local model about the nominal eye centre (models.local)."""
+        local = LocalRetinaModel(self.scenario.eye_pose.p_WE) if self.config.local_model else None
+        return AdaptiveEyeModel(criteria=PredictiveCriteria(), local=local)
 
     def new_coverage(self) -> DirectionCoverage:
         """An empty record of measured directions, seen from the nominal eye centre."""

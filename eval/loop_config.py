@@ -11,6 +11,12 @@ from safety import FilterConfig
 from safety.margins import UncertaintyMargins
 
 
+# k of the boundary d_safe + k sigma: the local model's sigma is a standard deviation; 3 sigma
+# holds 99.87 % of a normal error one-sided, and the measured 3-sigma coverage of the true
+# retina (boundary.json: model.sigma3_coverage) checks it
+LOCAL_SIGMA_FACTOR = 3.0
+
+
 @dataclass(frozen=True)
 class LoopConfig:
     """Rates (Hz; sensor_rate_hz an integer multiple r of control_rate_hz), the sensor's
@@ -30,6 +36,11 @@ class LoopConfig:
     extrapolation is only as good as the eye is regular (models.adaptive.coverage); nearer, its
     margin grows by the model's measured misfit there (how far inside the model the
     retina was measured within `misfit_angle_deg`: a detachment the sphere averages away).
+    With `local_model` (the default) the model is the local-global one (models.local): the
+    filter keeps every point d_safe + k sigma inside it, k = filter.sigma_factor (3 by
+    default here: LOCAL_SIGMA_FACTOR) and sigma its standard deviation at the point's
+    direction, which replaces the phase margins, the trust angle and the misfit rule
+    (used only with local_model False).
     `extra_constraints`: safety.constraints objects the filter stacks after the standard
     ones (their point groups: planning.step_kinematics.POINT_GROUPS)."""
 
@@ -37,7 +48,7 @@ class LoopConfig:
     sensor_rate_hz: float = 2000.0
     sensor_packet: int = 20
     sensor_mode: str = "distance"
-    filter: FilterConfig = field(default_factory=FilterConfig)
+    filter: FilterConfig = field(default_factory=lambda: FilterConfig(sigma_factor=LOCAL_SIGMA_FACTOR))
     margins: UncertaintyMargins = field(default_factory=UncertaintyMargins)
     points: MonitoredPointsConfig = field(default_factory=MonitoredPointsConfig)
     drake_diffik_every: int = 10
@@ -47,6 +58,7 @@ class LoopConfig:
     misfit_angle_deg: float = 10.0
     model_radius_range_mm: tuple = (8.0, 16.0)
     extra_constraints: tuple = ()
+    local_model: bool = True
 
     def __post_init__(self):
         for name in ("control_rate_hz", "sensor_rate_hz"):

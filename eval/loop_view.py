@@ -79,7 +79,8 @@ def show_loop(robot: Robot, runs: list, margins, d_safe_mm: float, prior, eye=No
     for k, run in enumerate(runs):
         for e, snap in enumerate(run.model_epochs):
             shape = prior if snap.shape is None else snap.shape
-            margin = margins.margin_mm(None if snap.kind == "prior" else snap.kind, snap.residual_mm)
+            margin = (0.0 if snap.field is not None or snap.kind == "prior"  # the local model's sigma varies: not drawn
+                      else margins.margin_mm(snap.kind, snap.residual_mm))
             path = f"model/{k}_{e}_{snap.kind}"
             _set_mesh(meshcat, f"{path}/surface", *model_surface_mm(shape), _MODEL_RGBA)
             _set_mesh(meshcat, f"{path}/boundary", *model_surface_mm(shape, d_safe_mm + margin), _BOUNDARY_RGBA)

@@ -93,3 +93,24 @@ def paper_metrics(model, truth, points, n_grid: int = 500, truth_samples=None) -
         fmae_sampled=MeanSD.of(nearest_sample_distance(P, M)),
         mae_sampled=MeanSD.of(nearest_sample_distance(T, M)),
     )
+
+
+def field_report(field, truth, angle_from_data_rad, n_grid: int = 100, scanned_deg: float = 10.0) -> dict:
+    """The accuracy and honesty of a model `field` (a distance field with `uncertainty`,
+    e.g. models.local.field.LocalField, frame W) against the ground truth `truth`
+    (models.eyes.Eye) over its n_grid x n_grid reference samples (the paper's region):
+    mae_um (exact form: each sample's distance to the model's surface), scanned_p95_um
+    (95th percentile over the samples within `scanned_deg` of a measured direction;
+    `angle_from_data_rad(Q)` gives that angle, e.g. a CoverageView's), sigma3_coverage
+    (fraction of the samples whose error is within 3 sigma; None for a field without a
+    standard deviation, NaN uncertainty), scanned_fraction, and sigma_um median and p95."""
+    T = truth.reference_samples(n_grid, n_grid)
+    err = np.abs(np.asarray(field.signed_distance(T), dtype=float))
+    sigma = np.asarray(field.uncertainty(T), dtype=float)
+    scanned = np.asarray(angle_from_data_rad(T)) <= np.radians(scanned_deg)
+    return {"mae_um": 1e3 * float(err.mean()),
+            "scanned_p95_um": 1e3 * float(np.percentile(err[scanned], 95)) if scanned.any() else float("nan"),
+            "sigma3_coverage": float(np.mean(err <= 3.0 * sigma)) if np.isfinite(sigma).all() else None,
+            "scanned_fraction": float(scanned.mean()),
+            "sigma_um": ({"median": 1e3 * float(np.median(sigma)), "p95": 1e3 * float(np.percentile(sigma, 95))}
+                         if np.isfinite(sigma).all() else None)}

@@ -25,6 +25,7 @@ class FilterConfig:
     cutter_clearance_mm: float = 1.0
     max_recovery_mm_s: float = 5.0
     solver: str = "daqp"  # fastest on this QP (bench_safety); "clarabel" also works
+    sigma_factor: float = 1.0  # k of the retina barrier's d_safe + k u (u: the field's uncertainty, mm)
 
     def __post_init__(self):
         for name in ("d_safe_mm", "gain_per_s", "joint_gain_per_s", "max_tip_speed_mm_s", "max_command_speed_mm_s",
@@ -32,7 +33,7 @@ class FilterConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"FilterConfig.{name} must be finite and > 0, got {v}")
-        for name in ("lens_margin_mm", "joint_margin_rad", "damping"):
+        for name in ("lens_margin_mm", "joint_margin_rad", "damping", "sigma_factor"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"FilterConfig.{name} must be finite and >= 0, got {v}")

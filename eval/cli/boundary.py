@@ -17,6 +17,7 @@ from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, numb
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase, progress_bar
 from eval.cli.workers import add_worker_flags, workers_of
+from eval.experiments.model_report import error_sigma_figure, model_summary
 from models.eyes import EYE_SHAPES
 
 COMPILE_PHASE = "compiling / loading the control loop's kernels"
@@ -120,7 +121,8 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
         "violation_threshold_mm": 0.45,
         "lens_violations": s["lens_violations"], "max_rcm_error_um": s["max_rcm_error_um"],
         "free_tracking_error_p99": s["free_tracking_error_p99"],
-        "model": {"kind": build.kind_final, "transition_at": build.transition_at, "ef_mae_um": build.ef_mae_um,
+        "model": {**model_summary(loop, build), "fitted_kind": build.kind_final, "transition_at": build.transition_at,
+                  "ef_mae_um": build.ef_mae_um,
                   "sf_mae_um": build.sf_mae_um, "n_points": build.model.n_points,
                   "outliers_rejected": build.model.n_rejected_outliers},
         "spiral": {"duration_s": spiral.duration_s, "min_true_clearance_mm": float(spiral.true_clearance_mm.min()),
@@ -131,6 +133,9 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
         "logs": {"spiral": str(out / "spiral.mcap"), "scenario_0": str(out / "boundary.mcap")},
     }
     save_figure(_clearance_figure(campaign, args.shape), out / "boundary_clearance.png")
+    fig = error_sigma_figure(loop, build)
+    if fig is not None:
+        save_figure(fig, out / "model_error_sigma.png")
     save_figure(_activity_figure(campaign, s), out / "boundary_activity.png")
     return BoundaryRun(result, build, campaign, loop) if keep_build else result
 

@@ -16,8 +16,6 @@ from eval.closed_loop import ClosedLoop, LoopRun
 from eval.experiments.campaign import Workers, run_tasks, scenario_seed
 from eval.experiments.command_sources import AdversarialCommand, TipPathCommand
 from eval.cli.progress import progress_bar
-from models import AdaptiveEyeModel
-from models.adaptive.transition import PredictiveCriteria
 from models.metrics import mae_exact
 from planning import IKFailure, SurgeryScenario, start_posture
 
@@ -84,7 +82,7 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: 
     times = s / speed_mm_s
     path = TipPathCommand(times, P)
     q0 = start_posture(loop.robot, P[0], scenario.p_WC)
-    model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), loop.new_coverage()
+    model, coverage = loop.new_model(), loop.new_coverage()
     run = run_with_progress(loop, path, q0, float(times[-1]) + 0.05, progress, model=model, coverage=coverage,
                             logger=logger, sensor_seed=sensor_seed)
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)

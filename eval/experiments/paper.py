@@ -15,6 +15,8 @@ from models.adaptive.outlier_gate import OutlierGate
 from models.adaptive.transition import CRITERIA, PaperCriteria
 from models.eyes import EyePose, make_eye
 from models.fit.robust_fit import RobustFitConfig
+from models.local.grid import LocalRetinaModel
+from models.local.field import LocalField
 from models.metrics import PaperMetrics, mae_exact, paper_metrics
 from models.scan.paper_scan import paper_scan
 
@@ -44,6 +46,9 @@ class ShapeRun:
     sf: PaperMetrics
     ef: PaperMetrics
     optimal_transition_at: float | None
+    lc_mae_curve: np.ndarray | None = None  # the local model's (models.local), the first criterion's model
+    lc: PaperMetrics | None = None
+    local_at: float | None = None  # fraction of the spiral at which the local correction was last taken up
     transitions: dict = field(default_factory=dict)  # criterion name -> fraction or None
     criteria_met_at: dict = field(default_factory=dict)  # criterion name -> {name: fraction or None}
     history: list | None = None  # ModelUpdate per A-scan (run_shape(keep_history=True))
@@ -90,17 +95,27 @@ def run_shape(
     n = len(points)
     # consecutive points of a thinned scan lie `stride` times further apart
     gate = OutlierGate(max_jump_mm=OutlierGate().max_jump_mm * stride)
-    models = {name: AdaptiveEyeModel(CRITERIA[name](), gate, robust) for name in criteria}
-    for p in points:
+    # the local model rides on the first criterion's model (the global fits do not depend on the criterion)
+    models = {name: AdaptiveEyeModel(CRITERIA[name](), gate, robust, LocalRetinaModel(eye.pose.p_WE) if i == 0 else None)
+              for i, name in enumerate(criteria)}
+    first = next(iter(models.values()))
+    scans_c = np.unique(np.linspace(1, n, n_curve).round().astype(int))
+    curve_truth = eye.reference_samples(60, 60)
+    lc_curve, local_at, was_local = {}, None, False
+    for i, p in enumerate(points):
         for m in models.values():
             m.update(p)
+        if first.level == "local" and not was_local:
+            local_at = (i + 1) / n
+        was_local = first.level == "local"
+        if i + 1 in scans_c and first.local.global_params is not None:
+            lc_curve[i + 1] = mae_exact(LocalField(first.local.params(was_local)), curve_truth).mean
     history = next(iter(models.values())).history  # fits do not depend on the criterion
     received = np.array([u.n_received for u in history])
     scans = np.unique(np.linspace(1, n, n_curve).round().astype(int))  # A-scans received
     entry = np.searchsorted(received, scans, side="right") - 1  # the model after that A-scan
     ok = (entry >= 0) & np.array([e >= 0 and history[e].ellipsoid_center is not None and history[e].sphere_center is not None for e in entry])
     scans, entry = scans[ok], entry[ok]
-    curve_truth = eye.reference_samples(60, 60)
     sf_curve = np.array([mae_exact(history[e].sphere, curve_truth).mean for e in entry])
     ef_curve = np.array([mae_exact(history[e].ellipsoid, curve_truth).mean for e in entry])
     fractions = scans / n
@@ -117,7 +132,12 @@ def run_shape(
         ef=paper_metrics(final.ellipsoid, eye, points, grid, truth),
         optimal_transition_at=optimal_transition(fractions, sf_curve, ef_curve),
         history=history if keep_history else None,
+        lc_mae_curve=np.array([lc_curve.get(int(k), np.nan) for k in scans]),
+        local_at=local_at if first.level == "local" else None,
     )
+    first.local.solve_all()
+    lc_field = LocalField(first.local.params(first.level == "local"), first.level)
+    run.lc = paper_metrics(lc_field, eye, points, grid, truth)
     for name, m in models.items():
         at = lambda i: None if i is None else m.history[i].n_received / n  # noqa: E731
         run.transitions[name] = at(m.transition_index)

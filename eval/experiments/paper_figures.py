@@ -9,9 +9,10 @@ from eval.experiments.paper import ACCURACY_REQUIRED_MM
 _CRITERION_STYLE = {"scan_range": ("tab:purple", ":"), "residual": ("tab:brown", ":"), "temporal": ("tab:pink", ":")}
 
 
-def fig5(shape: str, fractions, sf_mae_mm, ef_mae_mm, paper_met_at: dict, transition_at, optimal_at, criterion: str, n_seeds: int):
+def fig5(shape: str, fractions, sf_mae_mm, ef_mae_mm, paper_met_at: dict, transition_at, optimal_at, criterion: str,
+         n_seeds: int, local_mae_mm=None, local_at=None):
     """The paper's Fig. 5 for one shape: SF and EF MAE (mm, log scale) over spiral
-    completion, each paper criterion's first-met point, the optimal and the actual
+    completion, the local model's (models.local) and where it was taken up, each paper criterion's first-met point, the optimal and the actual
     transition, sphere/ellipsoid phases shaded, the 0.5 mm accuracy line."""
     fig, ax = plt.subplots(figsize=(8, 4.5))
     x = 100 * np.asarray(fractions)
@@ -23,6 +24,10 @@ def fig5(shape: str, fractions, sf_mae_mm, ef_mae_mm, paper_met_at: dict, transi
         ax.axvline(switch, color="k", lw=1.6, label=f"transition ({criterion} criteria)")
     ax.plot(x, sf_mae_mm, color="tab:blue", lw=1.8, label="sphere fit MAE")
     ax.plot(x, ef_mae_mm, color="tab:orange", lw=1.8, label="ellipsoid fit MAE")
+    if local_mae_mm is not None:
+        ax.plot(x, local_mae_mm, color="tab:cyan", lw=1.8, label="local model MAE")
+        if local_at is not None:
+            ax.axvline(100 * local_at, color="tab:cyan", lw=1.2, ls="--", label="local model used")
     ax.axhline(ACCURACY_REQUIRED_MM, color="tab:red", ls="--", lw=1, label="0.5 mm required accuracy")
     if optimal_at is not None:
         ax.axvline(100 * optimal_at, color="tab:green", lw=1.4, ls="-.", label="optimal transition")

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from models import Ellipsoid, Sphere
+from models.local.field import FieldValues
 from safety import FilterConfig, FilterInputs, PointKinematics
 
 _SCALARS = ("t_s", "model_time_s", "sensor_time_s", "margin_mm", "roll_rate_cmd")
@@ -65,8 +66,9 @@ def array_from_json(x, name: str) -> np.ndarray:
 
 
 def shape_to_json(shape) -> dict | None:
-    """{"kind": "sphere", center, radius} or {"kind": "ellipsoid", center, radii, rotation}
-    (mm; rotation columns are the semi-axis directions); None for None."""
+    """{"kind": "sphere", center, radius}, {"kind": "ellipsoid", center, radii, rotation}
+    (mm; rotation columns are the semi-axis directions) or {"kind": "values", points, h, g}
+    (models.local.field.FieldValues); None for None."""
     if shape is None:
         return None
     if isinstance(shape, Sphere):
@@ -74,16 +76,22 @@ def shape_to_json(shape) -> dict | None:
     if isinstance(shape, Ellipsoid):
         return {"kind": "ellipsoid", "center": json_array(shape.center), "radii": json_array(shape.radii),
                 "rotation": json_array(shape.rotation)}
-    raise ValueError(f"shape must be a models.Sphere, a models.Ellipsoid or None to be logged, got {type(shape).__name__}")
+    if isinstance(shape, FieldValues):
+        return {"kind": "values", "points": json_array(shape.points), "h": json_array(shape.h), "g": json_array(shape.g)}
+    raise ValueError(f"shape must be a models.Sphere, a models.Ellipsoid, a FieldValues or None to be logged, "
+                     f"got {type(shape).__name__}")
 
 
 def shape_from_json(d, name: str = "shape"):
-    """The Sphere or Ellipsoid of a shape_to_json dict (None for None); ValueError naming `name`."""
+    """The Sphere, Ellipsoid or FieldValues of a shape_to_json dict (None for None); ValueError naming `name`."""
     if d is None:
         return None
-    if not isinstance(d, dict) or d.get("kind") not in ("sphere", "ellipsoid"):
-        raise ValueError(f"{name} must be a sphere or ellipsoid record, got {str(d)[:60]}")
+    if not isinstance(d, dict) or d.get("kind") not in ("sphere", "ellipsoid", "values"):
+        raise ValueError(f"{name} must be a sphere, ellipsoid or values record, got {str(d)[:60]}")
     try:
+        if d["kind"] == "values":
+            return FieldValues(array_from_json(d["points"], f"{name}.points"), array_from_json(d["h"], f"{name}.h"),
+                               array_from_json(d["g"], f"{name}.g"))
         if d["kind"] == "sphere":
             return Sphere(array_from_json(d["center"], f"{name}.center"), number_from_json(d["radius"], f"{name}.radius"))
         return Ellipsoid(array_from_json(d["center"], f"{name}.center"), array_from_json(d["radii"], f"{name}.radii"),

@@ -3,9 +3,10 @@
 Each step asks the command source for the tip velocity and roll rate at the joint
 angles it filters, then runs the filter's compiled step (safety.ConstraintStack built
 from the loop's constraints, with the instrument's kinematics kernel): the points, the
-eye model as a distance field (models.adaptive.model_field: the model's shape, its phase margin,
-the misfit measured near each point, and the prior where the model has no data near
-the tip or the port), the lens, the RCM and the joint limits, in one call. A fault
+eye model as a distance field (with the local model, models.local.field: its surface and
+standard deviation, the boundary d_safe + k sigma; else models.adaptive.model_field: the
+model's shape, its phase margin, the misfit measured near each point, and the prior where
+the model has no data near the tip or the port), the lens, the RCM and the joint limits, in one call. A fault
 gives zero velocity and the reason from the same call.
 
 The shaft points count only against a fitted model: the prior lies inside every retina,
@@ -30,6 +31,8 @@ from eval.systems.inputs import StepInputs
 from eval.systems.model import ModelSnapshot
 from models.adaptive.coverage import band_chord
 from models.adaptive.model_field import ModelField, model_field_kernel
+from models.local.field import FieldValues, LocalField
+from models.local.field_kernels import local_field
 from planning.chain import frame_position
 from planning.diffik import DrakeDiffIK
 from planning.robot import RCM_GAIN_PER_S, Robot
@@ -101,8 +104,10 @@ class FilterSystem(LeafSystem):
         self.step_inputs = StepInputs(robot, config.points, prior)
         self.robot_scene = RobotScene(robot)
         self._trust_angle_rad, self._misfit_angle_rad = np.radians(config.trust_angle_deg), np.radians(config.misfit_angle_deg)
+        self.local = config.local_model
+        eye_kernel = local_field if self.local else model_field_kernel
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
-                                     {"eye": model_field_kernel, "eye_shaft": model_field_kernel,
+                                     {"eye": eye_kernel, "eye_shaft": eye_kernel,
                                       "lens": lens.kernel}, config.filter, kinematics=step_kinematics,
                                      point_names=point_names, port=("tip_port", 1))
         self._rcm = next(c for c in self.constraints if isinstance(c, RcmEquality))
@@ -110,8 +115,12 @@ class FilterSystem(LeafSystem):
         self._kp = step_kinematics_params(robot, self.p_WC, config.points)
         self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
         self._lens_field = lens.params
-        self._prior_field = ModelField(prior).params
-        self._none_field = ModelField.none().params
+        if self.local:
+            self._prior_local = LocalField.exact(prior, robot.scenario.eye_pose.p_WE)
+            self._prior_field, self._none_field = self._prior_local.params, LocalField.none().params
+        else:
+            self._prior_field, self._none_field = ModelField(prior).params, ModelField.none().params
+        self._bounded = None  # the local field with the prior as its second bound (fields)
         chord = max(band_chord(np.radians(config.trust_angle_deg)), band_chord(np.radians(config.misfit_angle_deg)))
         self._field_options = dict(trust_angle_rad=float(np.radians(config.trust_angle_deg)),
                                    misfit_angle_rad=float(np.radians(config.misfit_angle_deg)), band_chord=chord)
@@ -180,7 +189,16 @@ class FilterSystem(LeafSystem):
 
     def fields(self, snap: ModelSnapshot) -> tuple:
         """The field slots' params ("eye", "eye_shaft", "lens") for a snapshot: made once per
-        model; a snapshot that differs from the last only in its time reuses them."""
+        model; a snapshot that differs from the last only in its time reuses them. With the
+        local model: its field, with the prior as a second bound for the tip and the port."""
+        if self.local:
+            if self._key is not snap.field or not self._fields:
+                self._bounded = None if snap.field is None else snap.field.with_fallback(self.config.filter.sigma_factor,
+                                                                                        self.prior)
+                eye, shaft = ((self._prior_field, self._none_field) if snap.field is None
+                              else (self._bounded.params, snap.field.params))
+                self._fields, self._key = (eye, shaft, self._lens_field), snap.field
+            return self._fields
         key = (snap.shape, snap.coverage, snap.kind, snap.residual_mm)
         last = self._key
         if last is None or not (key[0] is last[0] and key[1] is last[1] and key[2] == last[2]
@@ -205,11 +223,28 @@ class FilterSystem(LeafSystem):
         """(FilterInputs, InstrumentPoints) of one step, as replay rebuilds it from the log;
         ValueError on bad joint angles."""
         ip = self.step_inputs.points_at(q)
-        kind = None if snap.shape is None else snap.kind
-        trusted, misfit = self._trust(kind, snap, ip.P_W[:StepInputs.boundary_count(kind, ip)])
-        x = self.step_inputs(t_s, q, command, snap.shape, kind, t_s if kind is None else snap.t_s, sensor_t_s,
-                             snap.margin_mm(self.config.margins), trusted, misfit, ip)
+        shape, kind, margin, trusted, misfit = self._step_model(snap, ip)
+        x = self.step_inputs(t_s, q, command, shape, kind, t_s if kind is None else snap.t_s, sensor_t_s, margin,
+                             trusted, misfit, ip)
         return x, ip
+
+    def _step_model(self, snap: ModelSnapshot, ip) -> tuple:
+        """(shape, kind, margin mm, trusted flags, misfit mm) of a step at the points ip, as the
+        log records them (StepInputs' arguments). With the local model: its field's answers
+        at the boundary points (models.local.field.FieldValues) and their sigma as the points'
+        margins (the barrier's k multiplies them), kind None before it is trusted."""
+        if not self.local:
+            kind = None if snap.shape is None else snap.kind
+            return (snap.shape, kind, snap.margin_mm(self.config.margins),
+                    *self._trust(kind, snap, ip.P_W[:StepInputs.boundary_count(kind, ip)]))
+        if snap.field is None:
+            return None, None, 0.0, np.ones(2, dtype=bool), np.zeros(2)
+        self.fields(snap)
+        P = ip.P_W[:StepInputs.boundary_count(snap.kind, ip)]
+        h, g, sigma = self._bounded.signed_distance_gradient_uncertainty(P)
+        # the shaft's points: the model alone (the prior lies inside the wall they cross)
+        h[2:], g[2:], sigma[2:] = snap.field.signed_distance_gradient_uncertainty(P[2:])
+        return FieldValues(P, h, g), snap.kind, 0.0, np.ones(len(P), dtype=bool), sigma
 
     def _trust(self, kind: str | None, snap: ModelSnapshot, P_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(trusted flags, measured misfit mm) of the boundary points P_W (k, 3): the tip and
@@ -275,13 +310,18 @@ class FilterSystem(LeafSystem):
         beam to the last measured distance) at 20 Hz."""
         log, k = self.logger, len(self.record.steps)
         P = self.record.steps[-1].points_W  # the compiled step's boundary points: tip, port, shaft
-        kind = None if snap.shape is None else snap.kind
-        model = self.prior if kind is None else snap.shape
+        prior = snap.shape is None or (self.local and snap.field is None)
+        kind = None if prior else snap.kind
+        model = self.prior if prior else snap.shape
         finite = bool(np.isfinite(q).all())
         if finite:  # non-finite joint angles: nothing the replay could re-run
-            trusted, misfit = self._trust(kind, snap, P[:2] if kind is None else P)
-            log.log_step(t, q, command, snap.shape, kind, t if kind is None else snap.t_s, sensor_t,
-                         snap.margin_mm(self.config.margins), trusted, misfit, out)
+            if self.local:
+                shape, kind, margin, trusted, misfit = self._step_model(snap, self.step_inputs.points_at(q))
+            else:
+                shape, margin = snap.shape, snap.margin_mm(self.config.margins)
+                trusted, misfit = self._trust(kind, snap, P[:2] if kind is None else P)
+            log.log_step(t, q, command, shape, kind, t if kind is None else snap.t_s, sensor_t, margin, trusted,
+                         misfit, out)
         if k % 10 == 1:
             log.log_joint_states(t, q, out.qdot, JOINT_NAMES)
             log.log_clearance(t, P[:2], model)
@@ -296,7 +336,7 @@ class FilterSystem(LeafSystem):
             log.log_frames(t, frames)
             o, u = self.robot.beam(q)
             beam = None if not np.isfinite(distance_mm) else (o, o + distance_mm * u)
-            keep = self.config.filter.d_safe_mm + float(snap.margin_mm(self.config.margins))
+            keep = self.config.filter.d_safe_mm + (0.0 if prior or self.local else float(snap.margin_mm(self.config.margins)))
             log.log_scene(t, eye=model, beam=beam, p_W_trocar=self.p_WC, lens=self.lens,
                           boundary=shrunk(model, keep), robot=self.robot_scene)
 

@@ -17,6 +17,7 @@ from pydrake.systems.framework import LeafSystem
 from models import AdaptiveEyeModel
 from models.adaptive.coverage import DirectionCoverage
 from models.adaptive.transition import PredictiveCriteria
+from models.local.grid import LocalRetinaModel
 from planning.iioct import NO_SAMPLE_YET
 from safety.margins import UncertaintyMargins
 
@@ -35,6 +36,7 @@ class ModelSnapshot(NamedTuple):
     residual_mm: float
     n_points: int
     coverage: object = None  # models.adaptive.coverage.CoverageView of the measured directions
+    field: object = None  # models.local.field.LocalField the filter keeps to (with the local model), else None
 
     def __deepcopy__(self, memo) -> ModelSnapshot:
         return self  # immutable (the shapes are frozen): Drake copies abstract state values often
@@ -61,8 +63,12 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     153 x 29 x 29 mm) gives way to the model's sphere fit if that one is an eye's (its
     phase's wider margin applies); "prior" otherwise. The model's shapes are made once
     per update (AdaptiveEyeModel.shape), and only once the trust limits on points and
-    scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says."""
+    scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says.
+    With a local model (model.local) the trusted snapshot also holds its LocalField, and
+    its kind is "local" while the model uses its local correction (model.level)."""
     n = model.n_points
+    if model.local is not None:
+        return _local_snapshot(model, coverage, t_s, min_points, min_scan_range_mm, radius_range_mm)
     shape = None if n < min_points or model.scan_range_mm < min_scan_range_mm else model.shape
     if shape is not None:
         last, (lo, hi) = model.history[-1], radius_range_mm
@@ -74,6 +80,22 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
         if shape is not None and lo <= shape.radius <= hi:
             return ModelSnapshot("sphere", shape, t_s, float(last.sf_residual_mm), n, coverage.view(shape))
     return ModelSnapshot("prior", None, t_s, float("nan"), n, coverage.view())
+
+
+def _local_snapshot(model, coverage, t_s, min_points, min_scan_range_mm, radius_range_mm) -> ModelSnapshot:
+    """snapshot_of for a model with a local part: the trust limits on points, scan range
+    and the global quadric's semi-axes as for the quadric, then the LocalField."""
+    n = model.n_points
+    shape = model.global_for_local()
+    lo, hi = radius_range_mm
+    if (shape is None or n < min_points or model.scan_range_mm < min_scan_range_mm or model.local.global_params is None
+            or not (lo <= float(np.min(semi_axes_mm(shape))) and float(np.max(semi_axes_mm(shape))) <= hi)):
+        return ModelSnapshot("prior", None, t_s, float("nan"), n, coverage.view())
+    level = model.level
+    kind = level if level == "local" else type(shape).__name__.lower()
+    last = model.history[-1]
+    residual = float(last.ef_residual_mm if kind == "ellipsoid" else last.sf_residual_mm)
+    return ModelSnapshot(kind, shape, t_s, residual, n, coverage.view(), model.local.field(level == "local", kind))
 
 
 class AdaptiveModelSystem(LeafSystem):
@@ -106,13 +128,15 @@ class AdaptiveModelSystem(LeafSystem):
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         u[:, 2] = -np.abs(u[:, 2])  # a posterior cap
         P = u * [11.5, 11.4, 10.1] + rng.normal(0.0, 0.02, (300, 1)) * u
-        model, coverage = AdaptiveEyeModel(criteria=PredictiveCriteria()), DirectionCoverage(np.zeros(3))
+        model = AdaptiveEyeModel(criteria=PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+        coverage = DirectionCoverage(np.zeros(3))
         for k in range(0, len(P), 10):
             model.update(P[k:k + 10])
             coverage.add(model.last_accepted)
         for shape in (None, model.sphere, model.ellipsoid):
             coverage.view(shape)
         snapshot_of(model, coverage, 0.0)
+        model.local.params(True)
 
     def reset(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, logger=None) -> None:
         self.model, self.coverage, self.logger = model, coverage, logger

@@ -18,7 +18,10 @@ from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig
 from models.fit.sphere_kalman import SphereKalmanFilter
 from models.shapes.ellipsoid import Ellipsoid
 from models.shapes.sphere import Sphere
+from models.local.selection import LocalChoice
 from models.shapes.validation import as_points
+
+EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5 mm)
 
 
 class ModelUpdate(NamedTuple):
@@ -73,12 +76,15 @@ class AdaptiveEyeModel:
     (K, 3) mm the last call took in (finite and past the gate).
     """
 
-    def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate(), robust: RobustFitConfig | None = None):
+    def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate(), robust: RobustFitConfig | None = None,
+                 local=None):
         """`criteria`: PaperCriteria (default, the paper's) or PredictiveCriteria, or any
         object with the same `initial_state`/`evaluate` interface (models.adaptive.transition);
         `gate`: the innovation gate against outliers (None: accept every finite point);
         `robust`: None for the paper's least-squares ellipsoid, or the settings of the
-        robust one that down-weights pathological patches (models.fit.robust_fit)."""
+        robust one that down-weights pathological patches (models.fit.robust_fit);
+        `local`: None, or a models.local.grid.LocalRetinaModel that takes the same points on
+        top of the global quadric (models.local.selection decides when it is used)."""
         self.criteria = PaperCriteria() if criteria is None else criteria
         self.gate = gate
         self._gate = None if gate is None else GateState(gate)
@@ -96,6 +102,8 @@ class AdaptiveEyeModel:
         self.n_rejected_nonfinite = 0
         self.history: list[ModelUpdate] = []
         self.last_accepted = np.zeros((0, 3))
+        self.local = local
+        self.local_choice = LocalChoice() if local is not None else None
 
     def __deepcopy__(self, memo) -> AdaptiveEyeModel:
         """An independent copy (it updates without touching this model) that shares the
@@ -126,6 +134,21 @@ class AdaptiveEyeModel:
     @property
     def shape(self) -> Sphere | Ellipsoid | None:
         return self.ellipsoid if self.kind == "ellipsoid" else self.sphere
+
+    def global_for_local(self) -> Sphere | Ellipsoid | None:
+        """The global quadric under the local model: the current shape, or the sphere fit
+        while the ellipsoid's semi-axes are no eye's (EYE_RADII_MM)."""
+        shape = self.shape
+        if self.kind == "ellipsoid" and shape is not None:
+            lo, hi = EYE_RADII_MM
+            if not (lo <= float(np.min(shape.radii)) and float(np.max(shape.radii)) <= hi):
+                shape = self.sphere
+        return shape
+
+    @property
+    def level(self) -> str:
+        """"local" while the local model is used (models.local.selection), else `kind`."""
+        return "local" if self.local is not None and self.local_choice.active else self.kind
 
     @property
     def n_rejected_outliers(self) -> int:
@@ -170,6 +193,8 @@ class AdaptiveEyeModel:
             return None
         if ef.p0 is None:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
+        if self.local is not None:
+            self.local_choice.absorb(self.local, self.last_accepted, self.global_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)
         v_sf = out[OUT_V_SF:OUT_V_EF]

@@ -16,23 +16,25 @@ from eval.log.replay import replay
 from models import AdaptiveEyeModel, Ellipsoid
 from models.adaptive.coverage import DirectionCoverage
 from models.adaptive.transition import PredictiveCriteria
+from models.local.grid import LocalRetinaModel
 from planning import SurgeryScenario, start_posture
 from safety import FilterConfig
 
 RCM_TOL_MM = 0.020  # RCM drift of 1 kHz Euler steps of the joint velocities, up to 20 mm/s
 
 
-def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0):
+def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0, local: bool = False):
     """(AdaptiveEyeModel, DirectionCoverage) from the retina points the fiber would see
     along the spiral (beams from the trocar through the spiral points, 20 um noise),
-    without the robot."""
+    without the robot; with `local`, the model has its local part (models.local)."""
     P_E = scenario.spiral_E(pitch_mm=1.5, revolutions=6.0, spacing_mm=0.05)
     P = scenario.eye_pose.to_W(P_E)
     U = P - scenario.p_WC
     U /= np.linalg.norm(U, axis=1, keepdims=True)
     d = scenario.eye.ray_cast(P, U)
     X = P + (d + np.random.default_rng(seed).normal(0.0, 0.02, len(d)))[:, None] * U
-    model = AdaptiveEyeModel(criteria=PredictiveCriteria())
+    model = AdaptiveEyeModel(criteria=PredictiveCriteria(),
+                             local=LocalRetinaModel(scenario.eye_pose.p_WE) if local else None)
     coverage = DirectionCoverage(scenario.eye_pose.p_WE)
     for k in range(0, len(X), 10):
         model.update(X[k:k + 10])
@@ -43,7 +45,7 @@ def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0):
 @pytest.fixture(scope="module")
 def emmetropic():
     scenario = SurgeryScenario()
-    model, coverage = model_from_spiral_beams(scenario)
+    model, coverage = model_from_spiral_beams(scenario, local=True)
     assert model.kind == "ellipsoid"
     return ClosedLoop(scenario), State(model, coverage)
 

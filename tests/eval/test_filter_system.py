@@ -11,9 +11,10 @@ from hypothesis import strategies as st
 from eval.experiments.boundary import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
 from planning import SurgeryScenario
-from safety import SafetyFilter
+from safety import FilterConfig, SafetyFilter
 from test_closed_loop import model_from_spiral_beams
 
+QUADRIC = LoopConfig(local_model=False, filter=FilterConfig())  # the quadric model's boundary (margins, trust angle)
 QDOT_TOL = 1e-9  # rad/s: the same rows from distances computed two ways (to rounding); only the solver's rounding differs
 
 
@@ -21,7 +22,7 @@ QDOT_TOL = 1e-9  # rad/s: the same rows from distances computed two ways (to rou
 def setup():
     scenario = SurgeryScenario()
     model, coverage = model_from_spiral_beams(scenario)
-    loop = ClosedLoop(scenario)
+    loop = ClosedLoop(scenario, QUADRIC)
     starts = adversarial_starts(loop, model.shape, 12, np.random.default_rng(5))
     snaps = {
         "prior": ModelSnapshot("prior", None, 0.0, np.nan, 0, coverage.view()),
@@ -79,7 +80,7 @@ def test_both_compiled_outcomes_occur(setup):
 
 def test_trust_angle_180_trusts_everything(setup):
     loop, starts, snaps = setup
-    wide = ClosedLoop(loop.scenario, LoopConfig(trust_angle_deg=180.0))
+    wide = ClosedLoop(loop.scenario, LoopConfig(trust_angle_deg=180.0, local_model=False, filter=FilterConfig()))
     command = np.array([1.0, 0.0, 0.0, 0.0])
     out = wide.filter.filter_step(0.001, starts[0], command, snaps["ellipsoid"], 0.0)[0]
     assert_same(out, SafetyFilter(wide.config.filter)(wide.filter.inputs(0.001, starts[0], command, snaps["ellipsoid"],
@@ -105,3 +106,26 @@ def test_the_rcm_follows_the_active_trocar_without_a_new_filter(setup):
         loop.filter.set_trocar(p_old)
     with pytest.raises(ValueError, match="p_WC must be 3 finite mm"):
         loop.filter.set_trocar([0.0, np.nan, 0.0])
+
+
+@pytest.fixture(scope="module")
+def local_setup():
+    scenario = SurgeryScenario(eye_name="detached")
+    model, coverage = model_from_spiral_beams(scenario, local=True)
+    loop = ClosedLoop(scenario)
+    snap = loop.model.snapshot_for(model, coverage, 0.0)
+    assert snap.field is not None
+    starts = adversarial_starts(loop, model.shape, 8, np.random.default_rng(3))
+    return loop, starts, {"prior": ModelSnapshot("prior", None, 0.0, np.nan, 0, coverage.view()), "local": snap}
+
+
+@settings(max_examples=40, deadline=None)
+@given(start=st.integers(0, 7), kind=st.sampled_from(["prior", "local"]),
+       dq=st.lists(st.floats(-0.02, 0.02), min_size=6, max_size=6),
+       v=st.lists(st.floats(-25.0, 25.0), min_size=3, max_size=3))
+def test_the_local_model_step_equals_the_api_on_its_inputs(local_setup, start, kind, dq, v):
+    loop, starts, snaps = local_setup
+    q, command = starts[start] + np.array(dq), np.array([*v, 0.0])
+    loop.filter.stack.reset()
+    out = loop.filter.filter_step(0.001, q, command, snaps[kind], 0.0)[0]
+    assert_same(out, api(loop, 0.001, q, command, snaps[kind], 0.0))

@@ -1,0 +1,81 @@
+"""What the closed loop's model knows of the retina: its figures against the ground truth
+(models.metrics.field_report) and a map of its error and standard deviation.
+
+The model reported is the one the filter used at the end of the spiral: with the local
+model its LocalField (kind "local", or the global quadric's kind while the local
+correction is not used), else the quadric the filter trusts (its uncertainty: 0 mm).
+Units: mm in, um out; directions seen from the nominal eye centre.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from models.metrics import field_report
+
+
+class _ExactField:
+    """A quadric shape as a field with no uncertainty (the quadric model's report)."""
+
+    def __init__(self, shape):
+        self.shape = shape
+
+    def signed_distance(self, P):
+        return self.shape.signed_distance(P)
+
+    def uncertainty(self, P):
+        return np.full(len(P), np.nan)  # the quadric boundary's margins are not a standard deviation
+
+
+def filter_model(loop, build):
+    """(kind, field) of the model the filter reads at the end of the spiral `build`
+    (eval.experiments.boundary.SpiralBuild); field None for the prior."""
+    snap = loop.model.snapshot_for(build.model, build.coverage, float(build.run.t[-1]))
+    if snap.field is not None:
+        return snap.kind, snap.field
+    return snap.kind, None if snap.shape is None else _ExactField(snap.shape)
+
+
+def model_summary(loop, build, n_grid: int = 100) -> dict:
+    """boundary.json's, sensor.json's and plan.json's `model` figures of the filter's
+    model: kind, mae_um, scanned_p95_um, sigma3_coverage (field_report), and the model
+    update's wall time per A-scan (us: each packet's update over its valid samples)."""
+    kind, field = filter_model(loop, build)
+    out = {"kind": kind}
+    if field is not None:
+        out.update(field_report(field, loop.scenario.eye, build.coverage.view().angle_from_data_rad, n_grid))
+    us = np.asarray(loop.model.update_us, dtype=float)
+    if len(us):
+        out["update_us_per_ascan"] = {"p99": float(np.percentile(us, 99)), "max": float(us.max())}
+    return out
+
+
+def error_sigma_figure(loop, build, n_grid: int = 120):
+    """The model's exact error and standard deviation (um) over the retina's reference
+    region, as maps in azimuth and elevation seen from the eye centre, with the measured
+    directions; a matplotlib Figure (None for the prior)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    kind, field = filter_model(loop, build)
+    if field is None:
+        return None
+    eye, c = loop.scenario.eye, loop.scenario.eye_pose.p_WE
+    T = eye.reference_samples(n_grid, n_grid)
+    err = 1e3 * np.abs(field.signed_distance(T))
+    sigma = 1e3 * np.asarray(field.uncertainty(T), dtype=float)
+    V = loop.scenario.eye_pose.to_E(T) - loop.scenario.eye_pose.to_E(c[None])[0]
+    az, el = np.degrees(np.arctan2(V[:, 0], -V[:, 2])), np.degrees(np.arctan2(V[:, 1], np.hypot(V[:, 0], V[:, 2])))
+    D = build.coverage.view().sorted_directions
+    DE = loop.scenario.eye_pose.to_E(c[None] + D) - loop.scenario.eye_pose.to_E(c[None])[0]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5), constrained_layout=True)
+    for ax, val, title in ((axes[0], err, "exact error (um)"), (axes[1], sigma, "standard deviation sigma (um)")):
+        sc = ax.scatter(az, el, c=np.clip(val, 1.0, None), s=4, cmap="viridis", norm=matplotlib.colors.LogNorm())
+        ax.scatter(np.degrees(np.arctan2(DE[:, 0], -DE[:, 2])), np.degrees(np.arctan2(DE[:, 1], np.hypot(DE[:, 0], DE[:, 2]))),
+                   s=1, c="r", alpha=0.3, label="measured directions")
+        fig.colorbar(sc, ax=ax)
+        ax.set_xlabel("azimuth from the posterior pole, temporal + (deg)")
+        ax.set_ylabel("elevation (deg)")
+        ax.set_title(f"{title}, {kind} model")
+    axes[0].legend(loc="lower right", markerscale=6)
+    return fig

@@ -1,0 +1,129 @@
+"""The local-global retina model as a distance field (models.shapes.field): signed distance,
+gradient and standard deviation of the retina surface r = R(u) about a fixed centre.
+
+The distance is first order: F / |grad F| of F = R(u) - |p - c0|, exact on a sphere
+about c0 and, elsewhere, off by about d^2 kappa / 2 at distance d from a surface of
+curvature kappa (under 1 um at the model's errors of tens of um near the retina; 0.05 mm
+at 1 mm on the pointed eye's crease). The uncertainty is the model's standard
+deviation at the point's direction (models.local.grid), a one-sided bound once the
+barrier multiplies it (safety.constraints.point_barrier: d_safe + k sigma).
+Units: mm; points in the frame of the measured points (W in the loop).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from models.local.field_kernels import BOUND, HEAD, local_field, radii_at, unpack
+from models.local.kernels import global_params
+from models.shapes.field import FieldKernel
+from models.shapes.sampling import unit_sphere_grid
+from models.shapes.validation import as_points
+
+
+class LocalField:
+    """A snapshot of a LocalRetinaModel (`model.params(local)`) as a distance field, and as
+    a surface (`ray_cast`-free: `radius_and_sd`, `sample_surface`). `kind` "local" when the
+    local correction is used, else the global model's kind ("sphere" | "ellipsoid")."""
+
+    def __init__(self, params: np.ndarray, kind: str = "local"):
+        self.params = np.ascontiguousarray(params, dtype=float)
+        self.kind = kind
+        self.center = np.array(self.params[3:6])
+
+    @classmethod
+    def exact(cls, shape, center) -> LocalField:
+        """The global `shape` (Sphere or Ellipsoid) alone, exact (sd 0), seen from `center`
+        (3,) mm (inside it): the conservative prior in the same field form."""
+        head = np.concatenate([[0.0, np.radians(5.0), 1.0], np.asarray(center, dtype=float),
+                               [0.02, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0], global_params(shape), np.zeros(5)])
+        return cls(head, "prior")
+
+    @classmethod
+    def none(cls) -> LocalField:
+        """No boundary: +inf everywhere."""
+        head = np.zeros(HEAD)
+        head[2] = -1.0
+        return cls(head, "none")
+
+    def with_fallback(self, sigma_factor: float, fallback) -> LocalField:
+        """A copy whose points answer the `fallback` Sphere (inside every retina) wherever it
+        allows more than the model's h - sigma_factor x sigma (local_field)."""
+        params = self.params.copy()
+        params[BOUND:HEAD] = [sigma_factor, *np.asarray(fallback.center, dtype=float), float(fallback.radius)]
+        return LocalField(params, self.kind)
+
+    def __deepcopy__(self, memo) -> LocalField:
+        return self  # immutable by convention: its params are never written
+
+    def field_kernel(self) -> FieldKernel:
+        """FieldKernel(local_field, params)."""
+        return FieldKernel(local_field, self.params)
+
+    def signed_distance_gradient_uncertainty(self, P) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        Q = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True).reshape(-1, 3))
+        return local_field(self.params, Q)
+
+    def signed_distance(self, P) -> np.ndarray:
+        """(M,) mm, > 0 inside."""
+        return self.signed_distance_gradient_uncertainty(P)[0]
+
+    def gradient(self, P) -> np.ndarray:
+        """(M, 3) unit gradient (inward)."""
+        return self.signed_distance_gradient_uncertainty(P)[1]
+
+    def signed_distance_and_gradient(self, P) -> tuple[np.ndarray, np.ndarray]:
+        return self.signed_distance_gradient_uncertainty(P)[:2]
+
+    def uncertainty(self, P) -> np.ndarray:
+        """(M,) standard deviation (mm) of the surface at each point's direction; +inf for a non-finite point."""
+        return self.signed_distance_gradient_uncertainty(P)[2]
+
+    def radius_and_sd(self, U) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) radius mm, (M,) sd mm) along unit directions U (M, 3) from the centre."""
+        dirs, blend, local, c0, prior, gp, x, cov, excess, has, near = unpack(self.params)
+        U = np.ascontiguousarray(np.asarray(U, dtype=float).reshape(-1, 3))
+        R, S = radii_at(dirs, blend, c0, prior, gp, x, cov, excess, has, near, U)
+        if local == 0.0:
+            G = radii_at(dirs, blend, c0, prior, gp, x, cov, excess, np.zeros(len(has)), near, U)[0]
+            S = np.sqrt(S * S + (R - G) ** 2)
+            R = G
+        return R, S
+
+    def sample_surface(self, n_theta: int, n_phi: int, z_max=None) -> np.ndarray:
+        """(n_theta * n_phi, 3) surface points (mm) along an equal-area grid of directions
+        from the centre (`z_max` unsupported: the paper's crop is applied by the caller)."""
+        U = unit_sphere_grid(n_theta, n_phi, 1.0)
+        R, _ = self.radius_and_sd(U)
+        return self.center + R[:, None] * U
+
+
+class FieldValues:
+    """A field's answers at a few points, as a shape: `signed_distance(Q)` and
+    `gradient(Q)` give the stored values for the rows of Q equal to a stored point (NaN
+    for others). What a run log holds of the local model per filter step (its nodes are
+    ~1 MB), enough to replay the step. points (M, 3) mm, h (M,) mm, g (M, 3)."""
+
+    def __init__(self, points, h, g):
+        self.points = np.array(points, dtype=float).reshape(-1, 3)
+        self.h = np.array(h, dtype=float).reshape(-1)
+        self.g = np.array(g, dtype=float).reshape(-1, 3)
+        if not (len(self.points) == len(self.h) == len(self.g)):
+            raise ValueError(f"FieldValues: {len(self.points)} points, {len(self.h)} distances, {len(self.g)} gradients")
+
+    def __deepcopy__(self, memo) -> FieldValues:
+        return self
+
+    def signed_distance_and_gradient(self, Q) -> tuple[np.ndarray, np.ndarray]:
+        Q = np.asarray(Q, dtype=float).reshape(-1, 3)
+        h, g = np.full(len(Q), np.nan), np.full((len(Q), 3), np.nan)
+        for i, q in enumerate(Q):
+            match = np.flatnonzero((self.points == q).all(axis=1))
+            if len(match):
+                h[i], g[i] = self.h[match[0]], self.g[match[0]]
+        return h, g
+
+    def signed_distance(self, Q) -> np.ndarray:
+        return self.signed_distance_and_gradient(Q)[0]
+
+    def gradient(self, Q) -> np.ndarray:
+        return self.signed_distance_and_gradient(Q)[1]

@@ -1,0 +1,221 @@
+"""Compiled kernels of the local retina model's field (models.local.field): the nodes'
+quadratics blended over directions, the signed distance, gradient and standard deviation
+at points, radii along directions, and the predictions the local model is chosen by
+(models.local.selection). Radii mm from the fixed centre c0; directions unit vectors;
+angles rad.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from models.local.kernels import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, global_sd, node_frame, wendland
+
+MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60)
+
+
+@njit(cache=True, inline="always")
+def candidates(dirs, u0, u1, u2, angle, cand):
+    """The number of nodes within `angle` rad of the unit direction u, their indices
+    written to cand (as many as it holds)."""
+    k0, k1 = band(dirs.shape[0], u2, 2.0 * np.sin(0.5 * angle))
+    cos_a = np.cos(angle)
+    nc = 0
+    for k in range(k0, k1):
+        if u0 * dirs[k, 0] + u1 * dirs[k, 1] + u2 * dirs[k, 2] > cos_a and nc < cand.shape[0]:
+            cand[nc] = k
+            nc += 1
+    return nc
+
+
+@njit(cache=True, inline="always")
+def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc):
+    """(radius mm, sd mm) of the field at the unit direction u: the nodes within `blend`
+    rad (their quadratics, or the global radius at nodes without data) averaged with
+    Wendland's weight over each one's variance there (a node extrapolating across its
+    data counts little), and their standard deviations with the same weights."""
+    cos_b = np.cos(blend)
+    rg = np.nan
+    sw, sr, ss = 0.0, 0.0, 0.0
+    for j in range(nc):
+        k = cand[j]
+        d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        c = u0 * d0 + u1 * d1 + u2 * d2
+        if c <= cos_b:
+            continue
+        w = wendland(np.arccos(min(c, 1.0)) / blend)
+        if w <= 0.0:
+            continue
+        if has[k] != 0.0:
+            e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
+            t1 = (u0 * e10 + u1 * e11 + u2 * e12) / c
+            t2 = (u0 * e20 + u1 * e21 + u2 * e22) / c
+            p1, p2, p3, p4, p5 = t1, t2, t1 * t1, t1 * t2, t2 * t2
+            r = x[k, 0] + x[k, 1] * p1 + x[k, 2] * p2 + x[k, 3] * p3 + x[k, 4] * p4 + x[k, 5] * p5
+            C = cov[k]
+            v = (C[0] + 2.0 * (C[1] * p1 + C[2] * p2 + C[3] * p3 + C[4] * p4 + C[5] * p5)
+                 + C[6] * p1 * p1 + 2.0 * (C[7] * p1 * p2 + C[8] * p1 * p3 + C[9] * p1 * p4 + C[10] * p1 * p5)
+                 + C[11] * p2 * p2 + 2.0 * (C[12] * p2 * p3 + C[13] * p2 * p4 + C[14] * p2 * p5)
+                 + C[15] * p3 * p3 + 2.0 * (C[16] * p3 * p4 + C[17] * p3 * p5)
+                 + C[18] * p4 * p4 + 2.0 * C[19] * p4 * p5 + C[20] * p5 * p5) + excess[k]
+        else:
+            if rg != rg:
+                rg = global_radius(c0, gp, u0, u1, u2)
+            r = rg
+            sd = global_sd(np.arccos(min(near[k], 1.0)), prior)
+            v = sd * sd
+        v += prior[5] * prior[5]  # the floor: what the quadratics' spread near data leaves unexplained
+        w /= v
+        sw += w
+        sr += w * r
+        ss += w * np.sqrt(v)
+    if sw <= 0.0:
+        return global_radius(c0, gp, u0, u1, u2), prior[2]
+    return sr / sw, ss / sw
+
+
+@njit(cache=True)
+def local_field(fp, P):
+    """The FieldKernel kernel of a LocalField (models.local.field): (h (M,) mm, g (M, 3), u
+    (M,) mm) at the points P (M, 3) mm. The surface is r = R(u) about the centre; h is
+    the first-order signed distance F / |grad F| of F = R(u) - |p - c0| (the tangential
+    gradient of R by central differences of 1e-4 rad), g = grad F / |grad F|, u the
+    blended standard deviation. With a fallback sphere (a conservative prior inside every
+    retina) and the barrier's k, a point answers the sphere's distance and no uncertainty
+    wherever that allows more than h - k u (each is a bound on the true clearance; the
+    larger holds). NaN and +inf for a non-finite point; +inf, 0, 0 everywhere for the field
+    without a boundary (local flag -1)."""
+    M = P.shape[0]
+    if fp[2] < 0.0:  # no boundary
+        return np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M)
+    dirs, blend, local, c0, prior, gp, x, cov, excess, has, near = unpack(fp)
+    h, g, u = np.empty(M), np.empty((M, 3)), np.empty(M)
+    eps = 1e-4
+    cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    for m in range(M):
+        v0, v1, v2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
+        r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        if not np.isfinite(r):
+            h[m] = g[m, 0] = g[m, 1] = g[m, 2] = np.nan
+            u[m] = np.inf
+            continue
+        if r < 1e-9:
+            v0, v1, v2, r = 0.0, 0.0, -1e-9, 1e-9
+        u0, u1, u2 = v0 / r, v1 / r, v2 / r
+        nc = candidates(dirs, u0, u1, u2, blend + 2.0 * eps, cand)
+        R0, sd = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
+        grad0, grad1, grad2 = 0.0, 0.0, 0.0
+        for s in range(2):
+            a0, a1, a2 = (e10, e11, e12) if s == 0 else (e20, e21, e22)
+            w0, w1, w2 = u0 + eps * a0, u1 + eps * a1, u2 + eps * a2
+            q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            Rp = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)[0]
+            w0, w1, w2 = u0 - eps * a0, u1 - eps * a1, u2 - eps * a2
+            q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            Rm = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)[0]
+            dR = (Rp - Rm) / (2.0 * eps)  # mm per rad along the tangent a
+            grad0 += dR * a0 / r
+            grad1 += dR * a1 / r
+            grad2 += dR * a2 / r
+        grad0, grad1, grad2 = grad0 - u0, grad1 - u1, grad2 - u2  # grad of R(u) - r
+        gn = np.sqrt(grad0 * grad0 + grad1 * grad1 + grad2 * grad2)
+        if local == 0.0:  # the global surface, uncertain by the local estimate's disagreement too
+            rg = global_radius(c0, gp, u0, u1, u2)
+            sd = np.sqrt(sd * sd + (R0 - rg) * (R0 - rg))
+            R0 = rg
+            grad0, grad1, grad2 = _global_gradient(c0, gp, u0, u1, u2, r, e10, e11, e12, e20, e21, e22, eps)
+            gn = np.sqrt(grad0 * grad0 + grad1 * grad1 + grad2 * grad2)
+        h[m] = (R0 - r) / gn
+        g[m, 0], g[m, 1], g[m, 2] = grad0 / gn, grad1 / gn, grad2 / gn
+        u[m] = sd
+        rp = fp[BOUND + 4]
+        if rp > 0.0:  # the fallback sphere, inside every retina: a bound of its own, with no uncertainty
+            w0, w1, w2 = fp[BOUND + 1] - P[m, 0], fp[BOUND + 2] - P[m, 1], fp[BOUND + 3] - P[m, 2]
+            q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            if rp - q > h[m] - fp[BOUND] * sd and q > 0.0:
+                h[m], u[m] = rp - q, 0.0
+                g[m, 0], g[m, 1], g[m, 2] = w0 / q, w1 / q, w2 / q
+    return h, g, u
+
+
+@njit(cache=True, inline="always")
+def _global_gradient(c0, gp, u0, u1, u2, r, e10, e11, e12, e20, e21, e22, eps):
+    """grad (R_g(u) - r) at the point r u from c0 (central differences of eps rad)."""
+    grad0, grad1, grad2 = -u0, -u1, -u2
+    for s in range(2):
+        a0, a1, a2 = (e10, e11, e12) if s == 0 else (e20, e21, e22)
+        w0, w1, w2 = u0 + eps * a0, u1 + eps * a1, u2 + eps * a2
+        q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        Rp = global_radius(c0, gp, w0 / q, w1 / q, w2 / q)
+        w0, w1, w2 = u0 - eps * a0, u1 - eps * a1, u2 - eps * a2
+        q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        Rm = global_radius(c0, gp, w0 / q, w1 / q, w2 / q)
+        dR = (Rp - Rm) / (2.0 * eps * r)
+        grad0, grad1, grad2 = grad0 + dR * a0, grad1 + dR * a1, grad2 + dR * a2
+    return grad0, grad1, grad2
+
+
+HEAD = 6 + 7 + GLOBAL_SIZE + 5  # n, blend, local, c0 (3), prior (7), global (16), k and the fallback sphere (4)
+BOUND = HEAD - 5  # where [k, fallback centre (3), fallback radius] begin (radius 0: none)
+
+
+@njit(cache=True)
+def unpack(fp):
+    """(dirs (n, 3), blend rad, local flag, c0 (3,), prior (7,), global (16,), x (n, 6), cov (n, 21),
+    excess (n,), has (n,), near (n,): the cosine of each node's nearest data angle) of a
+    LocalField's params."""
+    n = int(fp[0])
+    o = HEAD
+    dirs = fp[o:o + 3 * n].reshape((n, 3))
+    o += 3 * n
+    x = fp[o:o + N_BASIS * n].reshape((n, N_BASIS))
+    o += N_BASIS * n
+    cov = fp[o:o + N_COV * n].reshape((n, N_COV))
+    o += N_COV * n
+    return (dirs, fp[1], fp[2], fp[3:6], fp[6:13], fp[13:BOUND], x, cov, fp[o:o + n], fp[o + n:o + 2 * n],
+            fp[o + 2 * n:o + 3 * n])
+
+
+@njit(cache=True)
+def radii_at(dirs, blend, c0, prior, gp, x, cov, excess, has, near, U):
+    """(M,) radius (mm) and (M,) standard deviation (mm) of the blended field along the
+    unit directions U (M, 3) from c0 (_blend_at per row)."""
+    cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    R, S = np.empty(U.shape[0]), np.empty(U.shape[0])
+    for m in range(U.shape[0]):
+        nc = candidates(dirs, U[m, 0], U[m, 1], U[m, 2], blend, cand)
+        R[m], S[m] = _blend_at(U[m, 0], U[m, 1], U[m, 2], dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+    return R, S
+
+
+@njit(cache=True)
+def prediction_errors(P, c0, gp, gate, dirs, blend, prior, x, cov, excess, has, near, min_gap):
+    """(sum of squared errors of the local field, of the global quadric, count) over the
+    points P (M, 3) mm that absorb_points would take (gate) and whose direction's nearest
+    node lies at least `min_gap` rad from the data so far (a prediction across a gap
+    between scan lines, not along one), each predicted before it is absorbed (mm^2)."""
+    cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    el, eg, m = 0.0, 0.0, 0
+    for i in range(P.shape[0]):
+        v0, v1, v2 = P[i, 0] - c0[0], P[i, 1] - c0[1], P[i, 2] - c0[2]
+        r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        if not (np.isfinite(r) and gate[0] <= r <= gate[1]):
+            continue
+        u0, u1, u2 = v0 / r, v1 / r, v2 / r
+        rg = global_radius(c0, gp, u0, u1, u2)
+        if not abs(r - rg) <= gate[2]:
+            continue
+        nc = candidates(dirs, u0, u1, u2, blend, cand)
+        best, kb = -2.0, -1
+        for j in range(nc):
+            c = u0 * dirs[cand[j], 0] + u1 * dirs[cand[j], 1] + u2 * dirs[cand[j], 2]
+            if c > best:
+                best, kb = c, cand[j]
+        if kb < 0 or near[kb] > np.cos(min_gap):
+            continue
+        rl = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)[0]
+        el += (r - rl) * (r - rl)
+        eg += (r - rg) * (r - rg)
+        m += 1
+    return el, eg, m

@@ -1,0 +1,265 @@
+"""Compiled kernels of the local retina model (models.local.grid): the global quadric's
+radius along a direction from the model centre, the grid's nodes on a Fibonacci sphere,
+the per-node weighted least squares that points update, and the node solve with the
+global prior (the blended field: models.local.field_kernels).
+
+Radii are mm from the fixed model centre c0; directions unit vectors; angles rad.
+Node k of an n-node grid has direction dirs[k] = fibonacci_directions(n)[k]
+(models.adaptive.coverage: z falls with k, so a z band is an index range) and a tangent
+frame (e1, e2) made from it alone (node_frame).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from models.fit.small_linalg import cholesky
+
+N_COV = 21  # the upper triangle of a node's 6 x 6 covariance
+N_BASIS = 6  # per node: r(t1, t2) = x0 + x1 t1 + x2 t2 + x3 t1^2 + x4 t1 t2 + x5 t2^2 (gnomonic t, rad)
+SPHERE, ELLIPSOID = 1.0, 2.0
+GLOBAL_SIZE = 16  # [kind, centre (3), rotation (9, row-major), semi-axes (3)]
+
+
+@njit(cache=True, inline="always")
+def global_radius(c0, gp, u0, u1, u2):
+    """Distance (mm) from c0 along the unit direction u to the global quadric gp
+    (GLOBAL_SIZE,): NaN when c0 is not inside it."""
+    q0, q1, q2 = c0[0] - gp[1], c0[1] - gp[2], c0[2] - gp[3]
+    if gp[0] == SPHERE:
+        r = gp[13]
+        b = u0 * q0 + u1 * q1 + u2 * q2
+        c = q0 * q0 + q1 * q1 + q2 * q2 - r * r
+        a = 1.0
+    else:  # ellipsoid: in its axes, scaled to the unit sphere
+        Q0 = (gp[4] * q0 + gp[7] * q1 + gp[10] * q2) / gp[13]
+        Q1 = (gp[5] * q0 + gp[8] * q1 + gp[11] * q2) / gp[14]
+        Q2 = (gp[6] * q0 + gp[9] * q1 + gp[12] * q2) / gp[15]
+        V0 = (gp[4] * u0 + gp[7] * u1 + gp[10] * u2) / gp[13]
+        V1 = (gp[5] * u0 + gp[8] * u1 + gp[11] * u2) / gp[14]
+        V2 = (gp[6] * u0 + gp[9] * u1 + gp[12] * u2) / gp[15]
+        a = V0 * V0 + V1 * V1 + V2 * V2
+        b = Q0 * V0 + Q1 * V1 + Q2 * V2
+        c = Q0 * Q0 + Q1 * Q1 + Q2 * Q2 - 1.0
+    if not c < 0.0:
+        return np.nan
+    return (-b + np.sqrt(b * b - a * c)) / a
+
+
+@njit(cache=True, inline="always")
+def node_frame(d0, d1, d2):
+    """(e1, e2): an orthonormal tangent frame at the unit direction d (from d alone)."""
+    if abs(d2) < 0.9:  # e1 = normalise(z x d)
+        a0, a1, a2 = -d1, d0, 0.0
+    else:  # e1 = normalise(x x d)
+        a0, a1, a2 = 0.0, -d2, d1
+    s = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    a0, a1, a2 = a0 / s, a1 / s, a2 / s
+    return a0, a1, a2, d1 * a2 - d2 * a1, d2 * a0 - d0 * a2, d0 * a1 - d1 * a0
+
+
+@njit(cache=True, inline="always")
+def band(n, uz, chord):
+    """[k0, k1): the nodes of an n-node Fibonacci sphere whose z lies within chord of uz
+    (z = 1 - 2 (k + 1/2) / n falls with k), one more on each side for rounding."""
+    k0 = max(int(0.5 * n * (1.0 - (uz + chord)) - 0.5) - 1, 0)
+    k1 = min(int(0.5 * n * (1.0 - (uz - chord)) - 0.5) + 2, n)
+    return k0, k1
+
+
+@njit(cache=True, inline="always")
+def wendland(t):
+    """Wendland's C2 function (1 - t)^4 (4 t + 1) for t in [0, 1), 0 beyond (Wendland 1995)."""
+    if t >= 1.0:
+        return 0.0
+    s = 1.0 - t
+    return s * s * s * s * (4.0 * t + 1.0)
+
+
+@njit(cache=True)
+def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, growth):
+    """Add the finite points P (M, 3) mm to the nodes of an n-node grid within `support`
+    rad of their direction from c0: per node the weighted normal equations of the local
+    quadratic in gnomonic coordinates (A (n, 6, 6) upper triangle, b (n, 6), rr (n,) sum
+    w r^2, wsum (n,) sum w; w Wendland's weight of angle / support); the cosine of the
+    nearest data angle (near (n,)) of the nodes within `track` rad. A node whose data changed is
+    appended to dirty once (listed (n,) bool marks it until it is solved) when its weight
+    exceeds (1 + growth) x its weight at its last solve (solved_w; a node solved on 100
+    points barely moves with the 101st: consecutive A-scans touch the same nodes). A point whose
+    radius lies outside [gate[0], gate[1]] mm, or further than gate[2] mm from the global
+    quadric gp along its direction (when gp[0] != 0), is skipped: no retina of the
+    population lies there. Returns (new n_dirty, points taken)."""
+    chord_t = 2.0 * np.sin(0.5 * track)
+    cos_s, cos_t = np.cos(support), np.cos(track)
+    phi = np.empty(N_BASIS)
+    taken = 0
+    for i in range(P.shape[0]):
+        v0, v1, v2 = P[i, 0] - c0[0], P[i, 1] - c0[1], P[i, 2] - c0[2]
+        r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        if not (np.isfinite(r) and r > 1e-9):
+            continue
+        u0, u1, u2 = v0 / r, v1 / r, v2 / r
+        if not gate[0] <= r <= gate[1]:
+            continue
+        if gp[0] != 0.0 and not abs(r - global_radius(c0, gp, u0, u1, u2)) <= gate[2]:
+            continue
+        taken += 1
+        k0, k1 = band(dirs.shape[0], u2, chord_t)
+        for k in range(k0, k1):
+            d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+            c = u0 * d0 + u1 * d1 + u2 * d2
+            if c < cos_t:
+                continue
+            if c > near[k]:
+                near[k] = c
+            if c < cos_s:
+                continue
+            w = wendland(np.arccos(min(c, 1.0)) / support)
+            if w <= 0.0:
+                continue
+            e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
+            t1 = (u0 * e10 + u1 * e11 + u2 * e12) / c
+            t2 = (u0 * e20 + u1 * e21 + u2 * e22) / c
+            phi[0], phi[1], phi[2], phi[3], phi[4], phi[5] = 1.0, t1, t2, t1 * t1, t1 * t2, t2 * t2
+            for a in range(N_BASIS):
+                wa = w * phi[a]
+                b[k, a] += wa * r
+                for c_ in range(a, N_BASIS):
+                    A[k, a, c_] += wa * phi[c_]
+            rr[k] += w * r * r
+            wsum[k] += w
+            if not listed[k] and wsum[k] > (1.0 + growth) * solved_w[k]:
+                listed[k] = True
+                dirty[n_dirty] = k
+                n_dirty += 1
+    return n_dirty, taken
+
+
+@njit(cache=True)
+def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, x, cov, excess):
+    """Node k's posterior: the local quadratic x[k] (6,) (mm, mm/rad, mm/rad^2), its
+    covariance cov[k] (N_COV,: the upper triangle row by row, mm^2 per basis products)
+    and the misfit variance excess[k] (mm^2). Data: the weighted normal equations
+    (A, b, rr, wsum) with noise prior[0] mm; prior: the global quadric gp's Taylor
+    expansion at the node (finite differences of global_radius, step 0.02 rad); the
+    correction to it (its first prior[6] terms, the rest 0) has the standard deviations
+    of a smooth random field's value, slopes and curvatures with sd s = global_sd(angle of near[k])
+    (prior[1] near data growing to prior[2] at prior[3] rad from it) and length scale
+    l = prior[4] rad: s, s / l, sqrt(3) s / l^2 (Rasmussen & Williams 2006, 9.4). The variance is the posterior's, scaled by the weighted
+    mean square residual over the noise's (the Birge ratio, when > 1); the excess is
+    that residual's excess over the noise: a quadratic that does not follow the retina
+    within the support says so."""
+    d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+    e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
+    h = 0.02
+    R = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            s1, s2 = (i - 1) * h, (j - 1) * h
+            w0, w1, w2 = d0 + s1 * e10 + s2 * e20, d1 + s1 * e11 + s2 * e21, d2 + s1 * e12 + s2 * e22
+            s = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            R[i, j] = global_radius(c0, gp, w0 / s, w1 / s, w2 / s)
+    m = np.empty(N_BASIS)
+    m[0] = R[1, 1]
+    m[1] = (R[2, 1] - R[0, 1]) / (2.0 * h)
+    m[2] = (R[1, 2] - R[1, 0]) / (2.0 * h)
+    m[3] = (R[2, 1] - 2.0 * R[1, 1] + R[0, 1]) / (2.0 * h * h)
+    m[4] = (R[2, 2] - R[2, 0] - R[0, 2] + R[0, 0]) / (4.0 * h * h)
+    m[5] = (R[1, 2] - 2.0 * R[1, 1] + R[1, 0]) / (2.0 * h * h)
+    noise2 = prior[0] * prior[0]
+    nf = int(prior[6])  # the correction's fitted terms: 1 (a height), 3 (and its slopes) or 6 (and curvatures)
+    sd0 = global_sd(np.arccos(min(near[k], 1.0)), prior)
+    pinv = np.empty(N_BASIS)
+    pinv[0] = 1.0 / (sd0 * sd0)
+    ell2 = prior[4] * prior[4]  # the correction's length scale: slopes sd0 / l, curvatures sqrt(3) sd0 / l^2
+    pinv[1] = pinv[2] = ell2 * pinv[0]
+    pinv[3] = pinv[4] = pinv[5] = ell2 * ell2 * pinv[0] / 3.0
+    Am = np.zeros(N_BASIS)  # A m: the global's Taylor expansion's share of the normal equations
+    for a in range(N_BASIS):
+        s = 0.0
+        for c in range(N_BASIS):
+            s += (A[k, a, c] if a <= c else A[k, c, a]) * m[c]
+        Am[a] = s
+    M = np.zeros((nf, nf))
+    rhs = np.empty(nf)
+    for a in range(nf):
+        rhs[a] = (b[k, a] - Am[a]) / noise2
+        for c in range(a, nf):
+            M[a, c] = M[c, a] = A[k, a, c] / noise2
+        M[a, a] += pinv[a]
+    x[k, :] = m
+    cov[k, :] = 0.0
+    excess[k] = 0.0
+    L, ok = cholesky(M)
+    if not ok or not np.isfinite(m[0]):
+        cov[k, 0] = sd0 * sd0
+        return
+    y = np.empty(nf)  # L z = rhs, L^T y = z
+    z = np.empty(nf)
+    for a in range(nf):
+        s = rhs[a]
+        for c in range(a):
+            s -= L[a, c] * z[c]
+        z[a] = s / L[a, a]
+    for a in range(nf - 1, -1, -1):
+        s = z[a]
+        for c in range(a + 1, nf):
+            s -= L[c, a] * y[c]
+        y[a] = s / L[a, a]
+    Li = np.zeros((nf, nf))  # L^-1 (lower); M^-1 = L^-T L^-1
+    for j in range(nf):
+        Li[j, j] = 1.0 / L[j, j]
+        for a in range(j + 1, nf):
+            s = 0.0
+            for c in range(j, a):
+                s -= L[a, c] * Li[c, j]
+            Li[a, j] = s / L[a, a]
+    for a in range(nf):
+        x[k, a] += y[a]
+    ss = rr[k]  # weighted residual sum of squares of x over the node's data
+    for a in range(N_BASIS):
+        ss -= 2.0 * x[k, a] * b[k, a]
+        for c in range(N_BASIS):
+            ss += x[k, a] * x[k, c] * (A[k, a, c] if a <= c else A[k, c, a])
+    msr = max(ss, 0.0) / wsum[k] if wsum[k] > 0.0 else 0.0
+    birge = max(1.0, msr / noise2)
+    j = 0
+    for a in range(N_BASIS):
+        for c in range(a, N_BASIS):
+            if c < nf:
+                s = 0.0
+                for e in range(c, nf):
+                    s += Li[e, a] * Li[e, c]
+                cov[k, j] = birge * s
+            j += 1
+    excess[k] = max(msr - noise2, 0.0)
+
+
+@njit(cache=True, inline="always")
+def global_sd(angle, prior):
+    """The global model's standard deviation (mm) at `angle` rad from the nearest data:
+    prior[1] at the data, growing linearly to prior[2] at prior[3] rad and beyond."""
+    t = min(angle / prior[3], 1.0)
+    return prior[1] + (prior[2] - prior[1]) * t
+
+
+@njit(cache=True)
+def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, x, cov, excess, has, listed, solved_w):
+    """Solve the first `count` nodes listed in `nodes` (solve_node), mark them as holding
+    data (has) and no longer listed, their weight then in solved_w."""
+    for j in range(count):
+        k = nodes[j]
+        solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, x, cov, excess)
+        has[k] = 1.0
+        listed[k] = False
+        solved_w[k] = wsum[k]
+
+
+def global_params(shape) -> np.ndarray:
+    """The kernels' (GLOBAL_SIZE,) packing of a models.Sphere or Ellipsoid."""
+    gp = np.zeros(GLOBAL_SIZE)
+    if hasattr(shape, "radii"):
+        gp[0], gp[1:4], gp[4:13], gp[13:16] = ELLIPSOID, shape.center, np.asarray(shape.rotation).ravel(), shape.radii
+    else:
+        gp[0], gp[1:4], gp[4:13], gp[13] = SPHERE, shape.center, np.eye(3).ravel(), shape.radius
+    return gp

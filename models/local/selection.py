@@ -1,0 +1,41 @@
+"""When the adaptive model uses its local correction: a predictive test, like the
+transition criteria's (models.adaptive.transition.PredictiveCriteria): every point is
+predicted along its direction before it is absorbed, by the local field and by the
+global quadric alone, where it starts a new scan line (its direction at least
+`min_gap_deg` from the data so far: between scan lines is where the two differ); the local model is used once it holds `min_points` points and
+its recent mean square prediction error is below `ratio` times the global model's
+(exponential averages over about `memory` points), and given up again when it is not
+(reversible). On a regular eye the two predict alike and the global model stays; over a
+detachment or a staphyloma the local one predicts the next A-scans better.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from models.local.field_kernels import prediction_errors
+
+
+class LocalChoice:
+    """The predictive test's state; `active` whether the local model is used."""
+
+    def __init__(self, min_points: int = 400, ratio: float = 0.7, memory: float = 200.0, min_gap_deg: float = 2.0):
+        self.min_points, self.ratio, self.memory = int(min_points), float(ratio), float(memory)
+        self.min_gap_rad = float(np.radians(min_gap_deg))
+        self.mse_local = self.mse_global = np.nan
+        self.active = False
+
+    def absorb(self, local, P: np.ndarray, shape) -> None:
+        """Score the points P (N, 3) mm against `local` (a LocalRetinaModel) and the global
+        `shape`, then let `local` absorb them."""
+        if shape is not None and local.global_params is not None and len(P):
+            el, eg, m = prediction_errors(P, local.center, local.global_params, local.gate, local.dirs,
+                                          local.blend_rad, local.prior, *local.state, self.min_gap_rad)
+            if m:
+                a = min(m / self.memory, 1.0)
+                if np.isnan(self.mse_local):
+                    self.mse_local, self.mse_global = el / m, eg / m
+                else:
+                    self.mse_local += a * (el / m - self.mse_local)
+                    self.mse_global += a * (eg / m - self.mse_global)
+        local.update(P, shape)
+        self.active = bool(local.n_points >= self.min_points and self.mse_local < self.ratio * self.mse_global)
