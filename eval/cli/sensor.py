@@ -41,7 +41,7 @@ def register(sub) -> None:
 def run_sensor(args) -> dict:
     """The chain on args.shape; sensor.json's content."""
     from eval.experiments.boundary import build_model_by_spiral
-    from eval.experiments.model_report import model_summary
+    from eval.experiments.model_report import model_summary, update_timing
     from eval.closed_loop import LoopConfig
     from eval.cli.boundary import make_loop
     from planning import SurgeryScenario
@@ -67,7 +67,7 @@ def run_sensor(args) -> dict:
         "calibration_error": {"sensor_offset_S_mm": scenario.sensor_offset_S_mm.tolist(),
                               "sensor_rotvec_S_rad": scenario.sensor_rotvec_S_rad.tolist()},
         "scan_s": build.run.duration_s, "wall_s": build.run.wall_s,
-        "model": model_summary(loop, build),
+        "model": model_summary(loop, build), "model_update_us_per_ascan": update_timing(loop),
     }
 
 

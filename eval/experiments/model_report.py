@@ -37,16 +37,21 @@ def filter_model(loop, build):
 
 def model_summary(loop, build, n_grid: int = 100) -> dict:
     """boundary.json's, sensor.json's and plan.json's `model` figures of the filter's
-    model: kind, mae_um, scanned_p95_um, sigma3_coverage (field_report), and the model
-    update's wall time per A-scan (us: each packet's update over its valid samples)."""
+    model: kind, mae_um, scanned_p95_um, sigma3_coverage (field_report)."""
     kind, field = filter_model(loop, build)
     out = {"kind": kind}
     if field is not None:
         out.update(field_report(field, loop.scenario.eye, build.coverage.view().angle_from_data_rad, n_grid))
-    us = np.asarray(loop.model.update_us, dtype=float)
-    if len(us):
-        out["update_us_per_ascan"] = {"p99": float(np.percentile(us, 99)), "max": float(us.max())}
     return out
+
+
+def update_timing(loop) -> dict | None:
+    """The model update's wall time per A-scan over the loop's last run (us: each sensor
+    packet's update over its valid samples): median, p99, max; None without updates."""
+    us = np.asarray(loop.model.update_us, dtype=float)
+    if not len(us):
+        return None
+    return {"median": float(np.median(us)), "p99": float(np.percentile(us, 99)), "max": float(us.max())}
 
 
 def error_sigma_figure(loop, build, n_grid: int = 120):
