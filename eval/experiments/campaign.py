@@ -194,7 +194,7 @@ def _ray_actors(ray, n: int) -> list:
     """n actors of this process's Ray job (started once: a new actor is a new process
     that imports everything and loads the compiled kernels again)."""
     job = ray.get_runtime_context().get_job_id()
-    if _RAY_ACTORS["job"] != job:  # a new Ray session: the old handles are gone
+    if _RAY_ACTORS["job"] != job:  # another Ray job (ray.init again): the old handles are gone
         _RAY_ACTORS.update(job=job, actors=[])
     actors = _RAY_ACTORS["actors"]
     runner = ray.remote(num_cpus=1)(_RayRunner)
