@@ -18,10 +18,11 @@ working port, takes only cells no working port reaches. A port sweeps its cells 
 by region; a cell a sweep drops (IK branch, the shaft on the way) gets another pass
 through the same port (a re-entry) or is offered to the ports after it.
 
-A switch is withdraw (the tip back along the shaft to EXIT_MM outside the trocar, at
-INSERT_SPEED_MM_S), move (joint space to the next port's entry posture, quintic timing
-within SPEED_HEADROOM of every joint's speed limit) and insert (along the next port's
-first shaft line to its first cell). Units: mm, s, rad; frame W unless `_E`.
+A switch is withdraw (the tip back along the shaft to EXIT_MM outside the trocar, or
+as far as the arm reaches but at least MIN_EXIT_MM, at INSERT_SPEED_MM_S), move (outside
+the eye, the tip on an arc about it, at MOVE_SPEED_MM_S) and insert (along the next
+pass's first shaft line to its first cell); every piece timed within the joints' speed
+limits (planning.scan.joint_trajectory). Units: mm, s, rad; frame W unless `_E`.
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ from planning.ik import IKFailure, rcm_ik
 from planning.peripheral import (Band, BandSpec, Sweep, band_surface, cell_reach, cell_reasons, plan_sweep, port_roll_rad,
                                  serpentine)
 from planning.robot import Robot
-from planning.scan import SPEED_HEADROOM
+from planning.scan import joint_trajectory
 
 DEFAULT_PORTS = ("superonasal", "superotemporal")  # the two working ports of planning.ports' layout
 CHECK_ORDER = ("lens", "port", "reach", "shaft")  # how far a cell got through a port's checks
@@ -45,6 +46,7 @@ EXIT_MM = 10.0  # the tip's distance outside the trocar while the instrument mov
 MIN_EXIT_MM = 2.0  # the least the tip must clear the trocar by before the instrument moves
 INSERT_SPEED_MM_S = 5.0  # tip speed along the shaft while inserting and withdrawing
 LINE_STEP_MM = 1.0  # spacing of the insertion line's IK waypoints
+MOVE_SPEED_MM_S = 20.0  # the tip's speed on the move outside the eye
 MOVE_CLEARANCE_MM = 5.0  # the tip's arc between ports lies this much further out than its ends
 MAX_SWEEPS_PER_PORT = 8  # passes through one port (each after the first is a re-entry)
 MIN_PASS_CELLS = 3  # a re-entry (withdraw, insert: ~10 s) for fewer cells is not worth it
@@ -140,8 +142,8 @@ def line_trajectory(robot: Robot, q_end, p_WT, p_WC, roll_rad: float, length_mm:
                     min_length_mm: float):
     """(joint trajectory rad, its length mm) of the tip moving along the shaft line trocar
     p_WC -> p_WT to p_WT from up to `length_mm` behind it (outside the eye when longer
-    than |p_WT - p_WC|), ending at q_end; linear in the tip's path at `speed_mm_s` with
-    the roll held. The line starts where the arm still reaches it (IK every
+    than |p_WT - p_WC|), ending at q_end; timed at `speed_mm_s` (planning.scan.joint_trajectory)
+    with the roll held. The line starts where the arm still reaches it (IK every
     LINE_STEP_MM); IKFailure when that is less than `min_length_mm`."""
     p_T, p_C = np.asarray(p_WT, dtype=float), np.asarray(p_WC, dtype=float)
     u = (p_T - p_C) / np.linalg.norm(p_T - p_C)
@@ -158,29 +160,16 @@ def line_trajectory(robot: Robot, q_end, p_WT, p_WC, roll_rad: float, length_mm:
         raise IKFailure(f"the instrument cannot leave the trocar along its shaft from p_WT_mm = {np.round(p_T, 3)}: "
                         f"the arm reaches {reached:.1f} mm of the {min_length_mm:.1f} mm needed")
     Q = np.array(Q[::-1])
-    times = (reached - s[:len(Q)][::-1]) / speed_mm_s
-    return _timed(robot, times, Q), float(reached)
-
-
-def _timed(robot: Robot, times: np.ndarray, Q: np.ndarray) -> PiecewisePolynomial:
-    """A C1 cubic through Q (K, 6) at `times`, stretched until every joint stays within
-    SPEED_HEADROOM of its limit."""
-    for _ in range(8):
-        traj = PiecewisePolynomial.CubicShapePreserving(times, Q.T, zero_end_point_derivatives=True)
-        ts = np.linspace(times[0], times[-1], 20 * len(times))
-        peak = max(np.max(np.abs(traj.EvalDerivative(t, 1)[:, 0]) / robot.qdot_max) for t in ts)
-        if peak <= SPEED_HEADROOM:
-            return traj
-        times = times * (peak / SPEED_HEADROOM) * 1.01
-    return traj
+    return joint_trajectory(robot, Q, p_T - s[:len(Q)][::-1, None] * u, speed_mm_s), float(reached)
 
 
 def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float) -> PiecewisePolynomial:
     """The move outside the eye between two postures q0, q1 (rad) whose tips are outside
     it: the tip on an arc about the eye centre p_WE (mm, W) bulging `clearance_mm` further
     out than the line between the tips' own distances, the shaft direction turning evenly between its two
-    (closed-form IK, the branch nearest the last sample), timed within the joints' speed
-    limits (SPEED_HEADROOM); a direct joint-space move when the arc leaves the arm's reach."""
+    (closed-form IK, the branch nearest the last sample), timed at MOVE_SPEED_MM_S within
+    the joints' speed limits (planning.scan.joint_trajectory); a direct joint-space move
+    when the arc leaves the arm's reach."""
     from planning.closed_form import shaft_ik
 
     q0, q1 = np.asarray(q0, dtype=float), np.asarray(q1, dtype=float)
@@ -200,9 +189,7 @@ def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float) -> PiecewisePoly
             break
         Q.append(min(ok, key=lambda c: np.abs(c - Q[-1]).max()))
     Q = np.array(Q + [q1])
-    step = np.abs(np.diff(Q, axis=0)).max(axis=1)
-    times = np.concatenate([[0.0], np.cumsum(np.maximum(step, 1e-3) / (SPEED_HEADROOM * robot.qdot_max.min()))])
-    return _timed(robot, times, Q)
+    return joint_trajectory(robot, Q, np.array([robot.pose("T", q)[1] for q in Q]), MOVE_SPEED_MM_S)
 
 
 def _segment(robot: Robot, band: Band, port, p_WC, model, spec: BandSpec, mask: np.ndarray) -> PortSegment | None:

@@ -230,7 +230,7 @@ def main(args) -> int:
         planned_port_W.append(np.array([robot.pose("P", q)[1] for q in Q]))
         tips = np.array([robot.pose("T", q)[1] for q in Q])
         roll = shaft_spin_rad(robot, traj, ts)
-        segments.append((seg.p_WC, TipPath(ts - ts[0], tips, roll), Q[0], float(ts[-1] - ts[0]) + 0.2, Q, tips))
+        segments.append((seg.p_WC, tip_path_command(ts - ts[0], tips, roll), Q[0], float(ts[-1] - ts[0]) + 0.2, Q, tips))
     swept_planned = swept_cells(band, np.vstack(planned_port_W), spec.spacing_mm)
     all_tips = np.vstack([s[5] for s in segments])
     all_Q = np.vstack([s[4] for s in segments])
@@ -311,7 +311,7 @@ def main(args) -> int:
     return 0
 
 
-def TipPath(times_s, tips, roll):
+def tip_path_command(times_s, tips, roll):
     """The closed loop's command for one sweep (eval.experiments.command_sources.TipPathCommand)."""
     from eval.experiments.command_sources import TipPathCommand
 

@@ -166,7 +166,7 @@ class FilterSystem(LeafSystem):
         self.stack.reset()  # the last active set belongs to the other trocar's geometry
         self.p_WC, self._kp = p_WC, step_kinematics_params(self.robot, p_WC, self.config.points)
         self.step_inputs.set_trocar(p_WC)
-        if self.logger is not None:
+        if self.logger is not None and not self.logger.closed:  # a run's log (not one of a finished run)
             self.logger.log_setup(self._setup())
 
     def _setup(self) -> dict:

@@ -239,6 +239,31 @@ def test_a_closed_loop_log_replays_bit_for_bit(emmetropic, tmp_path):
     assert result.ok and result.steps >= 85 and result.max_abs_diff == 0.0  # 1 kHz from the first packet (11 ms) to 0.1 s
 
 
+def test_segments_through_two_trocars_pivot_about_each_and_replay_bit_for_bit(emmetropic, tmp_path):
+    """run_segments: the filter's RCM follows each segment's trocar (the RCM error stays at
+    the IK's level about the active trocar), the log gets a setup per trocar, and replay
+    rebuilds each step's kinematics on its own trocar."""
+    from planning.ports import Port
+
+    loop, model = emmetropic
+    scenario = loop.scenario
+    other = SurgeryScenario(ports=(Port("other", "working", 2.0, 4.0),)).p_WC_of("other")  # 4 mm from the trocar
+    p = scenario.eye_pose.to_W(np.array([[1.0, 1.0, -5.0]]))[0]
+    q_a, q_b = deep_start(loop), start_posture(loop.robot, p, other)
+    hold = VelocityReplayCommand([0.0], [[2.0, 0.0, -1.0]])
+    with RunLogger(tmp_path / "two.mcap", loop.config.filter) as log:
+        run = loop.run_segments([(scenario.p_WC, hold, q_a, 0.05), (other, hold, q_b, 0.05)], **model.kw(), logger=log)
+    t_b = 0.05
+    a, b = run.t < t_b - 1e-9, run.t > t_b + 0.002  # the step at the switch still holds the last qdot
+    assert max(loop.robot.rcm_error_mm(q, scenario.p_WC) for q in run.q[a]) < RCM_TOL_MM
+    assert max(loop.robot.rcm_error_mm(q, other) for q in run.q[b]) < RCM_TOL_MM
+    assert np.all(run.ok)
+    result = replay(tmp_path / "two.mcap")
+    # the second trocar is logged in E and placed back in W: a rounding of 1e-14 mm
+    assert result.ok and result.max_abs_diff <= 1e-12 and result.steps == len(run.t)
+    loop.filter.set_trocar(scenario.p_WC)
+
+
 def test_bad_loop_arguments_are_refused(emmetropic):
     loop, model = emmetropic
     cmd = VelocityReplayCommand([0.0], [[0.0, 0.0, 0.0]])
