@@ -2,6 +2,8 @@
 
     FilterSystem (1 kHz: calls the command source on the joint angles it filters, then
         filters the command; zero-order hold of qdot)
+        --qdot--> [ActuatorSystem: delay, lag, acceleration limits, when not ideal;
+                   its state back to the filter]
         --qdot--> DiscreteTimeIntegrator (q_{k+1} = q_k + dt qdot_k) --q--> everything
     q --> IioctSensorSystem (2 kHz: beam from the TRUE sensor pose on the TRUE eye; point
           from the reported angles and the CALIBRATED sensor pose; q latched at the
@@ -28,6 +30,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import DiscreteTimeIntegrator
 
 from eval.loop_config import LoopConfig
+from eval.systems.actuator import ActuatorSystem
 from eval.systems.filter import FilterSystem, Step
 from eval.systems.model import AdaptiveModelSystem, ModelSnapshot, semi_axes_mm, snapshot_of
 from eval.systems.sensor import IioctSensorSystem
@@ -126,10 +129,13 @@ class ClosedLoop:
         builder = DiagramBuilder()
         self.filter = builder.AddSystem(FilterSystem(self.robot, config, self.prior))
         self.integrator = builder.AddSystem(DiscreteTimeIntegrator(6, 1.0 / config.control_rate_hz))
-        self.sensor = IioctSensor(Robot(scenario), mode=config.sensor_mode, floater_rate=floater_rate, seed=sensor_seed)
+        self.sensor = IioctSensor(Robot(scenario), mode=config.sensor_mode, floater_rate=floater_rate, seed=sensor_seed,
+                                  encoder_noise_rad=config.encoder_noise_rad)
         # q is the integrator's zero-order hold at the control rate: the sensor latches it at that rate
-        sensor_sys = builder.AddSystem(IioctSensorSystem(self.sensor, config.sensor_rate_hz, packet=config.sensor_packet,
-                                                         input_rate_hz=config.control_rate_hz))
+        sensor_sys = builder.AddSystem(IioctSensorSystem(self.sensor, config.sensor_rate_hz, config.oct_time_offset_s,
+                                                         packet=config.sensor_packet,
+                                                         input_rate_hz=config.control_rate_hz,
+                                                         stream_fault=config.stream_fault))
         packet_s = config.sensor_packet / config.sensor_rate_hz
         # the model reads each packet a quarter sample period after the sensor has made it
         self.model = builder.AddSystem(AdaptiveModelSystem(1.0 / packet_s,
@@ -139,7 +145,13 @@ class ClosedLoop:
         q = self.integrator.get_output_port()
         for port in (self.filter.GetInputPort("q"), sensor_sys.GetInputPort("q")):
             builder.Connect(q, port)
-        builder.Connect(self.filter.GetOutputPort("qdot"), self.integrator.get_input_port())
+        if config.actuator.ideal:  # the filter's command over the next control period
+            builder.Connect(self.filter.GetOutputPort("qdot"), self.integrator.get_input_port())
+        else:  # command -> actuator (delay, lag, acceleration limit) -> joints; the filter reads its state
+            actuator = builder.AddSystem(ActuatorSystem(config.actuator, 1.0 / config.control_rate_hz))
+            builder.Connect(self.filter.GetOutputPort("qdot"), actuator.GetInputPort("qdot_cmd"))
+            builder.Connect(actuator.GetOutputPort("qdot"), self.integrator.get_input_port())
+            builder.Connect(actuator.GetOutputPort("state"), self.filter.GetInputPort("actuator"))
         builder.Connect(sensor_sys.GetOutputPort("packet"), self.model.GetInputPort("packet"))
         builder.Connect(sensor_sys.GetOutputPort("measurement"), self.filter.GetInputPort("measurement"))
         builder.Connect(self.model.GetOutputPort("snapshot"), self.filter.GetInputPort("snapshot"))

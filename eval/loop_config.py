@@ -7,7 +7,9 @@ import numpy as np
 
 from planning.instrument_points import MonitoredPointsConfig
 from planning.iioct import rate_ratio
+from planning.iioct.stream import StreamFault
 from safety import FilterConfig
+from safety.actuator import ActuatorModel
 from safety.margins import UncertaintyMargins
 
 
@@ -42,7 +44,13 @@ class LoopConfig:
     direction, which replaces the phase margins, the trust angle and the misfit rule
     (used only with local_model False).
     `extra_constraints`: safety.constraints objects the filter stacks after the standard
-    ones (their point groups: planning.step_kinematics.POINT_GROUPS)."""
+    ones (their point groups: planning.step_kinematics.POINT_GROUPS).
+    `actuator`: the robot's actuator between the filter and the joints (delay, lag,
+    acceleration limit; the filter is told it); `oct_time_offset_s` (s, >= 0): the OCT
+    stream's lag behind the robot's joint angles (the paper measured up to 2.6 ms);
+    `encoder_noise_rad`: SD (rad) of the noise on the joint angles the sensor's points
+    are reconstructed from; `stream_fault`: a degenerate iiOCT stream injected from its
+    onset in each run (planning.iioct.stream; default none)."""
 
     control_rate_hz: float = 1000.0
     sensor_rate_hz: float = 2000.0
@@ -59,6 +67,10 @@ class LoopConfig:
     model_radius_range_mm: tuple = (8.0, 16.0)
     extra_constraints: tuple = ()
     local_model: bool = True
+    actuator: ActuatorModel = field(default_factory=ActuatorModel)
+    oct_time_offset_s: float = 0.0
+    encoder_noise_rad: float = 0.0
+    stream_fault: StreamFault = field(default_factory=StreamFault)
 
     def __post_init__(self):
         for name in ("control_rate_hz", "sensor_rate_hz"):
@@ -78,5 +90,9 @@ class LoopConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and 0.0 < v <= 180.0):
                 raise ValueError(f"LoopConfig.{name} must be in (0, 180] deg, got {v}")
+        if not (np.isfinite(self.oct_time_offset_s) and 0.0 <= self.oct_time_offset_s <= 0.1):
+            raise ValueError(f"LoopConfig.oct_time_offset_s must be in [0, 0.1] s, got {self.oct_time_offset_s}")
+        if not (np.isfinite(self.encoder_noise_rad) and self.encoder_noise_rad >= 0.0):
+            raise ValueError(f"LoopConfig.encoder_noise_rad must be >= 0 rad, got {self.encoder_noise_rad}")
         if not (isinstance(self.drake_diffik_every, int) and self.drake_diffik_every >= 0):
             raise ValueError(f"LoopConfig.drake_diffik_every must be an int >= 0, got {self.drake_diffik_every}")

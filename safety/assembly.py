@@ -138,7 +138,7 @@ def _fault(active, q, fault, detail):
 
 
 @njit(cache=True)
-def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, spall, spo, {fp}active, warm, wsf, wsi):
+def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, pending, spall, spo, {fp}active, warm, wsf, wsi):
 """ + views + f"""    fault = input_fault(q, command, J_tip, P, J, times, cfg)
     if fault != OK:
         return _fault(active, q, fault, 0)
@@ -159,9 +159,9 @@ def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, spall,
         src = imports_k + src + f"""
 
 @njit(cache=True)
-def step_at(q, command, times, cfg, kp, spall, spo, {fp}active, warm, wsf, wsi):
+def step_at(q, command, times, cfg, kp, pending, spall, spo, {fp}active, warm, wsf, wsi):
     P, J, ranges, J_tip, J_roll, R_WI, p_WI, rcm_error = KIN(kp, q)
-    r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, spall, spo, {fp}active, warm, wsf, wsi)
+    r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, pending, spall, spo, {fp}active, warm, wsf, wsi)
     return r, P, ranges, J_tip, rcm_error
 """
     return src

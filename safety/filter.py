@@ -28,7 +28,8 @@ ALWAYS_KEPT = ("tip", "port")  # their barrier rows are never screened out (the 
 def default_constraints(config: FilterConfig, q_min, q_max, qdot_max, retina_groups=(("boundary", "eye", 2),),
                         lens_group: tuple | None = ("lens", "lens"), rcm=None, extra=()) -> list:
     """The standard stack, in row order: tip speed, joint speed and position limits, one
-    point barrier per (group, field slot, points always kept) of `retina_groups`, the
+    point barrier per (group, field slot, points always kept) of `retina_groups` (with the
+    declared calibration bound in its margin: FilterConfig.calibration_margin_mm), the
     lens keep-out on (group, field slot) `lens_group`, the RCM constraint `rcm`, then `extra`."""
     reach = config.max_tip_speed_mm_s / config.gain_per_s  # what the speed limit closes at the barrier rate
     out = [TipSpeedLimit(config.max_tip_speed_mm_s), JointSpeedLimits(np.asarray(qdot_max, dtype=float)),
@@ -36,7 +37,7 @@ def default_constraints(config: FilterConfig, q_min, q_max, qdot_max, retina_gro
                                config.joint_margin_rad)]
     for group, field, always in retina_groups:
         out.append(PointBarrier(group, field, config.d_safe_mm, config.gain_per_s, config.max_recovery_mm_s, reach,
-                                always, config.sigma_factor))
+                                always, config.sigma_factor, calibration_mm=config.calibration_margin_mm))
     if lens_group is not None:
         out.append(KeepOut(lens_group[0], lens_group[1], config.lens_margin_mm, config.gain_per_s,
                            config.max_recovery_mm_s, reach))

@@ -10,7 +10,15 @@ import numpy as np
 @dataclass(frozen=True)
 class FilterConfig:
     """Filter parameters (mm, s, rad). `gain_per_s`: barrier rate (gain x dt must stay
-    well below 1 at the control rate); `damping`: (mm/rad)^2 weight on |qdot|^2."""
+    well below 1 at the control rate); `damping`: (mm/rad)^2 weight on |qdot|^2.
+    `calibration_bound_mm`, `calibration_bound_deg`: the declared bound of the sensor
+    calibration's error (origin mm, beam direction deg; default: 3 standard errors of the
+    paper's plate calibration, 250 poses at 20 um noise, models.calibration.uncertainty:
+    0.027 mm and 0.125 deg, rounded up); a point measured `calibration_lever_mm` (the
+    longest distance the model's points are measured at: the spiral's reach 11.7 mm on
+    the emmetropic eye, 13.6 mm on the myopic one, rounded up) from a sensor off by that
+    much lies at most `calibration_margin_mm` = mm + lever tan(deg) off, which the
+    boundary keeps on top of d_safe."""
 
     d_safe_mm: float = 0.5
     gain_per_s: float = 20.0
@@ -21,11 +29,14 @@ class FilterConfig:
     max_command_speed_mm_s: float = 200.0
     damping: float = 1e-3
     max_model_age_s: float = 0.1
-    max_sensor_age_s: float = 0.05
+    max_sensor_age_s: float = 0.045  # + a control period + a frozen value's grace: a stream fault stops within 50 ms
     cutter_clearance_mm: float = 1.0
     max_recovery_mm_s: float = 5.0
     solver: str = "daqp"  # fastest on this QP (bench_safety); "clarabel" also works
     sigma_factor: float = 1.0  # k of the retina barrier's d_safe + k u (u: the field's uncertainty, mm)
+    calibration_bound_mm: float = 0.03
+    calibration_bound_deg: float = 0.13
+    calibration_lever_mm: float = 15.0
 
     def __post_init__(self):
         for name in ("d_safe_mm", "gain_per_s", "joint_gain_per_s", "max_tip_speed_mm_s", "max_command_speed_mm_s",
@@ -33,10 +44,18 @@ class FilterConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"FilterConfig.{name} must be finite and > 0, got {v}")
-        for name in ("lens_margin_mm", "joint_margin_rad", "damping", "sigma_factor"):
+        for name in ("lens_margin_mm", "joint_margin_rad", "damping", "sigma_factor", "calibration_bound_mm",
+                     "calibration_lever_mm"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"FilterConfig.{name} must be finite and >= 0, got {v}")
+        if not (np.isfinite(self.calibration_bound_deg) and 0.0 <= self.calibration_bound_deg < 45.0):
+            raise ValueError(f"FilterConfig.calibration_bound_deg must be in [0, 45) deg, got {self.calibration_bound_deg}")
+
+    @property
+    def calibration_margin_mm(self) -> float:
+        """The declared calibration bound as a clearance (mm): bound mm + lever tan(bound deg)."""
+        return self.calibration_bound_mm + self.calibration_lever_mm * float(np.tan(np.radians(self.calibration_bound_deg)))
 
 
 @dataclass(frozen=True, eq=False)

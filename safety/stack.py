@@ -48,6 +48,7 @@ class ConstraintStack:
     def _size(self, n: int) -> None:
         """The workspace for n joints: ids per inequality constraint, buffers for the QP."""
         self.n = n
+        self._no_pending = np.zeros((0, n))
         bases, n_ids = row_id_bases(self.constraints, self.groups)
         self._id_owner = [None] * n_ids  # identity -> (constraint index, row within it)
         m_cap = p_cap = 0
@@ -86,23 +87,27 @@ class ConstraintStack:
         self.spall = np.ascontiguousarray(np.concatenate(params) if params else np.zeros(0), dtype=float)
 
     def solve(self, q, command, times, J_tip, J_roll, P, J, ranges, fields: tuple, R_WI=None, p_WI=None,
-              warm: bool = False):
+              warm: bool = False, pending=None):
         """(FilterOutput, raw step result) on given points: q (n,) rad, command (4,) [tip
         velocity mm/s, roll rad/s], times [t, model time, sensor time] s, J_tip (3, n),
         J_roll (r, n), P (K, 3) mm, J (K, 3, n), ranges (groups, 2), `fields` the
-        params of each field slot in self.slots' order."""
+        params of each field slot in self.slots' order, `pending` (r, n) rad the
+        actuator's pending displacements (None: none modelled)."""
         t0 = time.perf_counter()
         R = np.eye(3) if R_WI is None else R_WI
         p = np.zeros(3) if p_WI is None else p_WI
-        r = self.module.step(q, command, times, self.cfg, J_tip, J_roll, P, J, ranges, R, p, self.spall, self.spo,
+        pending = self._no_pending if pending is None else pending
+        r = self.module.step(q, command, times, self.cfg, J_tip, J_roll, P, J, ranges, R, p, pending, self.spall, self.spo,
                              *fields, self.active, warm, self.wsf, self.wsi)
         return self.output(r, q, command, times, J_tip, P, ranges, t0, warm), r
 
-    def solve_at(self, q, command, times, kp, fields: tuple):
+    def solve_at(self, q, command, times, kp, fields: tuple, pending=None):
         """(FilterOutput, raw step result, P, ranges, J_tip, rcm error mm) with the points
-        of the kinematics kernel (params kp) at q, warm started from the previous step."""
+        of the kinematics kernel (params kp) at q, warm started from the previous step
+        (`pending` as in solve)."""
         t0 = time.perf_counter()
-        r, P, ranges, J_tip, rcm_error = self.module.step_at(q, command, times, self.cfg, kp, self.spall, self.spo,
+        pending = self._no_pending if pending is None else pending
+        r, P, ranges, J_tip, rcm_error = self.module.step_at(q, command, times, self.cfg, kp, pending, self.spall, self.spo,
                                                               *fields, self.active, True, self.wsf, self.wsi)
         return self.output(r, q, command, times, J_tip, P, ranges, t0, True), r, P, ranges, J_tip, rcm_error
 

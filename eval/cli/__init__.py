@@ -28,6 +28,7 @@ SUBCOMMAND_MODULES = (
     "eval.cli.replay",
     "eval.cli.scan",
     "eval.cli.boundary",
+    "eval.cli.faults",
     "eval.cli.sensor",
     "eval.cli.plan",
     "eval.cli.record",

@@ -157,3 +157,23 @@ def eye_params(pairs, shape: str) -> dict:
     except ValueError as exc:
         error(f"--eye-param: {exc}")
     return params
+
+
+def numbers(names: tuple, lo: float | None, hi: float | None, unit: str):
+    """Type of a flag of len(names) comma-separated finite numbers, each in [lo, hi] (None:
+    unbounded), e.g. 'MM,DEG'; the message names the format and the range."""
+    fmt = ",".join(names)
+    one = number(lo, hi, unit)
+
+    def parse(text: str) -> tuple:
+        parts = text.split(",")
+        if len(parts) != len(names):
+            raise argparse.ArgumentTypeError(f"must be {fmt} ({len(names)} numbers, {one.range}), got {text!r}")
+        try:
+            return tuple(one(p) for p in parts)
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(f"must be {fmt}, each {one.range}, got {text!r}") from None
+
+    parse.__name__ = fmt
+    parse.range = f"{fmt}, each {one.range}"
+    return parse

@@ -15,6 +15,7 @@ import numpy as np
 
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
 from eval.cli.io import prepare_out_dir, save_figure, write_json
+from eval.cli.loop_flags import add_loop_flags, loop_config, loop_record, scenario
 from eval.cli.progress import phase, progress_bar
 from eval.cli.workers import add_worker_flags, workers_of
 from eval.experiments.model_report import error_sigma_figure, model_summary
@@ -26,6 +27,7 @@ SPHERE_SCENARIOS = integer(0, 100_000)
 DURATION_S = number(0.05, 10.0, "s")
 SPIRAL_SPEED = number(1.0, 17.0, "mm/s")
 SPIRAL_REVOLUTIONS = number(1.0, 18.0, "revolutions")
+SEARCH_BUDGET = integer(1, 1_000_000)
 
 
 def register(sub) -> None:
@@ -46,6 +48,12 @@ def register(sub) -> None:
                    help=f"revolutions of the model-building spiral over its 9 mm radius, {SPIRAL_REVOLUTIONS.range}")
     p.add_argument("--sensor-mode", choices=("distance", "ascan"), default="distance",
                    help="iiOCT in the loop: extractor error model (fast) or full A-scans")
+    p.add_argument("--adversary", choices=("random", "search"), default="random",
+                   help="random: the seeded random campaign only; search: then the cross-entropy search "
+                        "(eval.experiments.search_adversary) for the smallest true clearance")
+    p.add_argument("--search-budget", type=SEARCH_BUDGET, default=None,
+                   help=f"simulations of the search adversary, {SEARCH_BUDGET.range}; default 10 x --scenarios")
+    add_loop_flags(p)
     p.add_argument("--out", default="out/boundary", help="output directory")
     add_worker_flags(p)
     p.set_defaults(func=main)
@@ -57,6 +65,8 @@ def validate(args) -> None:
     args.eye_params = eye_params(args.eye_param, args.shape)
     if args.sphere_scenarios is None:
         args.sphere_scenarios = min(args.scenarios, 50)
+    if getattr(args, "search_budget", None) is None:
+        args.search_budget = 10 * args.scenarios
 
 
 class BoundaryRun(NamedTuple):
@@ -88,12 +98,10 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
     boundary.json's content (a BoundaryRun with `keep_build`). The scenarios run on
     `workers` (eval.experiments.campaign.Workers; None: this process). Progress goes to stderr."""
     from eval.experiments.boundary import build_model_by_spiral, run_campaign
-    from eval.closed_loop import LoopConfig
     from eval.log.writer import RunLogger
-    from planning import SurgeryScenario
 
-    config = LoopConfig(sensor_mode=args.sensor_mode)
-    loop = make_loop(SurgeryScenario(eye_name=args.shape, eye_params=args.eye_params), config, sensor_seed=args.seed)
+    config = loop_config(args, sensor_mode=args.sensor_mode)
+    loop = make_loop(scenario(args, eye_params=args.eye_params), config, sensor_seed=args.seed)
     meta = {"shape": args.shape, "eye_params": args.eye_params, "seed": args.seed}
     pitch_mm = 9.0 / args.spiral_revolutions
     with RunLogger(out / "spiral.mcap", config.filter, metadata={**meta, "run": "spiral"}) as log:
@@ -115,10 +123,10 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
     spiral = build.run
     result = {
         **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction",
-                             "tracking_rmse_mm_s", "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor",
+                             "tracking_rmse_mm_s", "failsafe_stops", "stops_by_reason", "solve_us", "drake_diffik_us", "realtime_factor",
                              "realtime_factor_unlogged")},
-        "shape": args.shape, "eye_params": args.eye_params, "seed": args.seed, "sensor_mode": args.sensor_mode, "scenario_s": args.duration_s,
-        "violation_threshold_mm": 0.45,
+        "shape": args.shape, "eye_params": args.eye_params, "seed": args.seed, "sensor_mode": args.sensor_mode,
+        "scenario_s": args.duration_s, "violation_threshold_mm": 0.45, "loop": loop_record(args, config),
         "lens_violations": s["lens_violations"], "max_rcm_error_um": s["max_rcm_error_um"],
         "free_tracking_error_p99": s["free_tracking_error_p99"],
         "model": {**model_summary(loop, build), "fitted_kind": build.kind_final, "transition_at": build.transition_at,
@@ -132,12 +140,34 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
         "sphere_phase": sphere,
         "logs": {"spiral": str(out / "spiral.mcap"), "scenario_0": str(out / "boundary.mcap")},
     }
+    if getattr(args, "adversary", "random") == "search":
+        result["search"] = run_search(args, loop, build, s["min_true_clearance_mm"])
+        result["worst_found_clearance_mm"] = result["search"]["worst_found_clearance_mm"]
     save_figure(_clearance_figure(campaign, args.shape), out / "boundary_clearance.png")
     fig = error_sigma_figure(loop, build)
     if fig is not None:
         save_figure(fig, out / "model_error_sigma.png")
     save_figure(_activity_figure(campaign, s), out / "boundary_activity.png")
     return BoundaryRun(result, build, campaign, loop) if keep_build else result
+
+
+def run_search(args, loop, build, random_min_mm: float) -> dict:
+    """The search adversary against the built model: boundary.json's "search" entry, with
+    the worst scenario's theta and sensor seed (eval.experiments.search_adversary.run_theta
+    replays it) and its clearance when run again."""
+    from eval.experiments.search_adversary import cross_entropy_search, run_theta
+
+    with progress_bar(args.search_budget, "search adversary", unit="simulation") as bar:
+        found = cross_entropy_search(loop, build.model, build.coverage, args.search_budget, args.seed, args.duration_s,
+                                     progress=lambda i, n: bar.update())
+    replay = run_theta(loop, build.model, build.coverage, found.worst_theta, args.duration_s, found.worst_sensor_seed)
+    return {"budget": args.search_budget, "worst_found_clearance_mm": found.worst_clearance_mm,
+            "replayed_clearance_mm": None if replay is None else float(replay.true_clearance_mm.min()),
+            "random_min_true_clearance_mm": random_min_mm,
+            "violations": int(sum(c < 0.45 for c in found.clearances)),
+            "failsafe_stops": found.failsafe_stops, "stops_by_reason": found.stops_by_reason,
+            "scenario": {"shape": args.shape, "seed": args.seed, "duration_s": args.duration_s,
+                         "sensor_seed": found.worst_sensor_seed, "theta": [float(x) for x in found.worst_theta]}}
 
 
 def main(args) -> int:
@@ -148,7 +178,10 @@ def main(args) -> int:
     write_json(out / "boundary.json", result)
     print(f"\n{'scenarios':24s} {result['scenarios']}")
     for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
-                "failsafe_stops", "realtime_factor", "realtime_factor_unlogged"):
+                "failsafe_stops", "stops_by_reason", "realtime_factor", "realtime_factor_unlogged",
+                "worst_found_clearance_mm"):
+        if key not in result:
+            continue
         v = result[key]
         print(f"{key:24s} {v:.4g}" if isinstance(v, float) else f"{key:24s} {v}")
     print(f"{'solve_us':24s} median {result['solve_us']['median']:.0f}  p99 {result['solve_us']['p99']:.0f}   "

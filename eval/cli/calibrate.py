@@ -28,6 +28,7 @@ from models.calibration.plate import (
     sample_flange_poses,
 )
 from models.calibration.sensitivity import SPHERE_RADIUS_MM, diameter_error_um, diameter_sensitivity, sphere_eye
+from models.calibration.uncertainty import calibration_uncertainty
 from models.scan.paper_scan import paper_scan
 
 
@@ -76,6 +77,12 @@ def _pose_dict(sensor: SensorPose, plane: Plane) -> dict:
             "plane_normal_W": plane.normal_W.tolist(), "plane_offset_mm": plane.offset_mm}
 
 
+def _uncertainty_dict(u) -> dict:
+    mm, deg = u.bound(3.0)
+    return {"along_beam_mm": u.along_mm, "across_beam_mm": u.across_mm, "direction_deg": u.direction_deg,
+            "bound_3_sigma": {"mm": mm, "deg": deg}}
+
+
 def run_calibration(args) -> dict:
     """The calibration experiment for validated `args`: the calibration.json content."""
     rng = np.random.default_rng(args.seed)
@@ -101,6 +108,9 @@ def run_calibration(args) -> dict:
         "converged": result.converged,
         # the part of the position error that moves retinal points along the beam
         "axial_error_um": float(1e3 * (result.sensor.p_FS - truth.p_FS) @ truth.u_F),
+        # the fit's own standard errors (models.calibration.uncertainty) and the bound of 3 of
+        # them, what `--calibration-bound MM,DEG` declares to the filter
+        "uncertainty": _uncertainty_dict(calibration_uncertainty(R_WF, p_WF, distances, result)),
         "targets": TARGETS,
     }
     out["meets_targets"] = {k: out[k] <= v for k, v in TARGETS.items()}

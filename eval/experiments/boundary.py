@@ -105,8 +105,6 @@ def adversarial_starts(loop: ClosedLoop, model_shape, n: int, rng: np.random.Gen
     the eye centre, posterior of the trocar plane: a surgeon's instrument starts clear
     of the real retina even where the model is off), reachable through the trocar with
     the shaft clear of the lens."""
-    scenario, robot = loop.scenario, loop.robot
-    c = scenario.eye_pose.p_WE
     out = []
     tries = 0
     while len(out) < n:
@@ -115,21 +113,33 @@ def adversarial_starts(loop: ClosedLoop, model_shape, n: int, rng: np.random.Gen
             raise RuntimeError(f"found only {len(out)} of {n} reachable adversarial starts")
         u_E = rng.standard_normal(3)
         u_E /= np.linalg.norm(u_E)
-        if u_E[2] > 0.3:  # in front of the trocar plane: the shaft would run along the lens
+        if u_E[2] > 0.3:  # in front of the trocar plane (start_at), drawn again
             continue
-        u = scenario.eye_pose.R_WE @ u_E
-        wall = min(float(model_shape.ray_cast(c[None], u[None])[0]), float(scenario.eye.ray_cast(c[None], u[None])[0]))
-        depth = rng.uniform(*START_DEPTH_MM)
-        p = c + max(wall - depth, 0.0) * u
-        try:
-            scenario.tip_targets_W(scenario.eye_pose.to_E(p[None]))
-            q = start_posture(robot, p, scenario.p_WC)
-        except (ValueError, IKFailure):
-            continue
-        if np.min(robot.joint_margin_rad(q)) < np.radians(3.0):
-            continue
-        out.append(q)
+        q = start_at(loop, model_shape, u_E, rng.uniform(*START_DEPTH_MM))
+        if q is not None:
+            out.append(q)
     return out
+
+
+def start_at(loop: ClosedLoop, model_shape, u_E, depth_mm: float):
+    """The start posture (6,) rad with the tip `depth_mm` inside the nearer of the model and
+    the true retina along the unit direction u_E (E) from the eye centre, or None where
+    that start is not allowed (u_E[2] > 0.3: in front of the trocar plane, the shaft would
+    run along the lens) or not reachable with 3 deg to every joint limit."""
+    scenario, robot = loop.scenario, loop.robot
+    u_E = np.asarray(u_E, dtype=float)
+    if u_E[2] > 0.3:
+        return None
+    c = scenario.eye_pose.p_WE
+    u = scenario.eye_pose.R_WE @ u_E
+    wall = min(float(model_shape.ray_cast(c[None], u[None])[0]), float(scenario.eye.ray_cast(c[None], u[None])[0]))
+    p = c + max(wall - depth_mm, 0.0) * u
+    try:
+        scenario.tip_targets_W(scenario.eye_pose.to_E(p[None]))
+        q = start_posture(robot, p, scenario.p_WC)
+    except (ValueError, IKFailure):
+        return None
+    return None if np.min(robot.joint_margin_rad(q)) < np.radians(3.0) else q
 
 
 @dataclass
@@ -162,6 +172,7 @@ class Campaign:
             "intervention_fraction": intervened / steps if steps else 0.0,
             "tracking_rmse_mm_s": float(np.sqrt(np.mean(free**2))) if len(free) else 0.0,
             "failsafe_stops": int(sum(r.failsafe_stops for r in runs)),
+            "stops_by_reason": stops_by_reason(runs),
             "solve_us": _quantiles(solve),
             "drake_diffik_us": _quantiles(drake),
             "realtime_factor": sim / wall if wall > 0 else None,
@@ -171,6 +182,25 @@ class Campaign:
             "lens_violations": int(sum(np.min(r.lens_clearance_mm) < 0.0 for r in runs)),
             "max_rcm_error_um": float(1e3 * max(np.nanmax(r.rcm_error_mm) for r in runs)) if runs else None,
         }
+
+
+def reason_class(reason: str) -> str:
+    """A stop's reason without its numbers: the text before its first ':' ("stale sensor"),
+    or the whole reason for the QP's ("QP: infeasible")."""
+    head = reason.split(":", 1)[0].strip()
+    return reason.strip() if head == "QP" else head
+
+
+def stops_by_reason(runs: list) -> dict:
+    """{reason class: failsafe stops} over LoopRuns (a stop: a run of consecutive refused steps,
+    counted by its first step's reason)."""
+    out: dict = {}
+    for r in runs:
+        bad = ~r.ok
+        for k in np.flatnonzero(bad & ~np.concatenate([[False], bad[:-1]])):
+            key = reason_class(r.reasons[k])
+            out[key] = out.get(key, 0) + 1
+    return dict(sorted(out.items()))
 
 
 def _simulated_and_wall_s(runs: list) -> tuple[float, float]:

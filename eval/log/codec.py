@@ -155,4 +155,6 @@ def config_from_json(d) -> FilterConfig:
     if unknown:
         raise ValueError(f"filter config has unknown fields {unknown} (logged by another version?)")
     kw = {k: v if isinstance(known[k].default, str) else number_from_json(v, f"config.{k}") for k, v in d.items()}
+    for k in ("calibration_bound_mm", "calibration_bound_deg"):  # a config without them kept no calibration bound
+        kw.setdefault(k, 0.0)
     return FilterConfig(**kw)

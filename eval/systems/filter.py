@@ -39,7 +39,8 @@ from planning.robot import RCM_GAIN_PER_S, Robot
 from planning.scan import start_posture
 from planning.step_kinematics import GROUP_CAPACITY, POINT_GROUPS, point_names, step_kinematics, step_kinematics_params
 from safety import ConstraintStack, default_constraints
-from safety.constraints import RcmEquality
+from safety.constraints import PointBarrier, RcmEquality
+from safety.constraints.actuated_barrier import ActuatedPointBarrier
 
 JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
 
@@ -78,11 +79,16 @@ class StepRecord:
 def loop_constraints(robot: Robot, config: LoopConfig) -> list:
     """The loop's constraint stack: tip speed, joint limits, the tip and port against the
     eye field (slot "eye"), the shaft against the fitted model (slot "eye_shaft"), the lens
-    keep-out (slot "lens"), the RCM through the robot's trocar, then config.extra_constraints."""
-    return default_constraints(config.filter, robot.q_lower, robot.q_upper, robot.qdot_max,
-                               (("tip_port", "eye", 2), ("shaft", "eye_shaft", 0)), ("lens", "lens"),
-                               RcmEquality(np.asarray(robot.p_WC, dtype=float), RCM_GAIN_PER_S),
-                               config.extra_constraints)
+    keep-out (slot "lens"), the RCM through the robot's trocar, then config.extra_constraints.
+    With an actuator that is not ideal, the eye barriers are actuator-aware
+    (safety.constraints.actuated_barrier: they read the actuator's pending displacements)."""
+    out = default_constraints(config.filter, robot.q_lower, robot.q_upper, robot.qdot_max,
+                              (("tip_port", "eye", 2), ("shaft", "eye_shaft", 0)), ("lens", "lens"),
+                              RcmEquality(np.asarray(robot.p_WC, dtype=float), RCM_GAIN_PER_S),
+                              config.extra_constraints)
+    if config.actuator.ideal:
+        return out
+    return [ActuatedPointBarrier.of(c) if type(c) is PointBarrier else c for c in out]
 
 
 class FilterSystem(LeafSystem):
@@ -133,6 +139,11 @@ class FilterSystem(LeafSystem):
         self._meas = self.DeclareVectorInputPort("measurement", 4)
         state = self.DeclareDiscreteState(6)
         dt = 1.0 / config.control_rate_hz
+        self._dt = dt
+        self._no_pending = np.zeros((0, 6))
+        # the actuator's reported state: [applied velocity, queued commands] (eval.systems.actuator)
+        self._actuator = None if config.actuator.ideal else self.DeclareVectorInputPort(
+            "actuator", 6 * (1 + config.actuator.delay_steps(dt)))
         # the first step waits for the sensor's first packet (the robot holds still until then)
         first_s = dt * np.ceil(config.sensor_packet / config.sensor_rate_hz / dt + 0.5)
         # on the integrator's own series of times (period dt, offset 0), so that a step and
@@ -212,11 +223,26 @@ class FilterSystem(LeafSystem):
             self._fields, self._key = (eye, shaft, self._lens_field), key
         return self._fields
 
-    def filter_step(self, t_s: float, q: np.ndarray, command: np.ndarray, snap: ModelSnapshot, sensor_t_s: float):
-        """(FilterOutput, P (K, 3) mm, ranges, J_tip (3, 6) mm/rad, RCM error mm) of one step."""
+    def pending(self, context) -> np.ndarray:
+        """(r, 6) rad: what the actuator still carries out if every command from this step on is
+        zero (safety.actuator.ActuatorModel.pending_rows): its applied velocity, its queue
+        and this filter's last command, which the actuator takes at this instant."""
+        if self._actuator is None:
+            return self._no_pending
+        x = self._actuator.Eval(context)
+        queued = np.empty((len(x) // 6, 6))
+        queued[:-1] = x[6:].reshape(-1, 6)
+        queued[-1] = context.get_discrete_state(0).get_value()
+        return self.config.actuator.pending_rows(x[:6], queued, self._dt)
+
+    def filter_step(self, t_s: float, q: np.ndarray, command: np.ndarray, snap: ModelSnapshot, sensor_t_s: float,
+                    pending=None):
+        """(FilterOutput, P (K, 3) mm, ranges, J_tip (3, 6) mm/rad, RCM error mm) of one step;
+        `pending` the actuator's pending displacements (None: an ideal actuator)."""
         times = self._times
         times[0], times[1], times[2] = t_s, t_s if snap.shape is None else snap.t_s, sensor_t_s
-        out, _, P, ranges, J_tip, rcm_error = self.stack.solve_at(q, command, times, self._kp, self.fields(snap))
+        out, _, P, ranges, J_tip, rcm_error = self.stack.solve_at(q, command, times, self._kp, self.fields(snap),
+                                                                  pending)
         return out, P, ranges, J_tip, rcm_error
 
     def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
@@ -280,9 +306,11 @@ class FilterSystem(LeafSystem):
         q = self._q.Eval(context)
         command = self._command(t, q)
         snap = self._snap.Eval(context)
-        sensor_t = snap.t_s  # the newest sensor sample, relayed by the model system (ModelSnapshot.t_s)
+        sensor_t = snap.healthy_t_s  # the newest healthy sensor sample, relayed by the model system
         rec = self.record
-        out, P, ranges, J_tip, rcm_error = self.filter_step(t, q, command, snap, sensor_t)
+        out, P, ranges, J_tip, rcm_error = self.filter_step(t, q, command, snap, sensor_t, self.pending(context))
+        if snap.stream and not out.ok and out.reason.startswith("stale sensor"):  # say what the stream sent
+            out = out._replace(reason=out.reason.replace("stale sensor", f"stale sensor ({snap.stream})", 1))
         discrete_state.set_value(out.qdot)
         step_us = 1e6 * (time.perf_counter() - t0)
         if self.config.drake_diffik_every and len(rec.steps) % self.config.drake_diffik_every == 0 and out.ok:

@@ -19,6 +19,7 @@ from models.adaptive.coverage import DirectionCoverage
 from models.adaptive.transition import PredictiveCriteria
 from models.local.grid import LocalRetinaModel
 from planning.iioct import NO_SAMPLE_YET
+from planning.iioct.stream import WHY, StreamHealth
 from safety.margins import UncertaintyMargins
 
 ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of the 2 kHz stream, ~0.4 MB/s
@@ -28,7 +29,9 @@ class ModelSnapshot(NamedTuple):
     """What the filter reads of the model: `kind` "prior" | "sphere" | "ellipsoid", its
     `shape` in W (None for the prior), `t_s` of the newest sensor sample the model system
     has processed (it stamps every packet: the filter's model age and sensor age), the
-    model's RMS residual (mm) and point count."""
+    model's RMS residual (mm) and point count; `healthy_t_s` the newest HEALTHY sample's
+    time (planning.iioct.stream: the filter's sensor age) and `stream` what the samples
+    since were ("" while healthy)."""
 
     kind: str
     shape: object
@@ -37,6 +40,8 @@ class ModelSnapshot(NamedTuple):
     n_points: int
     coverage: object = None  # models.adaptive.coverage.CoverageView of the measured directions
     field: object = None  # models.local.field.LocalField the filter keeps to (with the local model), else None
+    healthy_t_s: float = 0.0
+    stream: str = ""
 
     def __deepcopy__(self, memo) -> ModelSnapshot:
         return self  # immutable (the shapes are frozen): Drake copies abstract state values often
@@ -148,6 +153,9 @@ class AdaptiveModelSystem(LeafSystem):
         self.n_samples = 0
         self.n_invalid = 0
         self.epochs: list[ModelSnapshot] = []  # the snapshot whenever the filter's model changed kind
+        self.health = StreamHealth()
+        self.health.healthy_t_s = 0.0  # the run's start: the sensor has the filter's age limit to deliver
+        self._seen = None  # the last packet read
 
     @property
     def errors_mm(self) -> list[float]:
@@ -174,8 +182,24 @@ class AdaptiveModelSystem(LeafSystem):
         self._absorb(context, state)
         self.wall_s += time.perf_counter() - t0
 
+    def _health(self, packet, state) -> None:
+        """Judge the packet's samples (planning.iioct.stream.StreamHealth); a packet read
+        before is no packet. The state carries the verdict even when the model is not updated."""
+        health = self.health
+        if packet is self._seen:
+            if packet is not NO_SAMPLE_YET:
+                health.why = WHY["dropout"]
+        else:
+            self._seen = packet
+            health.update(packet.t_s, packet.valid, packet.distance_mm, packet.beam_origin_W)
+        w = self._written
+        if w.healthy_t_s != health.healthy_t_s or w.stream != health.why:
+            self._written = w._replace(healthy_t_s=health.healthy_t_s, stream=health.why)
+            state.get_mutable_abstract_state(0).set_value(self._written)
+
     def _absorb(self, context, state) -> None:
         packet = self._packet.Eval(context)
+        self._health(packet, state)
         if not packet.t_s.item(0) > self._last_t:  # samples seen before (or the placeholder before the first packet)
             new = np.flatnonzero(packet.t_s > self._last_t)  # in time order: the packet's last ones
             if not len(new):
@@ -209,8 +233,10 @@ class AdaptiveModelSystem(LeafSystem):
                 if entry is not None:
                     self.logger.log_model_update(self._last_t, entry)
         # the state is what this system last wrote (or the initial snapshot): kept at hand
+        health = self.health
         if entry is not None or self._written.shape is None:
-            self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust)
+            self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust)._replace(
+                healthy_t_s=health.healthy_t_s, stream=health.why)
         else:
             self._written = self._written._replace(t_s=self._last_t)
         state.get_mutable_abstract_state(0).set_value(self._written)

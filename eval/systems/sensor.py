@@ -17,6 +17,7 @@ from pydrake.systems.primitives import ConstantVectorSource, Selector, SelectorP
 
 from planning.iioct import NO_SAMPLE_YET, IioctSensor, JointRegister, SensorPacket, rate_ratio
 from planning.iioct.latches import REGISTER_ROW, delayed_angles
+from planning.iioct.stream import StreamFault
 
 
 def _shift_selector(rows: int) -> Selector:
@@ -42,9 +43,11 @@ class SensorPacketProcessor(LeafSystem):
     recorded (every packet of a run but the first one or two), else filtered by the
     start time an initialisation event notes."""
 
-    def __init__(self, sensor: IioctSensor, register: JointRegister, time_offset_s: float):
+    def __init__(self, sensor: IioctSensor, register: JointRegister, time_offset_s: float,
+                 stream_fault: StreamFault = StreamFault()):
         super().__init__()
         self.sensor, self.register, self.time_offset_s = sensor, register, time_offset_s
+        self.stream_fault = stream_fault
         self._register = self.DeclareVectorInputPort("register", REGISTER_ROW * register.slots)
         self._packet = self.DeclareAbstractState(AbstractValue.Make(NO_SAMPLE_YET))
         self._packet_at = int(self._packet)  # the same index as an int, which pybind takes faster per packet
@@ -80,6 +83,11 @@ class SensorPacketProcessor(LeafSystem):
             return
         T, Q = T_all[-self.register.packet:], Q_all[-self.register.packet:]
         packet = self.sensor.packet_of_arrays(T, Q, delayed_angles(T, T_all, Q_all, self.time_offset_s))
+        if self.stream_fault.kind != "none":
+            previous = self._latest(context)
+            packet = self.stream_fault.apply(packet, None if previous is NO_SAMPLE_YET else previous)
+            if packet is None:  # no new packet
+                return
         state.get_mutable_abstract_state(self._packet_at).set_value(packet)
 
     def _latest(self, context) -> SensorPacket:
@@ -110,6 +118,9 @@ class IioctSensorSystem(Diagram):
     `time_offset_s` earlier (the paper's OCT-robot synchronisation error, up to 2.6 ms),
     interpolated linearly in the recorded history.
 
+    `stream_fault` (planning.iioct.stream.StreamFault): a degenerate stream injected from
+    its onset on (default none).
+
     `input_rate_hz` (Hz; None: rate_hz) is the modelling assumption on q: a zero-order
     hold that changes only at whole multiples of 1 / input_rate_hz s (like the closed
     loop's DiscreteTimeIntegrator), an event at one of those times seeing the value
@@ -137,7 +148,7 @@ class IioctSensorSystem(Diagram):
     """
 
     def __init__(self, sensor: IioctSensor, rate_hz: float = 2000.0, time_offset_s: float = 0.0, packet: int = 10,
-                 input_rate_hz: float | None = None):
+                 input_rate_hz: float | None = None, stream_fault: StreamFault = StreamFault()):
         super().__init__()
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise ValueError(f"rate_hz must be > 0 Hz, got {rate_hz}")
@@ -160,7 +171,7 @@ class IioctSensorSystem(Diagram):
         latches = JointRegister(self.rate_hz, ratio, packet, history)
         self.packet_offset_s = latches.offset_s  # s: the first packet's processing time (then every packet / rate_hz s)
         b = DiagramBuilder()
-        processor = b.AddSystem(SensorPacketProcessor(sensor, latches, self.time_offset_s))
+        processor = b.AddSystem(SensorPacketProcessor(sensor, latches, self.time_offset_s, stream_fault))
         register = b.AddSystem(ZeroOrderHold(1.0 / self.input_rate_hz, REGISTER_ROW * latches.slots))
         shift = b.AddSystem(_shift_selector(latches.slots))
         one = b.AddSystem(ConstantVectorSource([1.0]))

@@ -54,6 +54,8 @@ CONTEXT = {
     "lb": "lower bounds (n,) rad/s, to tighten (never to loosen)",
     "ub": "upper bounds (n,) rad/s",
     "point_h": "per-point clearance (K,) mm a barrier reports (+inf: none)",
+    "pending": "joint displacements (r, n) rad the actuator still carries out if every command from this step on is "
+               "zero, one row per source (safety.actuator.ActuatorModel.pending_rows; r = 0: not modelled)",
 }
 
 

@@ -2,11 +2,13 @@
 
 For each point p of its group the field gives the signed distance h(p) (mm, > 0 on the
 kept side), its unit gradient and its uncertainty u(p) (mm). The point must keep
-h >= h_min = d_safe + k u. A control barrier row enforces it at the joint-velocity
-level: dh/dt = grad . J_p qdot >= -gain (h - h_min) (gain 1/s). Below h_min (a model
-update can move the boundary past a point) the point must recover at gain (h_min - h),
-capped at `max_recovery_mm_s`, a rate the speed limits can give, so that the QP stays
-feasible instead of refusing every step.
+h >= h_min = d_safe + k u + c, with c the declared bound of the sensor calibration's
+error on the model (`calibration_mm`: a model built from the points of a mis-calibrated
+sensor lies off the retina by up to c: FilterConfig.calibration_margin_mm). A control barrier row
+enforces it at the joint-velocity level: dh/dt = grad . J_p qdot >= -gain (h - h_min)
+(gain 1/s). Below h_min (a model update can move the boundary past a point) the point
+must recover at gain (h_min - h), capped at `max_recovery_mm_s`, a rate the speed
+limits can give, so that the QP stays feasible instead of refusing every step.
 
 A row further from its bound than `screen_reach_mm` (what the tip speed limit can close
 at the barrier's rate within its horizon: v_max / gain) cannot become active in this
@@ -30,9 +32,10 @@ NON_FINITE_FIELD = 1  # the filler's fault code
 @njit(cache=True)
 def fill_point_barrier(sp, P, J, start, stop, fh, fg, fu, G, h, ids, m, id0, point_h):
     """sp = [side (+1: keep inside the field, -1: keep outside), d_safe mm, k, gain 1/s,
-    max recovery mm/s, screen reach mm, always_first]; the rows of the group's points
-    P[start:stop] (Jacobians J) from the field's values fh, fg, fu there."""
+    max recovery mm/s, screen reach mm, always_first, calibration bound mm]; the rows of
+    the group's points P[start:stop] (Jacobians J) from the field's values fh, fg, fu there."""
     side, d_safe, k_sigma, gain, max_recovery, reach, always_first = sp[0], sp[1], sp[2], sp[3], sp[4], sp[5], sp[6]
+    calibration = sp[7]
     n = J.shape[2]
     for i in range(stop - start):
         if fh[i] == np.inf and side > 0.0:  # no boundary at this point
@@ -43,7 +46,7 @@ def fill_point_barrier(sp, P, J, start, stop, fh, fg, fu, G, h, ids, m, id0, poi
         if not (np.isfinite(hi) and np.isfinite(g0) and np.isfinite(g1) and np.isfinite(g2)
                 and np.isfinite(fu[i]) and fu[i] >= 0.0):
             return -NON_FINITE_FIELD
-        h_min = d_safe + k_sigma * fu[i]
+        h_min = d_safe + k_sigma * fu[i] + calibration
         point_h[start + i] = hi
         if hi - h_min <= reach or i < always_first:
             r = start + i
@@ -58,7 +61,7 @@ def fill_point_barrier(sp, P, J, start, stop, fh, fg, fu, G, h, ids, m, id0, poi
 @dataclass(frozen=True)
 class PointBarrier(Constraint):
     """The points of `group` stay at least d_safe_mm + sigma_factor x the field's
-    uncertainty inside the distance field in slot `field` (mm, 1/s)."""
+    uncertainty + calibration_mm inside the distance field in slot `field` (mm, 1/s)."""
 
     group: str
     field: str
@@ -70,6 +73,7 @@ class PointBarrier(Constraint):
     sigma_factor: float = 1.0
     max_points: int = 64
     name: str = "boundary"
+    calibration_mm: float = 0.0
 
     kind = "inequality"
     filler = staticmethod(fill_point_barrier)
@@ -79,7 +83,7 @@ class PointBarrier(Constraint):
     def __post_init__(self):
         check_finite_positive(type(self).__name__, gain_per_s=self.gain_per_s, max_recovery_mm_s=self.max_recovery_mm_s)
         check_finite_positive(type(self).__name__, allow_zero=True, d_safe_mm=self.d_safe_mm,
-                              sigma_factor=self.sigma_factor)
+                              sigma_factor=self.sigma_factor, calibration_mm=self.calibration_mm)
         if not (self.screen_reach_mm > 0):
             raise ValueError(f"{type(self).__name__}.screen_reach_mm must be > 0 mm (inf: keep every row), "
                              f"got {self.screen_reach_mm}")
@@ -88,7 +92,7 @@ class PointBarrier(Constraint):
 
     def params(self) -> np.ndarray:
         return as_params(self.side, self.d_safe_mm, self.sigma_factor, self.gain_per_s, self.max_recovery_mm_s,
-                         self.screen_reach_mm, self.always_first)
+                         self.screen_reach_mm, self.always_first, self.calibration_mm)
 
     def max_rows(self, group_size: int) -> int:
         return group_size

@@ -35,7 +35,7 @@ def subparsers() -> dict:
     return dict(action.choices)
 
 
-@pytest.mark.parametrize("command", ["demo", "boundary", "sensor", "plan"])
+@pytest.mark.parametrize("command", ["demo", "boundary", "sensor", "plan", "faults"])
 def test_a_negative_seed_is_one_line_naming_the_flag_and_its_range(command, tmp_path, capsys):
     out = tmp_path / "never"
     code, stdout, err = run_main(capsys, command, "--seed", "-1", "--out", out)
@@ -52,6 +52,11 @@ BAD_NUMBERS = [
     ("boundary", "--scenarios", "-3", "[1, 100000]"), ("boundary", "--sphere-scenarios", "-1", "[0, 100000]"),
     ("boundary", "--duration-s", "nan", "[0.05, 10] s"), ("boundary", "--spiral-speed-mm-s", "100", "[1, 17] mm/s"),
     ("boundary", "--spiral-revolutions", "inf", "[1, 18]"), ("boundary", "--seed", "1e3", "integer"),
+    ("boundary", "--search-budget", "0", "[1, 1000000]"), ("boundary", "--actuator-delay-ms", "-1", "[0, 50] ms"),
+    ("boundary", "--actuator-lag-ms", "nan", "[0, 200] ms"), ("boundary", "--actuator-accel-limit", "0", "> 0 deg/s^2"),
+    ("boundary", "--oct-time-offset-ms", "-2.6", "[0, 100] ms"), ("boundary", "--encoder-noise", "inf", "[0, 1] deg"),
+    ("faults", "--scenarios", "0", "[1, 100000]"), ("faults", "--duration-s", "0", "[0.05, 10] s"),
+    ("faults", "--seed", "-1", f"[0, {SEED_MAX}]"),
     ("sensor", "--outliers", "0.9", "[0, 0.5]"), ("sensor", "--speed-mm-s", "0", "[1, 17] mm/s"),
     ("sensor", "--revolutions", "18.5", "[1, 18]"), ("sensor", "--seed", str(SEED_MAX + 1), f"[0, {SEED_MAX}]"),
     ("plan", "--standoff-mm", "-1", "> 0 mm"), ("plan", "--sweep-mm", "nan", "> 0 mm"),

@@ -10,7 +10,7 @@ from eval.cli import main
 from eval.log.replay import replay
 
 KEYS = {"scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
-        "failsafe_stops", "solve_us", "drake_diffik_us", "realtime_factor"}
+        "failsafe_stops", "stops_by_reason", "solve_us", "drake_diffik_us", "realtime_factor"}
 
 
 REDUCED = ["--scenarios", "3", "--sphere-scenarios", "2", "--duration-s", "0.3", "--spiral-revolutions", "2"]
@@ -64,6 +64,14 @@ def test_the_first_scenario_log_replays(boundary_run):
     (["--scenarios", "0"], "--scenarios"),
     (["--duration-s", "nan"], "--duration-s"),
     (["--spiral-speed-mm-s", "100"], "--spiral-speed-mm-s"),
+    (["--actuator-lag-ms", "-1"], "--actuator-lag-ms"),
+    (["--actuator-delay-ms", "inf"], "--actuator-delay-ms"),
+    (["--actuator-accel-limit", "0"], "--actuator-accel-limit"),
+    (["--oct-time-offset-ms", "nan"], "--oct-time-offset-ms"),
+    (["--encoder-noise", "-0.01"], "--encoder-noise"),
+    (["--calibration-bound", "-0.1,0.1"], "--calibration-bound"),
+    (["--calibration-bound", "0.1"], "MM,DEG"),
+    (["--sensor-pose-error", "1,2,3"], "DX,DY,DZ,RX,RY,RZ"),
 ])
 def test_bad_boundary_arguments_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
     out = tmp_path / "never"
@@ -77,3 +85,13 @@ def test_bad_demo_arguments_exit_2(argv, message, tmp_path, capsys):
     assert main(["demo", *argv, "--out", str(tmp_path / "never")]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "never").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--classes", "lag,earthquake"], "--classes"), (["--calibration-bound", "nan,0.1"], "--calibration-bound"),
+])
+def test_bad_faults_arguments_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
+    out = tmp_path / "never"
+    assert main(["faults", *argv, "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()

@@ -221,14 +221,16 @@ def test_filter_messages_hold_the_step(toy_log):
 
 def test_the_run_pushes_the_filter_to_its_boundary(toy_log):
     """The synthetic run is worth replaying: it starts free with the cutter allowed (port
-    clearance 2.0 mm) and ends held at the margin (the port, nearest the retina, at 0.5 mm)."""
+    clearance 2.0 mm) and ends held at the margin (the port, nearest the retina, at d_safe
+    plus the calibration margin)."""
     log = read_log(toy_log)
     status = [m for _, m in log.messages["/filter/status"]]
     assert all(s["ok"] for s in status)
     assert not status[0]["intervened"] and status[0]["cutter_allowed"]
     assert status[-1]["active"] == ["boundary:port"] and not status[-1]["cutter_allowed"]
     port = [m["port_mm"] for _, m in log.messages["/clearance"]]
-    assert min(port) >= 0.5 - 1e-6 and port[-1] < 0.55  # held at the margin by the barrier
+    margin = 0.5 + FilterConfig().calibration_margin_mm  # d_safe and the declared calibration bound
+    assert min(port) >= margin - 1e-6 and port[-1] < margin + 0.05  # held at the margin by the barrier
 
 
 def test_foxglove_geometry_is_in_metres(toy_log):

@@ -3,6 +3,8 @@
 from that geometry."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -13,6 +15,7 @@ from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
 
 EYE = Sphere(np.zeros(3), 12.0)
 DT = 1e-3
+NO_CALIBRATION = FilterConfig(calibration_bound_mm=0.0, calibration_bound_deg=0.0)  # the margin is d_safe alone
 
 
 def inputs(p, v_cmd, t=0.0, model=EYE, model_time=0.0, sensor_time=0.0, **kw):
@@ -26,13 +29,13 @@ def inputs(p, v_cmd, t=0.0, model=EYE, model_time=0.0, sensor_time=0.0, **kw):
 
 
 def test_free_space_command_passes_unchanged():
-    out = SafetyFilter()(inputs([0, 0, 0], [3.0, -2.0, 1.0]))
+    out = SafetyFilter(NO_CALIBRATION)(inputs([0, 0, 0], [3.0, -2.0, 1.0]))
     assert out.ok and not out.intervened
     np.testing.assert_allclose(out.qdot, [3.0, -2.0, 1.0], rtol=0.01)
 
 
 def test_push_into_the_retina_stops_at_the_margin():
-    f = SafetyFilter()
+    f = SafetyFilter(NO_CALIBRATION)
     p = np.array([0.0, 0.0, -10.0])  # 2 mm clearance
     clearances = []
     for k in range(3000):  # 3 s of pushing straight down at 5 mm/s
@@ -44,9 +47,20 @@ def test_push_into_the_retina_stops_at_the_margin():
     assert clearances[-1] == pytest.approx(0.5, abs=0.01)  # it does get there
 
 
+def test_the_declared_calibration_bound_adds_to_the_margin():
+    cfg = FilterConfig(calibration_bound_mm=0.1, calibration_bound_deg=0.5, calibration_lever_mm=20.0)
+    margin = 0.1 + 20.0 * np.tan(np.radians(0.5))  # a point 20 mm along a beam 0.5 deg off lies this far off
+    assert cfg.calibration_margin_mm == pytest.approx(margin, rel=1e-12)
+    f = SafetyFilter(cfg)
+    p = np.array([0.0, 0.0, -10.0])
+    for k in range(3000):
+        p = p + DT * f(inputs(p, [0.0, 0.0, -5.0], t=k * DT, model_time=k * DT, sensor_time=k * DT)).qdot
+    assert float(EYE.signed_distance(p)[0]) == pytest.approx(0.5 + margin, abs=0.01)
+
+
 def test_tangential_motion_near_the_boundary_is_kept():
     p = np.array([0.0, 0.0, -11.45])  # clearance 0.55 mm: the barrier allows 20/s x 0.05 mm = 1 mm/s inward
-    out = SafetyFilter()(inputs(p, [2.0, 0.0, -2.0]))
+    out = SafetyFilter(NO_CALIBRATION)(inputs(p, [2.0, 0.0, -2.0]))
     assert out.ok and out.intervened and "boundary:tip" in out.active
     assert out.qdot[0] == pytest.approx(2.0, rel=0.01)  # the sideways part survives
     assert out.qdot[2] == pytest.approx(-1.0, rel=0.01)  # the inward part is cut to the barrier rate
@@ -62,7 +76,7 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
     u = np.asarray(direction) + [0, 0, 1e-3]
     u /= np.linalg.norm(u)
     p = u * (12.0 - clearance)
-    out = SafetyFilter()(inputs(p, v_cmd))
+    out = SafetyFilter(NO_CALIBRATION)(inputs(p, v_cmd))
     assert out.ok
     after = float(EYE.signed_distance(p + DT * out.qdot)[0])
     # first order exact; the sphere's curvature costs at most (dt v)^2 / (2 R)
@@ -83,13 +97,13 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
 def test_faults_command_zero_velocity_and_say_why(kw, reason):
     args = dict(p=[0, 0, -5.0], v_cmd=[1.0, 0, 0])
     args.update(kw)
-    out = SafetyFilter()(inputs(**args))
+    out = SafetyFilter(NO_CALIBRATION)(inputs(**args))
     assert not out.ok and reason in out.reason
     np.testing.assert_array_equal(out.qdot, np.zeros(3))
 
 
 def test_cutter_interlock_follows_the_port_clearance():
-    cfg = FilterConfig(cutter_clearance_mm=1.0)
+    cfg = FilterConfig(calibration_bound_mm=0.0, calibration_bound_deg=0.0, cutter_clearance_mm=1.0)
     for clearance, allowed in ((2.0, True), (0.8, False)):
         p = np.array([0.0, 0.0, -(12.0 - clearance)])
         x = inputs(p, [0.0, 0.0, 0.0])
@@ -99,13 +113,13 @@ def test_cutter_interlock_follows_the_port_clearance():
 
 def test_bad_config_is_refused():
     with pytest.raises(ValueError, match="d_safe_mm"):
-        FilterConfig(d_safe_mm=-0.5)
+        FilterConfig(calibration_bound_mm=0.0, calibration_bound_deg=0.0, d_safe_mm=-0.5)
 
 
 @pytest.mark.parametrize("solver", ["clarabel", "daqp"])
 def test_backends_agree_near_the_boundary(solver):
     p = np.array([0.0, 0.0, -11.45])
-    out = SafetyFilter(FilterConfig(solver=solver))(inputs(p, [2.0, 0.0, -2.0]))
+    out = SafetyFilter(dataclasses.replace(NO_CALIBRATION, solver=solver))(inputs(p, [2.0, 0.0, -2.0]))
     assert out.ok
     np.testing.assert_allclose(out.qdot, [2.0, 0.0, -1.0], atol=0.02)
 
@@ -114,7 +128,7 @@ def test_an_untrusted_point_keeps_the_fallback_clearance_too():
     """The model allows 2 mm more; the point is marked untrusted: the fallback (a sphere of
     10 mm) decides, so the push stops 0.5 mm inside the fallback, not the model."""
     fallback = Sphere(np.zeros(3), 10.0)
-    f = SafetyFilter()
+    f = SafetyFilter(NO_CALIBRATION)
     p = np.array([0.0, 0.0, -8.0])
     for k in range(2000):
         x = inputs(p, [0.0, 0.0, -5.0], t=k * DT, model_time=k * DT, sensor_time=k * DT, fallback=fallback)
@@ -137,7 +151,7 @@ def test_an_untrusted_shaft_point_far_inside_the_model_is_held_by_the_fallback()
     tip = PointKinematics("tip", np.array([0.0, 0.0, -2.0]), np.eye(3))
     x = inputs(p, [0.0, 0.0, -5.0], fallback=fallback, model=Sphere(np.zeros(3), 14.0))
     x = FilterInputs(**{**x.__dict__, "boundary_points": [tip, PointKinematics("shaft1", p, np.eye(3), trusted=False)]})
-    out = SafetyFilter()(x)
+    out = SafetyFilter(NO_CALIBRATION)(x)
     assert out.ok and out.qdot[2] == pytest.approx(0.0, abs=1e-6)
     assert "boundary:shaft1" in out.active
 
@@ -160,12 +174,12 @@ def test_pruned_rows_do_not_change_the_answer():
         a = inputs(p, rng.uniform(-15, 15, 3))
         a = FilterInputs(**{**a.__dict__, "boundary_points": a.boundary_points + extra})
         b = FilterInputs(**{**a.__dict__, "model": NoBound(EYE)})
-        np.testing.assert_allclose(SafetyFilter()(a).qdot, SafetyFilter()(b).qdot, atol=1e-9)
+        np.testing.assert_allclose(SafetyFilter(NO_CALIBRATION)(a).qdot, SafetyFilter(NO_CALIBRATION)(b).qdot, atol=1e-9)
 
 
 def test_non_finite_points_are_named_by_the_compiled_step():
     x = inputs([0.0, 0.0, 0.0], [1.0, 0.0, 0.0])
     bad = FilterInputs(**{**x.__dict__, "boundary_points": [PointKinematics("tip", np.array([np.nan, 0.0, 0.0]),
                                                                             np.eye(3))]})
-    out = SafetyFilter()(bad)
+    out = SafetyFilter(NO_CALIBRATION)(bad)
     assert not out.ok and out.reason == "non-finite kinematics of tip" and not out.qdot.any()

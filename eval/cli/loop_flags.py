@@ -1,0 +1,101 @@
+"""The closed loop's real-robot error flags, shared by the closed-loop commands.
+
+`add_loop_flags(parser)` adds them; `loop_config(args, **kw)` and `scenario(args)` turn
+them into an eval.loop_config.LoopConfig and a planning.SurgeryScenario:
+
+- the actuator between the filter and the joints (safety.actuator.ActuatorModel, which
+  the filter is told): --actuator-delay-ms, --actuator-lag-ms, --actuator-accel-limit
+  (deg/s^2 on every joint; default none);
+- the sensor: --oct-time-offset-ms (the OCT stream's lag behind the joint angles; the
+  paper measured up to 2.6 ms), --encoder-noise (SD of the reported joint angles, deg);
+- the calibration: --calibration-bound MM,DEG (the declared bound the filter keeps in
+  its margin; default safety.FilterConfig's, 3 standard errors of the plate calibration)
+  and --sensor-pose-error DX,DY,DZ,RX,RY,RZ (the true sensor pose's error in the sensor
+  frame S, z along the beam: offset mm, rotation vector deg; default the scenario's
+  0.02 mm, 0.1 deg).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from eval.cli.args import number, numbers
+
+DELAY_MS = number(0.0, 50.0, "ms")
+LAG_MS = number(0.0, 200.0, "ms")
+ACCEL = number(0.0, None, "deg/s^2", lo_open=True)
+OFFSET_MS = number(0.0, 100.0, "ms")
+ENCODER_NOISE = number(0.0, 1.0, "deg")
+CALIBRATION_BOUND = numbers(("MM", "DEG"), 0.0, 10.0, "(mm, deg)")
+POSE_ERROR = numbers(("DX", "DY", "DZ", "RX", "RY", "RZ"), -10.0, 10.0, "(mm, deg)")
+# the flags' defaults: the ideal loop (a Namespace without the flags gets these)
+DEFAULTS = {"actuator_delay_ms": 0.0, "actuator_lag_ms": 0.0, "actuator_accel_limit": None, "oct_time_offset_ms": 0.0,
+            "encoder_noise": 0.0, "calibration_bound": None, "sensor_pose_error": None}
+
+
+def flags(args) -> dict:
+    """The flags' values of `args` (DEFAULTS for those it lacks)."""
+    return {k: getattr(args, k, v) for k, v in DEFAULTS.items()}
+
+
+def add_loop_flags(p) -> None:
+    """The real-robot error flags (module docstring) on parser `p`."""
+    p.add_argument("--actuator-delay-ms", type=DELAY_MS, default=0.0,
+                   help=f"pure delay of the robot's velocity controller, {DELAY_MS.range} (whole control periods)")
+    p.add_argument("--actuator-lag-ms", type=LAG_MS, default=0.0,
+                   help=f"first-order lag (time constant) of the applied joint velocity, {LAG_MS.range}")
+    p.add_argument("--actuator-accel-limit", type=ACCEL, default=None,
+                   help=f"joint acceleration limit, every joint, {ACCEL.range}; default none")
+    p.add_argument("--oct-time-offset-ms", type=OFFSET_MS, default=0.0,
+                   help=f"OCT stream's time offset behind the joint angles, {OFFSET_MS.range} (paper: up to 2.6 ms)")
+    p.add_argument("--encoder-noise", type=ENCODER_NOISE, default=0.0,
+                   help=f"SD of the noise on the reported joint angles, {ENCODER_NOISE.range}")
+    p.add_argument("--calibration-bound", type=CALIBRATION_BOUND, default=None, metavar="MM,DEG",
+                   help=f"declared bound of the sensor calibration error the filter keeps in its margin, "
+                        f"{CALIBRATION_BOUND.range}; default 0.03,0.13 (3 standard errors of the plate calibration)")
+    p.add_argument("--sensor-pose-error", type=POSE_ERROR, default=None, metavar="DX,DY,DZ,RX,RY,RZ",
+                   help=f"true sensor pose error in S (z along the beam), {POSE_ERROR.range}; "
+                        "default 0.02,0,0,0,0.1,0 (the plate calibration's accuracy)")
+
+
+def actuator(args):
+    """The safety.actuator.ActuatorModel of the flags."""
+    from safety.actuator import ActuatorModel
+
+    f = flags(args)
+    accel = np.inf if f["actuator_accel_limit"] is None else float(np.radians(f["actuator_accel_limit"]))
+    return ActuatorModel(f["actuator_delay_ms"] * 1e-3, f["actuator_lag_ms"] * 1e-3, accel)
+
+
+def loop_config(args, **kwargs):
+    """The LoopConfig of the flags (and `kwargs`, LoopConfig's other fields)."""
+    from eval.loop_config import LoopConfig
+    from safety import FilterConfig
+
+    f = flags(args)
+    filt = kwargs.pop("filter", FilterConfig())
+    if f["calibration_bound"] is not None:
+        filt = dataclasses.replace(filt, calibration_bound_mm=f["calibration_bound"][0],
+                                   calibration_bound_deg=f["calibration_bound"][1])
+    return LoopConfig(filter=filt, actuator=actuator(args), oct_time_offset_s=f["oct_time_offset_ms"] * 1e-3,
+                      encoder_noise_rad=float(np.radians(f["encoder_noise"])), **kwargs)
+
+
+def scenario(args, **kwargs):
+    """The SurgeryScenario of --shape and --sensor-pose-error (and `kwargs`)."""
+    from planning import SurgeryScenario
+
+    error = flags(args)["sensor_pose_error"]
+    if error is not None:
+        e = np.asarray(error, dtype=float)
+        kwargs.update(sensor_offset_S_mm=e[:3], sensor_rotvec_S_rad=np.radians(e[3:]))
+    return SurgeryScenario(eye_name=args.shape, **kwargs)
+
+
+def loop_record(args, config) -> dict:
+    """The loop's real-robot errors for a results file: the flags and the margin the
+    filter keeps for the calibration bound (mm)."""
+    f = flags(args)
+    return {**f, "calibration_bound": [config.filter.calibration_bound_mm, config.filter.calibration_bound_deg],
+            "calibration_margin_mm": config.filter.calibration_margin_mm}

@@ -1,0 +1,135 @@
+"""The boundary under real-robot faults: one adversarial campaign per fault class.
+
+Each class changes the closed loop's configuration (eval.loop_config.LoopConfig: the
+actuator the filter is told, the sensor's time offset and encoder noise, a degenerate
+stream) or the scenario (the true sensor pose off by the declared calibration bound), or
+adds vitreous floaters; the model is built by the spiral through that loop (a
+calibration, offset or noise error reaches the model as it would on the robot), then
+the boundary's own campaign (eval.experiments.boundary.run_campaign) attacks it. A
+stream fault starts STREAM_ONSET_S into each adversarial scenario (the spiral runs on a
+healthy stream).
+
+Parameters and their sources (assumptions where the Meca500's documentation is silent):
+- delay 5 ms, lag 20 ms: the largest the boundary must hold for (a velocity-mode controller's cycle and
+  servo lag); the Meca500 manual states neither.
+- acceleration limit 300 deg/s^2 on every joint: assumed (the manual sets accelerations
+  as a percentage, SetJointAcc, of a maximum it does not state; at 300 deg/s^2 J1 reaches
+  its top speed of 150 deg/s in 0.5 s).
+- calibration: the true sensor 1 x the declared bound behind its calibrated origin along
+  the beam (every point measured that much too deep: the model outside the retina, the
+  dangerous sign) and its beam turned by the declared angle about S's x axis.
+- OCT time offset 2.6 ms: the paper's largest measured.
+- encoder noise 0.001 deg SD: assumed from the Meca500's 5 um position repeatability
+  (Mecademic) over its ~0.3 m reach.
+- dropout, frozen, invalid, stuck_clock: planning.iioct.stream.StreamFault from
+  STREAM_ONSET_S on.
+- floaters: 2 % of the samples (planning.iioct.IioctSensor's worst case in "distance"
+  mode: a confident wrong distance).
+Units: mm, s, deg where named.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from eval.experiments.boundary import build_model_by_spiral, reason_class, run_campaign
+from planning import SurgeryScenario
+from planning.iioct.stream import StreamFault
+from safety.actuator import ActuatorModel
+
+STREAM_ONSET_S = 0.1
+ACCEL_LIMIT_DEG_S2 = 300.0
+ENCODER_NOISE_DEG = 0.001
+FLOATER_RATE = 0.02
+FAULT_CLASSES = ("none", "delay", "lag", "accel_limit", "calibration", "time_offset", "encoder_noise", "dropout",
+                 "frozen", "invalid", "stuck_clock", "floaters")
+STREAM_CLASSES = ("dropout", "frozen", "invalid", "stuck_clock")
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultClass:
+    """One class: its `parameters` (for faults.json), the loop configurations of the model's
+    spiral (`build`) and of the adversarial campaign (`campaign`), the scenario's keyword
+    arguments (SurgeryScenario) and the floater rate."""
+
+    name: str
+    parameters: dict
+    build: object
+    campaign: object
+    scenario_kwargs: dict
+    floater_rate: float = 0.0
+
+
+def fault_class(name: str, base) -> FaultClass:
+    """The class `name` (FAULT_CLASSES) on the base LoopConfig (module docstring)."""
+    same = dict(build=base, campaign=base, scenario_kwargs={})
+    if name == "none":
+        return FaultClass(name, {}, **same)
+    if name in ("delay", "lag", "accel_limit"):
+        model = {"delay": ActuatorModel(delay_s=0.005), "lag": ActuatorModel(lag_s=0.020),
+                 "accel_limit": ActuatorModel(accel_limit_rad_s2=float(np.radians(ACCEL_LIMIT_DEG_S2)))}[name]
+        cfg = dataclasses.replace(base, actuator=model)
+        return FaultClass(name, {"actuator_delay_ms": 1e3 * model.delay_s, "actuator_lag_ms": 1e3 * model.lag_s,
+                                 "actuator_accel_limit_deg_s2": None if name != "accel_limit" else ACCEL_LIMIT_DEG_S2},
+                          cfg, cfg, {})
+    if name == "calibration":
+        mm, deg = base.filter.calibration_bound_mm, base.filter.calibration_bound_deg
+        error = [0.0, 0.0, -mm, deg, 0.0, 0.0]
+        return FaultClass(name, {"sensor_pose_error": error, "calibration_bound": [mm, deg]}, base, base,
+                          {"sensor_offset_S_mm": np.array(error[:3]), "sensor_rotvec_S_rad": np.radians(error[3:])})
+    if name == "time_offset":
+        cfg = dataclasses.replace(base, oct_time_offset_s=0.0026)
+        return FaultClass(name, {"oct_time_offset_ms": 2.6}, cfg, cfg, {})
+    if name == "encoder_noise":
+        cfg = dataclasses.replace(base, encoder_noise_rad=float(np.radians(ENCODER_NOISE_DEG)))
+        return FaultClass(name, {"encoder_noise_deg": ENCODER_NOISE_DEG}, cfg, cfg, {})
+    if name in STREAM_CLASSES:
+        cfg = dataclasses.replace(base, stream_fault=StreamFault(name, STREAM_ONSET_S))
+        return FaultClass(name, {"stream_fault": name, "onset_s": STREAM_ONSET_S}, base, cfg, {})
+    if name == "floaters":
+        return FaultClass(name, {"floater_rate": FLOATER_RATE}, base, base, {}, FLOATER_RATE)
+    raise ValueError(f"unknown fault class {name!r}; choose from {', '.join(FAULT_CLASSES)}")
+
+
+def detection_ms(runs, onset_s: float) -> dict:
+    """How long after `onset_s` each run's filter first stopped for the stream ("stale
+    sensor ..."): {"max", "median", "undetected" (runs that never stopped for it)}."""
+    lat, missed = [], 0
+    for r in runs:
+        k = next((i for i in range(len(r.t)) if r.t[i] >= onset_s and not r.ok[i]
+                  and reason_class(r.reasons[i]).startswith("stale sensor")), None)
+        if k is None:
+            missed += 1
+        else:
+            lat.append(1e3 * (r.t[k] - onset_s))
+    return {"max": float(max(lat)) if lat else None, "median": float(np.median(lat)) if lat else None,
+            "undetected": missed}
+
+
+def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: float, make_loop, progress=None,
+                    **campaign_kwargs) -> dict:
+    """The class's campaign on the `shape` eye: its faults.json entry. `make_loop(scenario,
+    config, **kw)` builds a ClosedLoop (eval.cli.boundary.make_loop: with a progress
+    phase); `campaign_kwargs` go to run_campaign (e.g. its `workers`)."""
+    scenario = SurgeryScenario(eye_name=shape, **fc.scenario_kwargs)
+    loop = make_loop(scenario, fc.build, sensor_seed=seed, floater_rate=fc.floater_rate)
+    build = build_model_by_spiral(loop, sensor_seed=seed)
+    if fc.campaign is not fc.build:
+        loop = make_loop(scenario, fc.campaign, sensor_seed=seed, floater_rate=fc.floater_rate)
+    campaign = run_campaign(loop, build.model, build.coverage, n, seed, duration_s, progress=progress, **campaign_kwargs)
+    s = campaign.summary()
+    out = {"parameters": fc.parameters,
+           **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "failsafe_stops",
+                                "stops_by_reason", "intervention_fraction", "tracking_rmse_mm_s", "realtime_factor",
+                                "realtime_factor_unlogged")},
+           "model": {"kind": build.kind_final, "ef_mae_um": build.ef_mae_um},
+           "calibration_margin_mm": fc.campaign.filter.calibration_margin_mm,
+           "spiral_min_true_clearance_mm": float(build.run.true_clearance_mm.min())}
+    if fc.campaign.stream_fault.kind != "none":
+        out["detection_ms"] = detection_ms(campaign.runs, fc.campaign.stream_fault.onset_s)
+    out["min_clearance_per_run"] = [float(x) for x in campaign.min_clearance_per_run]
+    return out
+
+
+__all__ = ["FAULT_CLASSES", "FaultClass", "detection_ms", "fault_class", "run_fault_class"]

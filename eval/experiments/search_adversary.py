@@ -1,0 +1,132 @@
+"""A search adversary: the cross-entropy method over the adversary's parameters and start
+state, minimising the smallest TRUE clearance a scenario reaches.
+
+A scenario is a vector theta of DIMENSIONS numbers: the start (a direction from the eye
+centre, three numbers normalised, and a depth inside the wall, START_DEPTH_MM through a
+logistic), then SEGMENTS segments of the command (`ParametricCommand`: a direction in
+the frame of the tip's outward normal and two tangents at the segment's start, a speed
+up to the filter's tip speed limit, a roll rate up to 3 rad/s, a duration of 0.05-0.2 s:
+the random adversary's ranges). The cross-entropy method (Rubinstein) keeps a Gaussian
+over theta: each generation draws `population` scenarios, runs them in the closed loop
+(eval.experiments.boundary.start_at, ClosedLoop.run), and refits the Gaussian to the
+`elite` fraction with the smallest clearance (smoothed, with a floor on the spread). A
+scenario whose start is not allowed or not reachable scores +inf. The search stops at
+its budget of simulations; the worst scenario is returned with its theta, which
+`run_theta` replays. Units: mm, s, rad.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from eval.experiments.boundary import SCENARIO_S, START_DEPTH_MM, start_at
+
+SEGMENTS = 5
+PER_SEGMENT = 6  # direction (3), speed, roll, duration
+DIMENSIONS = 4 + SEGMENTS * PER_SEGMENT
+MAX_ROLL_RATE = 3.0  # rad/s, the random adversary's
+
+
+def _logistic(x: float) -> float:
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+class ParametricCommand:
+    """The command source of theta's segments (module docstring); `p_WE_center` the eye
+    centre (W, mm), `max_speed_mm_s` the speed of a logistic 1."""
+
+    def __init__(self, theta, p_WE_center, max_speed_mm_s: float):
+        self.theta = np.asarray(theta, dtype=float)
+        self.center, self.max_speed = np.asarray(p_WE_center, dtype=float), float(max_speed_mm_s)
+        self._k, self._until, self._v, self._roll = -1, -np.inf, np.zeros(3), 0.0
+
+    def __call__(self, t_s: float, p_WT, q):
+        if t_s >= self._until:
+            self._k = min(self._k + 1, SEGMENTS - 1)
+            s = self.theta[4 + PER_SEGMENT * self._k: 4 + PER_SEGMENT * (self._k + 1)]
+            out = np.asarray(p_WT, dtype=float) - self.center
+            out /= max(np.linalg.norm(out), 1e-9)
+            t1 = np.cross(out, [0.0, 0.0, 1.0] if abs(out[2]) < 0.9 else [1.0, 0.0, 0.0])
+            t1 /= np.linalg.norm(t1)
+            u = s[0] * out + s[1] * t1 + s[2] * np.cross(out, t1)
+            u /= max(np.linalg.norm(u), 1e-9)
+            self._v = _logistic(s[3]) * self.max_speed * u
+            self._roll = MAX_ROLL_RATE * np.tanh(s[4])
+            self._until = t_s + 0.05 + 0.15 * _logistic(s[5])
+        return self._v.copy(), self._roll
+
+
+def start_of(theta) -> tuple[np.ndarray, float]:
+    """(unit direction u_E, depth mm) of theta's start."""
+    u = np.asarray(theta[:3], dtype=float)
+    u = u / max(np.linalg.norm(u), 1e-9)
+    lo, hi = START_DEPTH_MM
+    return u, lo + (hi - lo) * _logistic(theta[3])
+
+
+def run_theta(loop, model, coverage, theta, duration_s: float = SCENARIO_S, sensor_seed=None):
+    """The LoopRun of scenario theta against copies of `model` and `coverage` (the sensor's
+    draws from `sensor_seed`: the same run again), or None when its start is not allowed
+    or not reachable."""
+    u_E, depth = start_of(theta)
+    q0 = start_at(loop, model.shape, u_E, depth)
+    if q0 is None:
+        return None
+    command = ParametricCommand(theta, loop.scenario.eye_pose.p_WE, loop.config.filter.max_tip_speed_mm_s)
+    return loop.run(command, q0, duration_s, model=copy.deepcopy(model), coverage=copy.deepcopy(coverage),
+                    sensor_seed=sensor_seed)
+
+
+@dataclass
+class SearchResult:
+    """The search's worst scenario: its clearance (mm), theta and sensor seed, and every
+    evaluation's clearance."""
+
+    worst_clearance_mm: float
+    worst_theta: np.ndarray
+    worst_sensor_seed: list = field(default_factory=list)
+    clearances: list = field(default_factory=list)
+    failsafe_stops: int = 0
+    stops_by_reason: dict = field(default_factory=dict)
+
+
+def cross_entropy_search(loop, model, coverage, budget: int, seed: int, duration_s: float = SCENARIO_S,
+                         population: int = 20, elite: float = 0.2, smoothing: float = 0.7, min_sd: float = 0.05,
+                         progress=None) -> SearchResult:
+    """The cross-entropy search (module docstring) with `budget` simulations, seeded."""
+    from eval.experiments.boundary import reason_class
+
+    rng = np.random.default_rng(seed)
+    mean, sd = np.zeros(DIMENSIONS), np.ones(DIMENSIONS)
+    mean[2] = -1.0  # start posterior of the trocar plane
+    best = SearchResult(np.inf, mean.copy())
+    done = 0
+    while done < budget:
+        n = min(population, budget - done)
+        thetas = mean + sd * rng.standard_normal((n, DIMENSIONS))
+        scores = np.full(n, np.inf)
+        for i, theta in enumerate(thetas):
+            sensor_seed = [int(seed), done]
+            run = run_theta(loop, model, coverage, theta, duration_s, sensor_seed)
+            done += 1
+            if run is not None and len(run.t):
+                scores[i] = float(np.min(run.true_clearance_mm))
+                best.clearances.append(scores[i])
+                best.failsafe_stops += run.failsafe_stops
+                bad = ~run.ok
+                for k in np.flatnonzero(bad & ~np.concatenate([[False], bad[:-1]])):
+                    key = reason_class(run.reasons[k])
+                    best.stops_by_reason[key] = best.stops_by_reason.get(key, 0) + 1
+                if scores[i] < best.worst_clearance_mm:
+                    best.worst_clearance_mm, best.worst_theta = scores[i], theta.copy()
+                    best.worst_sensor_seed = sensor_seed
+            if progress is not None:
+                progress(done, budget)
+        finite = np.flatnonzero(np.isfinite(scores))
+        if len(finite) >= 2:
+            top = finite[np.argsort(scores[finite])][:max(2, int(round(elite * n)))]
+            mean = smoothing * thetas[top].mean(axis=0) + (1 - smoothing) * mean
+            sd = np.maximum(smoothing * thetas[top].std(axis=0) + (1 - smoothing) * sd, min_sd)
+    return best

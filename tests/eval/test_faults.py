@@ -1,0 +1,44 @@
+"""The fault classes of `vitreoguard faults`: what each changes, and how stream-fault
+detection is timed."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from eval.closed_loop import LoopConfig
+from eval.experiments.faults import FAULT_CLASSES, STREAM_CLASSES, detection_ms, fault_class
+
+
+@pytest.mark.parametrize("name", FAULT_CLASSES)
+def test_each_class_changes_only_its_own_error(name):
+    base = LoopConfig()
+    fc = fault_class(name, base)
+    changed = {k for k in ("actuator", "oct_time_offset_s", "encoder_noise_rad", "stream_fault")
+               if getattr(fc.campaign, k) != getattr(base, k)}
+    expected = {"delay": {"actuator"}, "lag": {"actuator"}, "accel_limit": {"actuator"},
+                "time_offset": {"oct_time_offset_s"}, "encoder_noise": {"encoder_noise_rad"}}
+    expected.update({k: {"stream_fault"} for k in STREAM_CLASSES})
+    assert changed == expected.get(name, set())
+    if name in STREAM_CLASSES:  # the model is built on a healthy stream
+        assert fc.build.stream_fault.kind == "none"
+    assert (fc.floater_rate > 0) == (name == "floaters")
+
+
+def test_the_calibration_class_puts_the_true_sensor_behind_by_the_declared_bound():
+    base = LoopConfig()
+    fc = fault_class("calibration", base)
+    # behind its calibrated origin along the beam (S z): every point measured that much too deep
+    np.testing.assert_allclose(fc.scenario_kwargs["sensor_offset_S_mm"], [0.0, 0.0, -base.filter.calibration_bound_mm])
+    assert np.linalg.norm(fc.scenario_kwargs["sensor_rotvec_S_rad"]) == pytest.approx(
+        np.radians(base.filter.calibration_bound_deg))
+
+
+def test_detection_is_the_first_stale_sensor_stop_after_the_onset():
+    t = np.arange(0.0, 0.3, 0.001)
+    ok = t < 0.142
+    reasons = ["ok" if o else "stale sensor (frozen distances): 0.051 s old > 0.05 s" for o in ok]
+    never = SimpleNamespace(t=t, ok=np.ones_like(ok), reasons=["ok"] * len(t))
+    d = detection_ms([SimpleNamespace(t=t, ok=ok, reasons=reasons), never], 0.1)
+    assert d["max"] == pytest.approx(42.0) and d["undetected"] == 1

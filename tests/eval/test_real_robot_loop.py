@@ -1,0 +1,51 @@
+"""The closed loop with a real robot's errors: the actuator between the filter and the
+joints, and degenerate iiOCT streams detected and acted on within 50 ms of their onset."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from eval.closed_loop import ClosedLoop, LoopConfig
+from eval.experiments.boundary import stops_by_reason
+from eval.experiments.command_sources import VelocityReplayCommand
+from planning import SurgeryScenario, start_posture
+from planning.iioct.stream import WHY, StreamFault
+from safety.actuator import ActuatorModel
+
+DT = 1e-3
+
+
+def deep_start(loop):
+    """A posture with the tip 5 mm behind the eye centre, far from the retina."""
+    p = loop.scenario.eye_pose.to_W(np.array([[1.0, 1.0, -5.0]]))[0]
+    return start_posture(loop.robot, p, loop.scenario.p_WC)
+
+
+@pytest.mark.parametrize("kind", ["invalid", "frozen", "dropout", "stuck_clock"])
+def test_a_degenerate_stream_stops_the_robot_within_the_sensor_age_limit(kind):
+    onset = 0.06
+    loop = ClosedLoop(SurgeryScenario(), LoopConfig(stream_fault=StreamFault(kind, onset)))
+    run = loop.run(VelocityReplayCommand([0.0], [[3.0, 0.0, 0.0]]), deep_start(loop), 0.2)
+    assert run.ok[run.t < onset].all()  # healthy before the onset: the prior bounds the motion
+    k = np.flatnonzero(~run.ok)
+    assert len(k) and run.reasons[k[0]].startswith(f"stale sensor ({WHY[kind]})")
+    # the newest healthy sample is at the onset at the latest (a frozen value: once the beam
+    # moved 5 um, 1.7 ms at 3 mm/s), the age limit 45 ms, a control step 1 ms: within 50 ms
+    assert run.t[k[0]] - onset <= 0.050 + 1e-9
+    assert not run.ok[k[0]:].any() and stops_by_reason([run]) == {f"stale sensor ({WHY[kind]})": 1}
+
+
+def test_the_actuator_moves_the_joints_with_its_lag_and_the_filter_reads_it():
+    lag = 0.02
+    config = LoopConfig(actuator=ActuatorModel(lag_s=lag))
+    loop = ClosedLoop(SurgeryScenario(), config)
+    ideal = ClosedLoop(SurgeryScenario())
+    q0 = deep_start(loop)
+    command = VelocityReplayCommand([0.0], [[4.0, 0.0, 0.0]])
+    slow, fast = loop.run(command, q0, 0.12), ideal.run(command, q0, 0.12)
+    # the same commands at first (far from every boundary); the lagging joints cover less ground,
+    # by the first-order lag's v (t - tau (1 - exp(-t / tau))) against v t
+    d_slow, d_fast = (np.linalg.norm(r.q[-1] - q0) for r in (slow, fast))
+    t = slow.t[-1] - slow.t[np.flatnonzero(np.linalg.norm(slow.qdot, axis=1) > 0)[0]]
+    assert d_slow / d_fast == pytest.approx(1 - lag / t * (1 - np.exp(-t / lag)), rel=0.1)
+    assert slow.ok.all()
