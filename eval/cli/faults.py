@@ -31,8 +31,8 @@ def register(sub) -> None:
     p.add_argument("--scenarios", type=SCENARIOS, default=100, help=f"adversarial scenarios per class, {SCENARIOS.range}")
     p.add_argument("--seed", type=SEED, default=0, help=f"seed of starts, adversaries and sensor noise, {SEED.range}")
     p.add_argument("--duration-s", type=DURATION_S, default=0.5, help=f"length of one scenario, {DURATION_S.range}")
-    p.add_argument("--classes", default=",".join(FAULT_CLASSES),
-                   help=f"comma-separated fault classes, of {','.join(FAULT_CLASSES)}")
+    p.add_argument("--classes", default="all",
+                   help=f"comma-separated fault classes, of {', '.join(FAULT_CLASSES)}; all: every one")
     p.add_argument("--calibration-bound", type=CALIBRATION_BOUND, default=None, metavar="MM,DEG",
                    help=f"declared calibration bound the filter keeps, {CALIBRATION_BOUND.range}; default 0.03,0.13")
     p.add_argument("--out", default="out/faults", help="output directory")
@@ -43,6 +43,8 @@ def register(sub) -> None:
 def classes_of(text: str) -> list:
     from eval.experiments.faults import FAULT_CLASSES
 
+    if text.strip() == "all":
+        return list(FAULT_CLASSES)
     names = [c.strip() for c in text.split(",") if c.strip()]
     bad = [c for c in names if c not in FAULT_CLASSES]
     if bad or not names:
