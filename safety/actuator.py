@@ -5,22 +5,25 @@ The controller applies, at each control step k, the velocity
 
     target_k = the command of `delay_steps` steps earlier (the newest one without delay)
     v_k      = v_{k-1} + alpha (target_k - v_{k-1}),  alpha = 1 - exp(-dt / lag_s)
-    v_k      = v_{k-1} + clip(v_k - v_{k-1}, -accel dt, +accel dt)   (per joint)
+    v_k      = v_{k-1} + s (v_k - v_{k-1}),  s = min(1, accel dt / max_j |v_kj - v_{k-1,j}|)
 
-and the joints move by dt v_k in that step. With no delay, no lag and no limit this is
+and the joints move by dt v_k in that step. The acceleration limit scales the change of
+all joints alike, the fastest-changing joint at the limit (the Meca500 moves its joints
+in velocity mode so that they start and stop together: the joint-space direction, and
+with it the instrument's pivot about the trocar, is kept). With no delay, no lag and no limit this is
 the ideal loop: each command applied over the next control period.
 
 `pending_rows` gives the filter what the actuator still carries out if every command
 from this step on is zero: one joint displacement (rad) per source, the lag state's
-(v dt (1 - alpha) / alpha, grown by v |v| / (2 accel) for the braking the acceleration
-limit allows) and each command still queued (dt x command; a first-order lag has unit
+(v dt (1 - alpha) / alpha, grown by v max_j |v_j| / (2 accel) for the braking the
+acceleration limit allows) and each command still queued (dt x command; a first-order lag has unit
 gain, so each queued command moves the joints by exactly that much in all). Each row's
 contribution to the joint path grows monotonically from 0 to the full row (the lag's
 step and impulse responses do not change sign), so a point's motion towards a wall over
 the whole braking is at most the sum of the rows' inward parts: the bound the
 actuator-aware barrier (safety.constraints.actuated_barrier) keeps in its margin. The
 acceleration limit makes the actuator non-linear: its row is a bound for braking from v
-(a lag slowed by the limit covers at most v tau + v^2 / (2 accel)), and queued
+(a lag slowed by the limit covers at most v tau + v max|v| / (2 accel)), and queued
 commands are counted at their full displacement.
 
 Meca500 (Mecademic programming manual): joint speeds up to 150/150/180/300/300/500 deg/s
@@ -75,8 +78,10 @@ class ActuatorModel:
         """The velocity (n,) rad/s applied this step, from the last one v and the target."""
         step = self.alpha(dt) * (target - v)
         if self.accel_limit_rad_s2 != np.inf:
+            largest = float(np.max(np.abs(step)))
             lim = self.accel_limit_rad_s2 * dt
-            step = np.clip(step, -lim, lim)
+            if largest > lim:
+                step = step * (lim / largest)
         return v + step
 
     def pending_rows(self, v: np.ndarray, queued: np.ndarray, dt: float) -> np.ndarray:
@@ -87,6 +92,6 @@ class ActuatorModel:
         rows = np.empty((1 + len(queued), len(v)))
         rows[0] = v * (dt * (1.0 - a) / a)
         if self.accel_limit_rad_s2 != np.inf:
-            rows[0] += v * np.abs(v) / (2.0 * self.accel_limit_rad_s2)
+            rows[0] += v * (np.max(np.abs(v)) / (2.0 * self.accel_limit_rad_s2))
         rows[1:] = dt * np.asarray(queued)
         return rows

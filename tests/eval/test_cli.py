@@ -69,7 +69,7 @@ BAD_NUMBERS = [
     ("scan", "--tip-speed-mm-s", "60", "[0.1, 50] mm/s"), ("scan", "--revolutions", "0.1", "[0.5, 18]"),
     ("paper", "--seeds", "0", "[1, 100]"), ("paper", "--noise-um", "-1", "[0, 500] um"),
     ("paper", "--stride", "0", "[1, 50]"), ("paper", "--grid", "5", "[10, 2000]"), ("paper", "--jobs", "0", "[1, 1024]"),
-    ("boundary", "--jobs", "-2", "[1, 1024]"),
+    ("boundary", "--jobs", "-2", "[1, 1024]"), ("faults", "--jobs", "0", "[1, 1024]"),
     ("replay", "--tol", "-1", ">= 0 rad/s"),
     ("record", "--time-offset-ms", "150", "[-100, 100] ms"), ("record", "--revolutions", "0.1", "[0.5, 18]"),
     ("record", "--speed-mm-s", "0", "[1, 17] mm/s"), ("record", "--sync-s", "0.5", "[1, 10] s"),
