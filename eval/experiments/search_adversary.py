@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from eval.experiments.boundary import SCENARIO_S, START_DEPTH_MM, start_at
+from eval.experiments.boundary import SCENARIO_S, START_DEPTH_MM, start_at, stops_by_reason
 
 SEGMENTS = 5
 PER_SEGMENT = 6  # direction (3), speed, roll, duration
@@ -96,8 +96,6 @@ def cross_entropy_search(loop, model, coverage, budget: int, seed: int, duration
                          population: int = 20, elite: float = 0.2, smoothing: float = 0.7, min_sd: float = 0.05,
                          progress=None) -> SearchResult:
     """The cross-entropy search (module docstring) with `budget` simulations, seeded."""
-    from eval.experiments.boundary import reason_class
-
     rng = np.random.default_rng(seed)
     mean, sd = np.zeros(DIMENSIONS), np.ones(DIMENSIONS)
     mean[2] = -1.0  # start posterior of the trocar plane
@@ -115,10 +113,8 @@ def cross_entropy_search(loop, model, coverage, budget: int, seed: int, duration
                 scores[i] = float(np.min(run.true_clearance_mm))
                 best.clearances.append(scores[i])
                 best.failsafe_stops += run.failsafe_stops
-                bad = ~run.ok
-                for k in np.flatnonzero(bad & ~np.concatenate([[False], bad[:-1]])):
-                    key = reason_class(run.reasons[k])
-                    best.stops_by_reason[key] = best.stops_by_reason.get(key, 0) + 1
+                for key, count in stops_by_reason([run]).items():
+                    best.stops_by_reason[key] = best.stops_by_reason.get(key, 0) + count
                 if scores[i] < best.worst_clearance_mm:
                     best.worst_clearance_mm, best.worst_theta = scores[i], theta.copy()
                     best.worst_sensor_seed = sensor_seed
