@@ -117,3 +117,16 @@ def test_field_values_answer_their_points_only():
     v = FieldValues(np.eye(3), [1.0, 2.0, 3.0], np.eye(3))
     h, g = v.signed_distance_and_gradient(np.array([[0.0, 1.0, 0.0], [5.0, 5.0, 5.0]]))
     assert h[0] == 2.0 and np.isnan(h[1]) and (g[0] == [0.0, 1.0, 0.0]).all()
+
+
+def test_field_report_measures_against_the_truth():
+    from models.eyes import make_eye
+    from models.metrics import field_report
+
+    eye = make_eye("emmetropic")
+    grown = LocalField.exact(Ellipsoid(np.zeros(3), np.array([11.555, 11.465, 10.248])), np.zeros(3))
+    r = field_report(grown, eye, lambda Q: np.zeros(len(Q)), n_grid=40)
+    # every semi-axis 0.1 mm longer: the surfaces lie 0.1 mm apart along the axes, a little
+    # less between them (the normal offset of confocal-like ellipsoids)
+    assert 0.085 * 1e3 <= r["mae_um"] <= 0.1 * 1e3 + 1.0 and r["scanned_p95_um"] <= 0.1 * 1e3 + 1.0
+    assert r["sigma3_coverage"] == 0.0 and r["scanned_fraction"] == 1.0  # sigma 0: no error is covered
