@@ -36,7 +36,7 @@ def test_plan_writes_the_contract(planned):
     assert len(r["switches"]) == r["port_switches"] + r["reentries"]
     assert all(s["move_min_outside_mm"] > 0 and s["duration_s"] > 0 for s in r["switches"])
     assert r["min_model_clearance_mm"] >= 0.95  # 1 mm standoff, spline within 50 um of the targets
-    assert r["min_joint_margin_deg"] >= 4.5 and r["plan_time_s"] < 10.0
+    assert r["min_joint_margin_deg"] >= 4.5  # 5 deg at the waypoints; the spline between them within 0.5
     assert r["min_true_clearance_mm"] is None and r["filter_intervention_fraction"] is None  # not executed
     assert (out / "coverage.png").stat().st_size > 10_000
 
