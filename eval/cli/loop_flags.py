@@ -71,10 +71,9 @@ def actuator(args):
 def loop_config(args, **kwargs):
     """The LoopConfig of the flags (and `kwargs`, LoopConfig's other fields)."""
     from eval.loop_config import LoopConfig
-    from safety import FilterConfig
 
     f = flags(args)
-    filt = kwargs.pop("filter", FilterConfig())
+    filt = kwargs.pop("filter", LoopConfig().filter)  # the loop's filter defaults (k = LOCAL_SIGMA_FACTOR)
     if f["calibration_bound"] is not None:
         filt = dataclasses.replace(filt, calibration_bound_mm=f["calibration_bound"][0],
                                    calibration_bound_deg=f["calibration_bound"][1])

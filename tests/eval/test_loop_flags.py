@@ -1,0 +1,24 @@
+"""The closed-loop commands' flags give the loop the filter it documents: with no flags, the
+boundary `boundary` and `faults` evaluate is LoopConfig's own (d_safe + k sigma with the
+loop's k), and a flag changes only what it names."""
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from eval.cli import build_parser
+from eval.cli.loop_flags import loop_config
+from eval.loop_config import LoopConfig
+
+
+@pytest.mark.parametrize("command", ["boundary", "faults"])
+def test_no_flags_give_the_loops_own_filter(command):
+    args = build_parser().parse_args([command, "--shape", "pointed"])
+    assert loop_config(args).filter == LoopConfig().filter
+
+
+def test_a_calibration_bound_changes_only_the_bound():
+    args = build_parser().parse_args(["boundary", "--calibration-bound", "0.05,0.2"])
+    expected = dataclasses.replace(LoopConfig().filter, calibration_bound_mm=0.05, calibration_bound_deg=0.2)
+    assert loop_config(args).filter == expected
