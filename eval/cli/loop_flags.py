@@ -31,7 +31,7 @@ CALIBRATION_BOUND = numbers(("MM", "DEG"), 0.0, 10.0, "(mm, deg)")
 POSE_ERROR = numbers(("DX", "DY", "DZ", "RX", "RY", "RZ"), -10.0, 10.0, "(mm, deg)")
 # the flags' defaults: the ideal loop (a Namespace without the flags gets these)
 DEFAULTS = {"actuator_delay_ms": 0.0, "actuator_lag_ms": 0.0, "actuator_accel_limit": None, "oct_time_offset_ms": 0.0,
-            "encoder_noise": 0.0, "calibration_bound": None, "sensor_pose_error": None}
+            "encoder_noise": 0.0, "calibration_bound": None, "sensor_pose_error": None, "local_model": False}
 
 
 def flags(args) -> dict:
@@ -54,6 +54,9 @@ def add_loop_flags(p) -> None:
     p.add_argument("--calibration-bound", type=CALIBRATION_BOUND, default=None, metavar="MM,DEG",
                    help=f"declared bound of the sensor calibration error the filter keeps in its margin, "
                         f"{CALIBRATION_BOUND.range}; default 0.03,0.13 (3 standard errors of the plate calibration)")
+    p.add_argument("--local-model", action="store_true",
+                   help="bound the motion by the local-global model (d_safe + 3 sigma) instead of the quadric model "
+                        "with its phase margins; README: its measured safety")
     p.add_argument("--sensor-pose-error", type=POSE_ERROR, default=None, metavar="DX,DY,DZ,RX,RY,RZ",
                    help=f"true sensor pose error in S (z along the beam), {POSE_ERROR.range}; "
                         "default 0.02,0,0,0,0.1,0 (the plate calibration's accuracy)")
@@ -72,8 +75,11 @@ def loop_config(args, **kwargs):
     """The LoopConfig of the flags (and `kwargs`, LoopConfig's other fields)."""
     from eval.loop_config import LoopConfig
 
+    from eval.loop_config import default_filter
+
     f = flags(args)
-    filt = kwargs.pop("filter", LoopConfig().filter)  # the loop's filter defaults (k = LOCAL_SIGMA_FACTOR)
+    kwargs.setdefault("local_model", f["local_model"])
+    filt = kwargs.pop("filter", None) or default_filter(kwargs["local_model"])  # the loop's own defaults
     if f["calibration_bound"] is not None:
         filt = dataclasses.replace(filt, calibration_bound_mm=f["calibration_bound"][0],
                                    calibration_bound_deg=f["calibration_bound"][1])

@@ -75,7 +75,11 @@ def error_sigma_figure(loop, build, n_grid: int = 120):
     DE = loop.scenario.eye_pose.to_E(c[None] + D) - loop.scenario.eye_pose.to_E(c[None])[0]
     fig, axes = plt.subplots(1, 2, figsize=(12, 5), constrained_layout=True)
     for ax, val, title in ((axes[0], err, "exact error (um)"), (axes[1], sigma, "standard deviation sigma (um)")):
-        sc = ax.scatter(az, el, c=np.clip(val, 1.0, None), s=4, cmap="viridis", norm=matplotlib.colors.LogNorm())
+        v = np.where(np.isfinite(val), np.clip(val, 1.0, None), np.nan)  # non-finite (no bound there): grey
+        lo = float(np.nanmin(v)) if np.isfinite(v).any() else 1.0
+        hi = max(float(np.nanmax(v)) if np.isfinite(v).any() else 10.0, 10.0 * lo)
+        cmap = matplotlib.colormaps["viridis"].with_extremes(bad="lightgrey")
+        sc = ax.scatter(az, el, c=v, s=4, cmap=cmap, norm=matplotlib.colors.LogNorm(lo, hi), plotnonfinite=True)
         ax.scatter(np.degrees(np.arctan2(DE[:, 0], -DE[:, 2])), np.degrees(np.arctan2(DE[:, 1], np.hypot(DE[:, 0], DE[:, 2]))),
                    s=1, c="r", alpha=0.3, label="measured directions")
         fig.colorbar(sc, ax=ax)

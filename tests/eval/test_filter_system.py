@@ -112,7 +112,7 @@ def test_the_rcm_follows_the_active_trocar_without_a_new_filter(setup):
 def local_setup():
     scenario = SurgeryScenario(eye_name="detached")
     model, coverage = model_from_spiral_beams(scenario, local=True)
-    loop = ClosedLoop(scenario)
+    loop = ClosedLoop(scenario, LoopConfig(local_model=True))
     snap = loop.model.snapshot_for(model, coverage, 0.0)
     assert snap.field is not None
     starts = adversarial_starts(loop, model.shape, 8, np.random.default_rng(3))

@@ -18,6 +18,12 @@ def test_no_flags_give_the_loops_own_filter(command):
     assert loop_config(args).filter == LoopConfig().filter
 
 
+def test_the_local_model_flag_gives_its_own_filter():
+    local = loop_config(build_parser().parse_args(["boundary", "--local-model"]))
+    assert local.local_model and local.filter == LoopConfig(local_model=True).filter
+    assert local.filter.sigma_factor == 3.0 and LoopConfig().filter.sigma_factor == 1.0
+
+
 def test_a_calibration_bound_changes_only_the_bound():
     args = build_parser().parse_args(["boundary", "--calibration-bound", "0.05,0.2"])
     expected = dataclasses.replace(LoopConfig().filter, calibration_bound_mm=0.05, calibration_bound_deg=0.2)
