@@ -22,7 +22,7 @@ from numba import njit
 
 from models.adaptive.coverage_kernels import nearest_and_worst
 from models.shapes.ellipsoid_distance import ellipsoid_distance_and_gradient
-from models.shapes.field import FieldKernel
+from models.shapes.field import FieldKernel, KernelQueries
 from models.shapes.sphere import sphere_distance_and_gradient
 
 NONE, SPHERE, ELLIPSOID = 0, 1, 2
@@ -68,7 +68,7 @@ def model_field_kernel(fp, P):
     return h, g, u
 
 
-class ModelField:
+class ModelField(KernelQueries):
     """A model shape with its margin and coverage, as a distance field (mm, rad).
 
     `shape`: a models.Sphere or models.Ellipsoid (None: no boundary); `margin_mm` >= 0;
@@ -121,14 +121,3 @@ class ModelField:
         """((M,) mm, (M, 3), (M,) mm) at P (M, 3) mm."""
         return model_field_kernel(self.params, np.ascontiguousarray(np.asarray(P, dtype=float).reshape(-1, 3)))
 
-    def signed_distance(self, P) -> np.ndarray:
-        return self.signed_distance_gradient_uncertainty(P)[0]
-
-    def gradient(self, P) -> np.ndarray:
-        return self.signed_distance_gradient_uncertainty(P)[1]
-
-    def signed_distance_and_gradient(self, P) -> tuple[np.ndarray, np.ndarray]:
-        return self.signed_distance_gradient_uncertainty(P)[:2]
-
-    def uncertainty(self, P) -> np.ndarray:
-        return self.signed_distance_gradient_uncertainty(P)[2]

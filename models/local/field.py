@@ -15,12 +15,12 @@ import numpy as np
 
 from models.local.field_kernels import BOUND, HEAD, local_field, radii_at, unpack
 from models.local.kernels import global_params
-from models.shapes.field import FieldKernel
+from models.shapes.field import FieldKernel, KernelQueries
 from models.shapes.sampling import unit_sphere_grid
 from models.shapes.validation import as_points
 
 
-class LocalField:
+class LocalField(KernelQueries):
     """A snapshot of a LocalRetinaModel (`model.params(local)`) as a distance field, and as
     a surface (`ray_cast`-free: `radius_and_sd`, `sample_surface`). `kind` "local" when the
     local correction is used, else the global model's kind ("sphere" | "ellipsoid")."""
@@ -62,21 +62,6 @@ class LocalField:
     def signed_distance_gradient_uncertainty(self, P) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         Q = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True).reshape(-1, 3))
         return local_field(self.params, Q)
-
-    def signed_distance(self, P) -> np.ndarray:
-        """(M,) mm, > 0 inside."""
-        return self.signed_distance_gradient_uncertainty(P)[0]
-
-    def gradient(self, P) -> np.ndarray:
-        """(M, 3) unit gradient (inward)."""
-        return self.signed_distance_gradient_uncertainty(P)[1]
-
-    def signed_distance_and_gradient(self, P) -> tuple[np.ndarray, np.ndarray]:
-        return self.signed_distance_gradient_uncertainty(P)[:2]
-
-    def uncertainty(self, P) -> np.ndarray:
-        """(M,) standard deviation (mm) of the surface at each point's direction; +inf for a non-finite point."""
-        return self.signed_distance_gradient_uncertainty(P)[2]
 
     def radius_and_sd(self, U) -> tuple[np.ndarray, np.ndarray]:
         """((M,) radius mm, (M,) sd mm) along unit directions U (M, 3) from the centre."""

@@ -47,6 +47,27 @@ class DistanceField(Protocol):
         """The compiled field (FieldKernel)."""
 
 
+class KernelQueries:
+    """DistanceField's queries derived from one method, `signed_distance_gradient_uncertainty(P)`
+    -> ((M,) mm, (M, 3), (M,) mm), for the fields that evaluate all three in one compiled call."""
+
+    def signed_distance(self, P) -> np.ndarray:
+        """(M,) signed distance mm, > 0 inside."""
+        return self.signed_distance_gradient_uncertainty(P)[0]
+
+    def gradient(self, P) -> np.ndarray:
+        """(M, 3) unit gradient of the signed distance (inward)."""
+        return self.signed_distance_gradient_uncertainty(P)[1]
+
+    def signed_distance_and_gradient(self, P) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) signed distance mm, (M, 3) unit gradient)."""
+        return self.signed_distance_gradient_uncertainty(P)[:2]
+
+    def uncertainty(self, P) -> np.ndarray:
+        """(M,) standard deviation (mm) of the surface at each point; +inf for a non-finite point."""
+        return self.signed_distance_gradient_uncertainty(P)[2]
+
+
 @njit(cache=True)
 def finite_row(P, m) -> bool:
     """Whether the point in row m of P (M, 3) is finite (the fields answer NaN otherwise)."""
