@@ -191,7 +191,7 @@ class AdaptiveModelSystem(LeafSystem):
                 health.why = WHY["dropout"]
         else:
             self._seen = packet
-            health.update(packet.t_s, packet.valid, packet.distance_mm, packet.beam_origin_W)
+            health.update(packet.t_s, packet.valid, packet.distance_mm)
         w = self._written
         if w.healthy_t_s != health.healthy_t_s or w.stream != health.why:
             self._written = w._replace(healthy_t_s=health.healthy_t_s, stream=health.why)

@@ -7,14 +7,25 @@ buffer), or time stamps that no longer advance. None of these is a silent sensor
 age check on the packets' arrival alone does not see them.
 
 Rule. A sample is *healthy* when it is valid, its time stamp is newer than every sample
-before it, and it is not frozen: its distance differs from the previous valid sample's,
-or the beam's origin moved less than FROZEN_MOTION_MM since that value first came (the distance noise,
-about 20 um SD, never repeats a value bit for bit; a still instrument may). The filter's
-sensor age is the age of the newest healthy sample, and the filter stops (zero velocity,
-"stale sensor (<why>)") once it exceeds its limit (safety.FilterConfig.max_sensor_age_s,
-45 ms): every stream fault is acted on within that limit plus one control period (and,
-for a frozen value, the time the beam takes to move FROZEN_MOTION_MM), and the reason
-names what the newest samples were. Units: mm, s.
+before it, and its distance differs from the previous valid sample's. A repeated distance
+carries no new measurement: the 20 um distance noise (and the A-scan extractor's sub-sample
+refinement) never repeats a value bit for bit, so a run of one value is a frozen extractor
+or a repeated buffer, whether the instrument moves or not. The filter's sensor age is the
+age of the newest healthy sample, and the filter stops (zero velocity, "stale sensor
+(<why>)") once it exceeds its limit A (safety.FilterConfig.max_sensor_age_s, 45 ms); the
+reason names what the newest samples were. Units: mm, s.
+
+Detection within 50 ms. A fault with onset t_on degenerates every packet holding a sample
+at or after t_on (StreamFault.apply): none of its samples is healthy (invalid, not newer,
+a repeat of the last valid value, or no packet), so the newest healthy sample stays
+before t_on. The filter checks the age at every control period dt_c (1 ms) and reads the
+newest healthy time the model system relayed, which is never later than the newest
+healthy sample (a packet arrives after its samples), so it stops at the first control
+step after t_on + A at the latest: within A + dt_c = 46 ms of the onset, whatever the
+instrument does. It does not stop earlier than A - T_p after the onset (T_p = 10 ms, the
+packet period: the last healthy packet's newest sample is at most one packet period
+before t_on). A healthy stream's newest sample is at most T_p plus the model's read
+offset old when the filter reads it, far inside A.
 """
 from __future__ import annotations
 
@@ -22,7 +33,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-FROZEN_MOTION_MM = 0.005  # beam origin's motion above which an unchanged distance is frozen
 FAULT_KINDS = ("none", "dropout", "invalid", "frozen", "stuck_clock")
 WHY = {"invalid": "all samples invalid", "frozen": "frozen distances", "stuck_clock": "time stamps not advancing",
        "dropout": "no packets"}
@@ -69,7 +79,8 @@ class StreamFault:
 class StreamHealth:
     """The stream's health over a run (module docstring): `healthy_t_s`, the newest healthy
     sample's time (-inf before one); `why`, what the samples since were (a WHY value, or
-    "" while healthy); counts of the samples judged invalid, frozen and out of time order."""
+    "" while healthy); counts of the samples judged invalid, frozen (a repeated distance)
+    and out of time order."""
 
     def __init__(self):
         self.healthy_t_s = -np.inf
@@ -77,11 +88,10 @@ class StreamHealth:
         self.n_invalid = self.n_frozen = self.n_stale_stamps = 0
         self._last_t = -np.inf
         self._last_d = np.nan
-        self._last_origin = np.full(3, np.nan)
 
-    def update(self, t_s, valid, distance_mm, origin_W) -> float:
-        """Judge a packet's samples (t_s (K,) s, valid (K,), distance (K,) mm, beam origins
-        (K, 3) mm, in time order); returns healthy_t_s."""
+    def update(self, t_s, valid, distance_mm) -> float:
+        """Judge a packet's samples (t_s (K,) s, valid (K,), distance (K,) mm, in time
+        order); returns healthy_t_s."""
         t_s = np.asarray(t_s)
         new = t_s > self._last_t
         if not new.all():
@@ -95,13 +105,11 @@ class StreamHealth:
                 self.n_invalid += 1
                 self.why = WHY["invalid"]
                 continue
-            d, o = distance_mm[k], origin_W[k]
-            if d == self._last_d:  # the same value: frozen once the beam moved since it first came
-                if np.sqrt(np.sum((o - self._last_origin) ** 2)) > FROZEN_MOTION_MM:
-                    self.n_frozen += 1
-                    self.why = WHY["frozen"]
-                    continue
-            else:
-                self._last_d, self._last_origin = d, o
+            d = distance_mm[k]
+            if d == self._last_d:  # a repeat: no new measurement, the healthy time stays at the value's first
+                self.n_frozen += 1
+                self.why = WHY["frozen"]
+                continue
+            self._last_d = d
             self.healthy_t_s, self.why = t_s[k], ""
         return self.healthy_t_s

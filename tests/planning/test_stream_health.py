@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from planning.iioct.packet import SensorPacket
-from planning.iioct.stream import FROZEN_MOTION_MM, WHY, StreamFault, StreamHealth
+from planning.iioct.stream import WHY, StreamFault, StreamHealth
 
 
 def packet(t0: float, k: int = 20, rate: float = 2000.0, speed_mm_s: float = 5.0, seed: int = 0) -> SensorPacket:
@@ -29,7 +29,7 @@ def stream(fault: StreamFault, packets: int = 10):
         p = fault.apply(packet(0.01 * i, seed=i), previous)
         if p is not None:
             previous = p
-            health.update(p.t_s, p.valid, p.distance_mm, p.beam_origin_W)
+            health.update(p.t_s, p.valid, p.distance_mm)
         else:
             health.why = WHY["dropout"]
         out.append((health.healthy_t_s, health.why))
@@ -47,22 +47,21 @@ def test_every_degenerate_stream_stops_the_healthy_time_at_its_onset_and_says_wh
     out, _ = stream(StreamFault(kind, onset_s=0.05))
     last_healthy = out[4][0]  # the packet before the onset (0.04 s .. 0.0495 s)
     assert last_healthy == pytest.approx(0.04 + 19 / 2000.0)
-    # nothing after the onset counts; a frozen value only once the beam moved FROZEN_MOTION_MM
-    # (at 5 mm/s) since it first came, plus the sample that sees it
-    grace = FROZEN_MOTION_MM / 5.0 + 1 / 2000.0 if kind == "frozen" else 0.0
-    assert all(last_healthy <= t <= 0.05 + grace for t, _ in out[5:]) and out[-1][0] == out[5][0]
+    # nothing from the onset's packet on counts, a frozen value's repeats included
+    assert all(t == last_healthy for t, _ in out[5:])
     assert out[-1][1] == WHY[kind]
 
 
-def test_an_unchanged_distance_of_a_still_instrument_is_not_frozen():
+@pytest.mark.parametrize("speed_mm_s", [0.0, 0.1, 5.0])
+def test_a_repeated_distance_is_frozen_however_the_instrument_moves(speed_mm_s):
     health = StreamHealth()
-    p = packet(0.0, speed_mm_s=0.0)._replace(distance_mm=np.full(20, 10.0))  # no motion at all
-    health.update(p.t_s, p.valid, p.distance_mm, p.beam_origin_W)
-    assert health.n_frozen == 0 and health.why == ""
-    # the same distances once the origin moves more than FROZEN_MOTION_MM between samples: frozen
-    q = packet(0.01, speed_mm_s=2 * FROZEN_MOTION_MM * 2000.0)._replace(distance_mm=np.full(20, 10.0))
-    health.update(q.t_s, q.valid, q.distance_mm, q.beam_origin_W)
-    assert health.n_frozen >= 19 and health.why == WHY["frozen"]
+    p = packet(0.0, speed_mm_s=speed_mm_s)._replace(distance_mm=np.full(20, 10.0))
+    health.update(p.t_s, p.valid, p.distance_mm)
+    # the first sample is a measurement; its 19 repeats carry none
+    assert health.healthy_t_s == p.t_s[0] and health.n_frozen == 19 and health.why == WHY["frozen"]
+    q = packet(0.01, speed_mm_s=speed_mm_s, seed=1)  # fresh, noisy distances: healthy again
+    health.update(q.t_s, q.valid, q.distance_mm)
+    assert health.healthy_t_s == q.t_s[-1] and health.why == ""
 
 
 def test_a_bad_fault_is_refused():
