@@ -29,6 +29,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import DiscreteTimeIntegrator
 
+from eval.clearance import true_clearances
 from eval.loop_config import LoopConfig
 from eval.systems.actuator import ActuatorSystem
 from eval.systems.filter import FilterSystem, Step
@@ -103,13 +104,6 @@ class LoopRun:
         speed = np.linalg.norm(self.v_cmd[free], axis=1)
         err = np.linalg.norm(self.v_tip[free] - self.v_cmd[free], axis=1)
         return err[speed > 0] / speed[speed > 0]
-
-
-def true_clearances(points_W: list, true_eye) -> np.ndarray:
-    """(M,) the smallest true clearance (mm, > 0 inside) of each step's points (k_i, 3)."""
-    counts = np.array([len(p) for p in points_W])
-    d = np.asarray(true_eye.signed_distance(np.vstack(points_W)), dtype=float)
-    return np.minimum.reduceat(d, np.concatenate([[0], np.cumsum(counts)[:-1]]))
 
 
 def _delayed(source, t0_s: float):
@@ -214,6 +208,7 @@ class ClosedLoop:
                 wall += time.perf_counter() - t0
         finally:
             gc.unfreeze()
+        self.model.flush_log()
         self.filter.time_drake_diffik()
         return self._collect(wall, logger is not None)
 

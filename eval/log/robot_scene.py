@@ -49,6 +49,7 @@ class RobotScene:
             parts = [p for p in parts if p is not None]
             if parts:
                 self.links.append((body.name(), body, parts))
+        self._primitives = None  # per link (cubes, cylinders): the same in every scene (entities)
 
     @staticmethod
     def _part(shape, X_LG):
@@ -76,16 +77,22 @@ class RobotScene:
 
     def entities(self, ns: int) -> list:
         """One SceneEntity per link ('robot/<link>'), in the link's frame, frame-locked."""
-        stamp, out = timestamp(ns), []
-        for name, _, parts in self.links:
-            color = _color(INSTRUMENT_COLOR if name == "instrument" else LINK_COLOR)
-            cubes = [CubePrimitive(pose=_pose(p, R), size=_vec(size), color=color) for kind, size, R, p in parts
-                     if kind == "cube"]
-            cylinders = [CylinderPrimitive(pose=_pose(p, R), size=_vec(size), bottom_scale=1.0, top_scale=1.0, color=color)
-                         for kind, size, R, p in parts if kind == "cylinder"]
-            out.append(SceneEntity(timestamp=stamp, frame_id=name, id=f"robot/{name}", lifetime=Duration(sec=0, nsec=0),
-                                   frame_locked=True, cubes=cubes, cylinders=cylinders))
-        return out
+        if self._primitives is None:
+            self._primitives = [self._link_primitives(name, parts) for name, _, parts in self.links]
+        stamp = timestamp(ns)
+        return [SceneEntity(timestamp=stamp, frame_id=name, id=f"robot/{name}", lifetime=Duration(sec=0, nsec=0),
+                            frame_locked=True, cubes=cubes, cylinders=cylinders)
+                for (name, _, _), (cubes, cylinders) in zip(self.links, self._primitives)]
+
+    @staticmethod
+    def _link_primitives(name: str, parts) -> tuple[list, list]:
+        """(cubes, cylinders) of a link's parts, in its frame."""
+        color = _color(INSTRUMENT_COLOR if name == "instrument" else LINK_COLOR)
+        cubes = [CubePrimitive(pose=_pose(p, R), size=_vec(size), color=color) for kind, size, R, p in parts
+                 if kind == "cube"]
+        cylinders = [CylinderPrimitive(pose=_pose(p, R), size=_vec(size), bottom_scale=1.0, top_scale=1.0, color=color)
+                     for kind, size, R, p in parts if kind == "cylinder"]
+        return cubes, cylinders
 
 
 def point_cloud(ns: int, P_W) -> PointCloud:

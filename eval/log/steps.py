@@ -57,12 +57,12 @@ def encode_step(step: int, t_s: float, q, command, model_index: int, model_time_
                 margin_mm: float, trusted, misfit_mm, output) -> bytes:
     """One step's record: `command` (4,) [v_W mm/s, roll rad/s], the boundary points'
     `trusted` flags and `misfit_mm`, the filter's `output` (safety.FilterOutput)."""
-    lists = lambda a, kind=float: np.asarray(a, dtype=kind).tolist()  # noqa: E731  (protobuf takes Python scalars)
-    return FilterStep(
-        t=float(t_s), step=int(step), q=lists(q), v_cmd_W=lists(command[:3]), roll_rate_cmd=float(command[3]),
+    floats = lambda a: a.tolist() if type(a) is np.ndarray and a.dtype == np.float64 else [float(x) for x in a]  # noqa: E731
+    return FilterStep(  # protobuf takes Python scalars: ndarray.tolist() is the cheapest way there
+        t=float(t_s), step=int(step), q=floats(q), v_cmd_W=floats(command[:3]), roll_rate_cmd=float(command[3]),
         model_index=int(model_index), model_time_s=float(model_time_s), sensor_time_s=float(sensor_time_s),
-        margin_mm=float(margin_mm), trusted=lists(trusted, bool), misfit_mm=lists(misfit_mm), qdot=lists(output.qdot),
-        ok=bool(output.ok), reason=str(output.reason), active=[str(a) for a in output.active],
+        margin_mm=float(margin_mm), trusted=[bool(x) for x in trusted], misfit_mm=floats(misfit_mm),
+        qdot=floats(output.qdot), ok=bool(output.ok), reason=str(output.reason), active=[str(a) for a in output.active],
         min_clearance_mm=float(output.min_clearance_mm), cutter_allowed=bool(output.cutter_allowed),
         intervened=bool(output.intervened), solve_us=float(output.solve_us),
     ).SerializeToString()

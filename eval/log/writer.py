@@ -55,6 +55,11 @@ def time_ns(t_s) -> int:
     return int(round(t * 1e9))
 
 
+def _json_number(x) -> str:
+    """x as a JSON number (float repr, as json.dumps writes it), "null" for NaN/inf/None."""
+    return "null" if x is None or not math.isfinite(float(x)) else repr(float(x))
+
+
 def _opt(x) -> float | None:
     """A finite float, or None (JSON null) for NaN/inf/None: what Foxglove plots skip."""
     return None if x is None or not math.isfinite(float(x)) else float(x)
@@ -166,9 +171,16 @@ class RunLogger:
                                                  "valid": bool(valid), "reason": str(reason)})
 
     def log_distance(self, t_s, distance_mm, valid: bool, confidence: float) -> None:
-        """The distance (mm) along the beam extracted from an A-scan, and its confidence."""
-        self._log("/oct/distance", time_ns(t_s), {"t": float(t_s), "distance_mm": _opt(distance_mm),
-                                                    "valid": bool(valid), "confidence": _opt(confidence)})
+        """The distance (mm) along the beam extracted from an A-scan, and its confidence
+        (2 kHz: formatted directly, the same JSON as the encoder's, in a third of its time)."""
+        ns = time_ns(t_s)
+        if self._closed:
+            raise ValueError(f"the run log {self.path} is closed")
+        self._last_ns = ns
+        self._channels["/oct/distance"].log(
+            f'{{"t":{float(t_s)!r},"distance_mm":{_json_number(distance_mm)},"valid":{"true" if valid else "false"},'
+            f'"confidence":{_json_number(confidence)}}}'.encode(), log_time=self.start_ns + ns)
+        self._maybe_flush(ns)
 
     def log_model(self, t_s, kind: str, sphere=None, ellipsoid=None, n_points: int = 0, criteria=None) -> None:
         """The eye model (W, mm): `kind` "prior" | "sphere" | "ellipsoid", its current

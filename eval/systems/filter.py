@@ -30,7 +30,7 @@ from eval.loop_config import LoopConfig
 from eval.systems.inputs import StepInputs
 from eval.systems.model import ModelSnapshot
 from models.adaptive.coverage import band_chord
-from models.adaptive.model_field import ModelField, model_field_kernel
+from models.adaptive.model_field import ModelField, coverage_trust, model_field_kernel
 from models.local.field import FieldValues, LocalField
 from models.local.field_kernels import local_field
 from planning.chain import frame_position
@@ -109,7 +109,6 @@ class FilterSystem(LeafSystem):
         lens = self.lens.field_kernel()  # the keep-out ellipsoid's own distance field
         self.step_inputs = StepInputs(robot, config.points, prior)
         self.robot_scene = RobotScene(robot)
-        self._trust_angle_rad, self._misfit_angle_rad = np.radians(config.trust_angle_deg), np.radians(config.misfit_angle_deg)
         self.local = config.local_model
         eye_kernel = local_field if self.local else model_field_kernel
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
@@ -262,7 +261,7 @@ class FilterSystem(LeafSystem):
         if not self.local:
             kind = None if snap.shape is None else snap.kind
             return (snap.shape, kind, snap.margin_mm(self.config.margins),
-                    *self._trust(kind, snap, ip.P_W[:StepInputs.boundary_count(kind, ip)]))
+                    *self._trust(snap, ip.P_W[:StepInputs.boundary_count(kind, ip)]))
         if snap.field is None:
             return None, None, 0.0, np.ones(2, dtype=bool), np.zeros(2)
         self.fields(snap)
@@ -272,15 +271,12 @@ class FilterSystem(LeafSystem):
         h[2:], g[2:], sigma[2:] = snap.field.signed_distance_gradient_uncertainty(P[2:])
         return FieldValues(P, h, g), snap.kind, 0.0, np.ones(len(P), dtype=bool), sigma
 
-    def _trust(self, kind: str | None, snap: ModelSnapshot, P_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(trusted flags, measured misfit mm) of the boundary points P_W (k, 3): the tip and
-        the port are trusted within trust_angle_deg of the measured directions; misfit
-        within misfit_angle_deg (none against the prior)."""
-        k = len(P_W)
-        trusted, misfit = np.ones(k, dtype=bool), np.zeros(k)
-        if kind is not None and snap.coverage is not None:
-            angle, misfit = snap.coverage.angle_and_misfit(P_W, self._misfit_angle_rad, 2)
-            trusted[:2] = angle <= self._trust_angle_rad
+    def _trust(self, snap: ModelSnapshot, P_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(trusted flags, measured misfit mm) of the boundary points P_W (k, 3) as the
+        step's field decided them (models.adaptive.model_field.coverage_trust on the tip's
+        and the port's field): the shaft's points are not subject to the trust rule."""
+        trusted, misfit = coverage_trust(self.fields(snap)[0], np.ascontiguousarray(P_W, dtype=float))
+        trusted[2:] = True
         return trusted, misfit
 
     def _update(self, context, discrete_state) -> None:
@@ -347,7 +343,7 @@ class FilterSystem(LeafSystem):
                 shape, kind, margin, trusted, misfit = self._step_model(snap, self.step_inputs.points_at(q))
             else:
                 shape, margin = snap.shape, snap.margin_mm(self.config.margins)
-                trusted, misfit = self._trust(kind, snap, P[:2] if kind is None else P)
+                trusted, misfit = self._trust(snap, P[:2] if kind is None else P)
             log.log_step(t, q, command, shape, kind, t if kind is None else snap.t_s, sensor_t, margin, trusted,
                          misfit, out)
         if k % 10 == 1:

@@ -23,6 +23,7 @@ from planning.iioct.stream import WHY, StreamHealth
 from safety.margins import UncertaintyMargins
 
 ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of the 2 kHz stream, ~0.4 MB/s
+MODEL_LOG_PERIOD_S = 0.05  # /model and /oct/points at 20 Hz of simulation time (and at every change of kind)
 
 
 class ModelSnapshot(NamedTuple):
@@ -156,6 +157,33 @@ class AdaptiveModelSystem(LeafSystem):
         self.health = StreamHealth()
         self.health.healthy_t_s = 0.0  # the run's start: the sensor has the filter's age limit to deliver
         self._seen = None  # the last packet read
+        self._log_pending = ([], None)  # (accepted point arrays, newest model entry) not yet logged
+        self._log_last = (-np.inf, None)  # (time s, model kind) of the last /model and /oct/points message
+
+    def _log_model(self, entry) -> None:
+        """Gather the points the model took in and its newest update; log them (/oct/points,
+        /model) once MODEL_LOG_PERIOD_S of simulation time has passed since the last time,
+        or at once when the model's kind changed."""
+        points, pending = self._log_pending
+        if len(self.model.last_accepted):
+            points.append(self.model.last_accepted)
+        last_t, last_kind = self._log_last
+        changed = entry is not None and entry.kind != last_kind
+        self._log_pending = (points, pending if entry is None else entry)
+        if changed or self._last_t - last_t >= MODEL_LOG_PERIOD_S:
+            self.flush_log()
+
+    def flush_log(self) -> None:
+        """Log what _log_model gathered (at the end of a run: nothing it took in goes unlogged)."""
+        points, entry = self._log_pending
+        if self.logger is None or self.logger.closed:
+            return
+        if points:
+            self.logger.log_points(self._last_t, np.vstack(points))
+        if entry is not None:
+            self.logger.log_model_update(self._last_t, entry)
+        self._log_pending = ([], None)
+        self._log_last = (self._last_t, self._log_last[1] if entry is None else entry.kind)
 
     @property
     def errors_mm(self) -> list[float]:
@@ -228,10 +256,7 @@ class AdaptiveModelSystem(LeafSystem):
             self.coverage.add(self.model.last_accepted)
             self.update_us.append(1e6 * (time.perf_counter() - t0) / n_valid)
             if self.logger is not None:
-                if len(self.model.last_accepted):
-                    self.logger.log_points(self._last_t, self.model.last_accepted)
-                if entry is not None:
-                    self.logger.log_model_update(self._last_t, entry)
+                self._log_model(entry)
         # the state is what this system last wrote (or the initial snapshot): kept at hand
         health = self.health
         if entry is not None or self._written.shape is None:

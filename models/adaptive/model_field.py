@@ -33,6 +33,29 @@ _HEAD = 1 + 3 + 9 + 3 + 1 + 1 + 3 + 1 + 1 + 3 + 3 + 1  # 30
 
 
 @njit(cache=True)
+def coverage_trust(fp, P):
+    """((M,) trusted flags, (M,) measured misfit mm) of the points P (M, 3) mm under the
+    field packed in fp (ModelField): trusted within the trust angle of a measured
+    direction, the misfit the largest measured within the misfit angle (the z band of
+    the packed chord scanned). Without coverage: all trusted, no misfit."""
+    M = P.shape[0]
+    if fp[0] == NONE or fp[22] == 0.0:
+        return np.ones(M, dtype=np.bool_), np.zeros(M)
+    n = int(fp[29])
+    dirs, misfit = fp[_HEAD:_HEAD + 3 * n].reshape((n, 3)), fp[_HEAD + 3 * n:_HEAD + 4 * n]
+    V = np.empty((M, 3))
+    for i in range(M):
+        v0, v1, v2 = P[i, 0] - fp[23], P[i, 1] - fp[24], P[i, 2] - fp[25]
+        norm = max(np.sqrt(v0 * v0 + v1 * v1 + v2 * v2), 1e-12)
+        V[i, 0], V[i, 1], V[i, 2] = v0 / norm, v1 / norm, v2 / norm
+    best, worst = nearest_and_worst(V, dirs, misfit, fp[27], fp[28])
+    trusted = np.empty(M, dtype=np.bool_)
+    for i in range(M):
+        trusted[i] = np.arccos(min(max(best[i], -1.0), 1.0)) <= fp[26]
+    return trusted, worst
+
+
+@njit(cache=True)
 def model_field_kernel(fp, P):
     """(h (M,) mm, grad (M, 3), u (M,) mm) of the field packed in fp (ModelField) at P (M, 3) mm."""
     M = P.shape[0]
@@ -48,21 +71,13 @@ def model_field_kernel(fp, P):
     u = np.full(M, margin)
     if not has_coverage:
         return h, g, u
-    n = int(fp[29])
-    dirs, misfit = fp[_HEAD:_HEAD + 3 * n].reshape((n, 3)), fp[_HEAD + 3 * n:_HEAD + 4 * n]
-    V = np.empty((M, 3))
-    for i in range(M):
-        v0, v1, v2 = P[i, 0] - fp[23], P[i, 1] - fp[24], P[i, 2] - fp[25]
-        norm = max(np.sqrt(v0 * v0 + v1 * v1 + v2 * v2), 1e-12)
-        V[i, 0], V[i, 1], V[i, 2] = v0 / norm, v1 / norm, v2 / norm
-    best, worst = nearest_and_worst(V, dirs, misfit, fp[27], fp[28])
+    trusted, worst = coverage_trust(fp, P)
     for i in range(M):
         u[i] = margin + worst[i]
     if fallback:
         h_f, g_f = sphere_distance_and_gradient(fp[18:21], fp[21], P)
         for i in range(M):
-            trusted = np.arccos(min(max(best[i], -1.0), 1.0)) <= fp[26]
-            if not trusted and h_f[i] < h[i]:
+            if not trusted[i] and h_f[i] < h[i]:
                 h[i] = h_f[i]
                 g[i, 0], g[i, 1], g[i, 2] = g_f[i, 0], g_f[i, 1], g_f[i, 2]
     return h, g, u
@@ -112,6 +127,11 @@ class ModelField(KernelQueries):
     def none(cls) -> ModelField:
         """No boundary: +inf everywhere."""
         return cls(None)
+
+    def trust(self, P) -> tuple[np.ndarray, np.ndarray]:
+        """((M,) trusted flags, (M,) measured misfit mm) at P (M, 3) mm: what the field's
+        distance and uncertainty used (coverage_trust)."""
+        return coverage_trust(self.params, np.ascontiguousarray(np.asarray(P, dtype=float).reshape(-1, 3)))
 
     def field_kernel(self) -> FieldKernel:
         """FieldKernel(model_field_kernel, this field's packed parameters) (models.shapes.field)."""

@@ -100,6 +100,17 @@ class _PredictiveMemory:
         self.stable = 0
         self.misfit = 0  # consecutive checkpoints at which the ellipsoid did not explain the data
 
+    def __deepcopy__(self, memo) -> _PredictiveMemory:
+        """An independent copy that shares the checkpoints: a checkpoint's arrays are never
+        written once appended (PredictiveCriteria.evaluate appends copies), so the copy
+        appends to lists of its own; copying the arrays was most of a spiral-built
+        model's copy, once per scenario of a campaign."""
+        new = object.__new__(type(self))
+        memo[id(self)] = new
+        new.n, new.S, new.v_sf, new.v_ef = list(self.n), list(self.S), list(self.v_sf), list(self.v_ef)
+        new.last, new.stable, new.misfit = dict(self.last), self.stable, self.misfit
+        return new
+
 
 @dataclass(frozen=True)
 class PredictiveCriteria:
