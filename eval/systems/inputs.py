@@ -51,7 +51,7 @@ class StepInputs:
             raise ValueError(f"{k} boundary points at these joint angles, but {len(trusted)} trusted flags and "
                              f"{len(misfit_mm)} misfits")
         rcm_A, rcm_b = np.zeros((2, 6)), np.zeros(2)
-        fill_rcm(self.rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, rcm_A, rcm_b, 0)
+        fill_rcm(self.rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, np.zeros((0, 6)), rcm_A, rcm_b, 0)
         return FilterInputs(
             t_s=t_s, q=np.array(q, dtype=float), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,
             v_cmd_W=np.array(command[:3], dtype=float), J_tip=ip.J_tip,

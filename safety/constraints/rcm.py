@@ -5,7 +5,27 @@ x axis along the shaft) may move only along the shaft: its velocity along the sh
 two lateral axes (columns 1 and 2 of R_WI) is zero, and the lateral error e (mm) of the
 shaft from C decays as de/dt = -gain e (drift correction):
 
-    n_a . J_C qdot = gain n_a . (p_WC - p_WI),   a = 1, 2.
+    n_a . J_C qdot = gain e_a,   e_a = n_a . (p_WC - p_WI - J_C D),   a = 1, 2,
+
+with D = sum_r pending_r (rad) the joint displacement the actuator still carries out if
+every command from this step on is zero (safety.actuator.ActuatorModel.pending_rows; none
+for the ideal actuator). The correction acts on the error the shaft will have once that
+motion is done, not on today's: a robot that applies a command late (delay, lag, an
+acceleration limit) would otherwise receive the same correction again at every step until
+the first one arrives, overshoot, and swing about the trocar with a growing error, until
+the correction it needs exceeds what the speed limits allow and the QP has no solution.
+Correcting the predicted error (a Smith predictor on the drift loop) makes every step's
+correction act once: e decays by (1 - gain dt) per step as with the ideal actuator.
+
+Planned stop. When the actuator's pending motion carries the shaft further from the
+trocar (|e| predicted > |e| now) to an error whose correction at the gain would exceed
+`max_correction_mm_s` (20 mm/s, the tip speed limit's rate: 0.1 mm at 200/s), the filler
+refuses the step with the reason "actuator cannot hold the trocar": zero command, the
+fastest braking the actuator allows. (A robot at rest with an error keeps correcting it,
+as with the ideal actuator, which never stops here: its prediction is today's error.) A robot whose acceleration limit keeps it on a velocity it was given
+several millimetres of joint travel earlier can owe the trocar tenths of a millimetre;
+correcting that is a lateral speed no speed limit allows, and the QP would find no
+velocity a few steps later. The ideal loop's errors (micrometres) stay far below it.
 """
 from __future__ import annotations
 
@@ -16,42 +36,66 @@ from numba import njit
 
 from safety.constraints.base import Constraint, as_params, check_finite_positive
 
+CANNOT_HOLD = 1  # the filler's fault code
+
 
 @njit(cache=True)
-def fill_rcm(sp, J, start, R_WI, p_WI, A, b, p):
-    """sp = [p_WC (3) mm, gain 1/s]: two rows A qdot = b for the point J[start]."""
+def fill_rcm(sp, J, start, R_WI, p_WI, pending, A, b, p):
+    """sp = [p_WC (3) mm, gain 1/s, max correction mm/s]: two rows A qdot = b for the point
+    J[start], its predicted position after the `pending` displacements (r, n) rad; both rows
+    written, then -CANNOT_HOLD if the pending motion takes the error where its correction
+    is faster than the max (module docstring)."""
     n = J.shape[2]
     d0, d1, d2 = sp[0] - p_WI[0], sp[1] - p_WI[1], sp[2] - p_WI[2]
+    now = 0.0  # the present error's squared length
     for a in range(2):
-        e = R_WI[0, a + 1] * d0 + R_WI[1, a + 1] * d1 + R_WI[2, a + 1] * d2
-        b[p] = sp[3] * e
+        now += (R_WI[0, a + 1] * d0 + R_WI[1, a + 1] * d1 + R_WI[2, a + 1] * d2) ** 2
+    for k in range(pending.shape[0]):
+        for j in range(n):
+            d0 -= J[start, 0, j] * pending[k, j]
+            d1 -= J[start, 1, j] * pending[k, j]
+            d2 -= J[start, 2, j] * pending[k, j]
+    e1 = R_WI[0, 1] * d0 + R_WI[1, 1] * d1 + R_WI[2, 1] * d2
+    e2 = R_WI[0, 2] * d0 + R_WI[1, 2] * d1 + R_WI[2, 2] * d2
+    for a in range(2):
+        b[p] = sp[3] * (e1 if a == 0 else e2)
         for j in range(n):
             A[p, j] = (R_WI[0, a + 1] * J[start, 0, j] + R_WI[1, a + 1] * J[start, 1, j]
                        + R_WI[2, a + 1] * J[start, 2, j])
         p += 1
+    predicted = e1 * e1 + e2 * e2
+    if predicted > now and sp[3] * np.sqrt(predicted) > sp[4]:
+        return -CANNOT_HOLD
     return p
 
 
 @dataclass(frozen=True, eq=False)
 class RcmEquality(Constraint):
-    """The shaft passes through the trocar p_WC (3,) mm in W, drift corrected at gain_per_s."""
+    """The shaft passes through the trocar p_WC (3,) mm in W, drift corrected at gain_per_s;
+    a correction faster than max_correction_mm_s stops the robot (module docstring)."""
 
     p_WC: np.ndarray
     gain_per_s: float
     group: str = "trocar"
     name: str = "rcm"
+    max_correction_mm_s: float = 20.0
 
     kind = "equality"
     filler = staticmethod(fill_rcm)
     intervenes = False
 
     def __post_init__(self):
-        check_finite_positive("RcmEquality", gain_per_s=self.gain_per_s)
+        check_finite_positive("RcmEquality", gain_per_s=self.gain_per_s, max_correction_mm_s=self.max_correction_mm_s)
         if np.shape(self.p_WC) != (3,) or not np.all(np.isfinite(self.p_WC)):
             raise ValueError(f"RcmEquality.p_WC must be 3 finite mm, got {self.p_WC}")
 
     def params(self) -> np.ndarray:
-        return as_params(self.p_WC, self.gain_per_s)
+        return as_params(self.p_WC, self.gain_per_s, self.max_correction_mm_s)
 
     def max_rows(self, group_size: int) -> int:
         return 2
+
+    def fault_reason(self, code: int) -> str:
+        if code == CANNOT_HOLD:
+            return "actuator cannot hold the trocar"
+        return super().fault_reason(code)

@@ -8,7 +8,7 @@ from numba import njit
 from safety import ConstraintStack, FilterConfig
 from safety.constraints import JointPositionLimits, JointSpeedLimits, KeepOut, PointBarrier, RcmEquality, TipSpeedLimit
 from safety.constraints.point_barrier import NON_FINITE_FIELD, fill_point_barrier
-from safety.constraints.rcm import fill_rcm
+from safety.constraints.rcm import CANNOT_HOLD, fill_rcm
 from safety.constraints.tip_speed import FACE_NORMALS, REACH, fill_tip_speed
 
 
@@ -71,9 +71,25 @@ def test_the_rcm_rows_hold_the_trocar_and_correct_a_lateral_error():
     # shaft along x through the origin; the trocar 0.1 mm off along y: b = gain * 0.1 on the y row
     A, b = np.zeros((2, 3)), np.zeros(2)
     c = RcmEquality(np.array([0.0, 0.1, 0.0]), gain_per_s=50.0)
-    assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), A, b, 0) == 2
+    assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), np.zeros((0, 3)), A, b, 0) == 2
     np.testing.assert_allclose(A, [[0, 1, 0], [0, 0, 1]])
     np.testing.assert_allclose(b, [5.0, 0.0])
+    # the actuator still moves the point 0.06 mm towards the trocar and 0.02 mm along z (two
+    # pending rows, J = I): the rows correct what is left after that motion
+    pending = np.array([[0.0, 0.04, 0.02], [0.3, 0.02, 0.0]])
+    assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), pending, A, b, 0) == 2
+    np.testing.assert_allclose(b, [50.0 * 0.04, 50.0 * -0.02])
+    # the pending motion carries the shaft 0.3 mm further off (y) and 0.4 mm (z): a correction
+    # of 25 mm/s > the max, a planned stop (the rows written all the same)
+    far = RcmEquality(np.array([0.0, 0.0, 0.0]), gain_per_s=50.0, max_correction_mm_s=20.0)
+    away = np.array([[0.0, -0.3, -0.4]])
+    assert fill_rcm(far.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), away, A, b, 0) == -CANNOT_HOLD
+    np.testing.assert_allclose(b, [15.0, 20.0])
+    assert far.fault_reason(CANNOT_HOLD) == "actuator cannot hold the trocar"
+    # the same error today, at rest (nothing pending, or the motion brings the shaft back): corrected
+    offset = RcmEquality(np.array([0.0, 0.3, 0.4]), gain_per_s=50.0, max_correction_mm_s=20.0)
+    for pending in (np.zeros((0, 3)), np.array([[0.0, 0.1, 0.1]])):
+        assert fill_rcm(offset.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), pending, A, b, 0) == 2
 
 
 def test_joint_bounds_intersect():
@@ -117,11 +133,11 @@ def test_the_rcm_constraint_and_the_robots_rcm_rows_agree():
     scenario = SurgeryScenario()
     robot = Robot(scenario)
     q0 = start_posture(robot, scenario.eye_pose.p_WE, scenario.p_WC)
-    c = RcmEquality(np.asarray(scenario.p_WC, dtype=float), RCM_GAIN_PER_S)
+    c = RcmEquality(np.asarray(scenario.p_WC, dtype=float), RCM_GAIN_PER_S, max_correction_mm_s=1e9)  # uncapped
     for q in q0 + 0.02 * np.random.default_rng(0).standard_normal((5, 6)):
         ip = instrument_points(robot, q, scenario.p_WC)
         A, b = np.zeros((2, 6)), np.zeros(2)
-        fill_rcm(c.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, A, b, 0)
+        fill_rcm(c.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, np.zeros((0, 6)), A, b, 0)
         A_ref, b_ref = robot.rcm_rows(q, scenario.p_WC, RCM_GAIN_PER_S)
         np.testing.assert_allclose(A, A_ref, atol=1e-9)
         np.testing.assert_allclose(b, b_ref, atol=1e-9)
