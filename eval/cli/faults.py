@@ -2,11 +2,13 @@
 
 For each fault class (eval.experiments.faults: actuator delay, lag and acceleration
 limit, calibration error at the declared bound, OCT time offset, encoder noise, dropped,
-frozen and invalid streams, floaters, and "none" for reference) builds the model by the
+frozen and invalid streams, floaters; "ideal" and "none" for reference) builds the model by the
 spiral through the faulty loop and runs the boundary's adversarial campaign against it.
 Writes faults.json ({"classes": {name: {"parameters", "scenarios", "violations",
-"contacts", "min_true_clearance_mm", "failsafe_stops", "stops_by_reason", ...}}}) and
-faults.png (each class's smallest true clearance per scenario).
+"contacts", "min_true_clearance_mm", "failsafe_stops", "stops_by_reason",
+"infeasible_qp_stops", ...}}, "margin_costs_mm": {name: mm}}) and faults.png (each class's
+smallest true clearance per scenario); with `--shape all` the same per shape under
+"shapes" and one faults_<shape>.png each.
 """
 from __future__ import annotations
 
@@ -26,8 +28,8 @@ def register(sub) -> None:
     from eval.experiments.faults import FAULT_CLASSES
 
     p = sub.add_parser("faults", help="adversarial campaigns under real-robot faults: faults.json, faults.png")
-    p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
-                   help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    p.add_argument("--shape", type=choice("shape", (*EYE_SHAPES, "all")), default="emmetropic",
+                   help=f"true eye: one of {' '.join(EYE_SHAPES)}; all: each in turn")
     p.add_argument("--scenarios", type=SCENARIOS, default=100, help=f"adversarial scenarios per class, {SCENARIOS.range}")
     p.add_argument("--seed", type=SEED, default=0, help=f"seed of starts, adversaries and sensor noise, {SEED.range}")
     p.add_argument("--duration-s", type=DURATION_S, default=0.5, help=f"length of one scenario, {DURATION_S.range}")
@@ -53,37 +55,55 @@ def classes_of(text: str) -> list:
 
 
 def main(args) -> int:
-    from eval.cli.boundary import bar_progress, make_loop
     from eval.cli.loop_flags import loop_config
-    from eval.experiments.faults import fault_class, run_fault_class
 
     names = classes_of(args.classes)
     workers = workers_of(args)
     out = prepare_out_dir(args.out)
     base = loop_config(args)
+    shapes = list(EYE_SHAPES) if args.shape == "all" else [args.shape]
+    per_shape = {}
+    for shape in shapes:
+        per_shape[shape] = _shape_classes(args, shape, names, base, workers)
+        save_figure(_figure(per_shape[shape]["classes"], shape),
+                    out / ("faults.png" if len(shapes) == 1 else f"faults_{shape}.png"))
+    result = {"seed": args.seed, "scenario_s": args.duration_s, "violation_threshold_mm": 0.45,
+              "calibration_bound": [base.filter.calibration_bound_mm, base.filter.calibration_bound_deg]}
+    if len(shapes) == 1:
+        result = {"shape": shapes[0], **result, **per_shape[shapes[0]]}
+    else:
+        result["shapes"] = per_shape
+    write_json(out / "faults.json", result)
+    print(f"wrote {out / 'faults.json'} and the plots in {out}")
+    return 0
+
+
+def _shape_classes(args, shape: str, names: list, base, workers) -> dict:
+    """{"classes": {name: faults.json entry}, "margin_costs_mm": ...} on one eye shape."""
+    from eval.cli.boundary import bar_progress, make_loop
+    from eval.experiments.faults import fault_class, margin_costs, run_fault_class
+
     classes = {}
     for name in names:
         fc = fault_class(name, base)
-        with progress_bar(args.scenarios, f"{name}: adversarial scenarios", unit="scenario") as bar:
+        with progress_bar(args.scenarios, f"{shape} {name}: adversarial scenarios", unit="scenario") as bar:
             try:
-                classes[name] = run_fault_class(fc, args.shape, args.scenarios, args.seed, args.duration_s, make_loop,
+                classes[name] = run_fault_class(fc, shape, args.scenarios, args.seed, args.duration_s, make_loop,
                                                 progress=bar_progress(bar), workers=workers)
             except RuntimeError as exc:  # e.g. the model this loop built leaves too few reachable starts
                 if is_interrupt(exc):
                     raise
                 classes[name] = {"parameters": fc.parameters, "error": str(exc)}
-                print(f"{name:14s} not run: {exc}")
+                print(f"{shape:10s} {name:14s} not run: {exc}")
                 continue
         c = classes[name]
-        print(f"{name:14s} violations {c['violations']:3d}  contacts {c['contacts']:3d}  min {c['min_true_clearance_mm']:.3f} mm"
-              f"  stops {c['failsafe_stops']:3d} {c['stops_by_reason']}")
-    result = {"shape": args.shape, "seed": args.seed, "scenario_s": args.duration_s, "violation_threshold_mm": 0.45,
-              "calibration_bound": [base.filter.calibration_bound_mm, base.filter.calibration_bound_deg],
-              "classes": classes}
-    save_figure(_figure(classes, args.shape), out / "faults.png")
-    write_json(out / "faults.json", result)
-    print(f"wrote {out / 'faults.json'} and {out / 'faults.png'}")
-    return 0
+        worst = c.get("detection_ms", {}).get("max")
+        detection = "" if "detection_ms" not in c else \
+            f"  detection max {'-' if worst is None else f'{worst:.1f}'} ms, undetected {c['detection_ms']['undetected']}"
+        print(f"{shape:10s} {name:14s} violations {c['violations']:3d}  contacts {c['contacts']:3d}"
+              f"  min {c['min_true_clearance_mm']:.3f} mm  infeasible {c['infeasible_qp_stops']}"
+              f"  stops {c['failsafe_stops']:3d} {c['stops_by_reason']}{detection}")
+    return {"classes": classes, "margin_costs_mm": margin_costs(classes)}
 
 
 def _figure(classes: dict, shape: str):

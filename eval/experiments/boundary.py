@@ -173,6 +173,7 @@ class Campaign:
             "tracking_rmse_mm_s": float(np.sqrt(np.mean(free**2))) if len(free) else 0.0,
             "failsafe_stops": int(sum(r.failsafe_stops for r in runs)),
             "stops_by_reason": stops_by_reason(runs),
+            "infeasible_qp_stops": infeasible_stops(runs),
             "solve_us": _quantiles(solve),
             "drake_diffik_us": _quantiles(drake),
             "realtime_factor": sim / wall if wall > 0 else None,
@@ -201,6 +202,22 @@ def stops_by_reason(runs: list) -> dict:
             key = reason_class(r.reasons[k])
             out[key] = out.get(key, 0) + 1
     return dict(sorted(out.items()))
+
+
+def infeasible_stops(runs: list) -> dict:
+    """{"total": runs of consecutive steps at which the filter found no feasible velocity
+    (reason "QP: ..."), also those inside a stop for another reason; "after_accepted_step":
+    those whose previous step the filter accepted}: at that step a planned stop (zero
+    command, the fastest braking the actuator allows) was possible, and the filter moved on
+    into a state without a feasible velocity instead. The others follow a refused step (a
+    planned stop that could not keep the state feasible) or start the run."""
+    total = after = 0
+    for r in runs:
+        qp = np.array([reason_class(x).startswith("QP") for x in r.reasons], dtype=bool)
+        for k in np.flatnonzero(qp & ~np.concatenate([[False], qp[:-1]])):
+            total += 1
+            after += int(k > 0 and r.ok[k - 1])
+    return {"total": total, "after_accepted_step": after}
 
 
 def _simulated_and_wall_s(runs: list) -> tuple[float, float]:

@@ -10,6 +10,9 @@ stream fault starts STREAM_ONSET_S into each adversarial scenario (the spiral ru
 healthy stream).
 
 Parameters and their sources (assumptions where the Meca500's documentation is silent):
+- ideal: no fault and no calibration bound in the margin (d_safe and the model's own
+  uncertainty alone): the reference every class's margin cost is measured against
+  (`margin_costs`); none: no fault, the declared calibration bound in the margin.
 - delay 5 ms, lag 20 ms: the largest the boundary must hold for (a velocity-mode controller's cycle and
   servo lag); the Meca500 manual states neither.
 - acceleration limit 1000 deg/s^2 on every joint: assumed (the manual sets accelerations
@@ -44,7 +47,7 @@ STREAM_ONSET_S = 0.1
 ACCEL_LIMIT_DEG_S2 = 1000.0
 ENCODER_NOISE_DEG = 0.001
 FLOATER_RATE = 0.02
-FAULT_CLASSES = ("none", "delay", "lag", "accel_limit", "calibration", "time_offset", "encoder_noise", "dropout",
+FAULT_CLASSES = ("ideal", "none", "delay", "lag", "accel_limit", "calibration", "time_offset", "encoder_noise", "dropout",
                  "frozen", "invalid", "stuck_clock", "floaters")
 STREAM_CLASSES = ("dropout", "frozen", "invalid", "stuck_clock")
 
@@ -66,6 +69,10 @@ class FaultClass:
 def fault_class(name: str, base) -> FaultClass:
     """The class `name` (FAULT_CLASSES) on the base LoopConfig (module docstring)."""
     same = dict(build=base, campaign=base, scenario_kwargs={})
+    if name == "ideal":
+        cfg = dataclasses.replace(base, filter=dataclasses.replace(base.filter, calibration_bound_mm=0.0,
+                                                                  calibration_bound_deg=0.0))
+        return FaultClass(name, {"calibration_bound": [0.0, 0.0]}, cfg, cfg, {})
     if name == "none":
         return FaultClass(name, {}, **same)
     if name in ("delay", "lag", "accel_limit"):
@@ -109,6 +116,17 @@ def detection_ms(runs, onset_s: float) -> dict:
             "undetected": missed}
 
 
+def margin_costs(classes: dict) -> dict:
+    """{class: its min_true_clearance_mm - the ideal class's} (mm) over faults.json's
+    classes that ran, when "ideal" ran: what the class's margin (or fault) costs in the
+    closest approach to the true retina; {} without the ideal class."""
+    ideal = classes.get("ideal", {}).get("min_true_clearance_mm")
+    if ideal is None:
+        return {}
+    return {name: c["min_true_clearance_mm"] - ideal for name, c in classes.items()
+            if c.get("min_true_clearance_mm") is not None}
+
+
 def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: float, make_loop, progress=None,
                     **campaign_kwargs) -> dict:
     """The class's campaign on the `shape` eye: its faults.json entry. `make_loop(scenario,
@@ -123,7 +141,7 @@ def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: f
     s = campaign.summary()
     out = {"parameters": fc.parameters,
            **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "failsafe_stops",
-                                "stops_by_reason", "intervention_fraction", "tracking_rmse_mm_s", "realtime_factor",
+                                "stops_by_reason", "infeasible_qp_stops", "max_rcm_error_um", "intervention_fraction", "tracking_rmse_mm_s", "realtime_factor",
                                 "realtime_factor_unlogged")},
            "model": {"kind": build.kind_final, "ef_mae_um": build.ef_mae_um},
            "calibration_margin_mm": fc.campaign.filter.calibration_margin_mm,
@@ -134,4 +152,4 @@ def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: f
     return out
 
 
-__all__ = ["FAULT_CLASSES", "FaultClass", "detection_ms", "fault_class", "run_fault_class"]
+__all__ = ["FAULT_CLASSES", "FaultClass", "detection_ms", "fault_class", "margin_costs", "run_fault_class"]

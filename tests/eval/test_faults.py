@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from eval.closed_loop import LoopConfig
-from eval.experiments.faults import FAULT_CLASSES, STREAM_CLASSES, detection_ms, fault_class
+from eval.experiments.boundary import infeasible_stops
+from eval.experiments.faults import FAULT_CLASSES, STREAM_CLASSES, detection_ms, fault_class, margin_costs
 
 
 @pytest.mark.parametrize("name", FAULT_CLASSES)
@@ -24,6 +25,8 @@ def test_each_class_changes_only_its_own_error(name):
     if name in STREAM_CLASSES:  # the model is built on a healthy stream
         assert fc.build.stream_fault.kind == "none"
     assert (fc.floater_rate > 0) == (name == "floaters")
+    # the ideal class alone keeps no calibration bound in its margin
+    assert (fc.campaign.filter.calibration_margin_mm == 0.0) == (name == "ideal")
 
 
 def test_the_calibration_class_puts_the_true_sensor_behind_by_the_declared_bound():
@@ -42,3 +45,18 @@ def test_detection_is_the_first_stale_sensor_stop_after_the_onset():
     never = SimpleNamespace(t=t, ok=np.ones_like(ok), reasons=["ok"] * len(t))
     d = detection_ms([SimpleNamespace(t=t, ok=ok, reasons=reasons), never], 0.1)
     assert d["max"] == pytest.approx(42.0) and d["undetected"] == 1
+
+
+def test_margin_costs_are_each_class_minimum_against_the_ideal_ones():
+    classes = {"ideal": {"min_true_clearance_mm": 0.55}, "none": {"min_true_clearance_mm": 0.61},
+               "lag": {"min_true_clearance_mm": 0.70}, "accel_limit": {"error": "not run"}}
+    assert margin_costs(classes) == pytest.approx({"ideal": 0.0, "none": 0.06, "lag": 0.15})
+    assert margin_costs({"none": {"min_true_clearance_mm": 0.61}}) == {}
+
+
+def test_infeasible_stops_count_runs_of_qp_steps_and_those_right_after_an_accepted_step():
+    brake, qp = "actuator cannot brake before the boundary", "QP: infeasible or not solved"
+    # ok, QP, QP, ok, brake, QP, ok | QP (the run's first step), ok
+    a = SimpleNamespace(ok=np.array([1, 0, 0, 1, 0, 0, 1], dtype=bool), reasons=["ok", qp, qp, "ok", brake, qp, "ok"])
+    b = SimpleNamespace(ok=np.array([0, 1], dtype=bool), reasons=[qp, "ok"])
+    assert infeasible_stops([a, b]) == {"total": 3, "after_accepted_step": 1}
