@@ -67,7 +67,7 @@ class LoopConfig:
     filter: FilterConfig | None = None  # None: default_filter(local_model)
     margins: UncertaintyMargins = field(default_factory=UncertaintyMargins)
     points: MonitoredPointsConfig = field(default_factory=MonitoredPointsConfig)
-    drake_diffik_every: int = 10
+    drake_diffik_every: int = 25
     model_min_points: int = 200
     model_min_scan_range_mm: float = 5.0
     trust_angle_deg: float = 10.0

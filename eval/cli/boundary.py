@@ -9,11 +9,13 @@ plots boundary_clearance.png and boundary_activity.png, and the MCAP logs spiral
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
+from eval.cli.boundary_all import ALL, run_all
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import add_loop_flags, loop_config, loop_record, scenario
 from eval.cli.progress import phase, progress_bar
@@ -32,8 +34,9 @@ SEARCH_BUDGET = integer(1, 1_000_000)
 
 def register(sub) -> None:
     p = sub.add_parser("boundary", help="spiral-built model + N adversarial scenarios: boundary.json, plots, MCAP")
-    p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
-                   help=f"true eye: one of {' '.join(EYE_SHAPES)}")
+    p.add_argument("--shape", type=choice("shape", (*EYE_SHAPES, ALL)), default="emmetropic",
+                   help=f"true eye: one of {' '.join(EYE_SHAPES)}, or {ALL}: every shape, each into OUT/<shape> "
+                        "(eval.cli.boundary_all)")
     add_eye_param(p)
     p.add_argument("--scenarios", type=SCENARIOS, default=100,
                    help=f"adversarial scenarios once the model is built, {SCENARIOS.range}")
@@ -62,7 +65,7 @@ def register(sub) -> None:
 def validate(args) -> None:
     """The defaults that depend on other flags and the eye's shape parameters (the flags'
     ranges are checked while parsing); raises UsageError."""
-    args.eye_params = eye_params(args.eye_param, args.shape)
+    args.eye_params = {} if args.shape == ALL else eye_params(args.eye_param, args.shape)
     if args.sphere_scenarios is None:
         args.sphere_scenarios = min(args.scenarios, 50)
     if getattr(args, "search_budget", None) is None:
@@ -88,15 +91,22 @@ def make_loop(scenario, config=None, **kwargs):
         return ClosedLoop(scenario, LoopConfig() if config is None else config, **kwargs)
 
 
-def bar_progress(bar):
-    """A campaign's progress(done, total) callback that moves the tqdm `bar` to `done`."""
-    return lambda done, total: bar.update(done - bar.n)
+def bar_progress(bar, sink=None):
+    """A campaign's progress(done, total) callback that moves the tqdm `bar` to `done` (and
+    passes each increment to `sink`, when given)."""
+    def progress(done, total):
+        step = done - bar.n
+        bar.update(step)
+        if sink is not None and step:
+            sink(step)
+    return progress
 
 
-def run_boundary(args, out, keep_build: bool = False, workers=None):
+def run_boundary(args, out, keep_build: bool = False, workers=None, sink=None):
     """The experiment of `args` (validated); writes logs and plots into `out`; returns
     boundary.json's content (a BoundaryRun with `keep_build`). The scenarios run on
-    `workers` (eval.experiments.campaign.Workers; None: this process). Progress goes to stderr."""
+    `workers` (eval.experiments.campaign.Workers; None: this process). Progress goes to
+    stderr (and `sink(n)` after n more scenarios, when given)."""
     from eval.experiments.boundary import build_model_by_spiral, run_campaign
     from eval.log.writer import RunLogger
 
@@ -110,14 +120,14 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
     with RunLogger(out / "boundary.mcap", config.filter, metadata={**meta, "run": "adversarial scenario 0"}) as log, \
             progress_bar(args.scenarios, "adversarial scenarios", unit="scenario") as bar:
         campaign = run_campaign(loop, build.model, build.coverage, args.scenarios, args.seed, args.duration_s, logger=log,
-                                progress=bar_progress(bar), workers=workers)
+                                progress=bar_progress(bar, sink), workers=workers)
     sphere = None
     if args.sphere_scenarios:
         partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=1.5,
                                         progress="sphere phase: spiral of 1.5 turns", sensor_seed=[args.seed, 1])
         with progress_bar(args.sphere_scenarios, "sphere-phase scenarios", unit="scenario") as bar:
             sphere_campaign = run_campaign(loop, partial.model, partial.coverage, args.sphere_scenarios, args.seed + 1,
-                                           args.duration_s, progress=bar_progress(bar), workers=workers)
+                                           args.duration_s, progress=bar_progress(bar, sink), workers=workers)
         sphere = {"model_kind": partial.kind_final, "sf_mae_um": partial.sf_mae_um, **sphere_campaign.summary()}
     s = campaign.summary()
     spiral = build.run
@@ -143,11 +153,11 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
     if getattr(args, "adversary", "random") == "search":
         result["search"] = run_search(args, loop, build, s["min_true_clearance_mm"])
         result["worst_found_clearance_mm"] = result["search"]["worst_found_clearance_mm"]
-    save_figure(_clearance_figure(campaign, args.shape), out / "boundary_clearance.png")
+    save_figure(_clearance_figure(campaign, args.shape), out / "boundary_clearance.png", tight_bbox=False)
     fig = error_sigma_figure(loop, build)
     if fig is not None:
         save_figure(fig, out / "model_error_sigma.png")
-    save_figure(_activity_figure(campaign, s), out / "boundary_activity.png")
+    save_figure(_activity_figure(campaign, s), out / "boundary_activity.png", tight_bbox=False)
     return BoundaryRun(result, build, campaign, loop) if keep_build else result
 
 
@@ -170,12 +180,22 @@ def run_search(args, loop, build, random_min_mm: float) -> dict:
                          "sensor_seed": found.worst_sensor_seed, "theta": [float(x) for x in found.worst_theta]}}
 
 
+def write_shape(args, out, workers, sink=None) -> dict:
+    """run_boundary into the folder `out` (made) and its boundary.json; returns the content."""
+    out = prepare_out_dir(out)
+    result = run_boundary(args, out, workers=workers, sink=sink)
+    write_json(out / "boundary.json", result)
+    return result
+
+
 def main(args) -> int:
     validate(args)
+    if args.shape == ALL:
+        workers_of(args)  # Ray joined (or refused) before anything is written
+        return run_all(args, write_shape)
     workers = workers_of(args)
-    out = prepare_out_dir(args.out)
-    result = run_boundary(args, out, workers=workers)
-    write_json(out / "boundary.json", result)
+    result = write_shape(args, args.out, workers)
+    out = Path(args.out)
     print(f"\n{'scenarios':24s} {result['scenarios']}")
     for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
                 "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "realtime_factor", "realtime_factor_unlogged",

@@ -46,13 +46,14 @@ def write_json(path, obj) -> Path:
     return write_atomic(path, json.dumps(obj, indent=2, allow_nan=False) + "\n")
 
 
-def save_figure(fig, path) -> Path:
-    """Save a matplotlib figure as PNG atomically and close it."""
+def save_figure(fig, path, tight_bbox: bool = True) -> Path:
+    """Save a matplotlib figure as PNG atomically and close it; `tight_bbox` False for a
+    figure laid out already (tight_layout): one rendering instead of two."""
     import io
 
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=120, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=120, bbox_inches="tight" if tight_bbox else None)
     plt.close(fig)
     return write_atomic(path, buf.getvalue())

@@ -72,6 +72,7 @@ def test_the_first_scenario_log_replays(boundary_run):
     (["--calibration-bound", "-0.1,0.1"], "--calibration-bound"),
     (["--calibration-bound", "0.1"], "MM,DEG"),
     (["--sensor-pose-error", "1,2,3"], "DX,DY,DZ,RX,RY,RZ"),
+    (["--shape", "all", "--eye-param", "height_mm=3"], "--eye-param needs one --shape"),
 ])
 def test_bad_boundary_arguments_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
     out = tmp_path / "never"
@@ -95,3 +96,19 @@ def test_bad_faults_arguments_exit_2_and_write_nothing(argv, message, tmp_path, 
     assert main(["faults", *argv, "--out", str(out)]) == 2
     assert message in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.slow
+def test_all_shapes_in_one_command_give_each_shapes_own_figures(tmp_path):
+    """--shape all: every shape into OUT/<shape> and summary.json, two shapes at a time in
+    forked processes; a shape's figures are those of `--shape S` run alone."""
+    reduced = ["--scenarios", "2", "--sphere-scenarios", "1", "--duration-s", "0.2", "--spiral-revolutions", "1.5"]
+    assert main(["boundary", "--shape", "all", *reduced, "--jobs", "2", "--out", str(tmp_path / "all")]) == 0
+    summary = json.loads((tmp_path / "all" / "summary.json").read_text())
+    assert set(summary["shapes"]) == {"emmetropic", "myopic", "hyperopic", "detached", "staphyloma", "pointed"}
+    assert all(r["scenarios"] == 2 for r in summary["shapes"].values()) and summary["wall_s"] > 0
+    assert main(["boundary", "--shape", "staphyloma", *reduced, "--jobs", "1", "--out", str(tmp_path / "one")]) == 0
+    lane, alone = (json.loads((tmp_path / d / "boundary.json").read_text()) for d in ("all/staphyloma", "one"))
+    for key in SIMULATED:
+        assert lane[key] == pytest.approx(alone[key], abs=1e-12, rel=0), key
+    assert lane["model"] == alone["model"]
