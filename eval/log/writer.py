@@ -97,6 +97,10 @@ class RunLogger:
         self._step_channel = Channel(step_records.STEP_TOPIC, schema=Schema(
             name=step_records.STEP_TYPE, encoding="protobuf", data=step_records.FILTER_STEP_SCHEMA),
             message_encoding="protobuf", context=context)
+        # the channels' own loggers of encoded bytes (foxglove Channel.base): a step's few messages skip the
+        # Python wrapper's per-call encoding checks
+        self._raw = {topic: ch.base for topic, ch in self._channels.items()}
+        self._raw_step = self._step_channel.base
         self._setup_logged, self._models = False, []  # the models logged on /filter/models, by index
         self._writer.write_metadata("time", {"start_time_ns": str(self.start_ns),
                                              "log_time": "start_time_ns + simulation time (ns)"})
@@ -132,7 +136,7 @@ class RunLogger:
         if self._closed:
             raise ValueError(f"the run log {self.path} is closed")
         self._last_ns = ns
-        self._channels[topic].log(_JSON.encode(msg).encode(), log_time=self.start_ns + ns)
+        self._raw[topic].log(_JSON.encode(msg).encode(), self.start_ns + ns)
 
     def _write_foxglove(self, topic: str, ns: int, message) -> None:
         if self._closed:
@@ -177,9 +181,9 @@ class RunLogger:
         if self._closed:
             raise ValueError(f"the run log {self.path} is closed")
         self._last_ns = ns
-        self._channels["/oct/distance"].log(
+        self._raw["/oct/distance"].log(
             f'{{"t":{float(t_s)!r},"distance_mm":{_json_number(distance_mm)},"valid":{"true" if valid else "false"},'
-            f'"confidence":{_json_number(confidence)}}}'.encode(), log_time=self.start_ns + ns)
+            f'"confidence":{_json_number(confidence)}}}'.encode(), self.start_ns + ns)
         self._maybe_flush(ns)
 
     def log_model(self, t_s, kind: str, sphere=None, ellipsoid=None, n_points: int = 0, criteria=None) -> None:
@@ -246,9 +250,9 @@ class RunLogger:
         if self._closed:
             raise ValueError(f"the run log {self.path} is closed")
         self._last_ns = ns
-        self._step_channel.log(step_records.encode_step(self.steps, float(t_s), q, command, index, model_time_s,
-                                                        sensor_time_s, margin_mm, trusted, misfit_mm, output),
-                               log_time=self.start_ns + ns)
+        self._raw_step.log(step_records.encode_step(self.steps, float(t_s), q, command, index, model_time_s,
+                                                    sensor_time_s, margin_mm, trusted, misfit_mm, output),
+                           self.start_ns + ns)
         self.steps += 1
         self._maybe_flush(ns)
 
