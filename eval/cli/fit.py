@@ -5,8 +5,9 @@ the adaptive model (eval.recording.fit); with --ground-truth, register the point
 phantom's STL and measure the model there (eval.recording.ground_truth).
 
 fit.json: `time_offset_ms` (OCT clock minus robot clock, positive when the OCT stream
-lags), `kind`, `n_points`, `sf_fmae_um`, `ef_fmae_um`, `sync`, the model; with a ground
-truth `mae_um`, `registration_rmse_um` and `registration`. Plots: sync.png, fit.png.
+lags), `kind`, `n_points`, `sf_fmae_um`, `ef_fmae_um`, `lf_fmae_um` (the local-global
+model's), `sync`, the model; with a ground truth `mae_um`, `lf_mae_um`,
+`registration_rmse_um` and `registration`. Plots: sync.png, fit.png.
 """
 from __future__ import annotations
 
@@ -16,7 +17,8 @@ from pathlib import Path
 
 from eval.cli.args import number
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
-from eval.cli.progress import phase
+from eval.cli.progress import phase, progress_bar
+from eval.cli.workers import add_worker_flags
 
 MAX_OFFSET_MS = number(1.0, 1000.0, "ms")
 ICP_DISTANCE = number(0.01, 5.0, "mm")
@@ -39,6 +41,7 @@ def register(sub) -> None:
                    help=f"ICP's maximum correspondence distance, {ICP_DISTANCE.range} (paper: 0.1-1.0)")
     p.add_argument("--icp-sweep", action="store_true",
                    help="also register with every correspondence distance 0.1, 0.2, ..., 1.0 mm (the paper's sweep)")
+    add_worker_flags(p, ray=False)
     p.set_defaults(func=main)
 
 
@@ -59,8 +62,20 @@ def run_fit(args) -> tuple[dict, object]:
     sensor = read_calibration(args.calibration) if args.calibration is not None else None
     mesh = load_stl(args.ground_truth) if args.ground_truth is not None else None
     t0 = time.perf_counter()
-    with phase("reading the recording and extracting every A-scan's distance"):
-        joints, oct = read_recording(args.recording, joint_topic=args.joint_topic, ascan_topic=args.ascan_topic)
+    bar = []
+
+    def progress(n: int, total: int) -> None:
+        if not bar:
+            bar.append(progress_bar(total, f"reading the recording, extracting A-scans ({args.jobs} processes)",
+                                    unit="A-scan"))
+        bar[0].update(n - bar[0].n)
+
+    try:
+        joints, oct = read_recording(args.recording, joint_topic=args.joint_topic, ascan_topic=args.ascan_topic,
+                                     progress=progress, jobs=args.jobs)
+    finally:
+        if bar:
+            bar[0].close()
     t_read = time.perf_counter() - t0
     with phase("synchronising the streams and fitting the model"):
         result = fit_recording(joints, oct, sensor, 1e-3 * args.max_offset_ms)
@@ -69,8 +84,10 @@ def run_fit(args) -> tuple[dict, object]:
         if result.model.shape is None:
             raise UsageError("--ground-truth: the recording gave no model to register")
         with phase("registering the points to the ground-truth mesh (ICP)"):
-            reg = register_fit(result.accepted, result.model.shape, *mesh, args.icp_max_distance_mm, args.icp_sweep)
-        out.update({"mae_um": reg["mae_um"], "registration_rmse_um": reg["registration_rmse_um"], "registration": reg,
+            reg = register_fit(result.accepted, result.model.shape, *mesh, args.icp_max_distance_mm, args.icp_sweep,
+                               local=result.local)
+        out.update({"mae_um": reg["mae_um"], "lf_mae_um": reg["lf_mae_um"],
+                    "registration_rmse_um": reg["registration_rmse_um"], "registration": reg,
                     "ground_truth": str(args.ground_truth)})
     out["recording_duration_s"] = float(oct.t_s[-1] - oct.t_s[0])
     out["wall_s"] = {"read_and_extract": t_read, "total": time.perf_counter() - t0}
@@ -92,7 +109,8 @@ def main(args) -> int:
     save_figure(figure_sync(result), out_dir / "sync.png")
     save_figure(figure_fit(result), out_dir / "fit.png")
     write_json(out_dir / "fit.json", out)
-    for key in ("time_offset_ms", "kind", "n_points", "sf_fmae_um", "ef_fmae_um", "mae_um", "registration_rmse_um"):
+    for key in ("time_offset_ms", "kind", "n_points", "sf_fmae_um", "ef_fmae_um", "lf_fmae_um", "mae_um", "lf_mae_um",
+                "registration_rmse_um"):
         if key in out:
             v = out[key]
             print(f"{key:22s} {v:.4g}" if isinstance(v, float) else f"{key:22s} {v}")

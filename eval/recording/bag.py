@@ -162,7 +162,8 @@ def read_bag(path, on_ascan, full_scale: float, n_samples: int, joint_topic: str
              ascan_topic: str | None = None, progress=None) -> tuple[JointStream, np.ndarray]:
     """(the joint stream, the OCT stamps (N,) s) of the bag at `path` (a rosbag2 folder or
     an .mcap / .db3 file); each A-scan (noise-RMS units) goes to `on_ascan` in stamp
-    order. `progress(n)`: called with the number of A-scans read so far, every 1000.
+    order. `progress(n, total)`: called with the number of A-scans read so far and the
+    bag's count of them, every 1000.
     RecordingError when the path is no bag or lacks the topics."""
     from rosbags.highlevel import AnyReader
 
@@ -176,6 +177,7 @@ def read_bag(path, on_ascan, full_scale: float, n_samples: int, joint_topic: str
         jconns = _pick_topic(reader, "sensor_msgs/msg/JointState", joint_topic, "--joint-topic")
         aconns = _pick_topic(reader, "sensor_msgs/msg/Image", ascan_topic, "--ascan-topic")
         t_j, q_j, t_a, order = [], [], [], None
+        total = sum(int(getattr(c, "msgcount", 0) or 0) for c in aconns)
         for conn, _, raw in reader.messages(connections=jconns + aconns):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.msgtype == "sensor_msgs/msg/JointState":
@@ -190,7 +192,7 @@ def read_bag(path, on_ascan, full_scale: float, n_samples: int, joint_topic: str
                 t_a.append(_stamp_s(msg.header))
                 on_ascan(_ascan_amplitude(msg, full_scale, n_samples))
                 if progress is not None and len(t_a) % 1000 == 0:
-                    progress(len(t_a))
+                    progress(len(t_a), total)
     finally:
         reader.close()
     if len(t_j) < 2 or not t_a:

@@ -1,7 +1,7 @@
 """The fit of a recording: A-scans -> distances -> time offset -> points -> adaptive model.
 
 1. every A-scan through the project's extractor (models.iioct.DistanceExtractor), as it
-   is read (eval.recording.bag);
+   is read (eval.recording.bag), in worker processes (eval.recording.extraction);
 2. the beam at each joint state: the robot's forward kinematics at the reported angles
    with the calibrated sensor pose (a `vitreoguard calibrate` calibration.json, or the
    nominal pose of the robot model);
@@ -10,7 +10,13 @@
 4. each valid A-scan after the segment: its point = beam origin + distance x direction at
    the robot time of its stamp minus the offset (joint angles interpolated linearly);
 5. the adaptive model (sphere -> ellipsoid, the closed loop's criteria) updated with the
-   points in stamp order, packets of 20 (the closed loop's 10 ms at 2 kHz).
+   points in stamp order, packets of 20 (the closed loop's 10 ms at 2 kHz);
+6. the local-global model (models.local) of the whole recording: the local correction
+   fitted at once to every point the model accepted, about the final global quadric
+   (its centre and its Taylor expansion as the prior), every node solved and the
+   correction used wherever it has data. An offline fit has all the points, so the
+   online choice of when to use the correction (models.local.selection) does not apply;
+   one batch costs about 6 us per point where the online local model costs about 200.
 
 Units: mm, s, rad (ms, um where named).
 """
@@ -26,7 +32,8 @@ from eval.recording.bag import JointStream, OctStream, RecordingError, read_bag,
 from models import AdaptiveEyeModel
 from models.adaptive.transition import PredictiveCriteria
 from models.calibration.plate import SensorPose
-from models.iioct import DistanceExtractor, OctEngine
+from eval.recording.extraction import Extraction
+from models.iioct import OctEngine
 from models.metrics import fmae_exact
 from planning.clock_sync import OffsetEstimate, estimate_time_offset, find_sync_segment
 
@@ -51,12 +58,14 @@ class FitResult:
     accepted: np.ndarray
     sensor: SensorPose
     calibrated: bool
+    local: object = None  # models.local.field.LocalField (step 6), None without a global quadric
 
     def summary(self) -> dict:
         """fit.json's recording keys (module docstring of eval.cli.fit)."""
         m = self.model
         sf = fmae_exact(self.accepted, m.sphere).mean if m.sphere is not None else float("nan")
         ef = fmae_exact(self.accepted, m.ellipsoid).mean if m.ellipsoid is not None else float("nan")
+        lf = fmae_exact(self.accepted, self.local).mean if self.local is not None else float("nan")
         i0, i1 = self.segment
         return {
             "time_offset_ms": 1e3 * self.offset.offset_s,
@@ -64,6 +73,7 @@ class FitResult:
             "n_points": int(m.n_points),
             "sf_fmae_um": _um(sf),
             "ef_fmae_um": _um(ef),
+            "lf_fmae_um": _um(lf),
             "sync": {"segment_s": [float(self.joints.t_s[i0]), float(self.joints.t_s[i1 - 1])],
                      "gain": self.offset.gain, "residual_rms_um": 1e3 * self.offset.residual_rms_mm,
                      "n_samples": self.offset.n_samples},
@@ -109,33 +119,22 @@ def read_calibration(path) -> SensorPose:
     return sensor
 
 
-class _Extraction:
-    """Collects the extractor's distance and confidence per A-scan."""
-
-    def __init__(self, extractor: DistanceExtractor):
-        self.extractor, self.d, self.c = extractor, [], []
-
-    def __call__(self, ascan) -> None:
-        m = self.extractor(ascan)
-        self.d.append(m.distance_mm if m.valid else np.nan)
-        self.c.append(m.confidence)
-
-
 def read_recording(path, engine: OctEngine = OctEngine(), joint_topic=None, ascan_topic=None,
-                   progress=None) -> tuple[JointStream, OctStream]:
+                   progress=None, jobs: int = 1) -> tuple[JointStream, OctStream]:
     """The joint stream and the extracted OCT stream of a bag or a CSV-pair folder, both
-    clocks' stamps counted from the first joint state's (s)."""
+    clocks' stamps counted from the first joint state's (s); the A-scans extracted in
+    `jobs` processes (eval.recording.extraction). `progress(n, total)`: A-scans read so
+    far of the bag's total (bags only)."""
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"--recording {p} does not exist")
-    sink = _Extraction(DistanceExtractor(engine))
-    if p.is_dir() and (p / "joints.csv").exists():
-        joints, t_oct, d = read_csv_pair(p, sink, engine.n_samples)
-        conf = np.ones(len(t_oct)) if d is not None else np.array(sink.c)
-        d = np.array(sink.d) if d is None else d
-    else:
-        joints, t_oct = read_bag(p, sink, engine.full_scale, engine.n_samples, joint_topic, ascan_topic, progress)
-        d, conf = np.array(sink.d), np.array(sink.c)
+    with Extraction(engine, jobs) as sink:
+        if p.is_dir() and (p / "joints.csv").exists():
+            joints, t_oct, d = read_csv_pair(p, sink, engine.n_samples)
+            d, conf = sink.result() if d is None else (d, np.ones(len(t_oct)))
+        else:
+            joints, t_oct = read_bag(p, sink, engine.full_scale, engine.n_samples, joint_topic, ascan_topic, progress)
+            d, conf = sink.result()
     order = np.argsort(t_oct, kind="stable")
     t0 = joints.t_s[0]  # times from the first joint state: ROS stamps are ~1.7e9 s
     return JointStream(joints.t_s - t0, joints.q_rad), OctStream(t_oct[order] - t0, d[order], conf[order])
@@ -199,4 +198,26 @@ def fit_recording(joints: JointStream, oct: OctStream, sensor: SensorPose | None
         if model.update(np.ascontiguousarray(P[k:k + PACKET])) is not None:
             accepted.append(model.last_accepted.copy())
     acc = np.vstack(accepted) if accepted else np.zeros((0, 3))
-    return FitResult(joints, oct, (i0, i1), s, offset, oct.t_s[use], P, model, acc, sensor, calibrated)
+    return FitResult(joints, oct, (i0, i1), s, offset, oct.t_s[use], P, model, acc, sensor, calibrated,
+                     local_fit(acc, model.shape))
+
+
+LOCAL_BATCH = 2000  # points per local-model update: its kernels' working set stays small
+
+
+def local_fit(points, shape):
+    """Step 6 of the module docstring: the LocalField (models.local.field) of the points
+    (N, 3) mm about the global `shape` (Sphere or Ellipsoid in W), or None without a
+    shape or points."""
+    from models.local.field import LocalField
+    from models.local.grid import LocalRetinaModel
+
+    if shape is None or not len(points):
+        return None
+    local = LocalRetinaModel(shape.center)
+    for k in range(0, len(points), LOCAL_BATCH):
+        local.update(np.ascontiguousarray(points[k:k + LOCAL_BATCH]), shape)
+    if local.global_params is None:  # the shape does not hold its centre: no local frame
+        return None
+    local.solve_all()
+    return LocalField(local.params(True), "local")

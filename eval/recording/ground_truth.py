@@ -7,12 +7,20 @@ initial placement: the fitted model's centre goes onto the mesh retina's centre 
 same kind of fit to the faces that face it); of 4,000 uniformly random rotations about
 it, the 3 that bring 300 of the points closest to the mesh start a point-to-plane ICP
 with a 3 mm correspondence distance (30 iterations); the start with the smallest RMS
-residual is refined with `max_distance_mm` (the paper: 0.1-1.0 mm; `sweep` refines from
+residual is turned about its least defined axis to the best of every 2 deg (a near
+surface of revolution leaves that turn to a cost the STL's facets ripple) and run again;
+the result is refined with `max_distance_mm` (the paper: 0.1-1.0 mm; `sweep` refines from
 it with each of 0.1, 0.2, ..., 1.0 mm).
 
 `mae_um`: the area-weighted mean, over the mesh's retina faces (facing the model's centre
 within 60 deg, within 2 mm of the model), of each face centroid's exact distance to the
-fitted model after registration: the closed loop's exact MAE, on the printed half.
+fitted model after registration: the closed loop's exact MAE, on the printed half;
+`lf_mae_um` the same for the local-global model (eval.recording.fit, step 6).
+
+A placement is found modulo the mesh's own symmetries (`mesh_symmetries`: an
+axis-aligned ellipsoid's half is itself turned by 180 deg) and only as well as the
+geometry and the points define it: `placement_error` splits the rotation error over the
+registration's principal axes with their SDs (models.shapes.icp.rotation_covariance).
 
 Units: mm (um where named), rad (deg where named).
 """
@@ -25,7 +33,7 @@ from scipy.spatial.transform import Rotation
 
 from eval.recording.bag import RecordingError
 from models import fit_ellipsoid, fit_sphere
-from models.shapes.icp import MeshIndex, Registration, mesh_index, register_to_mesh
+from models.shapes.icp import MeshIndex, Registration, mesh_index, point_to_plane, register_to_mesh
 
 N_ROTATIONS = 4000
 N_SCORE_POINTS = 300
@@ -98,19 +106,70 @@ def _retina_faces(index: MeshIndex, R: np.ndarray, p: np.ndarray, model) -> tupl
     return C_W[keep], index.areas[keep]
 
 
-def _result(reg, index: MeshIndex, model, max_distance_mm: float) -> dict:
-    C, A = _retina_faces(index, reg.R, reg.p, model)
-    mae = float(np.sum(A * np.abs(model.signed_distance(C))) / np.sum(A)) if len(A) else float("nan")
+def _mae_um(C: np.ndarray, A: np.ndarray, model) -> float:
+    """The area-weighted mean exact distance (um) of the face centroids C (K, 3) mm, areas
+    A (K,) mm^2, to `model` (anything with signed_distance)."""
+    return 1e3 * float(np.sum(A * np.abs(model.signed_distance(C))) / np.sum(A)) if len(A) else float("nan")
+
+
+def _result(reg, index: MeshIndex, model, max_distance_mm: float, local=None) -> dict:
+    C, A = _retina_faces(index, reg.R, reg.p, model)  # the global model's retina faces, for both models
+    mae = _mae_um(C, A, model)
     R_WE, p_WE = reg.R.T, -reg.R.T @ reg.p
-    return {"max_distance_mm": float(max_distance_mm), "mae_um": 1e3 * mae, "registration_rmse_um": 1e3 * reg.rmse_mm,
+    return {"max_distance_mm": float(max_distance_mm), "mae_um": mae, "registration_rmse_um": 1e3 * reg.rmse_mm,
+            "lf_mae_um": None if local is None else _mae_um(C, A, local),
             "n_pairs": reg.n_pairs, "iterations": reg.iterations, "converged": reg.converged,
-            "R_WE": R_WE.tolist(), "p_WE_mm": p_WE.tolist()}
+            "R_WE": R_WE.tolist(), "p_WE_mm": p_WE.tolist(),
+            "rotation_sd_deg": [_finite_or_none(v) for v in np.degrees(reg.rotation_sd_rad)],
+            "rotation_axes_E": reg.rotation_axes.T.tolist()}
 
 
-def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0, sweep: bool = False) -> dict:
+def _finite_or_none(v: float):
+    return float(v) if np.isfinite(v) else None
+
+
+def _turned_about_weak_axis(P: np.ndarray, index: MeshIndex, reg: Registration, step_deg: float = 3.0,
+                            n_score: int = 12000) -> Registration:
+    """`reg` turned about its least defined rotation axis (through the registered points'
+    centroid) by the multiple of step_deg that, with its best translation, brings a
+    subsample of the points P closest to the mesh (truncated mean square point-to-plane
+    residual, the ICP's cost), then the coarse ICP again from there. About a near-symmetry axis the cost changes by a few per
+    cent over tens of degrees while the facets ripple it on the scale of their spacing:
+    the ICP stops in the ripple's minimum nearest its start; this scan starts it in the
+    right valley."""
+    X = P[np.linspace(0, len(P) - 1, min(len(P), n_score)).astype(int)] @ reg.R.T + reg.p
+    c = X.mean(axis=0)
+    axis = reg.rotation_axes[:, 2]
+    best = (np.inf, 0.0, np.zeros(3))
+    for a in np.radians(np.arange(-180.0, 180.0, step_deg)):
+        Y = (X - c) @ Rotation.from_rotvec(a * axis).as_matrix().T + c
+        dist, k = index.tree.query(Y, distance_upper_bound=COARSE_DISTANCE_MM)  # far points: no search
+        near = dist <= COARSE_DISTANCE_MM
+        if near.sum() < 6:
+            continue
+        n = index.normals[k[near]]
+        r = np.einsum("ij,ij->i", Y[near] - index.centroids[k[near]], n)
+        # the best translation for this turn (its axis passes the symmetry axis only roughly)
+        t = -np.linalg.lstsq(n, r, rcond=None)[0]
+        r = r + n @ t
+        cost = (float(np.sum(r * r)) + COARSE_DISTANCE_MM ** 2 * float(np.sum(~near))) / len(Y)
+        if cost < best[0]:
+            best = (cost, a, t)
+    if best[1] == 0.0:
+        return reg
+    T = Rotation.from_rotvec(best[1] * axis).as_matrix()
+    turned = register_to_mesh(P, index, T @ reg.R, T @ (reg.p - c) + c + best[2], COARSE_DISTANCE_MM, max_iterations=30)
+    return turned if turned.rmse_mm <= reg.rmse_mm else reg
+
+
+def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0, sweep: bool = False,
+                 local=None) -> dict:
     """Register the recording's points (N, 3) mm in W to the mesh (frame M = the phantom's
     E) and measure `model` (the fitted Sphere or Ellipsoid in W) there (module docstring):
-    {"mae_um", "registration_rmse_um", "R_WE", "p_WE_mm" (the registered placement),
+    {"mae_um", "lf_mae_um" (the same for `local`, the local-global model's LocalField in
+    W, on the same faces; None without it), "registration_rmse_um", "R_WE", "p_WE_mm" (the
+    registered placement), "rotation_sd_deg", "rotation_axes_E" (its principal SDs and
+    axes, models.shapes.icp.rotation_covariance),
     ..., and with `sweep` "sweep": one such dict per correspondence distance}."""
     P = np.asarray(points_W, dtype=float)
     if len(P) > MAX_POINTS:
@@ -129,24 +188,70 @@ def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0,
     if best is None or not np.isfinite(best[0]):
         raise RecordingError("--ground-truth: the recording's points do not match the mesh at any start (fewer than half "
                              f"lie within {COARSE_DISTANCE_MM:g} mm of it): is it the phantom of this recording, in mm?")
-    start = best[1]
-    out = _result(register_to_mesh(P, index, start.R, start.p, max_distance_mm), index, model, max_distance_mm)
+    start = _turned_about_weak_axis(P, index, best[1])
+    out = _result(register_to_mesh(P, index, start.R, start.p, max_distance_mm), index, model, max_distance_mm, local)
     if sweep:
-        out["sweep"] = [_result(register_to_mesh(P, index, start.R, start.p, d), index, model, d) for d in SWEEP_MM]
+        out["sweep"] = [_result(register_to_mesh(P, index, start.R, start.p, d), index, model, d, local) for d in SWEEP_MM]
     return out
 
 
-def placed_mae_um(vertices, faces, model, R_WE, p_WE) -> float:
+def placed_mae_um(vertices, faces, model, R_WE, p_WE, local=None) -> float:
     """`mae_um` of `model` (in W) on the mesh placed at the known X_WE (R_WE (3, 3),
-    p_WE (3,) mm), without registration."""
+    p_WE (3,) mm), without registration; with `local` (a LocalField in W) its `lf_mae_um`
+    on the faces of `model`'s retina instead."""
     R = np.asarray(R_WE, dtype=float).T
     reg = Registration(R, -R @ np.asarray(p_WE, dtype=float), 0.0, 0, 0, True)
-    return _result(reg, mesh_index(vertices, faces), model, 0.0)["mae_um"]
+    out = _result(reg, mesh_index(vertices, faces), model, 0.0, local)
+    return out["mae_um"] if local is None else out["lf_mae_um"]
 
 
-def placement_error(registered: dict, R_WE, p_WE) -> dict:
-    """{"position_error_um", "rotation_error_deg"} of a registered placement against the
-    true X_WE (R_WE (3, 3), p_WE (3,) mm)."""
-    R = np.asarray(registered["R_WE"]) @ np.asarray(R_WE).T
+SYMMETRY_TOL_MM = 2e-3  # a rotation maps a mesh onto itself when no vertex moves further from it (facets: 0.7 um)
+
+
+def mesh_symmetries(vertices, faces) -> list[np.ndarray]:
+    """The rotations (3, 3) about the mesh frame's z axis by 0, 90, 180 and 270 deg that map
+    the mesh (vertices (V, 3) mm, faces) onto itself within SYMMETRY_TOL_MM: an eye's lower
+    half (z <= 0 in E, centred on E's origin) keeps its rim on z = 0 only under these. An
+    axis-aligned ellipsoid's half is the same mesh turned by 180 deg: a registration can
+    only find its placement modulo that turn."""
+    V = np.asarray(vertices, dtype=float)
+    index = mesh_index(V, faces)
+    out = []
+    for k in range(4):
+        c, s = np.round(np.cos(k * np.pi / 2)), np.round(np.sin(k * np.pi / 2))
+        S = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        r, dist, _ = point_to_plane(index, V @ S.T)
+        if np.max(np.abs(r)) <= SYMMETRY_TOL_MM and np.max(dist) <= index.tree.query(V)[0].max() + SYMMETRY_TOL_MM:
+            out.append(S)
+    return out
+
+
+def placement_error(registered: dict, R_WE, p_WE, defined_deg: float = 0.05, symmetries=None) -> dict:
+    """The error of a registered placement (register_fit's dict) against the true X_WE
+    (R_WE (3, 3), p_WE (3,) mm), modulo the mesh's `symmetries` (rotations in E that map
+    it onto itself, `mesh_symmetries`; None: the identity alone): {"position_error_um",
+    "rotation_error_deg" (the whole rotation, against the nearest placement of the same
+    mesh), "rotation_error_about_axes_deg" (its components about the registration's
+    principal axes, `rotation_axes_E`, most to least defined), "rotation_sd_deg" (their
+    SDs), "defined_axes" (how many: 3 x SD <= defined_deg), "rotation_error_defined_deg"
+    (the rotation error with the components about the undefined axes left out: the error
+    modulo the rotations the geometry and the points' residual do not pin to defined_deg),
+    "symmetry_turn_deg" (the turn about E's z of the nearest equivalent placement)}."""
+    R_reg = np.asarray(registered["R_WE"])
+    options = []
+    for S in ([np.eye(3)] if symmetries is None else symmetries):
+        R_eq = np.asarray(R_WE) @ S  # the same mesh, turned onto itself: the same physical placement
+        v = Rotation.from_matrix(R_reg @ R_eq.T).as_rotvec()
+        options.append((np.linalg.norm(v), R_eq, v, S))
+    _, R_eq, v_W, S = min(options, key=lambda o: o[0])
+    v_E = R_eq.T @ v_W  # the error's rotation vector in E (= M)
+    axes = np.asarray(registered["rotation_axes_E"])  # rows
+    sd = np.array([np.inf if v is None else v for v in registered["rotation_sd_deg"]])
+    about = np.degrees(axes @ v_E)
+    defined = 3.0 * sd <= defined_deg
     return {"position_error_um": 1e3 * float(np.linalg.norm(np.asarray(registered["p_WE_mm"]) - np.asarray(p_WE))),
-            "rotation_error_deg": float(np.degrees(Rotation.from_matrix(R).magnitude()))}
+            "rotation_error_deg": float(np.degrees(np.linalg.norm(v_E))),
+            "rotation_error_about_axes_deg": about.tolist(), "rotation_sd_deg": registered["rotation_sd_deg"],
+            "defined_axes": int(defined.sum()),
+            "rotation_error_defined_deg": float(np.linalg.norm(about[defined])),
+            "symmetry_turn_deg": float(np.degrees(np.arctan2(S[1, 0], S[0, 0])))}

@@ -152,3 +152,42 @@ def truth_of(spec: RecordingSpec, scenario, robot, motion: TrueMotion, n_ascans:
         "duration_s": float(motion.t[-1]), "n_joint_states": len(motion.t), "n_ascans": n_ascans,
     })
     return out
+
+
+def direct_model(spec: RecordingSpec, true_sensor_pose: bool = False, progress=None):
+    """The reference of a recording's fit: the model the closed loop's own sensor and model
+    chain builds from the same scan without the recording round trip (no bag, no clock
+    offset, no synchronisation estimate, no registration). The same true motion as
+    `write_recording` (the scan after the synchronisation motion), the loop's sensor
+    (planning.iioct.IioctSensor, "ascan" mode, spec.seed, spec.encoder_noise_rad on the
+    reported angles, the nominal sensor pose for the points: the scenario's calibration
+    error reaches the points as in the fit without --calibration; `true_sensor_pose`: the
+    true one, a perfect calibration) sampled at the OCT rate
+    in packets of 20 (the loop's), and the loop's model (AdaptiveEyeModel, predictive
+    criteria, the quadric: ClosedLoop.new_model) updated with each packet's valid points.
+    The safety filter is left out: it would change the motion, and the reference is the
+    same scan trajectory. Returns the AdaptiveEyeModel in W. `progress(done, total)`:
+    called per packet block."""
+    from models import AdaptiveEyeModel
+    from models.adaptive.transition import PredictiveCriteria
+    from planning import Robot
+    from planning.iioct import IioctSensor
+
+    scenario = scenario_of(spec)
+    robot = Robot(scenario)
+    motion = true_motion(robot, scenario, spec)
+    sensor = IioctSensor(robot, mode="ascan", seed=spec.seed, encoder_noise_rad=spec.encoder_noise_rad,
+                         X_S_Scal=scenario.X_S_Strue if true_sensor_pose else None)
+    T = np.arange(0.0, motion.t[-1], 1.0 / spec.oct_rate_hz)
+    T = T[T > motion.sync_end_s]
+    Q = _at(T, motion)
+    model = AdaptiveEyeModel(criteria=PredictiveCriteria())
+    packet = 20
+    for k in range(0, len(T), packet):
+        Qk = np.ascontiguousarray(Q[k:k + packet])
+        p = sensor.packet_of_arrays(np.ascontiguousarray(T[k:k + packet]), Qk, Qk.copy())
+        if p.valid.any():
+            model.update(np.ascontiguousarray(p.p_W[p.valid]))
+        if progress is not None and (k // packet) % 100 == 0:
+            progress(k, len(T))
+    return model

@@ -72,6 +72,12 @@ def test_a_bag_written_with_rosbags_directly_is_read_and_synchronised(tmp_path):
     r = json.loads((out / "fit.json").read_text())
     assert abs(r["time_offset_ms"] - 1e3 * offset_s) < 0.5
     assert r["sync"]["gain"] == pytest.approx(-1.0, abs=0.05) and r["n_points"] > 100
+    # the extraction in worker processes gives every A-scan's distance exactly as in one
+    from eval.recording.fit import read_recording
+
+    one, two = read_recording(bag, jobs=1)[1], read_recording(bag, jobs=2)[1]
+    np.testing.assert_array_equal(one.distance_mm, two.distance_mm)
+    np.testing.assert_array_equal(one.confidence, two.confidence)
 
 
 @pytest.mark.slow
@@ -85,11 +91,15 @@ def test_record_then_fit_with_the_printed_phantom(tmp_path):
     assert main(["fit", "--recording", str(rec / "recording"), "--out", str(out),
                  "--ground-truth", str(stl / "myopic.stl")]) == 0
     r = json.loads((out / "fit.json").read_text())
-    assert {"time_offset_ms", "kind", "n_points", "sf_fmae_um", "ef_fmae_um", "mae_um", "registration_rmse_um"} <= set(r)
+    assert {"time_offset_ms", "kind", "n_points", "sf_fmae_um", "ef_fmae_um", "lf_fmae_um", "mae_um", "lf_mae_um",
+            "registration_rmse_um"} <= set(r)
     assert abs(r["time_offset_ms"] - 7.5) < 0.5
     # a 3-turn spiral's model on the printed half: the closed loop's spread for 3 turns is
     # 39-57 um on the whole retina (test_cmd_sensor); the registration leaves the noise
     assert r["mae_um"] < 60.0 and r["registration_rmse_um"] < 40.0
+    # the local-global model fits the same points at least as closely as the quadric (it is
+    # the quadric plus a correction fitted to them)
+    assert r["lf_fmae_um"] <= 1.05 * r[{"ellipsoid": "ef_fmae_um", "sphere": "sf_fmae_um"}[r["kind"]]]
     assert (out / "sync.png").exists() and (out / "fit.png").exists()
 
 

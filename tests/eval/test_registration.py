@@ -1,0 +1,62 @@
+"""Registration of a fit to its printed phantom (eval.recording.ground_truth): the whole
+lower half scanned, as a phantom on the bench allows, at a placement no other test uses."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from eval.recording.ground_truth import mesh_symmetries, placement_error, register_fit
+from models import fit_sphere
+from models.eyes import EYE_SHAPES, make_eye
+from models.eyes.mesh import lower_half_shell
+from models.shapes.sampling import unit_sphere_grid
+
+# the targets (a simulated printed eye at a known placement)
+POSITION_UM, ROTATION_DEG = 20.0, 0.05
+# the extractor's noise on the distance: the recording's points scatter 6-17 um about the
+# true retina (eval.recording; models.iioct)
+NOISE_MM = 0.012
+
+
+def _phantom_points(eye, rng, n=40000, max_polar_deg=80.0):
+    """n retina points (a 20 s scan at 2 kHz; register_fit takes at most 40,000) of the
+    lower half within max_polar_deg of the posterior pole (E), uniform over the area's
+    directions, each moved along its direction by N(0, NOISE_MM)."""
+    U = unit_sphere_grid(400, 800)
+    U = U[np.degrees(np.arccos(np.clip(-U[:, 2], -1.0, 1.0))) < max_polar_deg]
+    U = U[rng.choice(len(U), n, replace=False)]
+    return eye.surface_points(U) + NOISE_MM * rng.standard_normal(n)[:, None] * U
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", EYE_SHAPES)
+def test_a_phantom_placed_anywhere_is_registered_within_the_targets_where_its_geometry_defines_it(name):
+    rng = np.random.default_rng(EYE_SHAPES.index(name) + 40)
+    eye = make_eye(name)
+    # a placement of the phantom no other test uses: tilted 37 deg, 150 mm from the base
+    R_WE = Rotation.from_rotvec(np.radians(37.0) * np.array([0.48, -0.6, 0.64])).as_matrix()
+    p_WE = np.array([141.3, -52.7, 33.9])
+    P_W = _phantom_points(eye, rng) @ R_WE.T + p_WE
+    mesh = lower_half_shell(eye, edge_mm=0.25)
+    symmetries = mesh_symmetries(*mesh)
+    # an axis-aligned ellipsoid's half (and the pointed eye's) is itself turned by 180 deg
+    # about its axis; the staphyloma and the detachment lie off the axis and break that
+    assert len(symmetries) == (1 if name in ("staphyloma", "detached") else 2)
+    reg = register_fit(P_W, fit_sphere(P_W), *mesh)  # a fit of any kind gives the centre to start from
+    err = placement_error(reg, R_WE, p_WE, defined_deg=ROTATION_DEG, symmetries=symmetries)
+    assert err["position_error_um"] <= POSITION_UM
+    assert reg["registration_rmse_um"] == pytest.approx(1e3 * NOISE_MM, rel=0.15)  # the noise and nothing more
+    # about the axes the geometry and the points define (3 SD within the target): the target
+    assert err["rotation_error_defined_deg"] <= ROTATION_DEG
+    # about each axis the points do not define to the target (3 SD beyond it: the myopic
+    # eye's tilts, within 0.35 mm of a sphere; the pathological eyes' least defined axis,
+    # 0.02-0.03 deg SD with 40,000 points): within 4 of its SDs, the Cramer-Rao bound
+    sd = np.array(err["rotation_sd_deg"])
+    about = np.abs(err["rotation_error_about_axes_deg"])
+    checked = 3 if name in ("staphyloma", "detached", "pointed") else 2  # no near-symmetry axis: all three
+    assert np.all(about[:checked] <= np.maximum(4.0 * sd[:checked], ROTATION_DEG))
+    # the regular eyes' turn about their near-symmetry axis is left unasserted: their
+    # semi-axes differ by 10-90 um about it, and the STL's facets (0.7 um off the smooth
+    # retina, periodic in the turn) ripple the ICP's cost as much as tens of degrees of
+    # turn change it (measured: bench/bench_recording.py)
