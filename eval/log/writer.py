@@ -175,16 +175,23 @@ class RunLogger:
                                                  "valid": bool(valid), "reason": str(reason)})
 
     def log_distance(self, t_s, distance_mm, valid: bool, confidence: float) -> None:
-        """The distance (mm) along the beam extracted from an A-scan, and its confidence
-        (2 kHz: formatted directly, the same JSON as the encoder's, in a third of its time)."""
-        ns = time_ns(t_s)
+        """The distance (mm) along the beam extracted from an A-scan, and its confidence."""
+        self.log_distances([t_s], [distance_mm], [valid], [confidence])
+
+    def log_distances(self, T_s, distances_mm, valid, confidence) -> None:
+        """One "/oct/distance" message per sample of a packet: times T_s (s), distances (mm),
+        valid flags and confidences, as sequences of Python scalars (2 kHz: each message
+        formatted directly, the same JSON as the encoder's in a third of its time)."""
         if self._closed:
             raise ValueError(f"the run log {self.path} is closed")
-        self._last_ns = ns
-        self._raw["/oct/distance"].log(
-            f'{{"t":{float(t_s)!r},"distance_mm":{_json_number(distance_mm)},"valid":{"true" if valid else "false"},'
-            f'"confidence":{_json_number(confidence)}}}'.encode(), self.start_ns + ns)
-        self._maybe_flush(ns)
+        log, start, ns = self._raw["/oct/distance"].log, self.start_ns, None
+        for t, d, ok, c in zip(T_s, distances_mm, valid, confidence):
+            ns = time_ns(t)
+            log(f'{{"t":{float(t)!r},"distance_mm":{_json_number(d)},"valid":{"true" if ok else "false"},'
+                f'"confidence":{_json_number(c)}}}'.encode(), start + ns)
+        if ns is not None:
+            self._last_ns = ns
+            self._maybe_flush(ns)
 
     def log_model(self, t_s, kind: str, sphere=None, ellipsoid=None, n_points: int = 0, criteria=None) -> None:
         """The eye model (W, mm): `kind` "prior" | "sphere" | "ellipsoid", its current

@@ -241,12 +241,12 @@ class AdaptiveModelSystem(LeafSystem):
         self.n_invalid += len(T) - n_valid
         self._distances.append((packet.distance_mm, packet.true_distance_mm, valid))
         if self.logger is not None:
+            self.logger.log_distances(T.tolist(), packet.distance_mm.tolist(), valid.tolist(), packet.confidence.tolist())
             ascans = packet.ascans
-            for k, (t, d, ok, c) in enumerate(zip(T.tolist(), packet.distance_mm.tolist(), valid.tolist(),
-                                                  packet.confidence.tolist())):
-                self.logger.log_distance(t, d, ok, c)
-                if ascans is not None and ascans[k] is not None and (first + k) % ASCAN_LOG_EVERY == 0:
-                    self.logger.log_ascan(t, ascans[k], ok, packet.reasons[k])
+            if ascans is not None:
+                for k, (t, ok) in enumerate(zip(T.tolist(), valid.tolist())):
+                    if ascans[k] is not None and (first + k) % ASCAN_LOG_EVERY == 0:
+                        self.logger.log_ascan(t, ascans[k], ok, packet.reasons[k])
         entry = None
         if n_valid:
             t0 = time.perf_counter()
