@@ -7,10 +7,10 @@ initial placement: the fitted model's centre goes onto the mesh retina's centre 
 same kind of fit to the faces that face it); of 4,000 uniformly random rotations about
 it, the 3 that bring 300 of the points closest to the mesh start a point-to-plane ICP
 with a 3 mm correspondence distance (30 iterations); the start with the smallest RMS
-residual is turned about its least defined axis to the best of every 2 deg (a near
-surface of revolution leaves that turn to a cost the STL's facets ripple) and run again;
-the result is refined with `max_distance_mm` (the paper: 0.1-1.0 mm; `sweep` refines from
-it with each of 0.1, 0.2, ..., 1.0 mm).
+residual is turned about its least defined axis to the best angle (every 3 deg, then
+0.25 deg: about a near-symmetry axis the cost is too flat for the ICP to follow) and run
+again; the result is refined with `max_distance_mm` (the paper: 0.1-1.0 mm; `sweep`
+refines from it with each of 0.1, 0.2, ..., 1.0 mm).
 
 `mae_um`: the area-weighted mean, over the mesh's retina faces (facing the model's centre
 within 60 deg, within 2 mm of the model), of each face centroid's exact distance to the
@@ -128,37 +128,40 @@ def _finite_or_none(v: float):
     return float(v) if np.isfinite(v) else None
 
 
-def _turned_about_weak_axis(P: np.ndarray, index: MeshIndex, reg: Registration, step_deg: float = 3.0,
+def _turn_cost(X: np.ndarray, c: np.ndarray, axis: np.ndarray, a: float, index: MeshIndex) -> tuple[float, np.ndarray]:
+    """(the ICP's truncated mean square cost, mm^2, of the points X (N, 3) mm in M turned by
+    `a` rad about `axis` through c, with the translation that best follows the turn; that
+    translation (3,) mm)."""
+    Y = (X - c) @ Rotation.from_rotvec(a * axis).as_matrix().T + c
+    dist, k = index.tree.query(Y, distance_upper_bound=COARSE_DISTANCE_MM)  # far points: no search
+    near = dist <= COARSE_DISTANCE_MM
+    if near.sum() < 6:
+        return np.inf, np.zeros(3)
+    n = index.normals[k[near]]
+    r = np.einsum("ij,ij->i", Y[near] - index.centroids[k[near]], n)
+    t = -np.linalg.lstsq(n, r, rcond=None)[0]
+    r = r + n @ t
+    return (float(np.sum(r * r)) + COARSE_DISTANCE_MM ** 2 * float(np.sum(~near))) / len(Y), t
+
+
+def _turned_about_weak_axis(P: np.ndarray, index: MeshIndex, reg: Registration, c: np.ndarray,
                             n_score: int = 12000) -> Registration:
-    """`reg` turned about its least defined rotation axis (through the registered points'
-    centroid) by the multiple of step_deg that, with its best translation, brings a
-    subsample of the points P closest to the mesh (truncated mean square point-to-plane
-    residual, the ICP's cost), then the coarse ICP again from there. About a near-symmetry axis the cost changes by a few per
-    cent over tens of degrees while the facets ripple it on the scale of their spacing:
-    the ICP stops in the ripple's minimum nearest its start; this scan starts it in the
-    right valley."""
-    X = P[np.linspace(0, len(P) - 1, min(len(P), n_score)).astype(int)] @ reg.R.T + reg.p
-    c = X.mean(axis=0)
+    """`reg` turned about its least defined rotation axis through c (3,) mm in M (the mesh
+    retina's centre, on a near-symmetry axis) by the angle that, with its best translation,
+    brings the points P closest to the mesh (the ICP's truncated mean square cost): every
+    3 deg on a subsample of n_score points, then every 0.25 deg within 3 deg of the best on
+    all of them; then the coarse ICP again from there. About a near-symmetry axis the cost
+    changes by a few per cent over tens of degrees, too little for the ICP's damped steps
+    to follow from a start far off; this scan starts it in the right valley."""
+    X_all = P @ reg.R.T + reg.p
+    X = X_all[np.linspace(0, len(P) - 1, min(len(P), n_score)).astype(int)]
     axis = reg.rotation_axes[:, 2]
-    best = (np.inf, 0.0, np.zeros(3))
-    for a in np.radians(np.arange(-180.0, 180.0, step_deg)):
-        Y = (X - c) @ Rotation.from_rotvec(a * axis).as_matrix().T + c
-        dist, k = index.tree.query(Y, distance_upper_bound=COARSE_DISTANCE_MM)  # far points: no search
-        near = dist <= COARSE_DISTANCE_MM
-        if near.sum() < 6:
-            continue
-        n = index.normals[k[near]]
-        r = np.einsum("ij,ij->i", Y[near] - index.centroids[k[near]], n)
-        # the best translation for this turn (its axis passes the symmetry axis only roughly)
-        t = -np.linalg.lstsq(n, r, rcond=None)[0]
-        r = r + n @ t
-        cost = (float(np.sum(r * r)) + COARSE_DISTANCE_MM ** 2 * float(np.sum(~near))) / len(Y)
-        if cost < best[0]:
-            best = (cost, a, t)
-    if best[1] == 0.0:
-        return reg
-    T = Rotation.from_rotvec(best[1] * axis).as_matrix()
-    turned = register_to_mesh(P, index, T @ reg.R, T @ (reg.p - c) + c + best[2], COARSE_DISTANCE_MM, max_iterations=30)
+    coarse = [(*_turn_cost(X, c, axis, a, index), a) for a in np.radians(np.arange(-180.0, 180.0, 3.0))]
+    a0 = min(coarse, key=lambda e: e[0])[2]
+    fine = [(*_turn_cost(X_all, c, axis, a, index), a) for a in a0 + np.radians(np.arange(-3.0, 3.01, 0.25))]
+    _, t, a = min(fine, key=lambda e: e[0])
+    T = Rotation.from_rotvec(a * axis).as_matrix()
+    turned = register_to_mesh(P, index, T @ reg.R, T @ (reg.p - c) + c + t, COARSE_DISTANCE_MM, max_iterations=30)
     return turned if turned.rmse_mm <= reg.rmse_mm else reg
 
 
@@ -188,7 +191,7 @@ def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0,
     if best is None or not np.isfinite(best[0]):
         raise RecordingError("--ground-truth: the recording's points do not match the mesh at any start (fewer than half "
                              f"lie within {COARSE_DISTANCE_MM:g} mm of it): is it the phantom of this recording, in mm?")
-    start = _turned_about_weak_axis(P, index, best[1])
+    start = _turned_about_weak_axis(P, index, best[1], c_M)
     out = _result(register_to_mesh(P, index, start.R, start.p, max_distance_mm), index, model, max_distance_mm, local)
     if sweep:
         out["sweep"] = [_result(register_to_mesh(P, index, start.R, start.p, d), index, model, d, local) for d in SWEEP_MM]
