@@ -76,6 +76,7 @@ BAD_NUMBERS = [
     ("record", "--encoder-noise-urad", "-1", "[0, 1000] urad"), ("record", "--joint-rate-hz", "10", "[50, 1000] Hz"),
     ("record", "--seed", "-1", f"[0, {SEED_MAX}]"),
     ("fit", "--max-offset-ms", "0", "[1, 1000] ms"), ("fit", "--icp-max-distance-mm", "9", "[0.01, 5] mm"),
+    ("fit", "--jobs", "0", "[1, 1024]"),
     ("eyes", "--wall-mm", "0", "[0.2, 5] mm"), ("eyes", "--edge-mm", "3", "[0.05, 2] mm"),
 ]
 
