@@ -16,7 +16,7 @@
    (its centre and its Taylor expansion as the prior), every node solved and the
    correction used wherever it has data. An offline fit has all the points, so the
    online choice of when to use the correction (models.local.selection) does not apply;
-   one batch costs about 6 us per point where the online local model costs about 200.
+   the batch costs about 6 us per point.
 
 Units: mm, s, rad (ms, um where named).
 """
@@ -29,10 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from eval.recording.bag import JointStream, OctStream, RecordingError, read_bag, read_csv_pair
+from eval.recording.extraction import Extraction
 from models import AdaptiveEyeModel
 from models.adaptive.transition import PredictiveCriteria
 from models.calibration.plate import SensorPose
-from eval.recording.extraction import Extraction
 from models.iioct import OctEngine
 from models.metrics import fmae_exact
 from planning.clock_sync import OffsetEstimate, estimate_time_offset, find_sync_segment
