@@ -100,8 +100,8 @@ def test_bad_faults_arguments_exit_2_and_write_nothing(argv, message, tmp_path, 
 
 @pytest.mark.slow
 def test_all_shapes_in_one_command_give_each_shapes_own_figures(tmp_path):
-    """--shape all: every shape into OUT/<shape> and summary.json, two shapes at a time in
-    forked processes; a shape's figures are those of `--shape S` run alone."""
+    """--shape all: every shape into OUT/<shape> and summary.json; a shape's figures are
+    those of `--shape S` run alone (with another number of workers)."""
     reduced = ["--scenarios", "2", "--sphere-scenarios", "1", "--duration-s", "0.2", "--spiral-revolutions", "1.5"]
     assert main(["boundary", "--shape", "all", *reduced, "--jobs", "2", "--out", str(tmp_path / "all")]) == 0
     summary = json.loads((tmp_path / "all" / "summary.json").read_text())
