@@ -66,6 +66,7 @@ def main(argv=None) -> int:
         parser = build_parser()
         try:
             args = parser.parse_args(argv)
+            args.argv = list(sys.argv[1:] if argv is None else argv)  # as given: what `boundary --shape all` re-runs
         except SystemExit as exc:  # --help, --version, or a refused argument (already reported)
             return exc.code if isinstance(exc.code, int) else EXIT_USAGE
         command = f"vitreoguard {args.command}"

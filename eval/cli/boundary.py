@@ -20,6 +20,7 @@ from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import add_loop_flags, loop_config, loop_record, scenario
 from eval.cli.progress import phase, progress_bar
 from eval.cli.workers import add_worker_flags, workers_of
+from eval.experiments.campaign import LOCAL_RAY
 from eval.experiments.model_report import error_sigma_figure, model_summary
 from models.eyes import EYE_SHAPES
 
@@ -91,22 +92,15 @@ def make_loop(scenario, config=None, **kwargs):
         return ClosedLoop(scenario, LoopConfig() if config is None else config, **kwargs)
 
 
-def bar_progress(bar, sink=None):
-    """A campaign's progress(done, total) callback that moves the tqdm `bar` to `done` (and
-    passes each increment to `sink`, when given)."""
-    def progress(done, total):
-        step = done - bar.n
-        bar.update(step)
-        if sink is not None and step:
-            sink(step)
-    return progress
+def bar_progress(bar):
+    """A campaign's progress(done, total) callback that moves the tqdm `bar` to `done`."""
+    return lambda done, total: bar.update(done - bar.n)
 
 
-def run_boundary(args, out, keep_build: bool = False, workers=None, sink=None):
+def run_boundary(args, out, keep_build: bool = False, workers=None):
     """The experiment of `args` (validated); writes logs and plots into `out`; returns
     boundary.json's content (a BoundaryRun with `keep_build`). The scenarios run on
-    `workers` (eval.experiments.campaign.Workers; None: this process). Progress goes to
-    stderr (and `sink(n)` after n more scenarios, when given)."""
+    `workers` (eval.experiments.campaign.Workers; None: this process). Progress goes to stderr."""
     from eval.experiments.boundary import build_model_by_spiral, run_campaign
     from eval.log.writer import RunLogger
 
@@ -120,14 +114,14 @@ def run_boundary(args, out, keep_build: bool = False, workers=None, sink=None):
     with RunLogger(out / "boundary.mcap", config.filter, metadata={**meta, "run": "adversarial scenario 0"}) as log, \
             progress_bar(args.scenarios, "adversarial scenarios", unit="scenario") as bar:
         campaign = run_campaign(loop, build.model, build.coverage, args.scenarios, args.seed, args.duration_s, logger=log,
-                                progress=bar_progress(bar, sink), workers=workers)
+                                progress=bar_progress(bar), workers=workers)
     sphere = None
     if args.sphere_scenarios:
         partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=1.5,
                                         progress="sphere phase: spiral of 1.5 turns", sensor_seed=[args.seed, 1])
         with progress_bar(args.sphere_scenarios, "sphere-phase scenarios", unit="scenario") as bar:
             sphere_campaign = run_campaign(loop, partial.model, partial.coverage, args.sphere_scenarios, args.seed + 1,
-                                           args.duration_s, progress=bar_progress(bar, sink), workers=workers)
+                                           args.duration_s, progress=bar_progress(bar), workers=workers)
         sphere = {"model_kind": partial.kind_final, "sf_mae_um": partial.sf_mae_um, **sphere_campaign.summary()}
     s = campaign.summary()
     spiral = build.run
@@ -180,10 +174,10 @@ def run_search(args, loop, build, random_min_mm: float) -> dict:
                          "sensor_seed": found.worst_sensor_seed, "theta": [float(x) for x in found.worst_theta]}}
 
 
-def write_shape(args, out, workers, sink=None) -> dict:
+def write_shape(args, out, workers) -> dict:
     """run_boundary into the folder `out` (made) and its boundary.json; returns the content."""
     out = prepare_out_dir(out)
-    result = run_boundary(args, out, workers=workers, sink=sink)
+    result = run_boundary(args, out, workers=workers)
     write_json(out / "boundary.json", result)
     return result
 
@@ -191,8 +185,9 @@ def write_shape(args, out, workers, sink=None) -> dict:
 def main(args) -> int:
     validate(args)
     if args.shape == ALL:
-        workers_of(args)  # Ray joined (or refused) before anything is written
-        return run_all(args, write_shape)
+        if args.ray not in (None, LOCAL_RAY):
+            workers_of(args)  # the cluster reachable (or refused) before anything is written
+        return run_all(args)
     workers = workers_of(args)
     result = write_shape(args, args.out, workers)
     out = Path(args.out)
