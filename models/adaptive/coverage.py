@@ -105,20 +105,6 @@ class CoverageView:
         return nearest_and_worst(self._directions(Q), self._dirs, self._misfit, np.cos(angle_rad),
                                   band_chord(angle_rad))[1]
 
-    def angle_and_misfit(self, Q, angle_rad: float, n_angle: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(angle_from_data_rad(Q[:n_angle]), local_misfit_mm(Q, angle_rad)) (n_angle None:
-        all rows) without the per-call checks: for the loop's few points per step. Q must
-        be a finite (M, 3) float array."""
-        V = Q - self.center_W
-        V = V / np.maximum(np.sqrt(np.einsum("ij,ij->i", V, V)), 1e-12)[:, None]
-        n = len(V) if n_angle is None else n_angle
-        if not self.n_covered:
-            return np.full(n, np.pi), np.zeros(len(V))
-        best, _ = nearest_and_worst(V[:n], self._dirs, np.zeros(self.n_covered), 2.0)
-        worst = (np.zeros(len(V)) if self._misfit is None else
-                 nearest_and_worst(V, self._dirs, self._misfit, np.cos(angle_rad), band_chord(angle_rad))[1])
-        return np.arccos(np.clip(best, -1.0, 1.0)), worst
-
 
 class DirectionCoverage:
     """Covered directions from `center_W` (3,) mm, bins about `bin_deg` apart. `add(P)`

@@ -170,15 +170,24 @@ def test_the_z_band_finds_what_the_full_scan_finds(seed, angle_deg, n):
     assert np.all(best[~within] < cos_angle)
 
 
-def test_angle_and_misfit_in_one_scan_are_the_two_queries():
+def test_model_field_trust_is_the_two_queries():
+    """ModelField.trust (the compiled rule the filter's field and its log use): trusted
+    within the trust angle of a covered direction, the misfit the largest within the
+    misfit angle, as angle_from_data_rad and local_misfit_mm answer them."""
+    from models.adaptive.coverage import band_chord
+    from models.adaptive.model_field import ModelField
+
     rng = np.random.default_rng(4)
     cov = DirectionCoverage(np.zeros(3))
     P = rng.normal(size=(400, 3))
     P = 11.0 * P / np.linalg.norm(P, axis=1, keepdims=True)
     cov.add(P[P[:, 2] < 0])
-    view = cov.view(Sphere(np.zeros(3), 11.2))  # misfits: how deep inside the sphere each bin's points lie
-    Q = rng.normal(size=(6, 3)) * 5.0
-    for angle in np.radians([3.0, 10.0, 40.0]):
-        a, m = view.angle_and_misfit(Q, angle, 2)
-        np.testing.assert_array_equal(a, view.angle_from_data_rad(Q[:2]))
-        np.testing.assert_array_equal(m, view.local_misfit_mm(Q, angle))
+    shape = Sphere(np.zeros(3), 11.2)
+    view = cov.view(shape)  # misfits: how deep inside the sphere each bin's points lie
+    Q = rng.normal(size=(40, 3)) * 5.0
+    for trust, misfit_angle in np.radians([(10.0, 10.0), (3.0, 10.0), (40.0, 5.0)]):
+        chord = max(band_chord(trust), band_chord(misfit_angle))
+        field = ModelField(shape, 0.0, view, trust_angle_rad=trust, misfit_angle_rad=misfit_angle, band_chord=chord)
+        trusted, misfit = field.trust(Q)
+        np.testing.assert_array_equal(trusted, view.angle_from_data_rad(Q) <= trust)
+        np.testing.assert_allclose(misfit, view.local_misfit_mm(Q, misfit_angle), rtol=0, atol=1e-12)
