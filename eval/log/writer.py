@@ -56,8 +56,9 @@ def time_ns(t_s) -> int:
 
 
 def _json_number(x) -> str:
-    """x as a JSON number (float repr, as json.dumps writes it), "null" for NaN/inf/None."""
-    return "null" if x is None or not math.isfinite(float(x)) else repr(float(x))
+    """x as a JSON number (float repr, as json.dumps writes it), "null" where _opt gives None."""
+    v = _opt(x)
+    return "null" if v is None else repr(v)
 
 
 def _opt(x) -> float | None:
