@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from safety.constraints import JointPositionLimits, JointSpeedLimits, KeepOut, LinearEquality, PointBarrier, TipSpeedLimit
+from safety.constraints.actuated_barrier import actuator_aware
 from safety.inputs import FilterConfig, FilterInputs, FilterOutput
 from safety.stack import ConstraintStack
 from safety.tabulated_field import tabulate, tabulated_kernel
@@ -70,9 +71,11 @@ class SafetyFilter:
         while always < k and x.boundary_points[always].name in ALWAYS_KEPT:
             always += 1
         has_rcm = x.rcm_A is not None
-        rcm = LinearEquality(np.atleast_2d(x.rcm_A), np.atleast_1d(x.rcm_b)) if has_rcm else None
+        rcm = LinearEquality(np.atleast_2d(x.rcm_A), np.atleast_1d(x.rcm_b), refusal=x.rcm_refusal) if has_rcm else None
         constraints = default_constraints(self.config, x.q_min, x.q_max, x.qdot_max, (("boundary", "eye", always),),
                                           ("lens", "lens") if m else None, rcm, self.extra)
+        if x.pending is not None:  # the actuator the inputs describe
+            constraints = actuator_aware(constraints)
         key = (n, k, m, always, tuple(c.key() for c in constraints),
                tuple(c.max_rows(0) for c in constraints if c.kind == "equality"))
         stack = self._stacks.get(key)
@@ -125,8 +128,9 @@ class SafetyFilter:
         command = np.concatenate([np.asarray(x.v_cmd_W, dtype=float), [float(x.roll_rate_cmd)]])
         ranges = np.array([[0, k], [k, k + m]], dtype=np.int64)
         times = np.array([x.t_s, x.model_time_s, x.sensor_time_s], dtype=float)
+        pending = None if x.pending is None else np.ascontiguousarray(np.asarray(x.pending, dtype=float).reshape(-1, n))
         out, r = stack.solve(np.asarray(x.q, dtype=float), command, times, np.asarray(x.J_tip, dtype=float), J_roll, P,
-                             J, ranges, tuple(fields[s] for s in stack.slots))
+                             J, ranges, tuple(fields[s] for s in stack.slots), pending=pending)
         return out, stack, r, ranges
 
     def _fault(self, x: FilterInputs, n: int) -> str | None:

@@ -82,7 +82,12 @@ class FilterInputs:
     `model_time_s` / `sensor_time_s` are the times of the last model update and sensor
     sample, checked against `t_s`. `fallback` (a shape inside every plausible retina,
     e.g. the conservative prior) bounds the boundary points marked untrusted: their
-    clearance is the smaller of the model's and the fallback's.
+    clearance is the smaller of the model's and the fallback's. `pending` (r, n) rad: what
+    the actuator still carries out if every command from this step on is zero
+    (safety.actuator.ActuatorModel.pending_rows); given, the retina barrier is
+    actuator-aware (safety.constraints.actuated_barrier); None: an ideal actuator.
+    `rcm_refusal`: the planned stop the RCM rows' maker decided for this step
+    (safety.constraints.rcm: "actuator cannot hold the trocar"), "" for none.
     """
 
     t_s: float
@@ -104,6 +109,8 @@ class FilterInputs:
     J_roll: np.ndarray | None = None
     roll_rate_cmd: float = 0.0
     fallback: object = None
+    pending: np.ndarray | None = None
+    rcm_refusal: str = ""
 
 
 class FilterOutput(NamedTuple):

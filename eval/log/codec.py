@@ -18,17 +18,18 @@ from safety import FilterConfig, FilterInputs, PointKinematics
 
 _SCALARS = ("t_s", "model_time_s", "sensor_time_s", "margin_mm", "roll_rate_cmd")
 _ARRAYS = ("q", "q_min", "q_max", "qdot_max", "v_cmd_W", "J_tip")
-_OPTIONAL_ARRAYS = ("rcm_A", "rcm_b", "J_roll")
+_OPTIONAL_ARRAYS = ("rcm_A", "rcm_b", "J_roll", "pending")
+_STRINGS = ("rcm_refusal",)
 _POINT_LISTS = ("boundary_points", "lens_points")
 _SHAPES = ("model", "lens", "fallback")
-_OPTIONAL_ON_READ = ("fallback",)  # a log may lack them: read as None
+_OPTIONAL_ON_READ = ("fallback", "pending", "rcm_refusal")  # a log may lack them: read as None ("" for a string)
 _NONFINITE = {"nan": math.nan, "inf": math.inf, "-inf": -math.inf}
 
 
 # FilterInputs fields this format does not know (a newer safety package): logging refuses
 # them rather than write logs that cannot be replayed.
 _UNKNOWN_INPUT_FIELDS = sorted({f.name for f in dataclasses.fields(FilterInputs)}
-                               - set(_SCALARS + _ARRAYS + _OPTIONAL_ARRAYS + _POINT_LISTS + _SHAPES))
+                               - set(_SCALARS + _ARRAYS + _OPTIONAL_ARRAYS + _STRINGS + _POINT_LISTS + _SHAPES))
 
 
 def json_number(x) -> float | str:
@@ -107,6 +108,7 @@ def inputs_to_json(x: FilterInputs) -> dict:
     d = {name: json_number(getattr(x, name)) for name in _SCALARS}
     d.update({name: json_array(getattr(x, name)) for name in _ARRAYS})
     d.update({name: None if getattr(x, name) is None else json_array(getattr(x, name)) for name in _OPTIONAL_ARRAYS})
+    d.update({name: str(getattr(x, name)) for name in _STRINGS})
     for name in _POINT_LISTS:
         d[name] = [{"name": p.name, "p_W": json_array(p.p_W), "J_W": json_array(p.J_W), "trusted": bool(p.trusted),
                     "margin_mm": json_number(p.margin_mm)} for p in getattr(x, name)]
@@ -122,13 +124,17 @@ def inputs_from_json(d) -> FilterInputs:
     """The FilterInputs of an inputs_to_json dict; ValueError naming the bad field."""
     if not isinstance(d, dict):
         raise ValueError(f"filter inputs must be a JSON object, got {type(d).__name__}")
-    missing = [n for n in _SCALARS + _ARRAYS + _OPTIONAL_ARRAYS + _POINT_LISTS + _SHAPES
+    missing = [n for n in _SCALARS + _ARRAYS + _OPTIONAL_ARRAYS + _STRINGS + _POINT_LISTS + _SHAPES
                if n not in d and n not in _OPTIONAL_ON_READ]
     if missing:
         raise ValueError(f"filter inputs lack the fields {missing}")
     kw = {name: number_from_json(d[name], name) for name in _SCALARS}
     kw.update({name: array_from_json(d[name], name) for name in _ARRAYS})
-    kw.update({name: None if d[name] is None else array_from_json(d[name], name) for name in _OPTIONAL_ARRAYS})
+    kw.update({name: None if d.get(name) is None else array_from_json(d[name], name) for name in _OPTIONAL_ARRAYS})
+    for name in _STRINGS:
+        if not isinstance(d.get(name, ""), str):
+            raise ValueError(f"{name} must be a string, got {type(d[name]).__name__}")
+        kw[name] = d.get(name, "")
     for name in _POINT_LISTS:
         if not isinstance(d[name], list) or not all(isinstance(p, dict) and {"name", "p_W", "J_W"} <= p.keys() for p in d[name]):
             raise ValueError(f"{name} must be a list of {{name, p_W, J_W}} records")

@@ -6,7 +6,8 @@ configuration ("/filter/config"); a step matches when the joint rates agree with
 A closed loop's log holds compact "/filter/step" records (eval.log.steps), whose
 kinematics are rebuilt on the robot of its "/filter/setup"; a log written through
 RunLogger.log_filter_step holds every input ("/filter/inputs", "/filter/outputs",
-"/filter/status", paired by their `step` number). Both replay.
+"/filter/status", paired by their `step` number). Both replay, with the actuator the
+run was told about: its pending displacements are in every step's inputs.
 """
 from __future__ import annotations
 
@@ -156,7 +157,8 @@ def _compact_steps(log, path) -> list:
                 raise ValueError(f"model {m.model_index} is not on /filter/models")
             shape, kind = models[m.model_index]
             x = build(m.t, np.array(m.q), np.array([*m.v_cmd_W, m.roll_rate_cmd]), shape, kind, m.model_time_s,
-                      m.sensor_time_s, m.margin_mm, np.array(m.trusted, dtype=bool), np.array(m.misfit_mm))
+                      m.sensor_time_s, m.margin_mm, np.array(m.trusted, dtype=bool), np.array(m.misfit_mm),
+                      pending=steps.pending_of(m))
         except ValueError as exc:
             raise LogReadError(f"{path}: /filter/step {len(out)}: {exc}") from None
         out.append((m.step, x, {"qdot": list(m.qdot)},

@@ -3,8 +3,8 @@ inputs from them.
 
 A closed-loop step is logged as what the filter cannot recompute: the time, the joint
 angles, the command, the model's and sensor's times, the margin, the trusted flag and
-measured misfit of each boundary point, and the output (joint rates, ok, reason, active
-constraints, cutter interlock); one "/filter/step" message (protobuf, schema
+measured misfit of each boundary point, the actuator's pending displacements (none for an
+ideal actuator), and the output (joint rates, ok, reason, active constraints, cutter interlock); one "/filter/step" message (protobuf, schema
 FILTER_STEP_SCHEMA, ~250 bytes) per step. The model the filter used goes to
 "/filter/models" (JSON) once per change, numbered; the scenario and monitored points go
 to "/filter/setup" (JSON) once. Replay rebuilds the kinematics (monitored points, their
@@ -33,7 +33,7 @@ STEP_FIELDS = (
     ("model_index", _U, False), ("model_time_s", _D, False), ("sensor_time_s", _D, False), ("margin_mm", _D, False),
     ("trusted", _B, True), ("misfit_mm", _D, True), ("qdot", _D, True), ("ok", _B, False), ("reason", _S, False),
     ("active", _S, True), ("min_clearance_mm", _D, False), ("cutter_allowed", _B, False),
-    ("intervened", _B, False), ("solve_us", _D, False),
+    ("intervened", _B, False), ("solve_us", _D, False), ("pending_rad", _D, True),
 )
 
 
@@ -54,9 +54,11 @@ FilterStep = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(STEP_TY
 
 
 def encode_step(step: int, t_s: float, q, command, model_index: int, model_time_s: float, sensor_time_s: float,
-                margin_mm: float, trusted, misfit_mm, output) -> bytes:
+                margin_mm: float, trusted, misfit_mm, output, pending=None) -> bytes:
     """One step's record: `command` (4,) [v_W mm/s, roll rad/s], the boundary points'
-    `trusted` flags and `misfit_mm`, the filter's `output` (safety.FilterOutput)."""
+    `trusted` flags and `misfit_mm`, the filter's `output` (safety.FilterOutput), the
+    actuator's `pending` displacements (r, 6) rad, row-major (None or no rows: an ideal
+    actuator; decode with pending_of)."""
     floats = lambda a: a.tolist() if type(a) is np.ndarray and a.dtype == np.float64 else [float(x) for x in a]  # noqa: E731
     return FilterStep(  # protobuf takes Python scalars: ndarray.tolist() is the cheapest way there
         t=float(t_s), step=int(step), q=floats(q), v_cmd_W=floats(command[:3]), roll_rate_cmd=float(command[3]),
@@ -65,7 +67,18 @@ def encode_step(step: int, t_s: float, q, command, model_index: int, model_time_
         qdot=floats(output.qdot), ok=bool(output.ok), reason=str(output.reason), active=[str(a) for a in output.active],
         min_clearance_mm=float(output.min_clearance_mm), cutter_allowed=bool(output.cutter_allowed),
         intervened=bool(output.intervened), solve_us=float(output.solve_us),
+        pending_rad=() if pending is None else floats(np.ravel(pending)),
     ).SerializeToString()
+
+
+def pending_of(m) -> np.ndarray | None:
+    """The actuator's pending displacements (r, 6) rad of a decoded step, None for an ideal
+    actuator; ValueError when the record's count is not whole rows."""
+    if not len(m.pending_rad):
+        return None
+    if len(m.pending_rad) % 6:
+        raise ValueError(f"pending_rad holds {len(m.pending_rad)} numbers, not rows of 6 joints")
+    return np.array(m.pending_rad).reshape(-1, 6)
 
 
 def decode_step(data: bytes):

@@ -245,12 +245,13 @@ class RunLogger:
         return len(self._models) - 1
 
     def log_step(self, t_s, q, command, shape, kind: str | None, model_time_s: float, sensor_time_s: float,
-                 margin_mm: float, trusted, misfit_mm, output) -> None:
+                 margin_mm: float, trusted, misfit_mm, output, pending=None) -> None:
         """One closed-loop filter step as a compact record on /filter/step (eval.log.steps):
         joint angles q (6,) rad, `command` (4,) [v_W mm/s, roll rad/s], the model `shape`
         and `kind` (None: the prior) the filter used, the model's and sensor's times (s),
         `margin_mm`, the boundary points' `trusted` flags and `misfit_mm`, and the filter's
-        `output` (safety.FilterOutput). Needs log_setup first (replay needs it)."""
+        `output` (safety.FilterOutput), the actuator's `pending` displacements (r, 6) rad
+        (None: an ideal actuator). Needs log_setup first (replay needs it)."""
         if not self._setup_logged:
             raise ValueError("log_setup must come before the first log_step: replay rebuilds the kinematics from it")
         ns = time_ns(t_s)
@@ -259,7 +260,8 @@ class RunLogger:
             raise ValueError(f"the run log {self.path} is closed")
         self._last_ns = ns
         self._raw_step.log(step_records.encode_step(self.steps, float(t_s), q, command, index, model_time_s,
-                                                    sensor_time_s, margin_mm, trusted, misfit_mm, output),
+                                                    sensor_time_s, margin_mm, trusted, misfit_mm, output,
+                                                    pending),
                            self.start_ns + ns)
         self.steps += 1
         self._maybe_flush(ns)

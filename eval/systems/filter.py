@@ -39,8 +39,8 @@ from planning.robot import RCM_GAIN_PER_S, Robot
 from planning.scan import start_posture
 from planning.step_kinematics import GROUP_CAPACITY, POINT_GROUPS, point_names, step_kinematics, step_kinematics_params
 from safety import ConstraintStack, default_constraints
-from safety.constraints import PointBarrier, RcmEquality
-from safety.constraints.actuated_barrier import ActuatedPointBarrier
+from safety.constraints import RcmEquality
+from safety.constraints.actuated_barrier import actuator_aware
 
 JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
 
@@ -86,9 +86,7 @@ def loop_constraints(robot: Robot, config: LoopConfig) -> list:
                               (("tip_port", "eye", 2), ("shaft", "eye_shaft", 0)), ("lens", "lens"),
                               RcmEquality(np.asarray(robot.p_WC, dtype=float), RCM_GAIN_PER_S),
                               config.extra_constraints)
-    if config.actuator.ideal:
-        return out
-    return [ActuatedPointBarrier.of(c) if type(c) is PointBarrier else c for c in out]
+    return out if config.actuator.ideal else actuator_aware(out)
 
 
 class FilterSystem(LeafSystem):
@@ -244,13 +242,13 @@ class FilterSystem(LeafSystem):
                                                                   pending)
         return out, P, ranges, J_tip, rcm_error
 
-    def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float):
-        """(FilterInputs, InstrumentPoints) of one step, as replay rebuilds it from the log;
-        ValueError on bad joint angles."""
+    def inputs(self, t_s: float, q, command, snap: ModelSnapshot, sensor_t_s: float, pending=None):
+        """(FilterInputs, InstrumentPoints) of one step, as replay rebuilds it from the log
+        (`pending` the actuator's, None: ideal); ValueError on bad joint angles."""
         ip = self.step_inputs.points_at(q)
         shape, kind, margin, trusted, misfit = self._step_model(snap, ip)
         x = self.step_inputs(t_s, q, command, shape, kind, t_s if kind is None else snap.t_s, sensor_t_s, margin,
-                             trusted, misfit, ip)
+                             trusted, misfit, ip, pending)
         return x, ip
 
     def _step_model(self, snap: ModelSnapshot, ip) -> tuple:
@@ -304,7 +302,8 @@ class FilterSystem(LeafSystem):
         snap = self._snap.Eval(context)
         sensor_t = snap.healthy_t_s  # the newest healthy sensor sample, relayed by the model system
         rec = self.record
-        out, P, ranges, J_tip, rcm_error = self.filter_step(t, q, command, snap, sensor_t, self.pending(context))
+        pending = self.pending(context)
+        out, P, ranges, J_tip, rcm_error = self.filter_step(t, q, command, snap, sensor_t, pending)
         if snap.stream and not out.ok and out.reason.startswith("stale sensor"):  # say what the stream sent
             out = out._replace(reason=out.reason.replace("stale sensor", f"stale sensor ({snap.stream})", 1))
         discrete_state.set_value(out.qdot)
@@ -316,7 +315,8 @@ class FilterSystem(LeafSystem):
                               P[ranges[2, 0]:ranges[2, 1]]))
         if self.logger is not None:
             meas = self._meas.Eval(context)
-            self._log(t, q, command, snap, sensor_t, out, float(meas[0]) if meas[1] > 0 else float("nan"))
+            self._log(t, q, command, snap, sensor_t, out, float(meas[0]) if meas[1] > 0 else float("nan"),
+                      None if self._actuator is None else pending)
 
     def time_drake_diffik(self) -> None:
         """Time Drake's DoDifferentialInverseKinematics on the states recorded during the
@@ -328,8 +328,9 @@ class FilterSystem(LeafSystem):
             self.drake_diffik(q, v_cmd)
             rec.drake_diffik_us.append(1e6 * (time.perf_counter() - t1))
 
-    def _log(self, t: float, q, command, snap, sensor_t: float, out, distance_mm: float) -> None:
-        """Every step's compact record (eval.log.steps: what replay cannot recompute); joint
+    def _log(self, t: float, q, command, snap, sensor_t: float, out, distance_mm: float, pending) -> None:
+        """Every step's compact record (eval.log.steps: what replay cannot recompute, with the
+        actuator's `pending` displacements, None for an ideal one); joint
         states and clearances at 100 Hz; frames and the 3D scene (model, lens, trocar, the
         beam to the last measured distance) at 20 Hz."""
         log, k = self.logger, len(self.record.steps)
@@ -345,7 +346,7 @@ class FilterSystem(LeafSystem):
                 shape, margin = snap.shape, snap.margin_mm(self.config.margins)
                 trusted, misfit = self._trust(snap, P[:2] if kind is None else P)
             log.log_step(t, q, command, shape, kind, t if kind is None else snap.t_s, sensor_t, margin, trusted,
-                         misfit, out)
+                         misfit, out, pending)
         if k % 10 == 1:
             log.log_joint_states(t, q, out.qdot, JOINT_NAMES)
             log.log_clearance(t, P[:2], model)

@@ -40,10 +40,12 @@ class StepInputs:
         return 2 if kind is None else len(ip.names)
 
     def __call__(self, t_s: float, q, command, shape, kind: str | None, model_time_s: float, sensor_time_s: float,
-                 margin_mm: float, trusted, misfit_mm, ip=None) -> FilterInputs:
+                 margin_mm: float, trusted, misfit_mm, ip=None, pending=None) -> FilterInputs:
         """The step's inputs: `command` (4,) [v_W mm/s, roll rad/s]; the model's `shape`
         and `kind` (None: the prior alone); the boundary points' `trusted` flags and
-        `misfit_mm` (boundary_count of them); `ip` the points at q if known."""
+        `misfit_mm` (boundary_count of them); `ip` the points at q if known; `pending` (r, 6)
+        rad the actuator's pending displacements (None: an ideal actuator), which the RCM
+        rows and their planned stop account for as in the loop (safety.constraints.rcm)."""
         robot = self.robot
         ip = self.points_at(q) if ip is None else ip
         k = self.boundary_count(kind, ip)
@@ -51,7 +53,9 @@ class StepInputs:
             raise ValueError(f"{k} boundary points at these joint angles, but {len(trusted)} trusted flags and "
                              f"{len(misfit_mm)} misfits")
         rcm_A, rcm_b = np.zeros((2, 6)), np.zeros(2)
-        fill_rcm(self.rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, np.zeros((0, 6)), rcm_A, rcm_b, 0)
+        pending = None if pending is None else np.ascontiguousarray(pending, dtype=float).reshape(-1, 6)
+        code = fill_rcm(self.rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI,
+                        np.zeros((0, 6)) if pending is None else pending, rcm_A, rcm_b, 0)
         return FilterInputs(
             t_s=t_s, q=np.array(q, dtype=float), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,
             v_cmd_W=np.array(command[:3], dtype=float), J_tip=ip.J_tip,
@@ -61,5 +65,6 @@ class StepInputs:
             rcm_A=rcm_A, rcm_b=rcm_b, lens=self.lens,
             lens_points=[PointKinematics(n, p, J) for n, p, J in zip(ip.lens_names, ip.L_W, ip.J_L)],
             margin_mm=margin_mm, J_roll=ip.J_roll, roll_rate_cmd=float(command[3]),
-            fallback=None if kind is None else self.prior,
+            fallback=None if kind is None else self.prior, pending=pending,
+            rcm_refusal=self.rcm.fault_reason(-code) if code < 0 else "",
         )

@@ -156,3 +156,9 @@ class ActuatedPointBarrier(PointBarrier):
 
 
 __all__ = ["ActuatedPointBarrier", "braking_margins", "fill_actuated_barrier"]
+
+
+def actuator_aware(constraints) -> list:
+    """The stack `constraints` for an actuator that is not ideal: every PointBarrier made an
+    ActuatedPointBarrier (its fields kept, the defaults above), the rest as they are."""
+    return [ActuatedPointBarrier.of(c) if type(c) is PointBarrier else c for c in constraints]

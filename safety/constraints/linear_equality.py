@@ -1,4 +1,5 @@
-"""Given equality rows A qdot = b (for example RCM rows computed elsewhere)."""
+"""Given equality rows A qdot = b (for example RCM rows computed elsewhere), and the
+planned stop their maker decided for the step (`refusal`), if any."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,12 +9,16 @@ from numba import njit
 
 from safety.constraints.base import Constraint, as_params
 
+REFUSED = 1  # the filler's fault code
+
 
 @njit(cache=True)
 def fill_linear_equality(sp, q, A, b, p):
-    """sp = [rows r, A (r x n) row-major, b (r)]."""
+    """sp = [rows r, A (r x n) row-major, b (r), refused 1/0]; -REFUSED when refused."""
     n = q.shape[0]
     r = int(sp[0])
+    if sp[1 + r * n + r] != 0.0:
+        return -REFUSED
     for i in range(r):
         for j in range(n):
             A[p, j] = sp[1 + i * n + j]
@@ -24,11 +29,13 @@ def fill_linear_equality(sp, q, A, b, p):
 
 @dataclass(frozen=True, eq=False)
 class LinearEquality(Constraint):
-    """Rows A (r, n) qdot = b (r,) (rad/s in, the rows' units out)."""
+    """Rows A (r, n) qdot = b (r,) (rad/s in, the rows' units out); a non-empty `refusal`
+    refuses the step with it as the reason."""
 
     A: np.ndarray
     b: np.ndarray
     name: str = "rcm"
+    refusal: str = ""
 
     kind = "equality"
     filler = staticmethod(fill_linear_equality)
@@ -42,7 +49,12 @@ class LinearEquality(Constraint):
         object.__setattr__(self, "b", b)
 
     def params(self) -> np.ndarray:
-        return as_params(self.A.shape[0], self.A, self.b)
+        return as_params(self.A.shape[0], self.A, self.b, 1.0 if self.refusal else 0.0)
 
     def max_rows(self, group_size: int) -> int:
         return self.A.shape[0]
+
+    def fault_reason(self, code: int) -> str:
+        if code == REFUSED and self.refusal:
+            return self.refusal
+        return super().fault_reason(code)

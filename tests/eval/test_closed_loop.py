@@ -239,6 +239,25 @@ def test_a_closed_loop_log_replays_bit_for_bit(emmetropic, tmp_path):
     assert result.ok and result.steps >= 85 and result.max_abs_diff == 0.0  # 1 kHz from the first packet (11 ms) to 0.1 s
 
 
+def test_a_log_of_a_robot_with_its_own_dynamics_replays_bit_for_bit(emmetropic, tmp_path):
+    """Delay, lag and acceleration limit (the fault classes' values): each step's record holds
+    the actuator's pending displacements, and replay rebuilds the actuator-aware barriers,
+    the RCM rows and the planned stops the run made from them."""
+    from safety.actuator import ActuatorModel
+
+    _, model = emmetropic
+    actuator = ActuatorModel(delay_s=0.005, lag_s=0.02, accel_limit_rad_s2=float(np.radians(1000.0)))
+    loop = ClosedLoop(SurgeryScenario(), LoopConfig(actuator=actuator))
+    q0 = deep_start(loop)
+    with RunLogger(tmp_path / "robot.mcap", loop.config.filter) as log:  # 20 mm/s towards the retina and along it
+        run = loop.run(VelocityReplayCommand([0.0, 0.25], [[0.0, 0.0, 20.0], [15.0, 10.0, 10.0]]), q0, 0.5,
+                       **model.kw(), logger=log)
+    stops = {r for ok, r in zip(run.ok, run.reasons) if not ok}
+    assert stops and all(r.startswith("actuator cannot") for r in stops)  # the run made planned stops
+    result = replay(tmp_path / "robot.mcap")
+    assert result.ok and result.steps >= 480 and result.max_abs_diff <= 1e-9
+
+
 def test_segments_through_two_trocars_pivot_about_each_and_replay_bit_for_bit(emmetropic, tmp_path):
     """run_segments: the filter's RCM follows each segment's trocar (the RCM error stays at
     the IK's level about the active trocar), the log gets a setup per trocar, and replay

@@ -129,3 +129,58 @@ def test_the_local_model_step_equals_the_api_on_its_inputs(local_setup, start, k
     loop.filter.stack.reset()
     out = loop.filter.filter_step(0.001, q, command, snaps[kind], 0.0)[0]
     assert_same(out, api(loop, 0.001, q, command, snaps[kind], 0.0))
+
+
+@pytest.fixture(scope="module")
+def actuated_setup(setup):
+    """The loop told a delayed, lagging, acceleration-limited actuator (the fault classes' values)."""
+    from safety.actuator import ActuatorModel
+
+    _, starts, snaps = setup
+    actuator = ActuatorModel(delay_s=0.005, lag_s=0.02, accel_limit_rad_s2=float(np.radians(1000.0)))
+    loop = ClosedLoop(SurgeryScenario(), LoopConfig(local_model=False, filter=FilterConfig(), actuator=actuator))
+    return loop, starts, snaps
+
+
+def actuated_api(loop, q, command, snap, pending):
+    x = loop.filter.inputs(0.001, q, command, snap, 0.0, pending)[0]
+    return SafetyFilter(loop.config.filter)(x)
+
+
+@settings(max_examples=80, deadline=None)
+@given(start=st.integers(0, 11), kind=st.sampled_from(["prior", "ellipsoid"]),
+       pending=st.lists(st.floats(-0.01, 0.01), min_size=42, max_size=42),
+       v=st.lists(st.floats(-25.0, 25.0), min_size=3, max_size=3))
+def test_the_actuated_loop_step_equals_the_api_on_its_inputs(actuated_setup, start, kind, pending, v):
+    """With the actuator's pending displacements in the inputs, the API builds the same
+    actuator-aware barriers and RCM rows (and the same planned stops) as the loop: a log
+    of a run on a real robot replays."""
+    loop, starts, snaps = actuated_setup
+    q, command, P = starts[start], np.array([*v, 0.0]), np.array(pending).reshape(7, 6)
+    loop.filter.stack.reset()
+    out = loop.filter.filter_step(0.001, q, command, snaps[kind], 0.0, P)[0]
+    assert_same(out, actuated_api(loop, q, command, snaps[kind], P))
+
+
+def test_the_api_makes_both_planned_stops_of_the_actuated_loop(actuated_setup):
+    """A pending motion that swings the shaft about the trocar by millimetres: "cannot hold
+    the trocar"; one that carries the tip into the retina: "cannot brake before the
+    boundary". Both from the API on the loop's inputs, as in the loop."""
+    loop, starts, snaps = actuated_setup
+    snap, q = snaps["ellipsoid"], starts[0]
+    x = loop.filter.inputs(0.001, q, np.zeros(4), snap, 0.0)[0]
+    tip = x.boundary_points[0]
+    g = snap.shape.gradient(tip.p_W[None])[0]  # > 0 inside: the wall lies along -g
+    h = snap.shape.signed_distance(tip.p_W[None])[0]
+    reasons = set()
+    # still to come: the shaft 0.3 mm sideways at the trocar (the tip away from the wall),
+    # then the tip past the wall; joint displacements by least squares on the tip's and RCM's rows
+    for tip_move, lateral in ((0.3 * g, 0.3), (-(h + 0.5) * g, 0.0)):
+        dq = np.linalg.lstsq(np.vstack([tip.J_W, x.rcm_A]), np.concatenate([tip_move, [lateral, 0.0]]), rcond=None)[0]
+        P = np.zeros((7, 6))
+        P[0] = dq
+        loop.filter.stack.reset()
+        out = loop.filter.filter_step(0.001, q, np.zeros(4), snap, 0.0, P)[0]
+        assert_same(out, actuated_api(loop, q, np.zeros(4), snap, P))
+        reasons.add(out.reason)
+    assert reasons == {"actuator cannot hold the trocar", "actuator cannot brake before the boundary"}
