@@ -68,7 +68,10 @@ CHANNELS = {
         t_s=EXACT, q=arr(EXACT), q_min=arr(EXACT), q_max=arr(EXACT), qdot_max=arr(EXACT), v_cmd_W=arr(EXACT),
         J_tip=MATRIX, boundary_points=POINTS, model=SHAPE, model_time_s=EXACT, sensor_time_s=EXACT,
         rcm_A={"type": ["array", "null"]}, rcm_b={"type": ["array", "null"]}, lens=SHAPE, lens_points=POINTS,
-        margin_mm=EXACT, J_roll={"type": ["array", "null"]}, roll_rate_cmd=EXACT, fallback=SHAPE)),
+        margin_mm=EXACT, J_roll={"type": ["array", "null"]}, roll_rate_cmd=EXACT, fallback=SHAPE,
+        pending={"type": ["array", "null"],
+                 "description": "the actuator's pending joint displacements (r, n) rad; null: an ideal actuator"},
+        rcm_refusal={"type": "string", "description": "the RCM rows' planned stop, empty for none"})),
     "/filter/outputs": ("vitreoguard.FilterOutputs", obj(
         "commanded joint rates", ("t", "step", "qdot"), t=SIM_TIME, step=INT, qdot=arr(EXACT, "rad/s"))),
     "/filter/status": ("vitreoguard.FilterStatus", obj(

@@ -8,6 +8,7 @@ motion. Units: mm, s; frame W.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -24,6 +25,18 @@ from safety.margins import UncertaintyMargins
 
 ASCAN_LOG_EVERY = 100  # log one A-scan in 100 ("ascan" sensor mode): 20 Hz of the 2 kHz stream, ~0.4 MB/s
 MODEL_LOG_PERIOD_S = 0.05  # /model and /oct/points at 20 Hz of simulation time (and at every change of kind)
+
+
+@dataclass
+class LogThrottle:
+    """What the model system gathered for the log since its last /model and /oct/points
+    messages: the accepted point arrays, the newest model entry, and the time (s) and model
+    kind of the last messages."""
+
+    points: list = field(default_factory=list)
+    entry: object = None
+    last_t_s: float = -np.inf
+    last_kind: str | None = None
 
 
 class ModelSnapshot(NamedTuple):
@@ -157,33 +170,32 @@ class AdaptiveModelSystem(LeafSystem):
         self.health = StreamHealth()
         self.health.healthy_t_s = 0.0  # the run's start: the sensor has the filter's age limit to deliver
         self._seen = None  # the last packet read
-        self._log_pending = ([], None)  # (accepted point arrays, newest model entry) not yet logged
-        self._log_last = (-np.inf, None)  # (time s, model kind) of the last /model and /oct/points message
+        self._throttle = LogThrottle()
 
     def _log_model(self, entry) -> None:
         """Gather the points the model took in and its newest update; log them (/oct/points,
         /model) once MODEL_LOG_PERIOD_S of simulation time has passed since the last time,
         or at once when the model's kind changed."""
-        points, pending = self._log_pending
+        th = self._throttle
         if len(self.model.last_accepted):
-            points.append(self.model.last_accepted)
-        last_t, last_kind = self._log_last
-        changed = entry is not None and entry.kind != last_kind
-        self._log_pending = (points, pending if entry is None else entry)
-        if changed or self._last_t - last_t >= MODEL_LOG_PERIOD_S:
+            th.points.append(self.model.last_accepted)
+        changed = entry is not None and entry.kind != th.last_kind
+        if entry is not None:
+            th.entry = entry
+        if changed or self._last_t - th.last_t_s >= MODEL_LOG_PERIOD_S:
             self.flush_log()
 
     def flush_log(self) -> None:
         """Log what _log_model gathered (at the end of a run: nothing it took in goes unlogged)."""
-        points, entry = self._log_pending
+        th = self._throttle
         if self.logger is None or self.logger.closed:
             return
-        if points:
-            self.logger.log_points(self._last_t, np.vstack(points))
-        if entry is not None:
-            self.logger.log_model_update(self._last_t, entry)
-        self._log_pending = ([], None)
-        self._log_last = (self._last_t, self._log_last[1] if entry is None else entry.kind)
+        if th.points:
+            self.logger.log_points(self._last_t, np.vstack(th.points))
+        if th.entry is not None:
+            self.logger.log_model_update(self._last_t, th.entry)
+            th.last_kind = th.entry.kind
+        th.points, th.entry, th.last_t_s = [], None, self._last_t
 
     @property
     def errors_mm(self) -> list[float]:
