@@ -1,7 +1,7 @@
 """`vitreoguard boundary --shape all`: the boundary campaign on all six eyes in one command.
 
-Each shape runs as `vitreoguard boundary` of the same arguments with `--shape S --out OUT/S`
-(the last occurrence of a flag wins), in a fresh process, one after the other, its
+Each shape runs as `vitreoguard boundary` of the same arguments, their `--shape` and `--out`
+replaced by `--shape S --out OUT/S`, in a fresh process, one after the other, its
 scenarios on all the workers (--jobs, or Ray); it writes what `boundary --shape S` writes
 and shows its own progress. OUT/summary.json holds every shape's headline figures and the
 wall time. Measured on 2 cores (6 x 1,000 scenarios): 160 s this way. Slower, measured:
@@ -24,6 +24,23 @@ ALL = "all"
 HEADLINE = ("scenarios", "violations", "contacts", "min_true_clearance_mm", "failsafe_stops", "realtime_factor")
 
 
+def without(argv: list, flags: tuple) -> list:
+    """argv with every occurrence of the long options `flags` and their values removed
+    (`--flag VALUE`, `--flag=VALUE`, or an abbreviation argparse accepted: it accepts only
+    a prefix that names one option)."""
+    out, skip = [], False
+    for token in argv:
+        if skip:
+            skip = False
+            continue
+        name = token.split("=", 1)[0]
+        if len(name) > 2 and name.startswith("--") and any(f.startswith(name) for f in flags):
+            skip = "=" not in token
+            continue
+        out.append(token)
+    return out
+
+
 def run_all(args) -> int:
     """Run `boundary` on every shape (module docstring); prints a table and writes
     OUT/summary.json. Returns the exit code: 0, or the first failed shape's."""
@@ -33,7 +50,8 @@ def run_all(args) -> int:
     t0, codes = time.perf_counter(), {}
     for k, shape in enumerate(EYE_SHAPES, start=1):
         print(f"[{k}/{len(EYE_SHAPES)}] {shape}", file=sys.stderr, flush=True)
-        argv = [sys.executable, "-m", "eval.cli", *args.argv, "--shape", shape, "--out", str(out / shape)]
+        argv = [sys.executable, "-m", "eval.cli", *without(args.argv, ("--shape", "--out")), "--shape", shape,
+                "--out", str(out / shape)]
         codes[shape] = subprocess.run(argv, stdout=subprocess.DEVNULL).returncode
         if codes[shape] != 0:
             print(f"boundary --shape {shape} failed (exit {codes[shape]}): see its output above", file=sys.stderr)

@@ -112,3 +112,12 @@ def test_all_shapes_in_one_command_give_each_shapes_own_figures(tmp_path):
     for key in SIMULATED:
         assert lane[key] == pytest.approx(alone[key], abs=1e-12, rel=0), key
     assert lane["model"] == alone["model"]
+
+
+def test_shape_all_replaces_the_shape_and_out_flags_it_re_runs():
+    """Every form argparse accepts for --shape and --out (spaced, =, an unambiguous
+    abbreviation) is dropped; the other flags and their values stay."""
+    from eval.cli.boundary_all import without
+
+    argv = ["boundary", "--shape", "all", "--scenarios", "5", "--out=x", "--sh=all", "--ou", "y", "--seed", "3"]
+    assert without(argv, ("--shape", "--out")) == ["boundary", "--scenarios", "5", "--seed", "3"]
