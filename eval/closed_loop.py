@@ -171,9 +171,10 @@ class ClosedLoop:
                      logger=None, sensor_seed=None) -> LoopRun:
         """Simulate segments one after the other in one run, each (p_WC (3,) mm: its trocar,
         source, q0 (6,) rad, duration_s s): the filter's RCM and monitored points follow the
-        segment's trocar (FilterSystem.set_trocar), the joints start it at q0 (a switch of
-        ports happens outside the eye and is not simulated) and its source is called with
-        the time since the segment's start. Simulation time runs on across segments."""
+        segment's trocar (FilterSystem.set_trocar), the joints start it at q0 with the
+        filter's held command zeroed (what happens between segments, a switch of ports
+        outside the eye, is not simulated) and its source is called with the time since the
+        segment's start. Simulation time runs on across segments."""
         segments = [(np.asarray(p, dtype=float), src, np.asarray(q0, dtype=float), float(d)) for p, src, q0, d in segments]
         for _, _, q0, d in segments:
             if q0.shape != (6,) or not np.all(np.isfinite(q0)):
@@ -200,6 +201,8 @@ class ClosedLoop:
                 self.filter.source = source if k == 0 else _delayed(source, t_end)
                 context = self.simulator.get_mutable_context()
                 self.integrator.set_integral_value(self.integrator.GetMyMutableContextFromRoot(context), q0)
+                if k:  # the segment starts at q0 at rest, not with the other segment's last command held
+                    self.filter.GetMyMutableContextFromRoot(context).get_mutable_discrete_state(0).set_value(np.zeros(6))
                 if k == 0:
                     self.simulator.Initialize()
                 t0 = time.perf_counter()

@@ -22,7 +22,20 @@ A switch is withdraw (the tip back along the shaft to EXIT_MM outside the trocar
 as far as the arm reaches but at least MIN_EXIT_MM, at INSERT_SPEED_MM_S), move (outside
 the eye, the tip on an arc about it, at MOVE_SPEED_MM_S) and insert (along the next
 pass's first shaft line to its first cell); every piece timed within the joints' speed
-limits (planning.scan.joint_trajectory). Units: mm, s, rad; frame W unless `_E`.
+limits (planning.scan.joint_trajectory).
+
+Phases of a pass (PortSegment.pieces, in execution order): "enter" (the insertion while
+the tip crosses the wall at the trocar: some point the filter watches, tip, cutter port or
+shaft, lies less than the boundary + SHAFT_SLACK_MM inside the model), "insert" (the rest
+of the insertion, every watched point that deep, to the first cell), "sweep", "withdraw"
+(back along the shaft while every watched point is still that deep) and "exit" (through
+the wall to outside the eye); "move" between passes. The depth is capped at the watched
+points' own at the sweep's first (last) posture, so that "insert" ("withdraw") always
+reaches the sweep. "insert", "sweep" and "withdraw" (IN_EYE_PHASES) have the instrument
+inside the eye, clear of the filter's boundary: the closed loop executes them with the
+filter on; "enter", "exit" and "move" pass through or outside the eye wall, where no
+retina lies (the pars plana) and the filter's boundary cannot hold. Units: mm, s, rad;
+frame W unless `_E`.
 """
 from __future__ import annotations
 
@@ -33,10 +46,12 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from planning.ik import IKFailure, rcm_ik
+from planning.instrument_points import instrument_points
 from planning.peripheral import (Band, BandSpec, Sweep, band_surface, cell_reach, cell_reasons, plan_sweep, port_roll_rad,
                                  serpentine)
 from planning.robot import Robot
 from planning.scan import joint_trajectory
+from planning.sweep import SHAFT_SLACK_MM
 
 DEFAULT_PORTS = ("superonasal", "superotemporal")  # the two working ports of planning.ports' layout
 CHECK_ORDER = ("lens", "port", "reach", "shaft")  # how far a cell got through a port's checks
@@ -50,19 +65,35 @@ MOVE_SPEED_MM_S = 20.0  # the tip's speed on the move outside the eye
 MOVE_CLEARANCE_MM = 5.0  # the tip's arc between ports lies this much further out than its ends
 MAX_SWEEPS_PER_PORT = 8  # passes through one port (each after the first is a re-entry)
 MIN_PASS_CELLS = 3  # a re-entry (withdraw, insert: ~10 s) for fewer cells is not worth it
+IN_EYE_PHASES = ("insert", "sweep", "withdraw")  # a pass's phases with the instrument clear inside the eye
+DEPTH_CHECK_DT_S = 0.01  # the insertion's depth check: the tip moves 0.05 mm between samples at 5 mm/s
 
 
 @dataclass(frozen=True, eq=False)
 class PortSegment:
     """One port's work: the port (planning.ports.Port), its trocar p_WC (mm, W), the sweep
     (planning.peripheral.Sweep) and the insertion to its first cell and withdrawal from its
-    last (joint trajectories, rad, each starting at time 0)."""
+    last (joint trajectories, rad, each starting at time 0); `insert_inside_s`: the time on
+    the insertion from which the instrument is clear inside the eye, `withdraw_inside_s`
+    the time on the withdrawal up to which it is (the module's phases)."""
 
     port: object
     p_WC: np.ndarray
     sweep: Sweep
     insert: PiecewisePolynomial
     withdraw: PiecewisePolynomial
+    insert_inside_s: float = 0.0
+    withdraw_inside_s: float = 0.0
+
+    def pieces(self) -> list[tuple[str, PiecewisePolynomial, float, float]]:
+        """[(phase, joint trajectory, t0 s, t1 s)]: enter, insert, sweep, withdraw, exit, each
+        the trajectory's window [t0, t1]."""
+        sweep = self.sweep.trajectory
+        return [("enter", self.insert, 0.0, self.insert_inside_s),
+                ("insert", self.insert, self.insert_inside_s, self.insert.end_time()),
+                ("sweep", sweep, sweep.start_time(), sweep.end_time()),
+                ("withdraw", self.withdraw, 0.0, self.withdraw_inside_s),
+                ("exit", self.withdraw, self.withdraw_inside_s, self.withdraw.end_time())]
 
 
 @dataclass(frozen=True)
@@ -211,7 +242,30 @@ def _segment(robot: Robot, band: Band, port, p_WC, model, spec: BandSpec, mask: 
         except IKFailure:
             return None
     insert, withdraw_reversed = lines
-    return PortSegment(port, np.asarray(p_WC, dtype=float), sweep, insert, _reversed(withdraw_reversed))
+    limit = spec.boundary_mm + SHAFT_SLACK_MM
+    withdraw = _reversed(withdraw_reversed)
+    return PortSegment(port, np.asarray(p_WC, dtype=float), sweep, insert, withdraw,
+                       inside_from_s(robot, insert, p_WC, model, limit),
+                       withdraw.end_time() - inside_from_s(robot, withdraw_reversed, p_WC, model, limit))
+
+
+def watched_clearance_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
+    """(K,) smallest clearance (mm, inside > 0) from `model` of every point the safety filter
+    keeps inside the retina (tip, cutter port, the shaft points past the trocar:
+    planning.instrument_points) at each posture Q (K, 6) rad, trocar p_WC (3,) mm."""
+    pts = [instrument_points(robot, q, p_WC).P_W for q in np.atleast_2d(np.asarray(Q, dtype=float))]
+    d = np.asarray(model.signed_distance(np.vstack(pts)), dtype=float)
+    return np.minimum.reduceat(d, np.concatenate([[0], np.cumsum([len(P) for P in pts])[:-1]]))
+
+
+def inside_from_s(robot: Robot, line: PiecewisePolynomial, p_WC, model, limit_mm: float) -> float:
+    """The time (s) on an insertion `line` (outside the eye -> its last posture) from which
+    every watched point (watched_clearance_mm) stays at least min(`limit_mm`, its depth at
+    the line's last posture) inside `model`, sampled every DEPTH_CHECK_DT_S."""
+    ts = np.linspace(0.0, line.end_time(), int(np.ceil(line.end_time() / DEPTH_CHECK_DT_S)) + 1)  # no sliver at the end
+    c = watched_clearance_mm(robot, line.vector_values(ts).T, p_WC, model)
+    shallow = np.flatnonzero(c < min(limit_mm, c[-1]) - 1e-9)
+    return float(ts[shallow[-1] + 1]) if len(shallow) else 0.0
 
 
 def _reversed(traj: PiecewisePolynomial) -> PiecewisePolynomial:

@@ -1,13 +1,16 @@
 """`vitreoguard plan`: plan the shaving of the whole peripheral band (equator to ora serrata,
 all the way round) on the FITTED eye model through the ports of a 3-port vitrectomy, and
-execute it port by port through the closed loop (safety filter on, its RCM on the active
-trocar) against the TRUE eye.
+execute it pass by pass through the closed loop (safety filter on, its RCM on the active
+trocar) against the TRUE eye: each pass's insertion from where the instrument is clear
+inside the eye, its sweep and its withdrawal back to there (eval.experiments.plan_execution);
+the instrument's way through the eye wall at the trocar and the moves between trocars
+outside the eye are planned, timed and exported, not simulated.
 
 The model is built as the system would build it (spiral scan through the loop, through
 the first port); each cell's reachability from each port, the assignment of cells to
 ports, the per-port sweeps and the port switches come from planning.multiport. Writes
 plan.json (band coverage, per-port figures, switches, why cells are not reached,
-clearances, timing), coverage.png (the band unrolled, each cell coloured by the port
+clearances, timing, the execution per phase and per pass), coverage.png (the band unrolled, each cell coloured by the port
 that swept it or the reason it was not reached), plan.mcap (the execution's log),
 plan_trajectory.csv and plan_trajectory/ (a ROS 2 bag, MCAP storage: one
 trajectory_msgs/JointTrajectory per port segment).
@@ -147,15 +150,6 @@ def spec_of(args):
     return spec
 
 
-def shaft_spin_rad(robot, traj, ts: np.ndarray) -> np.ndarray:
-    """(K,) the instrument's turn about its own shaft along the joint trajectory at times
-    ts (s) from the first: the integral of its angular velocity along the shaft, which is
-    what the filter's roll command (rad/s about the shaft) asks for."""
-    Q, dQ = traj.vector_values(ts).T, traj.derivative(1).vector_values(ts).T
-    rate = np.array([robot.pose("I", q)[0][:, 0] @ (robot.spatial_jacobian("I", q)[:3] @ dq) for q, dq in zip(Q, dQ)])
-    return np.concatenate([[0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(ts))])
-
-
 def ports_of(args, eye_name: str, eye_params: dict):
     """(every port of the layout, the ports to work through in visiting order, the first
     one's trocar p_EC mm): UsageError naming the flag at fault."""
@@ -183,10 +177,11 @@ def main(args) -> int:
     from eval.cli.plan_export import coverage_figure, write_ros2_trajectories, write_trajectory_csv
     from eval.closed_loop import LoopConfig, semi_axes_mm
     from eval.experiments.boundary import build_model_by_spiral
+    from eval.experiments.plan_execution import executed_passes, phase_figures, step_phases
     from eval.log.writer import RunLogger
     from planning import SurgeryScenario
     from planning.ik import IKFailure
-    from planning.multiport import UNREACHABLE, plan_ports
+    from planning.multiport import IN_EYE_PHASES, UNREACHABLE, plan_ports
     from planning.scenario import PORTS_EYE_POSE
 
     layout, visit, p_EC = ports_of(args, args.shape, args.eye_params)
@@ -221,23 +216,19 @@ def main(args) -> int:
     out = prepare_out_dir(args.out)
     robot, band = loop.robot, plan.band
     shape2 = band.reason.shape
-    planned_port_W = []
-    segments = []
-    for seg in plan.segments:
-        traj = seg.sweep.trajectory
-        ts = np.append(np.arange(traj.start_time(), traj.end_time(), 0.02), traj.end_time())
-        Q = traj.vector_values(ts).T
-        planned_port_W.append(np.array([robot.pose("P", q)[1] for q in Q]))
-        tips = np.array([robot.pose("T", q)[1] for q in Q])
-        roll = shaft_spin_rad(robot, traj, ts)
-        segments.append((seg.p_WC, tip_path_command(ts - ts[0], tips, roll), Q[0], float(ts[-1] - ts[0]) + 0.2, Q, tips))
-    swept_planned = swept_cells(band, np.vstack(planned_port_W), spec.spacing_mm)
-    all_tips = np.vstack([s[5] for s in segments])
-    all_Q = np.vstack([s[4] for s in segments])
-    durations = {}
+    with phase(f"sampling the {len(plan.segments)} passes' in-eye phases (insert, sweep, withdraw)"):
+        passes = executed_passes(robot, plan)
+    sweeping = [p.phase == "sweep" for p in passes]
+    all_tips = np.vstack([p.tips_W[m] for p, m in zip(passes, sweeping)])
+    all_Q = np.vstack([p.Q[m] for p, m in zip(passes, sweeping)])
+    swept_planned = swept_cells(band, np.array([robot.pose("P", q)[1] for q in all_Q]), spec.spacing_mm)
+    durations, planned_s = {}, {}
     for seg in plan.segments:
         durations[seg.port.name] = durations.get(seg.port.name, 0.0) + (seg.insert.end_time() + seg.sweep.trajectory.end_time()
                                                                         + seg.withdraw.end_time())
+        mine = planned_s.setdefault(seg.port.name, {})
+        for name, _, a, b in seg.pieces():
+            mine[name] = mine.get(name, 0.0) + (b - a)
     switch_s = sum(sw.move_s for sw in plan.switches)
     result = {
         "band_coverage": None,
@@ -250,7 +241,8 @@ def main(args) -> int:
                            "cells_assigned": int((plan.port_of == k).sum()),
                            "reachable_cells": int((plan.reasons_by_port[p.name] == "ok").sum()),
                            "regions": sum(1 for s in plan.segments if s.port.name == p.name),
-                           "coverage": None, "duration_s": durations.get(p.name, 0.0)}
+                           "coverage": None, "duration_s": durations.get(p.name, 0.0),
+                           "planned_s": planned_s.get(p.name, {}), "executed_s": None}
                   for k, p in enumerate(plan.ports)},
         "port_switches": sum(1 for sw in plan.switches if sw.from_port != sw.to_port),
         "reentries": sum(1 for sw in plan.switches if sw.from_port == sw.to_port),
@@ -262,7 +254,7 @@ def main(args) -> int:
         "violations": None,
         "duration_s": float(sum(durations.values()) + switch_s),
         "shaving_s": float(sum(s.sweep.trajectory.end_time() for s in plan.segments)),
-        "path_length_mm": float(sum(np.linalg.norm(np.diff(s[5], axis=0), axis=1).sum() for s in segments)),
+        "path_length_mm": float(sum(np.linalg.norm(np.diff(p.tips_W[m], axis=0), axis=1).sum() for p, m in zip(passes, sweeping))),
         "min_joint_margin_deg": float(np.degrees(min(robot.joint_margin_rad(q).min() for q in all_Q))),
         "filter_intervention_fraction": None,
         "plan_time_s": plan.plan_time_s,
@@ -271,16 +263,23 @@ def main(args) -> int:
         "standoff_mm": spec.standoff_mm, "boundary_mm": spec.boundary_mm, "port_angle_deg": spec.port_max_deg,
         "trust_angle_deg": args.trust_angle_deg, "band_z_E_mm": [spec.z_min_E, spec.z_max_E],
         "max_port_angle_deg_on_path": float(np.nanmax(band.port_deg)) if (plan.port_of >= 0).any() else None,
-        "max_planned_rcm_error_um": float(1e3 * max(max(robot.rcm_error_mm(q, s[0]) for q in s[4]) for s in segments)),
+        "max_planned_rcm_error_um": float(1e3 * max(max(robot.rcm_error_mm(q, p.p_WC) for q in p.Q) for p in passes)),
+        "outside_loop_s": {name: float(sum(b - a for seg in plan.segments for n, _, a, b in seg.pieces() if n == name))
+                           for name in ("enter", "exit")} | {"move": float(switch_s)},
         "model": model_summary(loop, build),
     }
     swept = swept_planned
     if not args.no_execute:
         with RunLogger(out / "plan.mcap", loop.config.filter, metadata={"shape": args.shape, "run": "peripheral plan"}) as log:
-            with phase(f"shaving through the closed loop: {len(segments)} port segments, "
-                       f"{sum(s[3] for s in segments):.0f} simulated s"):
-                run = loop.run_segments([s[:4] for s in segments], model=build.model, coverage=build.coverage, logger=log)
-        ports_W = np.array([robot.pose("P", q)[1] for q in run.q[::5]])
+            with phase(f"executing {len(passes)} passes through the closed loop (insert, sweep, withdraw): "
+                       f"{sum(p.duration_s for p in passes):.0f} simulated s"):
+                t0 = time.perf_counter()
+                run = loop.run_segments([p.segment() for p in passes], model=build.model, coverage=build.coverage, logger=log)
+                execution_wall_s = time.perf_counter() - t0
+        d_safe = loop.config.filter.d_safe_mm
+        figs = phase_figures(robot, run, passes, d_safe)
+        _, step_phase = step_phases(run, passes)
+        ports_W = np.array([robot.pose("P", q)[1] for q in run.q[step_phase == "sweep"][::5]])
         swept = swept_cells(band, ports_W, spec.spacing_mm)
         planned = plan.port_of >= 0
         result["band_coverage"] = float(swept.mean())
@@ -288,11 +287,16 @@ def main(args) -> int:
         for k, p in enumerate(plan.ports):
             mine = plan.port_of == k
             result["ports"][p.name]["coverage"] = float(swept[mine].mean()) if mine.any() else None
+            result["ports"][p.name]["executed_s"] = {
+                ph: float(sum(f["phases"][ph]["executed_s"] for f in figs["passes"] if f["port"] == p.name and ph in f["phases"]))
+                for ph in IN_EYE_PHASES}
         result["min_true_clearance_mm"] = float(run.true_clearance_mm.min())
-        result["violations"] = int(np.sum(run.true_clearance_mm < loop.config.filter.d_safe_mm - 0.05))
+        result["violations"] = int(np.sum(run.true_clearance_mm < d_safe - 0.05))
         result["filter_intervention_fraction"] = float(run.intervened.mean())
+        result["phases"], result["passes"] = figs["phases"], figs["passes"]
         result["execution"] = {"failsafe_stops": run.failsafe_stops, "max_rcm_error_um": float(1e3 * np.nanmax(run.rcm_error_mm)),
-                               "realtime_factor": run.realtime_factor, "steps": int(len(run.t))}
+                               "realtime_factor": run.realtime_factor, "steps": int(len(run.t)),
+                               "simulated_s": run.duration_s, "wall_s": execution_wall_s}
     start_ns = time.time_ns()
     write_trajectory_csv(plan, out / "plan_trajectory.csv")
     write_ros2_trajectories(plan, out / "plan_trajectory", start_ns)
@@ -306,16 +310,13 @@ def main(args) -> int:
         v = result[key]
         print(f"{key:30s} {v:.4g}" if isinstance(v, float) else f"{key:30s} {v}")
     print(f"unreachable                    {result['unreachable']}")
+    for name, f in result.get("phases", {}).items():
+        print(f"{name:9s} executed {f['executed_s']:7.2f} s of {f['planned_s']:7.2f} planned, filter intervened in "
+              f"{f['filter_intervention_fraction'] or 0.0:.2%} of steps, min true clearance "
+              f"{'-' if f['min_true_clearance_mm'] is None else format(f['min_true_clearance_mm'], '.3f')} mm")
     print(f"wrote {out / 'plan.json'}, {out / 'coverage.png'}, {out / 'plan_trajectory.csv'}, {out / 'plan_trajectory'}"
           + ("" if args.no_execute else f", {out / 'plan.mcap'}"))
     return 0
-
-
-def tip_path_command(times_s, tips, roll):
-    """The closed loop's command for one sweep (eval.experiments.command_sources.TipPathCommand)."""
-    from eval.experiments.command_sources import TipPathCommand
-
-    return TipPathCommand(times_s, tips, roll_rad=roll)
 
 
 def swept_cells(band, ports_W: np.ndarray, sweep_mm: float) -> np.ndarray:

@@ -1,11 +1,12 @@
 """The multi-port plan's joint trajectory for a real controller, and its coverage map.
 
-- `plan_pieces`: the plan in execution order as (port, phase, joint trajectory) pieces:
-  per port insert, sweep, withdraw; between ports (or regions of one port) the move.
+- `plan_pieces`: the plan in execution order as (port, phase, joint trajectory, window)
+  pieces: per pass enter, insert, sweep, withdraw, exit (planning.multiport.PortSegment.pieces);
+  between passes the move.
 - `write_trajectory_csv`: time (s), active port, phase, six joint angles (rad) and
   velocities (rad/s), sampled every CSV_DT_S.
 - `write_ros2_trajectories`: one ROS 2 trajectory_msgs/msg/JointTrajectory per port
-  segment (insert + sweep + withdraw; time_from_start from the segment's start) on
+  pass (enter, insert, sweep, withdraw, exit; time_from_start from the pass's start) on
   TRAJECTORY_TOPIC, in a rosbag2 with MCAP storage (rosbags, Apache-2.0: rosbag2's own
   layout and CDR serialisation, which a hand-written writer would have to re-create).
 - `coverage_figure`: the band unrolled (azimuth x height), each cell coloured by the
@@ -29,21 +30,21 @@ REASON_COLORS = {"lens": "tab:blue", "port": "tab:orange", "reach": "tab:red", "
                  "depression": "tab:brown"}
 
 
-def plan_pieces(plan) -> list[tuple[str, str, object]]:
-    """[(port or "a->b", phase in insert/sweep/withdraw/move, trajectory)] in execution order."""
+def plan_pieces(plan) -> list[tuple[str, str, object, float, float]]:
+    """[(port or "a->b", phase, trajectory, t0 s, t1 s)] in execution order: each pass's
+    enter, insert, sweep, withdraw, exit (PortSegment.pieces) and the move between passes,
+    each the trajectory's window [t0, t1]; pieces without duration left out."""
     pieces = []
     for k, seg in enumerate(plan.segments):
         if k:
-            sw = plan.switches[k - 1]
-            pieces.append((f"{sw.from_port}->{sw.to_port}", "move", plan.moves[k - 1]))
-        pieces += [(seg.port.name, "insert", seg.insert), (seg.port.name, "sweep", seg.sweep.trajectory),
-                   (seg.port.name, "withdraw", seg.withdraw)]
+            sw, move = plan.switches[k - 1], plan.moves[k - 1]
+            pieces.append((f"{sw.from_port}->{sw.to_port}", "move", move, move.start_time(), move.end_time()))
+        pieces += [(seg.port.name, phase, traj, a, b) for phase, traj, a, b in seg.pieces() if b - a > 1e-9]
     return pieces
 
 
-def _sampled(traj, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(times from the piece's start (K,), q (K, 6), qdot (K, 6)) every dt, end included."""
-    t0, t1 = traj.start_time(), traj.end_time()
+def _sampled(traj, t0: float, t1: float, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(times from t0 (K,), q (K, 6), qdot (K, 6)) on [t0, t1] every dt, t1 included."""
     ts = np.append(np.arange(t0, t1, dt), t1)
     Q = traj.vector_values(ts).T
     dQ = traj.derivative(1).vector_values(ts).T
@@ -58,8 +59,8 @@ def write_trajectory_csv(plan, path) -> Path:
     with open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["t_s", "port", "phase"] + [f"q{k}_rad" for k in range(1, 7)] + [f"qdot{k}_rad_s" for k in range(1, 7)])
-        for port, phase, traj in plan_pieces(plan):
-            ts, Q, dQ = _sampled(traj, CSV_DT_S)
+        for port, phase, traj, a, b in plan_pieces(plan):
+            ts, Q, dQ = _sampled(traj, a, b, CSV_DT_S)
             for t, q, dq in zip(ts[:-1] if len(ts) > 1 else ts, Q, dQ):
                 w.writerow([f"{t_start + t:.4f}", port, phase] + [f"{v:.7f}" for v in q] + [f"{v:.7f}" for v in dq])
             t_start += ts[-1]
@@ -87,12 +88,13 @@ def write_ros2_trajectories(plan, path, start_ns: int) -> Path:
         k = 0
         while k < len(pieces):
             if pieces[k][1] == "move":
-                t_plan += pieces[k][2].end_time() - pieces[k][2].start_time()
+                t_plan += pieces[k][4] - pieces[k][3]
                 k += 1
                 continue
             port, points, t_seg = pieces[k][0], [], 0.0
-            for _, _, traj in pieces[k:k + 3]:  # insert, sweep, withdraw
-                times, Q, dQ = _sampled(traj, ROS_DT_S)
+            n = next((j for j in range(k, len(pieces)) if pieces[j][1] == "move"), len(pieces)) - k
+            for _, _, traj, a, b in pieces[k:k + n]:  # the pass: enter, insert, sweep, withdraw, exit
+                times, Q, dQ = _sampled(traj, a, b, ROS_DT_S)
                 for t, q, dq in zip(times, Q, dQ):
                     if points and t == 0.0:
                         continue  # a piece starts where the last ended
@@ -105,7 +107,7 @@ def write_ros2_trajectories(plan, path, start_ns: int) -> Path:
                        joint_names=list(JOINT_NAMES), points=points)
             writer.write(conn, stamp, ts.serialize_cdr(msg, Traj.__msgtype__))
             t_plan += t_seg
-            k += 3
+            k += n
     return path
 
 
