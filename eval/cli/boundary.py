@@ -145,7 +145,7 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
         "logs": {"spiral": str(out / "spiral.mcap"), "scenario_0": str(out / "boundary.mcap")},
     }
     if getattr(args, "adversary", "random") == "search":
-        result["search"] = run_search(args, loop, build, s["min_true_clearance_mm"])
+        result["search"] = run_search(args, loop, build, s["min_true_clearance_mm"], workers)
         result["worst_found_clearance_mm"] = result["search"]["worst_found_clearance_mm"]
     save_figure(_clearance_figure(campaign, args.shape), out / "boundary_clearance.png", tight_bbox=False)
     fig = error_sigma_figure(loop, build)
@@ -155,21 +155,21 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
     return BoundaryRun(result, build, campaign, loop) if keep_build else result
 
 
-def run_search(args, loop, build, random_min_mm: float) -> dict:
-    """The search adversary against the built model: boundary.json's "search" entry, with
-    the worst scenario's theta and sensor seed (eval.experiments.search_adversary.run_theta
-    replays it) and its clearance when run again."""
+def run_search(args, loop, build, random_min_mm: float, workers=None) -> dict:
+    """The search adversary against the built model, its islands on `workers`:
+    boundary.json's "search" entry, with the worst scenario's theta and sensor seed
+    (eval.experiments.search_adversary.run_theta replays it) and its clearance when run again."""
     from eval.experiments.search_adversary import cross_entropy_search, run_theta
 
     with progress_bar(args.search_budget, "search adversary", unit="simulation") as bar:
         found = cross_entropy_search(loop, build.model, build.coverage, args.search_budget, args.seed, args.duration_s,
-                                     progress=lambda i, n: bar.update())
+                                     workers=workers, progress=bar_progress(bar))
     replay = run_theta(loop, build.model, build.coverage, found.worst_theta, args.duration_s, found.worst_sensor_seed)
     return {"budget": args.search_budget, "worst_found_clearance_mm": found.worst_clearance_mm,
             "replayed_clearance_mm": None if replay is None else float(replay.true_clearance_mm.min()),
             "random_min_true_clearance_mm": random_min_mm,
             "violations": int(sum(c < 0.45 for c in found.clearances)),
-            "failsafe_stops": found.failsafe_stops, "stops_by_reason": found.stops_by_reason,
+            "failsafe_stops": found.failsafe_stops, "stops_by_reason": found.stops_by_reason, "restarts": found.restarts,
             "scenario": {"shape": args.shape, "seed": args.seed, "duration_s": args.duration_s,
                          "sensor_seed": found.worst_sensor_seed, "theta": [float(x) for x in found.worst_theta]}}
 

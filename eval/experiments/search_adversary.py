@@ -10,9 +10,13 @@ the random adversary's ranges). The cross-entropy method (Rubinstein) keeps a Ga
 over theta: each generation draws `population` scenarios, runs them in the closed loop
 (eval.experiments.boundary.start_at, ClosedLoop.run), and refits the Gaussian to the
 `elite` fraction with the smallest clearance (smoothed, with a floor on the spread). A
-scenario whose start is not allowed or not reachable scores +inf. The search stops at
-its budget of simulations; the worst scenario is returned with its theta, which
-`run_theta` replays. Units: mm, s, rad.
+scenario whose start is not allowed or not reachable scores +inf. The cross-entropy
+method converges to one basin within a few dozen generations, and a 10x budget is
+hundreds of generations: once a run has not improved its own best for `patience`
+generations, the search restarts from the broad initial Gaussian (a restart strategy as
+in IPOP-CMA-ES, Auger & Hansen 2005), each restart with a larger population, keeping the
+worst scenario found over all runs. The search stops at its budget of simulations; the
+worst scenario is returned with its theta, which `run_theta` replays. Units: mm, s, rad.
 """
 from __future__ import annotations
 
@@ -90,39 +94,114 @@ class SearchResult:
     clearances: list = field(default_factory=list)
     failsafe_stops: int = 0
     stops_by_reason: dict = field(default_factory=dict)
+    restarts: int = 0
+
+
+def minimise(objective, mean0, budget: int, seed: int, population: int = 20, elite: float = 0.2,
+             smoothing: float = 0.7, min_sd: float = 0.05, patience: int = 15, tol: float = 1e-3,
+             progress=None) -> tuple:
+    """The cross-entropy method with restarts (module docstring) on `objective(theta,
+    index) -> score` (+inf: infeasible), `budget` evaluations from N(mean0, I), seeded: a
+    run restarts after `patience` generations without improving its best by more than
+    `tol` (the score's units: 1 um of clearance), with twice the population of the run
+    before. Returns (best score, its theta, its index, restarts)."""
+    rng = np.random.default_rng(seed)
+    mean0 = np.asarray(mean0, dtype=float)
+    best = (np.inf, mean0.copy(), -1)
+    done, size, restarts = 0, population, 0
+    while done < budget:
+        mean, sd = mean0.copy(), np.ones(len(mean0))
+        run_best, stale = np.inf, 0
+        while done < budget and stale < patience:
+            n = min(size, budget - done)
+            thetas = mean + sd * rng.standard_normal((n, len(mean0)))
+            scores = np.full(n, np.inf)
+            for i, theta in enumerate(thetas):
+                scores[i] = objective(theta, done)
+                if scores[i] < best[0]:
+                    best = (float(scores[i]), theta.copy(), done)
+                done += 1
+                if progress is not None:
+                    progress(done, budget)
+            stale = 0 if scores.min() < run_best - tol else stale + 1
+            run_best = min(run_best, float(scores.min()))
+            finite = np.flatnonzero(np.isfinite(scores))
+            if len(finite) >= 2:
+                top = finite[np.argsort(scores[finite])][:max(2, int(round(elite * n)))]
+                mean = smoothing * thetas[top].mean(axis=0) + (1 - smoothing) * mean
+                sd = np.maximum(smoothing * thetas[top].std(axis=0) + (1 - smoothing) * sd, min_sd)
+        if done < budget:
+            restarts += 1
+            size *= 2
+    return (*best, restarts)
+
+
+ISLAND_BUDGET = 1000  # simulations per independent search at least (the budget split into islands)
+MAX_ISLANDS = 16
+
+
+def islands(budget: int) -> list[int]:
+    """The budget split into independent searches of ISLAND_BUDGET or more (at most
+    MAX_ISLANDS): the split depends on the budget alone, not on who runs them."""
+    k = max(1, min(MAX_ISLANDS, budget // ISLAND_BUDGET))
+    return [budget // k + (1 if i < budget % k else 0) for i in range(k)]
+
+
+@dataclass(frozen=True)
+class _Island:
+    """One independent search (a campaign task, eval.experiments.campaign): island i runs
+    minimise with seed [seed, i] and its budget; its scenario k the sensor seed [seed, i, k]."""
+
+    model: object
+    coverage: object
+    budgets: tuple
+    seed: int
+    duration_s: float
+    options: tuple
+
+    def __call__(self, loop, i: int) -> SearchResult:
+        found = SearchResult(np.inf, np.zeros(DIMENSIONS))
+
+        def objective(theta, k: int) -> float:
+            run = run_theta(loop, self.model, self.coverage, theta, self.duration_s, [self.seed, i, k])
+            if run is None or not len(run.t):
+                return np.inf
+            score = float(np.min(run.true_clearance_mm))
+            found.clearances.append(score)
+            found.failsafe_stops += run.failsafe_stops
+            for key, count in stops_by_reason([run]).items():
+                found.stops_by_reason[key] = found.stops_by_reason.get(key, 0) + count
+            return score
+
+        mean0 = np.zeros(DIMENSIONS)
+        mean0[2] = -1.0  # start posterior of the trocar plane
+        seed = int(np.random.SeedSequence([self.seed, i]).generate_state(1)[0])
+        score, theta, k, found.restarts = minimise(objective, mean0, self.budgets[i], seed, **dict(self.options))
+        if k >= 0:
+            found.worst_clearance_mm, found.worst_theta, found.worst_sensor_seed = score, theta, [self.seed, i, k]
+        return found
 
 
 def cross_entropy_search(loop, model, coverage, budget: int, seed: int, duration_s: float = SCENARIO_S,
-                         population: int = 20, elite: float = 0.2, smoothing: float = 0.7, min_sd: float = 0.05,
-                         progress=None) -> SearchResult:
-    """The cross-entropy search (module docstring) with `budget` simulations, seeded."""
-    rng = np.random.default_rng(seed)
-    mean, sd = np.zeros(DIMENSIONS), np.ones(DIMENSIONS)
-    mean[2] = -1.0  # start posterior of the trocar plane
-    best = SearchResult(np.inf, mean.copy())
-    done = 0
-    while done < budget:
-        n = min(population, budget - done)
-        thetas = mean + sd * rng.standard_normal((n, DIMENSIONS))
-        scores = np.full(n, np.inf)
-        for i, theta in enumerate(thetas):
-            sensor_seed = [int(seed), done]
-            run = run_theta(loop, model, coverage, theta, duration_s, sensor_seed)
-            done += 1
-            if run is not None and len(run.t):
-                scores[i] = float(np.min(run.true_clearance_mm))
-                best.clearances.append(scores[i])
-                best.failsafe_stops += run.failsafe_stops
-                for key, count in stops_by_reason([run]).items():
-                    best.stops_by_reason[key] = best.stops_by_reason.get(key, 0) + count
-                if scores[i] < best.worst_clearance_mm:
-                    best.worst_clearance_mm, best.worst_theta = scores[i], theta.copy()
-                    best.worst_sensor_seed = sensor_seed
-            if progress is not None:
-                progress(done, budget)
-        finite = np.flatnonzero(np.isfinite(scores))
-        if len(finite) >= 2:
-            top = finite[np.argsort(scores[finite])][:max(2, int(round(elite * n)))]
-            mean = smoothing * thetas[top].mean(axis=0) + (1 - smoothing) * mean
-            sd = np.maximum(smoothing * thetas[top].std(axis=0) + (1 - smoothing) * sd, min_sd)
-    return best
+                         workers=None, progress=None, **options) -> SearchResult:
+    """The search (module docstring) with `budget` simulations, seeded, as independent
+    islands (`islands`) on `workers` (eval.experiments.campaign.Workers; None: this
+    process); `options` those of minimise; `progress(simulations done, budget)` as islands
+    finish. The worst
+    scenario over the islands, every clearance, the stops and restarts of all."""
+    from eval.experiments.campaign import Workers, run_tasks
+
+    budgets = tuple(islands(budget))
+    task = _Island(model, coverage, budgets, int(seed), float(duration_s), tuple(sorted(options.items())))
+    found = SearchResult(np.inf, np.zeros(DIMENSIONS))
+    done = None if progress is None else (lambda k, n: progress(sum(budgets[:k]), budget))
+    for part in run_tasks(loop, task, range(len(budgets)), workers or Workers(), done):
+        found.clearances += part.clearances
+        found.failsafe_stops += part.failsafe_stops
+        found.restarts += part.restarts
+        for key, count in part.stops_by_reason.items():
+            found.stops_by_reason[key] = found.stops_by_reason.get(key, 0) + count
+        if part.worst_clearance_mm < found.worst_clearance_mm:
+            found.worst_clearance_mm, found.worst_theta = part.worst_clearance_mm, part.worst_theta
+            found.worst_sensor_seed = part.worst_sensor_seed
+    return found
