@@ -46,12 +46,11 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from planning.ik import IKFailure, rcm_ik
-from planning.instrument_points import instrument_points
 from planning.peripheral import (Band, BandSpec, Sweep, band_surface, cell_reach, cell_reasons, plan_sweep, port_roll_rad,
                                  serpentine)
 from planning.robot import Robot
 from planning.scan import joint_trajectory
-from planning.sweep import SHAFT_SLACK_MM
+from planning.sweep import SHAFT_SLACK_MM, watched_clearance_mm
 
 DEFAULT_PORTS = ("superonasal", "superotemporal")  # the two working ports of planning.ports' layout
 CHECK_ORDER = ("lens", "port", "reach", "shaft")  # how far a cell got through a port's checks
@@ -247,15 +246,6 @@ def _segment(robot: Robot, band: Band, port, p_WC, model, spec: BandSpec, mask: 
     return PortSegment(port, np.asarray(p_WC, dtype=float), sweep, insert, withdraw,
                        inside_from_s(robot, insert, p_WC, model, limit),
                        withdraw.end_time() - inside_from_s(robot, withdraw_reversed, p_WC, model, limit))
-
-
-def watched_clearance_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
-    """(K,) smallest clearance (mm, inside > 0) from `model` of every point the safety filter
-    keeps inside the retina (tip, cutter port, the shaft points past the trocar:
-    planning.instrument_points) at each posture Q (K, 6) rad, trocar p_WC (3,) mm."""
-    pts = [instrument_points(robot, q, p_WC).P_W for q in np.atleast_2d(np.asarray(Q, dtype=float))]
-    d = np.asarray(model.signed_distance(np.vstack(pts)), dtype=float)
-    return np.minimum.reduceat(d, np.concatenate([[0], np.cumsum([len(P) for P in pts])[:-1]]))
 
 
 def inside_from_s(robot: Robot, line: PiecewisePolynomial, p_WC, model, limit_mm: float) -> float:

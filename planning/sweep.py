@@ -36,13 +36,27 @@ def shaft_clearances_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
     filter watches at each posture Q (K, 6) rad (planning.instrument_points: past the
     trocar, behind the tip and port, which the standoff places); inf at a posture where
     none is that deep."""
+    return _watched_clearances_mm(robot, Q, p_WC, model, shaft_only=True)
+
+
+def watched_clearance_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
+    """(K,) smallest clearance (mm, inside > 0) from `model` of every point the safety filter
+    keeps inside the retina (tip, cutter port, the shaft points past the trocar:
+    planning.instrument_points) at each posture Q (K, 6) rad, trocar p_WC (3,) mm."""
+    return _watched_clearances_mm(robot, Q, p_WC, model, shaft_only=False)
+
+
+def _watched_clearances_mm(robot: Robot, Q, p_WC, model, shaft_only: bool) -> np.ndarray:
+    """(K,) the smallest clearance from `model` of the watched points (only the shaft's with
+    `shaft_only`) per posture; inf where there are none."""
     Q = np.atleast_2d(np.asarray(Q, dtype=float))
-    shaft = [ip.P_W[[k for k, name in enumerate(ip.names) if name.startswith("shaft")]]
-             for ip in (instrument_points(robot, q, p_WC) for q in Q)]
-    owner = np.repeat(np.arange(len(Q)), [len(P) for P in shaft])
+    pts = []
+    for ip in (instrument_points(robot, q, p_WC) for q in Q):
+        pts.append(ip.P_W[[k for k, name in enumerate(ip.names) if name.startswith("shaft")]] if shaft_only else ip.P_W)
+    owner = np.repeat(np.arange(len(Q)), [len(P) for P in pts])
     out = np.full(len(Q), np.inf)
     if len(owner):
-        np.minimum.at(out, owner, np.asarray(model.signed_distance(np.vstack(shaft)), dtype=float))
+        np.minimum.at(out, owner, np.asarray(model.signed_distance(np.vstack(pts)), dtype=float))
     return out
 
 

@@ -3,8 +3,6 @@ insertion, sweep and withdrawal on the true eye with the filter on, the RCM on t
 trocar; the phases through and outside the eye wall planned, not simulated."""
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -12,11 +10,11 @@ from eval.closed_loop import ClosedLoop, LoopConfig
 from eval.experiments.boundary import build_model_by_spiral
 from eval.experiments.plan_execution import executed_passes, phase_figures, step_phases
 from planning import SurgeryScenario
-from planning.multiport import IN_EYE_PHASES, plan_ports, watched_clearance_mm
+from planning.multiport import IN_EYE_PHASES, plan_ports
 from planning.peripheral import BandSpec
 from planning.ports import standard_ports
 from planning.scenario import PORTS_EYE_POSE
-from planning.sweep import SHAFT_SLACK_MM
+from planning.sweep import SHAFT_SLACK_MM, watched_clearance_mm
 from safety import FilterConfig
 
 RCM_TOL_MM = 0.020  # RCM drift of 1 kHz Euler steps of the joint velocities, up to 20 mm/s
