@@ -6,7 +6,17 @@ of its rows and the words for its faults.
 points of the kinematics kernel at q. A step the compiled code cannot finish (the
 optimum under the equalities violates an inequality and the remembered active set is
 not this step's) goes to the solver (safety.qp, DAQP by default); a fault or a failed
-QP gives zero velocity and the reason. Units: mm, s, rad; frame W.
+QP gives zero velocity and the reason.
+
+Recovery held. A barrier row with a negative right-hand side asks a point that is already
+inside its margin (a model update raised the margin, an actuator still carrying the robot
+in) to move back out at up to the recovery rate. When no velocity meets every row, and
+some rows are such recovery rows, the step is solved again with each recovery row asking
+only that its point come no closer (right-hand side 0): the robot keeps every other rule
+and holds its recovering points, with RECOVERY_HELD as its reason and among its
+active rows (ok, an intervention), instead of a zero command that the actuator would still carry on from.
+Only a QP infeasible even so stops the robot ("QP: infeasible ..."). Steps whose QP is
+feasible are not touched. Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
@@ -19,6 +29,7 @@ from safety.assembly import assemble, row_id_bases, workspace_layout
 from safety.inputs import FilterConfig, FilterOutput
 from safety.qp import DenseQP, QPResult, solve, solve_by_solver
 
+RECOVERY_HELD = "recovery held"  # an active-row name: the step held its recovering points (module docstring)
 _FAULT_WORDS = {core.NONFINITE_Q: "non-finite q", core.NONFINITE_COMMAND: "non-finite v_cmd_W",
                 core.NONFINITE_J_TIP: "non-finite J_tip"}
 
@@ -133,6 +144,9 @@ class ConstraintStack:
         qp = DenseQP(H, c, lb, ub, G[:m], h[:m], A[:p], b[:p], self.row_names(ids[:m], ranges))
         result = solve(qp, self.config.solver) if code == core.STEP_QP_FAILED else \
             solve_by_solver(qp, self.config.solver, core.ACTIVE_TOL, t0)
+        if not result.ok and result.reason.startswith("infeasible") and bool(np.any(qp.h < 0.0)):
+            result = self.held(qp, t0)
+            warm = False  # the relaxed rows are not the step's: nothing to remember
         if not result.ok:
             self.reset()
             return FilterOutput(np.zeros(len(q)), False, f"QP: {result.reason}", min_clearance_mm=float(clearance))
@@ -140,12 +154,22 @@ class ConstraintStack:
             core.remember_active(self.active, ids[:m], qp.G, qp.h, lb, ub, result.x, core.ACTIVE_TOL, at_bound)
         return self.finished(result, clearance, port, bool(core.off_command(J_tip, result.x, command)))
 
+    def held(self, qp: DenseQP, t0: float) -> QPResult:
+        """The step's QP with every recovery row held instead (module docstring): its result,
+        with RECOVERY_HELD first among the active rows when it solves."""
+        result = solve(qp._replace(h=np.maximum(qp.h, 0.0)), self.config.solver)
+        if not result.ok:
+            return result
+        return result._replace(active=(RECOVERY_HELD, *result.active), solve_us=1e6 * (time.perf_counter() - t0))
+
     def finished(self, result: QPResult, clearance: float, port_clearance_mm: float | None,
                  off_command: bool) -> FilterOutput:
         """The FilterOutput of a solved step."""
         cutter = port_clearance_mm is not None and bool(port_clearance_mm > self.config.cutter_clearance_mm)
-        intervened = bool(off_command or any(a.split(":", 1)[0] in self._intervening for a in result.active))
-        return FilterOutput(result.x, True, "ok", result.active, float(clearance), cutter, intervened, result.solve_us)
+        intervened = bool(off_command or any(a.split(":", 1)[0] in self._intervening or a == RECOVERY_HELD
+                                             for a in result.active))
+        reason = RECOVERY_HELD if result.active[:1] == (RECOVERY_HELD,) else "ok"
+        return FilterOutput(result.x, True, reason, result.active, float(clearance), cutter, intervened, result.solve_us)
 
     def row_names(self, ids, ranges) -> tuple:
         """The names of G's rows with identities `ids`."""

@@ -101,7 +101,7 @@ def _shape_classes(args, shape: str, names: list, base, workers) -> dict:
         detection = "" if "detection_ms" not in c else \
             f"  detection max {'-' if worst is None else f'{worst:.1f}'} ms, undetected {c['detection_ms']['undetected']}"
         print(f"{shape:10s} {name:14s} violations {c['violations']:3d}  contacts {c['contacts']:3d}"
-              f"  min {c['min_true_clearance_mm']:.3f} mm  infeasible {c['infeasible_qp_stops']}"
+              f"  min {c['min_true_clearance_mm']:.3f} mm  infeasible {c['infeasible_qp_stops']}  held {c.get('recovery_held_steps', 0)}"
               f"  stops {c['failsafe_stops']:3d} {c['stops_by_reason']}{detection}")
     return {"classes": classes, "margin_costs_mm": margin_costs(classes)}
 

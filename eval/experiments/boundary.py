@@ -18,6 +18,7 @@ from eval.experiments.command_sources import AdversarialCommand, TipPathCommand
 from eval.cli.progress import progress_bar
 from models.metrics import mae_exact
 from planning import IKFailure, SurgeryScenario, start_posture
+from safety.stack import RECOVERY_HELD
 
 VIOLATION_MM = 0.45  # true clearance below this is a violation (0.5 mm boundary, 50 um tolerance)
 SCENARIO_S = 0.5
@@ -174,6 +175,8 @@ class Campaign:
             "failsafe_stops": int(sum(r.failsafe_stops for r in runs)),
             "stops_by_reason": stops_by_reason(runs),
             "infeasible_qp_stops": infeasible_stops(runs),
+            # accepted steps that held their recovering points instead of an infeasible QP's stop (safety.stack)
+            "recovery_held_steps": int(sum(sum(1 for x in r.reasons if x == RECOVERY_HELD) for r in runs)),
             "solve_us": _quantiles(solve),
             "drake_diffik_us": _quantiles(drake),
             "realtime_factor": sim / wall if wall > 0 else None,

@@ -183,3 +183,22 @@ def test_non_finite_points_are_named_by_the_compiled_step():
                                                                             np.eye(3))]})
     out = SafetyFilter(NO_CALIBRATION)(bad)
     assert not out.ok and out.reason == "non-finite kinematics of tip" and not out.qdot.any()
+
+
+def test_a_recovery_the_other_rules_forbid_holds_the_point_instead_of_stopping():
+    """The tip 0.2 mm from the wall (inside its 0.5 mm margin: its barrier asks it back at
+    the recovery rate, 5 mm/s) while an equality row pins the joint that moves it off the
+    wall (z): no velocity meets both, so the step holds the tip (no closer, along z 0) and
+    follows the command along x; an equality that drives the tip INTO the wall cannot be
+    held either, and the filter stops."""
+    f = SafetyFilter(NO_CALIBRATION)
+    p = [0.0, 0.0, -11.8]
+    pinned = inputs(p, [3.0, 0.0, 0.0], rcm_A=np.array([[0.0, 0.0, 1.0]]), rcm_b=np.array([0.0]))
+    out = f(pinned)
+    assert out.ok and out.reason == "recovery held" and out.active[0] == "recovery held" and out.intervened
+    assert abs(out.qdot[2]) <= 1e-9  # no closer to the wall (and no further: the equality)
+    assert out.qdot[0] == pytest.approx(3.0, rel=0.01)  # the rest of the command
+    free = f(inputs(p, [3.0, 0.0, 0.0]))
+    assert free.ok and free.reason == "ok" and free.qdot[2] > 0.0  # without the pin it recovers
+    inward = f(dataclasses.replace(pinned, rcm_b=np.array([-1.0])))  # the equality moves the tip 1 mm/s into the wall
+    assert not inward.ok and inward.reason.startswith("QP: infeasible") and not inward.qdot.any()
