@@ -68,7 +68,7 @@ class BandSpec:
         if not (0.2 <= self.spacing_mm <= 5.0):
             raise ValueError(f"spacing_mm must be in [0.2, 5] mm, got {self.spacing_mm}")
         if not (BOUNDARY_MM <= self.boundary_mm <= 4.0):
-            raise ValueError(f"boundary_mm must be in [{BOUNDARY_MM}, 4] mm (d_safe + the model's margin), "
+            raise ValueError(f"boundary_mm must be in [{BOUNDARY_MM}, 4] mm (d_safe + the model's and the calibration's margins), "
                              f"got {self.boundary_mm}")
         if not (self.standoff_mm > self.boundary_mm + 0.1 and self.standoff_mm <= 5.0):
             raise ValueError(f"standoff_mm must be in ({self.boundary_mm + 0.1:g}, 5] mm (the boundary is "

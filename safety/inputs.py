@@ -52,6 +52,11 @@ class FilterConfig:
         if not (np.isfinite(self.calibration_bound_deg) and 0.0 <= self.calibration_bound_deg < 45.0):
             raise ValueError(f"FilterConfig.calibration_bound_deg must be in [0, 45) deg, got {self.calibration_bound_deg}")
 
+    def boundary_mm(self, model_margin_mm: float = 0.0) -> float:
+        """The clearance (mm) the retina barrier keeps from a model with margin
+        `model_margin_mm` (its uncertainty term): d_safe + that margin + the calibration margin."""
+        return self.d_safe_mm + float(model_margin_mm) + self.calibration_margin_mm
+
     @property
     def calibration_margin_mm(self) -> float:
         """The declared calibration bound as a clearance (mm): bound mm + lever tan(bound deg)."""

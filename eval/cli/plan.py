@@ -101,8 +101,8 @@ def register(sub) -> None:
     add_eye_param(p)
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--standoff-mm", type=POSITIVE_MM, default=1.0,
-                   help="shaving standoff inside the model, mm: above the filter's boundary + 0.1 mm (0.6 mm for "
-                        "the ellipsoid) and at most 5 mm")
+                   help="shaving standoff inside the model, mm: at least the filter's boundary (0.5 mm + the "
+                        "model's margin + the calibration bound's 0.064 mm) + 0.2 mm, and at most 5 mm")
     p.add_argument("--band", type=band_range, default="0,5", metavar="Z0,Z1",
                    help="band z_E range 'z0,z1' in mm (equator 0, ora serrata 5); |z_E| below the smallest retinal "
                         "semi-axis minus the standoff")
@@ -202,7 +202,7 @@ def main(args) -> int:
                          f"{', '.join(f'{r:.1f}' for r in radii)} mm; an eye's lie in {loop.config.model_radius_range_mm} "
                          f"mm) and would hold the instrument inside the conservative prior, away from the band")
     model = trusted.shape  # what the filter will bound the motion with (the sphere if the ellipsoid is no eye's)
-    boundary = loop.config.filter.d_safe_mm + trusted.margin_mm(loop.config.margins)
+    boundary = loop.config.filter.boundary_mm(trusted.margin_mm(loop.config.margins))
     if spec.standoff_mm < boundary + 0.2:
         raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
                          f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "

@@ -361,7 +361,7 @@ class FilterSystem(LeafSystem):
             log.log_frames(t, frames)
             o, u = self.robot.beam(q)
             beam = None if not np.isfinite(distance_mm) else (o, o + distance_mm * u)
-            keep = self.config.filter.d_safe_mm + (0.0 if prior or self.local else float(snap.margin_mm(self.config.margins)))
+            keep = self.config.filter.boundary_mm(0.0 if prior or self.local else float(snap.margin_mm(self.config.margins)))
             log.log_scene(t, eye=model, beam=beam, p_W_trocar=self.p_WC, lens=self.lens,
                           boundary=shrunk(model, keep), robot=self.robot_scene)
 

@@ -94,8 +94,9 @@ def test_bad_plans_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
 def test_an_ellipsoid_that_is_no_eye_gives_way_to_the_sphere_and_its_wider_boundary(tmp_path, capsys):
     """The pointed eye's ellipsoid (fitted to its posterior cap) has semi-axes of 150 and 29
     mm: the filter bounds the motion with the sphere fit instead, whose phase margin
-    (1 mm) puts the boundary at 1.5 mm, so a 1 mm standoff is refused before any motion."""
+    (1 mm) and the calibration bound (0.064 mm) put the boundary at 1.56 mm, so a 1 mm
+    standoff is refused before any motion."""
     out = tmp_path / "never"
     assert main(["plan", "--shape", "pointed", "--out", str(out)]) == 2
-    assert "below the boundary the filter keeps from this sphere model (1.50 mm" in capsys.readouterr().err
+    assert "below the boundary the filter keeps from this sphere model (1.56 mm" in capsys.readouterr().err
     assert not out.exists()
