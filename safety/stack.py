@@ -8,18 +8,15 @@ optimum under the equalities violates an inequality and the remembered active se
 not this step's) goes to the solver (safety.qp, DAQP by default); a fault or a failed
 QP gives zero velocity and the reason.
 
-Recovery held. Two kinds of rows ask the robot to undo an error at a rate: a barrier row
-with a negative right-hand side (a point already inside its margin, after a model update
-raised the margin or an actuator carried the robot in, asked back out at up to the
-recovery rate) and the RCM rows' right-hand side (the shaft's drift from the trocar,
-corrected at the RCM gain). When no velocity meets every row, the step is solved again
-with each such barrier row asking only that its point come no closer (right-hand side
-0), then, if that is still infeasible, with the trocar's drift also held rather than
-corrected (the equality rows' right-hand side 0: safety.constraints.rcm's rows are the
-only equality rows of the filter's stacks). The robot keeps every other rule, with
-RECOVERY_HELD as its reason and among its active rows (ok, an intervention), instead of a
-zero command that the actuator would still carry on from. Only a QP infeasible even so
-stops the robot ("QP: infeasible ..."). Steps whose QP is feasible are not touched. Units: mm, s, rad; frame W.
+Recovery held. A barrier row with a negative right-hand side asks a point that is already
+inside its margin (a model update raised the margin, an actuator still carrying the robot
+in) to move back out at up to the recovery rate. When no velocity meets every row, and
+some rows are such recovery rows, the step is solved again with each recovery row asking
+only that its point come no closer (right-hand side 0): the robot keeps every other rule
+and holds its recovering points, with RECOVERY_HELD as its reason and among its
+active rows (ok, an intervention), instead of a zero command that the actuator would still carry on from.
+Only a QP infeasible even so stops the robot ("QP: infeasible ..."). Steps whose QP is
+feasible are not touched. Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
@@ -147,7 +144,7 @@ class ConstraintStack:
         qp = DenseQP(H, c, lb, ub, G[:m], h[:m], A[:p], b[:p], self.row_names(ids[:m], ranges))
         result = solve(qp, self.config.solver) if code == core.STEP_QP_FAILED else \
             solve_by_solver(qp, self.config.solver, core.ACTIVE_TOL, t0)
-        if not result.ok and result.reason.startswith("infeasible") and bool(np.any(qp.h < 0.0) or np.any(qp.b != 0.0)):
+        if not result.ok and result.reason.startswith("infeasible") and bool(np.any(qp.h < 0.0)):
             result = self.held(qp, t0)
             warm = False  # the relaxed rows are not the step's: nothing to remember
         if not result.ok:
@@ -158,12 +155,9 @@ class ConstraintStack:
         return self.finished(result, clearance, port, bool(core.off_command(J_tip, result.x, command)))
 
     def held(self, qp: DenseQP, t0: float) -> QPResult:
-        """The step's QP with its recovery rows held instead (module docstring): the
-        barriers' first, then the trocar's correction too; its result, with RECOVERY_HELD
-        first among the active rows when it solves."""
+        """The step's QP with every recovery row held instead (module docstring): its result,
+        with RECOVERY_HELD first among the active rows when it solves."""
         result = solve(qp._replace(h=np.maximum(qp.h, 0.0)), self.config.solver)
-        if not result.ok and qp.b.size and np.any(qp.b != 0.0):
-            result = solve(qp._replace(h=np.maximum(qp.h, 0.0), b=np.zeros_like(qp.b)), self.config.solver)
         if not result.ok:
             return result
         return result._replace(active=(RECOVERY_HELD, *result.active), solve_us=1e6 * (time.perf_counter() - t0))
