@@ -13,10 +13,10 @@ inside its margin (a model update raised the margin, an actuator still carrying 
 in) to move back out at up to the recovery rate. When no velocity meets every row, and
 some rows are such recovery rows, the step is solved again with each recovery row asking
 only that its point come no closer (right-hand side 0): the robot keeps every other rule
-and holds its recovering points, with RECOVERY_HELD as its reason and among its
-active rows (ok, an intervention), instead of a zero command that the actuator would still carry on from.
-Only a QP infeasible even so stops the robot ("QP: infeasible ..."). Steps whose QP is
-feasible are not touched. Units: mm, s, rad; frame W.
+and holds its recovering points, with RECOVERY_HELD as its reason and among its active
+rows (ok, an intervention), instead of a zero command that the actuator would still carry
+on from. Only a QP infeasible even so stops the robot ("QP: infeasible ..."). Steps whose
+QP is feasible are not touched. Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
