@@ -96,6 +96,14 @@ class SearchResult:
     stops_by_reason: dict = field(default_factory=dict)
     restarts: int = 0
 
+    def add(self, clearances: list, failsafe_stops: int, stops_by_reason: dict, restarts: int = 0) -> None:
+        """Count in evaluations (their clearances, stops and stops by reason) and restarts."""
+        self.clearances += clearances
+        self.failsafe_stops += failsafe_stops
+        self.restarts += restarts
+        for key, count in stops_by_reason.items():
+            self.stops_by_reason[key] = self.stops_by_reason.get(key, 0) + count
+
 
 def minimise(objective, mean0, budget: int, seed: int, population: int = 20, elite: float = 0.2,
              smoothing: float = 0.7, min_sd: float = 0.05, patience: int = 15, tol: float = 1e-3,
@@ -167,10 +175,7 @@ class _Island:
             if run is None or not len(run.t):
                 return np.inf
             score = float(np.min(run.true_clearance_mm))
-            found.clearances.append(score)
-            found.failsafe_stops += run.failsafe_stops
-            for key, count in stops_by_reason([run]).items():
-                found.stops_by_reason[key] = found.stops_by_reason.get(key, 0) + count
+            found.add([score], run.failsafe_stops, stops_by_reason([run]))
             return score
 
         mean0 = np.zeros(DIMENSIONS)
@@ -196,11 +201,7 @@ def cross_entropy_search(loop, model, coverage, budget: int, seed: int, duration
     found = SearchResult(np.inf, np.zeros(DIMENSIONS))
     done = None if progress is None else (lambda k, n: progress(sum(budgets[:k]), budget))
     for part in run_tasks(loop, task, range(len(budgets)), workers or Workers(), done):
-        found.clearances += part.clearances
-        found.failsafe_stops += part.failsafe_stops
-        found.restarts += part.restarts
-        for key, count in part.stops_by_reason.items():
-            found.stops_by_reason[key] = found.stops_by_reason.get(key, 0) + count
+        found.add(part.clearances, part.failsafe_stops, part.stops_by_reason, part.restarts)
         if part.worst_clearance_mm < found.worst_clearance_mm:
             found.worst_clearance_mm, found.worst_theta = part.worst_clearance_mm, part.worst_theta
             found.worst_sensor_seed = part.worst_sensor_seed
