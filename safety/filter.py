@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from safety.constraints import JointPositionLimits, JointSpeedLimits, KeepOut, LinearEquality, PointBarrier, TipSpeedLimit
+from safety.constraints import (JointPositionLimits, JointSpeedLimits, KeepOut, LinearEquality, PointBarrier, RcmEquality,
+                                TipSpeedLimit)
 from safety.constraints.actuated_barrier import actuator_aware
 from safety.inputs import FilterConfig, FilterInputs, FilterOutput
 from safety.stack import ConstraintStack
@@ -45,6 +46,14 @@ def default_constraints(config: FilterConfig, q_min, q_max, qdot_max, retina_gro
     if rcm is not None:
         out.append(rcm)
     return out + list(extra)
+
+
+def rcm_constraint(config: FilterConfig, p_WC, gain_per_s: float) -> RcmEquality:
+    """The RCM through the trocar p_WC (3,) mm, drift corrected at gain_per_s (1/s), the
+    correction no faster than config's tip speed limit allows in every direction
+    (safety.constraints.rcm: a correction the tip cannot follow leaves no velocity)."""
+    return RcmEquality(np.asarray(p_WC, dtype=float), gain_per_s,
+                       max_correction_mm_s=TipSpeedLimit(config.max_tip_speed_mm_s).every_direction_mm_s)
 
 
 def _distance_and_gradient(shape, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

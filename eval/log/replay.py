@@ -104,7 +104,7 @@ def replay(path, tol: float = 1e-9, allow_truncated: bool = False) -> ReplayResu
         filt = SafetyFilter(codec.config_from_json(configs[0][1]))
     except ValueError as exc:
         raise LogReadError(f"{path}: /filter/config: {exc}") from None
-    logged = _compact_steps(log, path) if log.count(steps.STEP_TOPIC) else _json_steps(log, path)
+    logged = _compact_steps(log, path, filt.config) if log.count(steps.STEP_TOPIC) else _json_steps(log, path)
     max_diff, mismatches, examples = 0.0, 0, []
     for s, x, logged_out, logged_status in logged:
         d, diffs = _compare(s, logged_out, logged_status, filt(x))
@@ -130,9 +130,10 @@ def _json_steps(log, path) -> list:
     return out
 
 
-def _compact_steps(log, path) -> list:
+def _compact_steps(log, path, config) -> list:
     """(step, FilterInputs, outputs, status) of the /filter/step records: the kinematics
-    rebuilt on the robot of /filter/setup (eval.systems.inputs.StepInputs, the loop's own)."""
+    rebuilt on the robot of /filter/setup for the filter configured by `config`
+    (eval.systems.inputs.StepInputs, the loop's own)."""
     from eval.systems.inputs import StepInputs
     from planning.robot import Robot
 
@@ -141,7 +142,7 @@ def _compact_steps(log, path) -> list:
         raise LogReadError(f"{path}: /filter/step records need a /filter/setup message, found none")
     try:
         # one robot per setup (a run through several trocars logs a setup per trocar)
-        builds = [(ns, StepInputs(Robot(scenario), points))
+        builds = [(ns, StepInputs(Robot(scenario), points, config))
                   for ns, (scenario, points) in ((ns, steps.setup_from_json(d)) for ns, d in setups)]
         models = {m["index"]: (codec.shape_from_json(m["shape"], "/filter/models shape"), m["kind"])
                   for _, m in log.messages.get(steps.MODELS_TOPIC, [])}

@@ -39,6 +39,7 @@ from planning.robot import RCM_GAIN_PER_S, Robot
 from planning.scan import start_posture
 from planning.step_kinematics import GROUP_CAPACITY, POINT_GROUPS, point_names, step_kinematics, step_kinematics_params
 from safety import ConstraintStack, default_constraints
+from safety.filter import rcm_constraint
 from safety.constraints import RcmEquality
 from safety.constraints.actuated_barrier import actuator_aware
 
@@ -84,7 +85,7 @@ def loop_constraints(robot: Robot, config: LoopConfig) -> list:
     (safety.constraints.actuated_barrier: they read the actuator's pending displacements)."""
     out = default_constraints(config.filter, robot.q_lower, robot.q_upper, robot.qdot_max,
                               (("tip_port", "eye", 2), ("shaft", "eye_shaft", 0)), ("lens", "lens"),
-                              RcmEquality(np.asarray(robot.p_WC, dtype=float), RCM_GAIN_PER_S),
+                              rcm_constraint(config.filter, robot.p_WC, RCM_GAIN_PER_S),
                               config.extra_constraints)
     return out if config.actuator.ideal else actuator_aware(out)
 
@@ -105,7 +106,7 @@ class FilterSystem(LeafSystem):
         self.constraints = loop_constraints(robot, config)
         self.lens = robot.scenario.lens_W
         lens = self.lens.field_kernel()  # the keep-out ellipsoid's own distance field
-        self.step_inputs = StepInputs(robot, config.points, prior)
+        self.step_inputs = StepInputs(robot, config.points, config.filter, prior)
         self.robot_scene = RobotScene(robot)
         self.local = config.local_model
         eye_kernel = local_field if self.local else model_field_kernel
@@ -168,7 +169,7 @@ class FilterSystem(LeafSystem):
         p_WC = np.array(p_WC, dtype=float)
         if p_WC.shape != (3,) or not np.all(np.isfinite(p_WC)):
             raise ValueError(f"p_WC must be 3 finite mm, got {p_WC}")
-        self._rcm = RcmEquality(p_WC, self._rcm.gain_per_s, self._rcm.group, self._rcm.name)
+        self._rcm = dataclasses.replace(self._rcm, p_WC=p_WC)
         self.constraints = [self._rcm if isinstance(c, RcmEquality) else c for c in self.constraints]
         self.stack.set_params(self.constraints)
         self.stack.reset()  # the last active set belongs to the other trocar's geometry

@@ -8,26 +8,28 @@ import numpy as np
 
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 from planning.robot import RCM_GAIN_PER_S, Robot
-from safety import FilterInputs, PointKinematics
-from safety.constraints import RcmEquality
+from safety import FilterConfig, FilterInputs, PointKinematics
 from safety.constraints.rcm import fill_rcm
+from safety.filter import rcm_constraint
 from safety.margins import conservative_prior
 
 
 class StepInputs:
-    """FilterInputs of the loop's steps on `robot` with the monitored `points`; `prior`
-    (default: the conservative prior about the robot's eye) bounds the motion before the
-    model is trusted and is the fallback of untrusted points after."""
+    """FilterInputs of the loop's steps on `robot` with the monitored `points`, for a
+    filter configured by `filter_config` (its tip speed limit bounds the RCM's drift
+    correction: safety.filter.rcm_constraint); `prior` (default: the conservative prior
+    about the robot's eye) bounds the motion before the model is trusted and is the
+    fallback of untrusted points after."""
 
-    def __init__(self, robot: Robot, points: MonitoredPointsConfig, prior=None):
-        self.robot, self.points = robot, points
+    def __init__(self, robot: Robot, points: MonitoredPointsConfig, filter_config: FilterConfig, prior=None):
+        self.robot, self.points, self.filter_config = robot, points, filter_config
         self.prior = conservative_prior(robot.scenario.eye_pose.p_WE) if prior is None else prior
         self.lens = robot.scenario.lens_W
         self.set_trocar(robot.p_WC)
 
     def set_trocar(self, p_WC) -> None:
         """The active trocar p_WC (3,) mm, W: the RCM's and the monitored points' (the loop's, loop_constraints)."""
-        self.rcm = RcmEquality(np.array(p_WC, dtype=float), RCM_GAIN_PER_S)
+        self.rcm = rcm_constraint(self.filter_config, p_WC, RCM_GAIN_PER_S)
 
     def points_at(self, q):
         """planning.instrument_points.InstrumentPoints at joint angles q (6,) rad; ValueError on bad angles."""

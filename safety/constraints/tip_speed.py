@@ -47,6 +47,11 @@ class TipSpeedLimit(Constraint):
     def __post_init__(self):
         check_finite_positive("TipSpeedLimit", max_speed_mm_s=self.max_speed_mm_s)
 
+    @property
+    def every_direction_mm_s(self) -> float:
+        """The speed (mm/s) the polytope allows in every direction: max_speed_mm_s / REACH."""
+        return self.max_speed_mm_s / REACH
+
     def params(self) -> np.ndarray:
         return as_params(self.max_speed_mm_s)
 

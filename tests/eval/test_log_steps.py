@@ -25,7 +25,7 @@ MAX_STEP_BYTES = 400  # 6 joint angles, 3 + 1 command, 6 rates: ~20 doubles, the
 def setup():
     scenario = SurgeryScenario(eye_name="myopic")
     robot = Robot(scenario)
-    return scenario, robot, StepInputs(robot, MonitoredPointsConfig())
+    return scenario, robot, StepInputs(robot, MonitoredPointsConfig(), FilterConfig())
 
 
 def _write(path, setup, tamper: int | None = None, steps: int = 30):
