@@ -14,15 +14,20 @@ a plan has (ports used - 1) switches, the fewest for that set of ports. A cell s
 working ports reach goes to the one whose straight shaft keeps furthest from the retina
 (the clearance varies smoothly over the band, so each port's cells form few regions and
 its serpentine does not zig-zag across the other's); the infusion port, used as a
-working port, takes only cells no working port reaches. A port sweeps its cells region
-by region; a cell a sweep drops (IK branch, the shaft on the way) gets another pass
-through the same port (a re-entry) or is offered to the ports after it.
+working port, takes only cells no working port reaches; a cell within a few mm of a
+port, where no shaft point the filter watches is that deep and the shaft crosses the
+wall right behind the cutter, goes to another port that reaches it. A port sweeps its
+cells region by region; a cell a sweep drops (IK branch, the shaft or the lens on the
+way) gets another pass through the same port (a re-entry) or is offered to the ports
+after it. A pass enters and leaves along the shaft line of an end cell of its
+serpentine, or of a door cell nearer the trocar's side when the wrist cannot take the
+instrument out along the end cell's line.
 
 A switch is withdraw (the tip back along the shaft to EXIT_MM outside the trocar, or
 as far as the arm reaches but at least MIN_EXIT_MM, at INSERT_SPEED_MM_S), move (outside
 the eye, the tip on an arc about it, at MOVE_SPEED_MM_S) and insert (along the next
 pass's first shaft line to its first cell); every piece timed within the joints' speed
-limits (planning.scan.joint_trajectory).
+limits (planning.port_moves).
 
 Phases of a pass (PortSegment.pieces, in execution order): "enter" (the insertion while
 the tip crosses the wall at the trocar: some point the filter watches, tip, cutter port or
@@ -39,30 +44,28 @@ frame W unless `_E`.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
-from planning.ik import IKFailure, rcm_ik
+from planning.ik import IKFailure
 from planning.peripheral import (Band, BandSpec, Sweep, band_surface, cell_reach, cell_reasons, plan_sweep, port_roll_rad,
                                  serpentine)
+from planning.port_moves import (EXIT_MM, INSERT_SPEED_MM_S, MIN_EXIT_MM, PortSwitch, line_trajectory,  # noqa: F401
+                                 port_switches)
 from planning.robot import Robot
-from planning.scan import joint_trajectory
 from planning.sweep import SHAFT_SLACK_MM, watched_clearance_mm
 
 DEFAULT_PORTS = ("superonasal", "superotemporal")  # the two working ports of planning.ports' layout
 CHECK_ORDER = ("lens", "port", "reach", "shaft")  # how far a cell got through a port's checks
 UNREACHABLE = ("lens", "port", "reach", "shaft", "depression")
 DEPRESSION_MM = 2.0  # indentation of the wall by a scleral depressor (a few mm in practice)
-EXIT_MM = 10.0  # the tip's distance outside the trocar while the instrument moves between ports
-MIN_EXIT_MM = 2.0  # the least the tip must clear the trocar by before the instrument moves
-INSERT_SPEED_MM_S = 5.0  # tip speed along the shaft while inserting and withdrawing
-LINE_STEP_MM = 1.0  # spacing of the insertion line's IK waypoints
-MOVE_SPEED_MM_S = 20.0  # the tip's speed on the move outside the eye
-MOVE_CLEARANCE_MM = 5.0  # the tip's arc between ports lies this much further out than its ends
+SHALLOW_RANK = -1e9  # plan_ports' rank of a cell next to the port (below any clearance, above not reaching it)
 MAX_SWEEPS_PER_PORT = 8  # passes through one port (each after the first is a re-entry)
+MAX_DOOR_TRIES = 30  # cells tried as a pass's door (the arm takes the instrument out along its shaft line)
 MIN_PASS_CELLS = 3  # a re-entry (withdraw, insert: ~10 s) for fewer cells is not worth it
 IN_EYE_PHASES = ("insert", "sweep", "withdraw")  # a pass's phases with the instrument clear inside the eye
 DEPTH_CHECK_DT_S = 0.01  # the insertion's depth check: the tip moves 0.05 mm between samples at 5 mm/s
@@ -93,23 +96,6 @@ class PortSegment:
                 ("sweep", sweep, sweep.start_time(), sweep.end_time()),
                 ("withdraw", self.withdraw, 0.0, self.withdraw_inside_s),
                 ("exit", self.withdraw, self.withdraw_inside_s, self.withdraw.end_time())]
-
-
-@dataclass(frozen=True)
-class PortSwitch:
-    """A planned switch between ports: durations (s) of its withdraw, move and insert, and the
-    tip's smallest distance outside the model's retina during the move (mm, > 0 outside)."""
-
-    from_port: str
-    to_port: str
-    withdraw_s: float
-    move_s: float
-    insert_s: float
-    move_min_outside_mm: float
-
-    @property
-    def duration_s(self) -> float:
-        return self.withdraw_s + self.move_s + self.insert_s
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,84 +154,83 @@ def combined_reason(reasons: list) -> np.ndarray:
     return np.array(["ok" if b == len(CHECK_ORDER) else CHECK_ORDER[b] for b in best], dtype=object)
 
 
-def line_trajectory(robot: Robot, q_end, p_WT, p_WC, roll_rad: float, length_mm: float, speed_mm_s: float,
-                    min_length_mm: float):
-    """(joint trajectory rad, its length mm) of the tip moving along the shaft line trocar
-    p_WC -> p_WT to p_WT from up to `length_mm` behind it (outside the eye when longer
-    than |p_WT - p_WC|), ending at q_end; timed at `speed_mm_s` (planning.scan.joint_trajectory)
-    with the roll held. The line starts where the arm still reaches it (IK every
-    LINE_STEP_MM); IKFailure when that is less than `min_length_mm`."""
-    p_T, p_C = np.asarray(p_WT, dtype=float), np.asarray(p_WC, dtype=float)
-    u = (p_T - p_C) / np.linalg.norm(p_T - p_C)
-    pivot = p_T - (length_mm + 20.0) * u  # the same line, its pivot behind every point of the move
-    s = np.linspace(0.0, length_mm, max(int(np.ceil(length_mm / LINE_STEP_MM)), 1) + 1)
-    Q = [np.asarray(q_end, dtype=float)]
-    for d in s[1:]:
-        try:
-            Q.append(rcm_ik(robot, p_T - d * u, pivot, Q[-1], roll_rad=roll_rad))
-        except IKFailure:
-            break
-    reached = s[len(Q) - 1]
-    if reached < min_length_mm:
-        raise IKFailure(f"the instrument cannot leave the trocar along its shaft from p_WT_mm = {np.round(p_T, 3)}: "
-                        f"the arm reaches {reached:.1f} mm of the {min_length_mm:.1f} mm needed")
-    Q = np.array(Q[::-1])
-    return joint_trajectory(robot, Q, p_T - s[:len(Q)][::-1, None] * u, speed_mm_s), float(reached)
-
-
-def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float) -> PiecewisePolynomial:
-    """The move outside the eye between two postures q0, q1 (rad) whose tips are outside
-    it: the tip on an arc about the eye centre p_WE (mm, W) bulging `clearance_mm` further
-    out than the line between the tips' own distances, the shaft direction turning evenly between its two
-    (closed-form IK, the branch nearest the last sample), timed at MOVE_SPEED_MM_S within
-    the joints' speed limits (planning.scan.joint_trajectory); a direct joint-space move
-    when the arc leaves the arm's reach."""
-    from planning.closed_form import shaft_ik
-
-    q0, q1 = np.asarray(q0, dtype=float), np.asarray(q1, dtype=float)
-    R0, t0 = robot.pose("I", q0)[0], robot.pose("T", q0)[1]
-    R1, t1 = robot.pose("I", q1)[0], robot.pose("T", q1)[1]
-    d0, d1 = t0 - p_WE, t1 - p_WE
-    r0, r1 = np.linalg.norm(d0), np.linalg.norm(d1)
-    Q = [q0]
-    for s in np.linspace(0.0, 1.0, 13)[1:-1]:
-        d = (1 - s) * d0 / r0 + s * d1 / r1
-        u = (1 - s) * R0[:, 0] + s * R1[:, 0]
-        r = (1 - s) * r0 + s * r1 + clearance_mm * np.sin(np.pi * s)
-        cands = shaft_ik(robot.arm, p_WE + r * d / np.linalg.norm(d), u / np.linalg.norm(u), q0[5] + s * (q1[5] - q0[5]))
-        ok = [c for c in cands if np.all(robot.joint_margin_rad(c) >= 0)]
-        if not ok:
-            Q = [q0]
-            break
-        Q.append(min(ok, key=lambda c: np.abs(c - Q[-1]).max()))
-    Q = np.array(Q + [q1])
-    return joint_trajectory(robot, Q, np.array([robot.pose("T", q)[1] for q in Q]), MOVE_SPEED_MM_S)
-
-
-def _segment(robot: Robot, band: Band, port, p_WC, model, spec: BandSpec, mask: np.ndarray) -> PortSegment | None:
+def _segment(robot: Robot, band: Band, port, p_WC, model, spec: BandSpec, mask: np.ndarray, lens_W) -> PortSegment | None:
     """The port's sweep over the cells of `mask` with its insertion and withdrawal; None
     when none of them can be swept, or the arm cannot insert or withdraw the instrument
-    along the first or last cell's shaft line within its joint limits."""
-    try:
-        sweep = plan_sweep(robot, band, p_WC, model, spec, serpentine(band, mask))
-    except IKFailure:
-        return None
-    lines = []
-    for k in (0, -1):
-        (r, i), q = sweep.cells[k], sweep.Q[k]
-        t = band.target_W[r, i]
-        depth = float(np.linalg.norm(t - p_WC))
+    along a shaft line into or out of the sweep within its joint limits. The sweep enters
+    (leaves) at its first (last) cell, or, where the arm cannot take the instrument EXIT_MM
+    out of the trocar along that cell's shaft line (the wrist at its limit at a far, deep
+    cell), at the nearest of its cells where it can (a door cell, visited twice); with no
+    such door, at the end cell when the arm takes the tip at least MIN_EXIT_MM out."""
+    best = None
+    for flip in (False, True):  # the serpentine's two pairs of end cells
         try:
-            lines.append(line_trajectory(robot, q, t, p_WC, port_roll_rad(t, p_WC, band.normal_W[r, i]), depth + EXIT_MM,
-                                         INSERT_SPEED_MM_S, depth + MIN_EXIT_MM)[0])
+            sweep = plan_sweep(robot, band, p_WC, model, spec, serpentine(band, mask, flip), lens_W=lens_W)
         except IKFailure:
             return None
-    insert, withdraw_reversed = lines
+        lines = _end_lines(robot, band, sweep, p_WC, EXIT_MM)
+        if None in lines:
+            sweep, lines = _through_doors(robot, band, sweep, lines, p_WC, model, spec, lens_W)
+        if None not in lines:
+            best = sweep, lines
+            break
+        if best is None:  # the ends themselves, when the arm takes the tip out at least MIN_EXIT_MM
+            short = _end_lines(robot, band, sweep, p_WC, MIN_EXIT_MM)
+            best = (sweep, short) if None not in short else None
+    if best is None:
+        return None
+    sweep, (insert, withdraw_reversed) = best
     limit = spec.boundary_mm + SHAFT_SLACK_MM
     withdraw = _reversed(withdraw_reversed)
     return PortSegment(port, np.asarray(p_WC, dtype=float), sweep, insert, withdraw,
                        inside_from_s(robot, insert, p_WC, model, limit),
                        withdraw.end_time() - inside_from_s(robot, withdraw_reversed, p_WC, model, limit))
+
+
+def _end_line(robot: Robot, band: Band, cell, q, p_WC, out_mm: float):
+    """The insertion along the shaft line to `cell` (ring, azimuth index) ending at its
+    posture q (rad), from EXIT_MM outside the trocar (line_trajectory), or None when the
+    arm cannot take the tip `out_mm` out of the trocar along it."""
+    t = band.target_W[cell]
+    depth = float(np.linalg.norm(t - p_WC))
+    try:
+        return line_trajectory(robot, q, t, p_WC, port_roll_rad(t, p_WC, band.normal_W[cell]), depth + EXIT_MM,
+                               INSERT_SPEED_MM_S, depth + out_mm)[0]
+    except IKFailure:
+        return None
+
+
+def _end_lines(robot: Robot, band: Band, sweep: Sweep, p_WC, out_mm: float) -> tuple:
+    """(insertion to the sweep's first cell, the withdrawal from its last one run backwards),
+    each None where the arm cannot take the tip `out_mm` out of the trocar along that shaft line."""
+    return tuple(_end_line(robot, band, sweep.cells[k], sweep.Q[k], p_WC, out_mm) for k in (0, -1))
+
+
+def _through_doors(robot: Robot, band: Band, sweep: Sweep, lines: tuple, p_WC, model, spec: BandSpec, lens_W) -> tuple:
+    """(sweep, its end lines) with each end whose line fails moved to a door cell: of the
+    sweep's cells (the nearest to that end first, at most MAX_DOOR_TRIES), the first whose
+    shaft line the arm can take EXIT_MM out; the sweep re-planned with the door before its
+    first cell or after its last one (its way there checked as any other). The given sweep
+    and lines when no door works."""
+    doors = []
+    for k, line in zip((0, -1), lines):
+        if line is not None:
+            doors.append([])
+            continue
+        near = np.argsort(np.linalg.norm(sweep.targets_W - sweep.targets_W[k], axis=1))[1:MAX_DOOR_TRIES + 1]
+        door = next((j for j in near if _end_line(robot, band, sweep.cells[j], sweep.Q[j], p_WC, EXIT_MM) is not None), None)
+        if door is None:
+            return sweep, lines
+        doors.append([sweep.cells[door]])
+    order = doors[0] + list(sweep.cells) + doors[1]
+    try:
+        again = plan_sweep(robot, band, p_WC, model, spec, order, lens_W=lens_W)
+    except IKFailure:
+        return sweep, lines
+    if again.cells[0] != order[0] or again.cells[-1] != order[-1]:  # a door's way in was refused
+        return sweep, lines
+    again = dataclasses.replace(again, dropped={**sweep.dropped, **again.dropped})
+    return again, _end_lines(robot, band, again, p_WC, EXIT_MM)
 
 
 def inside_from_s(robot: Robot, line: PiecewisePolynomial, p_WC, model, limit_mm: float) -> float:
@@ -280,11 +265,15 @@ def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec()
     reason = combined_reason([by_port[p.name][0] for p in ports])
     static_miss = (reason != "ok").reshape(shape)
     # the first port to take a cell: of those that reach it, the one whose shaft keeps furthest from the retina
-    # (the infusion port, when used as a working port, takes only what the working ports cannot)
-    clear = np.array([np.where(by_port[p.name][0] == "ok", by_port[p.name][2], -np.inf) for p in ports])
+    # (the infusion port, when used as a working port, takes only what the working ports cannot). A cell within
+    # a few mm of a port (no watched shaft point that deep: clearance +inf) ranks below every other port that
+    # reaches it: there the shaft crosses the wall right behind the cutter, which turns fast about the trocar.
+    clear = np.array([np.where(by_port[p.name][0] != "ok", -np.inf, np.where(np.isposinf(by_port[p.name][2]),
+                                                                             SHALLOW_RANK, by_port[p.name][2]))
+                      for p in ports])
     working = np.array([p.role == "working" for p in ports])
-    first = np.where(np.isfinite(clear[working]).any(axis=0)[None] & ~working[:, None], -np.inf, clear)
-    choice = np.where(np.isfinite(first.max(axis=0)), np.argmax(first, axis=0), -1)
+    first = np.where((clear[working] > -np.inf).any(axis=0)[None] & ~working[:, None], -np.inf, clear)
+    choice = np.where(first.max(axis=0) > -np.inf, np.argmax(first, axis=0), -1)
     band = Band(az, z, S, N, T, reason.reshape(shape).copy(), np.full(shape, np.nan))
     port_of = np.full(shape, -1)
     open_cells = np.zeros(shape, dtype=bool)  # dropped by an earlier port's sweep, still to be offered
@@ -298,7 +287,7 @@ def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec()
         while queue and rounds < MAX_SWEEPS_PER_PORT:
             part = queue.pop(0)
             rounds += 1
-            seg = _segment(robot, band, port, p_WC, model, spec, part)
+            seg = _segment(robot, band, port, p_WC, model, spec, part, scenario.lens_W)
             if seg is None:  # the arm cannot sweep this region from here: "reach" unless another port sweeps it
                 band.reason[part & (band.reason == "ok")] = "reach"
                 continue
@@ -318,7 +307,7 @@ def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec()
     band.reason[port_of >= 0] = "ok"
     band.reason[(port_of < 0) & (band.reason == "ok")] = "shaft"  # reached, but every sweep dropped it
     _mark_depression(robot, scenario, band, spec, ports, static_miss)
-    switches, moves = _switches(robot, model, segments, scenario.eye_pose.p_WE)
+    switches, moves = port_switches(robot, model, segments, scenario.eye_pose.p_WE)
     if not segments:
         raise IKFailure("no cell of the band can be swept from these ports")
     return MultiPortPlan(band, ports, port_of, {n: r[0].reshape(shape) for n, r in by_port.items()}, segments,
@@ -338,18 +327,3 @@ def _mark_depression(robot: Robot, scenario, band: Band, spec: BandSpec, ports, 
         found |= cell_reasons(robot, scenario, T, band.normal_W[miss], spec, p_EC=scenario.p_EC_of(p.name))[0] == "ok"
     idx = np.argwhere(miss)[found]
     band.reason[tuple(idx.T)] = "depression"
-
-
-def _switches(robot: Robot, model, segments: list, p_WE) -> tuple[list, list]:
-    """The switches between consecutive segments and their moves outside the eye."""
-    switches, moves = [], []
-    for a, b in zip(segments[:-1], segments[1:]):
-        q0, q1 = a.withdraw.value(a.withdraw.end_time())[:, 0], b.insert.value(0.0)[:, 0]
-        move = joint_move(robot, q0, q1, p_WE, MOVE_CLEARANCE_MM)
-        ts = np.linspace(0.0, move.end_time(), 50)
-        tips = np.array([robot.pose("T", move.value(t)[:, 0])[1] for t in ts])
-        outside = float(-np.max(np.asarray(model.signed_distance(tips), dtype=float)))
-        switches.append(PortSwitch(a.port.name, b.port.name, a.withdraw.end_time(), move.end_time(), b.insert.end_time(),
-                                   outside))
-        moves.append(move)
-    return switches, moves

@@ -29,8 +29,8 @@ import numpy as np
 from planning.closed_form import shaft_ik
 from planning.robot import Robot
 from planning.scenario import LENS_CLEARANCE_MM, ORA_SERRATA_Z_E_MM
-from planning.sweep import (MAX_JOINT_STEP_RAD, SHAFT_CHECK_DT_S, SHAFT_SLACK_MM, Sweep, plan_sweep,  # noqa: F401
-                            port_roll_rad, shaft_clearances_mm)
+from planning.sweep import (MAX_JOINT_STEP_RAD, SHAFT_CHECK_DT_S, SHAFT_SLACK_MM, Sweep, lens_clearances_mm,  # noqa: F401
+                            plan_sweep, port_roll_rad, shaft_clearances_mm)
 
 REASONS = ("ok", "lens", "port", "reach", "shaft")
 BOUNDARY_MM = 0.5  # the virtual boundary's d_safe: a standoff must leave room above it
@@ -155,7 +155,7 @@ def cell_reach(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.ndar
     U = targets_W - p_WC
     U /= np.linalg.norm(U, axis=1, keepdims=True)
     port = np.degrees(np.arcsin(np.clip(np.abs(np.einsum("ij,ij->i", normals_W, U)), 0.0, 1.0)))
-    lens = _lens_clearance(scenario, p_EC, scenario.eye_pose.to_E(targets_W))
+    lens = lens_clearances_mm(scenario.lens_W, p_WC, targets_W)
     margin = np.radians(spec.min_margin_deg)
     reasons = np.full(len(targets_W), "ok", dtype=object)
     shaft = np.full(len(targets_W), np.inf)
@@ -174,14 +174,6 @@ def cell_reach(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.ndar
                 if shaft[i] < spec.boundary_mm + SHAFT_SLACK_MM:
                     reasons[i] = "shaft"
     return reasons, port, shaft
-
-
-def _lens_clearance(scenario, p_EC: np.ndarray, P_E: np.ndarray, samples: int = 32) -> np.ndarray:
-    """(M,) smallest distance (mm) of the straight shaft trocar -> P_E from the lens keep-out."""
-    s = np.linspace(0.0, 1.0, samples)[None, :, None]
-    seg = p_EC + s * (P_E[:, None, :] - p_EC)
-    lens_E = scenario._lens_E
-    return -lens_E.signed_distance(seg.reshape(-1, 3)).reshape(len(P_E), samples).max(axis=1)
 
 
 def plan_band(robot: Robot, scenario, model, spec: BandSpec = BandSpec()) -> Band:
@@ -205,10 +197,12 @@ class Plan:
     plan_time_s: float
 
 
-def serpentine(band: Band, mask=None) -> list[tuple[int, int]]:
+def serpentine(band: Band, mask=None, flip: bool = False) -> list[tuple[int, int]]:
     """The cells of `mask` (n_rings, n_az) bool (default: the reachable ones) as (ring,
-    azimuth index) ring by ring, alternating direction. Each ring's cells start after its
-    widest gap, so the path never sweeps across the cells left out."""
+    azimuth index) ring by ring, alternating direction (azimuth increasing on even rings,
+    decreasing on odd ones; the other way round with `flip`, which gives the path its
+    other pair of end cells). Each ring's cells start after its widest gap, so the path
+    never sweeps across the cells left out."""
     order = []
     n_az = len(band.azimuth)
     mask = band.reachable if mask is None else np.asarray(mask, dtype=bool)
@@ -221,7 +215,7 @@ def serpentine(band: Band, mask=None) -> list[tuple[int, int]]:
         else:
             start = _after_widest_gap(ok)
             idx = [(start + k) % n_az for k in range(n_az) if ok[(start + k) % n_az]]
-        order += [(r, i) for i in (idx if r % 2 == 0 else idx[::-1])]
+        order += [(r, i) for i in (idx if (r + flip) % 2 == 0 else idx[::-1])]
     return order
 
 
@@ -244,7 +238,7 @@ def plan_path(robot: Robot, scenario, model, spec: BandSpec = BandSpec(), q_star
     Raises ValueError for a bad band or standoff and IKFailure when nothing is reachable."""
     t0 = time.perf_counter()
     band = plan_band(robot, scenario, model, spec)
-    sweep = plan_sweep(robot, band, scenario.p_WC, model, spec, serpentine(band), q_start)
+    sweep = plan_sweep(robot, band, scenario.p_WC, model, spec, serpentine(band), q_start, scenario.lens_W)
     for cell, reason in sweep.dropped.items():
         band.reason[cell] = reason
     return Plan(band, sweep.targets_W, sweep.roll_rad, sweep.trajectory, sweep.targets_used_W, time.perf_counter() - t0)

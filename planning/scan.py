@@ -109,9 +109,9 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
     targets P_WT (N, 3) mm (optional rolls `roll_rad` (N,)): IK waypoints, then wherever
     the spline between two waypoints leaves the RCM or the straight tip segment by more
     than `tol_um` (checked at quarter points) the midpoint target is added by IK too (at
-    most 4 rounds: fast joint swings need denser waypoints; a midpoint keeps its
-    neighbours' mean roll; a midpoint out of reach, on a chord across a gap of the
-    workspace, is left out and its segment kept as the spline makes it). `Q_waypoints`
+    most 6 rounds: fast joint swings, as next to the trocar, need denser waypoints; a
+    midpoint keeps its neighbours' mean roll; a midpoint out of reach, on a chord across
+    a gap of the workspace, is left out and its segment kept as the spline makes it). `Q_waypoints`
     (N, 6): the waypoints' IK already solved by the caller (then not solved again)."""
     P = np.asarray(P_WT, dtype=float)
     roll = None if roll_rad is None else np.asarray(roll_rad, dtype=float)
@@ -119,7 +119,7 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         Q, solve_ms = ik_waypoints(robot, P, p_WC, q_start, roll)
     else:
         Q, solve_ms = np.array(Q_waypoints, dtype=float), float("nan")
-    for _ in range(4):
+    for _ in range(6):
         traj = joint_trajectory(robot, Q, P, tip_speed_mm_s)
         t = np.asarray(traj.get_segment_times())
         ts = (t[:-1, None] + np.array([0.25, 0.5, 0.75]) * np.diff(t)[:, None]).ravel()

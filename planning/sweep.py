@@ -9,14 +9,17 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
+from planning.closed_form import shaft_ik
 from planning.ik import IKFailure, rcm_ik, signed_angle
 from planning.instrument_points import instrument_points
 from planning.robot import Robot
 from planning.scan import plan_ik_scan, start_posture
+from planning.scenario import LENS_CLEARANCE_MM
 
 SHAFT_SLACK_MM = 0.2  # monitored points plan this far outside the boundary (the filter stays out)
 MAX_JOINT_STEP_RAD = 1.0  # between neighbouring cells (1 mm apart): more is a branch change
 SHAFT_CHECK_DT_S = 0.005  # the timed path's shaft check: the shaft moves < 0.05 mm between samples at 10 mm/s
+CHORD_STEP_MM = 0.25  # the first look's samples on the tip's segment between cells
 
 
 def port_roll_rad(p_WT: np.ndarray, p_WC: np.ndarray, normal_in_W: np.ndarray) -> float:
@@ -29,6 +32,16 @@ def port_roll_rad(p_WT: np.ndarray, p_WC: np.ndarray, normal_in_W: np.ndarray) -
     m = out - (out @ u) * u
     y = -m / np.linalg.norm(m)  # the port is at -y: y points away from the retina
     return signed_angle(h, y, u)
+
+
+def lens_clearances_mm(lens_W, p_WC, P_WT, samples: int = 32) -> np.ndarray:
+    """(M,) smallest distance (mm, < 0: crossing) outside the lens keep-out `lens_W` (a
+    shape in W, signed distance > 0 inside) of the straight shaft from the trocar p_WC (3,)
+    to each tip P_WT (M, 3) mm, sampled."""
+    s = np.linspace(0.0, 1.0, samples)[None, :, None]
+    P = np.atleast_2d(np.asarray(P_WT, dtype=float))
+    seg = np.asarray(p_WC, dtype=float) + s * (P[:, None, :] - np.asarray(p_WC, dtype=float))
+    return -np.asarray(lens_W.signed_distance(seg.reshape(-1, 3)), dtype=float).reshape(len(P), samples).max(axis=1)
 
 
 def shaft_clearances_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
@@ -61,11 +74,12 @@ def _watched_clearances_mm(robot: Robot, Q, p_WC, model, shaft_only: bool) -> np
 
 
 def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: np.ndarray, p_WC, model,
-                               limit_mm: float) -> np.ndarray:
+                               limit_mm: float, lens_W=None) -> np.ndarray:
     """Indices into P_cells (K, 3) of the cells on whose way (from the previous waypoint of
     the timed joint trajectory, sampled every SHAFT_CHECK_DT_S) or at whose posture a
-    watched shaft point comes within `limit_mm` of the model. P_used (M, 3): the targets
-    of the trajectory's knots, P_cells in order among them (plan_ik_scan adds midpoints)."""
+    watched shaft point comes within `limit_mm` of the model, or the shaft within
+    LENS_CLEARANCE_MM of the lens keep-out `lens_W` (when given). P_used (M, 3): the
+    targets of the trajectory's knots, P_cells in order among them (plan_ik_scan adds midpoints)."""
     knots = np.asarray(traj.get_segment_times())
     cell_knot = np.empty(len(P_cells), dtype=int)
     j = 0
@@ -74,9 +88,32 @@ def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: 
             j += 1
         cell_knot[k] = j
     ts = np.union1d(np.arange(knots[0], knots[-1], SHAFT_CHECK_DT_S), knots)
-    near = ts[shaft_clearances_mm(robot, traj.vector_values(ts).T, p_WC, model) < limit_mm]
+    Q = traj.vector_values(ts).T
+    near = shaft_clearances_mm(robot, Q, p_WC, model) < limit_mm
+    if lens_W is not None:
+        tips = np.array([robot.pose("T", q)[1] for q in Q])
+        near |= lens_clearances_mm(lens_W, p_WC, tips) < LENS_CLEARANCE_MM
     # a sample belongs to the first cell reached at or after it
-    return np.unique(np.searchsorted(knots[cell_knot], near - 1e-12, side="left"))
+    return np.unique(np.searchsorted(knots[cell_knot], ts[near] - 1e-12, side="left"))
+
+
+def chord_postures(robot: Robot, p_a, p_b, p_WC, q_a, q_b, step_mm: float = CHORD_STEP_MM) -> tuple[np.ndarray, list]:
+    """(tips (K, 3) mm, postures [(6,) rad]) with the tip on the straight segment p_a -> p_b
+    (mm, W; ends excluded, at most `step_mm` apart, at least 3) and the shaft through the
+    trocar p_WC: the closed-form branch nearest the joint-space interpolation of the ends'
+    postures q_a, q_b (rad); that interpolation itself where the arm does not reach the
+    line. The shaft points depend only on the tip and the trocar, not on the branch or the roll."""
+    p_a, p_b, p_WC = (np.asarray(x, dtype=float) for x in (p_a, p_b, p_WC))
+    q_a, q_b = np.asarray(q_a, dtype=float), np.asarray(q_b, dtype=float)
+    n = max(int(np.ceil(np.linalg.norm(p_b - p_a) / step_mm)), 4)
+    f = np.arange(1, n) / n
+    tips = p_a + f[:, None] * (p_b - p_a)
+    out = []
+    for fk, p in zip(f, tips):
+        q_lin = q_a + fk * (q_b - q_a)
+        cands = shaft_ik(robot.arm, p, (p - p_WC) / np.linalg.norm(p - p_WC), q_lin[5])
+        out.append(cands[np.argmin(np.abs(cands[:, :5] - q_lin[:5]).max(axis=1))] if len(cands) else q_lin)
+    return tips, out
 
 
 def _port_facing_ik(robot: Robot, p_WT, p_WC, normal_W, seed, margin_rad: float):
@@ -122,13 +159,14 @@ class Sweep:
     dropped: dict
 
 
-def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None) -> Sweep:
+def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None, lens_W=None) -> Sweep:
     """The timed sweep through the trocar p_WC (3,) mm W over the cells `order` ((ring,
     azimuth index), in path order) of `band` (planning.peripheral.Band; `spec` its
     BandSpec): RCM IK with the port's roll seeded along the
     path, cells beyond the joint margins or only on another IK branch dropped as "reach",
-    cells at or on whose way the watched shaft nears the boundary dropped as "shaft".
-    IKFailure when no cell is left."""
+    cells at or on whose way the watched shaft nears the boundary, or the shaft the lens
+    keep-out `lens_W` (W, when given; the cells' own rule, LENS_CLEARANCE_MM), dropped as
+    "shaft". IKFailure when no cell is left."""
     limit = spec.boundary_mm + SHAFT_SLACK_MM
     p_WC = np.asarray(p_WC, dtype=float)
     q = q_start
@@ -146,10 +184,11 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None)
             dropped[(r, i)] = "reach"  # beyond the margins, or only on another branch (no continuous path)
             q = Q[-1] if Q else None
             continue
-        # at the cell and on the way there (a first, cheap look: the joint spline runs close
-        # to the straight line in joint space between neighbouring waypoints)
-        on_way = [q] + ([Q[-1] + f * (q - Q[-1]) for f in (0.25, 0.5, 0.75)] if Q else [])
-        if shaft_clearances_mm(robot, on_way, p_WC, model).min() < limit:
+        # at the cell and on the way there from the last cell kept (a first, cheap look along
+        # the straight tip segment the timed path follows, RCM held)
+        tips, on_way = chord_postures(robot, band.target_W[kept[-1]], t, p_WC, Q[-1], q) if Q else (t[None], [])
+        if (shaft_clearances_mm(robot, [q] + on_way, p_WC, model).min() < limit
+                or (lens_W is not None and lens_clearances_mm(lens_W, p_WC, tips).min() < LENS_CLEARANCE_MM)):
             dropped[(r, i)] = "shaft"
             q = Q[-1] if Q else None
             continue
@@ -165,7 +204,7 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None)
             return Sweep(kept, P, roll, np.array(Q), PiecewisePolynomial.FirstOrderHold([0.0, dwell], np.array([Q[0], Q[0]]).T),
                          P[[0, 0]], dropped)
         traj, P_used, _ = plan_ik_scan(robot, P, p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q)
-        bad = _cells_too_near_on_the_way(robot, traj, P_used, P, p_WC, model, limit)
+        bad = _cells_too_near_on_the_way(robot, traj, P_used, P, p_WC, model, limit, lens_W)
         if not len(bad):
             return Sweep(kept, P, roll, np.array(Q), traj, P_used, dropped)
         for k in bad:

@@ -8,22 +8,40 @@ import pytest
 from models import Ellipsoid
 from planning import SurgeryScenario
 from planning.multiport import DEPRESSION_MM, combined_reason, plan_ports, regions
-from planning.peripheral import SHAFT_SLACK_MM, BandSpec, cell_reasons, shaft_clearances_mm
+from planning.peripheral import cell_reach
+from planning.peripheral import SHAFT_SLACK_MM, BandSpec, cell_reasons, lens_clearances_mm, shaft_clearances_mm
 from planning.ports import standard_ports
 from planning.robot import Robot
-from planning.scenario import PORTS_EYE_POSE
+from planning.scenario import EYE_WALL_MM, LENS_CLEARANCE_MM, PORTS_EYE_POSE
 
 SPEC = BandSpec(z_min_E=0.0, z_max_E=2.0)
+# the band's anterior half: cells next to the ports (the shaft crosses the wall right behind
+# the cutter) and far, deep cells where the wrist reaches its limit on the way out
+ANTERIOR = BandSpec(z_min_E=3.0, z_max_E=5.0)
 
 
 @pytest.fixture(scope="module")
-def planned():
+def layout():
     ports = standard_ports("right")
     scenario = SurgeryScenario(eye_pose=PORTS_EYE_POSE, ports=ports, p_EC=None)
     robot = Robot(scenario)
     eye = scenario.eye
     model = Ellipsoid(eye.pose.p_WE, eye.radii, eye.pose.R_WE)  # the true retina as the fitted model
-    return scenario, robot, model, plan_ports(robot, scenario, model, ports[:2], SPEC)
+    return scenario, robot, model, ports
+
+
+@pytest.fixture(scope="module")
+def anterior(layout):
+    scenario, robot, model, ports = layout
+    return plan_ports(robot, scenario, model, ports[:2], ANTERIOR)
+
+
+@pytest.fixture(scope="module", params=["equatorial", "anterior"])
+def planned(layout, request):
+    scenario, robot, model, ports = layout
+    plan = request.getfixturevalue("anterior") if request.param == "anterior" else plan_ports(robot, scenario, model,
+                                                                                             ports[:2], SPEC)
+    return scenario, robot, model, plan
 
 
 def test_each_swept_cell_is_swept_from_a_port_that_reaches_it(planned):
@@ -47,6 +65,10 @@ def test_the_sweeps_pivot_about_their_own_trocar_and_keep_the_shaft_off_the_boun
         assert max(robot.rcm_error_mm(q, seg.p_WC) for q in Q) < 0.01  # 10 um: the spline between IK waypoints
         assert shaft_clearances_mm(robot, Q, seg.p_WC, model).min() >= SPEC.boundary_mm + SHAFT_SLACK_MM - 0.02
         assert np.all(np.abs(traj.derivative(1).vector_values(ts)) <= robot.qdot_max[:, None] * 1.001)
+        # the shaft keeps the cells' lens clearance on the way between them too (the filter's lens
+        # margin, 0.3 mm, lies below it); 200 samples are coarser than the planner's check: 0.05 mm
+        tips = np.array([robot.pose("T", q)[1] for q in Q])
+        assert lens_clearances_mm(scenario.lens_W, seg.p_WC, tips).min() >= LENS_CLEARANCE_MM - 0.05
 
 
 def test_insertion_and_withdrawal_run_along_the_shaft_and_join_the_sweep(planned):
@@ -66,6 +88,35 @@ def test_insertion_and_withdrawal_run_along_the_shaft_and_join_the_sweep(planned
             assert model.signed_distance(robot.pose("T", q)[1][None])[0] < 0
 
 
+def test_every_cell_a_port_reaches_is_swept(planned):
+    """On the true retina every cell that some port reaches (lens, port angle, arm, shaft at
+    the cell) is swept: cells next to a port (no watched shaft point that deep) and the far,
+    deep cells whose own shaft line the wrist cannot take out of the eye (the pass leaves
+    through a door cell) included."""
+    scenario, robot, model, plan = planned
+    reached = np.any([r == "ok" for r in plan.reasons_by_port.values()], axis=0)
+    assert reached.sum() > 0.9 * reached.size
+    assert np.all(plan.port_of[reached] >= 0)
+
+
+def test_a_cell_next_to_a_port_goes_to_the_other_port_when_it_reaches_it(layout, anterior):
+    """Within a few mm of a trocar no shaft point the filter watches is that deep (clearance
+    +inf); the shaft crosses the wall right behind the cutter there, so the other port, whose
+    shaft reaches the cell across the eye, takes it when it can."""
+    scenario, robot, model, ports = layout
+    T, N = anterior.band.target_W.reshape(-1, 3), anterior.band.normal_W.reshape(-1, 3)
+    reach = [cell_reach(robot, scenario, T, N, ANTERIOR, scenario.p_EC_of(p.name), model) for p in ports[:2]]
+    port_of = anterior.port_of.reshape(-1)
+    checked = 0
+    for k in range(2):
+        shallow = (reach[k][0] == "ok") & np.isposinf(reach[k][2])
+        both = shallow & (reach[1 - k][0] == "ok")
+        checked += int(both.sum())
+        assert np.all(port_of[both] == 1 - k)
+        assert np.all(port_of[shallow & ~both] == k)  # its own port only: still swept
+    assert checked > 0  # the anterior band has such cells
+
+
 def test_switches_visit_each_port_once_and_move_outside_the_eye(planned):
     scenario, robot, model, plan = planned
     order = [seg.port.name for seg in plan.segments]
@@ -73,10 +124,11 @@ def test_switches_visit_each_port_once_and_move_outside_the_eye(planned):
     assert changes == len(set(order)) - 1 == 1
     assert len(plan.switches) == len(plan.segments) - 1
     for sw, move in zip(plan.switches, plan.moves):
-        assert sw.move_min_outside_mm > 0 and sw.duration_s > 0
+        assert sw.move_min_outside_mm >= EYE_WALL_MM and sw.duration_s > 0
         ts = np.linspace(0.0, move.end_time(), 100)
         tips = np.array([robot.pose("T", q)[1] for q in move.vector_values(ts).T])
-        assert np.max(model.signed_distance(tips)) < 0  # the tip stays outside the retina
+        assert np.max(model.signed_distance(tips)) < -0.9 * EYE_WALL_MM  # the tip stays outside the eye wall
+        assert min(robot.joint_margin_rad(q).min() for q in move.vector_values(ts).T) >= -1e-6
 
 
 def test_depression_cells_are_reached_with_the_wall_indented(planned):

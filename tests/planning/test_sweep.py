@@ -1,0 +1,57 @@
+"""One trocar's sweep: the first look along the tip's segment between cells, the shaft's
+lens clearance, the serpentine's two pairs of end cells."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from models import Sphere
+from planning.peripheral import Band, serpentine
+from planning.sweep import CHORD_STEP_MM, chord_postures, lens_clearances_mm
+
+
+def test_chord_postures_put_the_tip_on_the_segment_and_the_shaft_through_the_trocar(setup):
+    scenario, robot, q_a = setup
+    p_a = robot.pose("T", q_a)[1]
+    p_b = scenario.eye_pose.to_W(np.array([[3.0, 1.0, -2.0]]))[0]  # 2.4 mm away, mid-vitreous
+    tips, Q = chord_postures(robot, p_a, p_b, scenario.p_WC, q_a, q_a)
+    n = len(tips) + 1
+    assert n >= int(np.ceil(np.linalg.norm(p_b - p_a) / CHORD_STEP_MM)) and len(Q) == len(tips)
+    f = (tips - p_a) @ (p_b - p_a) / np.linalg.norm(p_b - p_a) ** 2
+    np.testing.assert_allclose(f, np.arange(1, n) / n, atol=1e-12)  # evenly inside, ends excluded
+    for p, q in zip(tips, Q):
+        np.testing.assert_allclose(robot.pose("T", q)[1], p, atol=1e-6)  # closed-form IK: exact
+        assert robot.rcm_error_mm(q, scenario.p_WC) < 1e-6
+
+
+def test_lens_clearance_of_a_shaft_passing_a_sphere():
+    """A segment from (2, 0, 5) to (2, 0, -5) passes 2 mm from the centre of a 1 mm sphere:
+    1 mm clear, to within the sampling's sagitta (32 samples, 0.32 mm apart: < 0.01 mm);
+    through the centre it crosses 1 mm deep (less by up to half a spacing); a shaft along z = 5 keeps 4 mm."""
+    lens = Sphere(np.zeros(3), 1.0)
+    c = lens_clearances_mm(lens, np.array([2.0, 0.0, 5.0]), np.array([[2.0, 0.0, -5.0]]))
+    assert c[0] == pytest.approx(1.0, abs=0.01) and c[0] >= 1.0
+    c = lens_clearances_mm(lens, np.array([0.0, 0.0, 5.0]), np.array([[0.0, 0.0, -5.0], [3.0, 0.0, 5.0]]))
+    assert -1.0 <= c[0] <= -1.0 + 5.0 / 31 + 1e-9  # the nearest sample lies within half a spacing of the centre
+    assert c[1] == pytest.approx(4.0, abs=1e-9)  # along z = 5: nearest at the trocar, 5 mm from the centre
+
+
+def _band(mask: np.ndarray) -> Band:
+    rings, n_az = mask.shape
+    z = np.zeros((rings, n_az, 3))
+    return Band(np.linspace(0, 2 * np.pi, n_az, endpoint=False), np.arange(float(rings)), z, z, z,
+                np.where(mask, "ok", "reach").astype(object), np.zeros(mask.shape))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.lists(st.booleans(), min_size=8, max_size=8), min_size=1, max_size=4))
+def test_the_flipped_serpentine_visits_the_same_cells_each_ring_the_other_way(rows):
+    mask = np.array(rows, dtype=bool)
+    band = _band(mask)
+    a, b = serpentine(band), serpentine(band, flip=True)
+    assert sorted(a) == sorted(b) == sorted(map(tuple, np.argwhere(mask).tolist()))
+    for r in range(mask.shape[0]):
+        ring_a, ring_b = [c for c in a if c[0] == r], [c for c in b if c[0] == r]
+        assert ring_b == ring_a[::-1]
