@@ -4,8 +4,9 @@ Drake works in metres; this wrapper is the one place that converts: every argume
 result is in millimetres (positions), radians (joints) and mm/rad (Jacobians). Frames
 (design.md): W robot base, F flange, I instrument (origin at F, x along the shaft), T
 tip, S nominal sensor (z along the beam), P cutter port; with a scenario also E eye
-(planning/data/eye.sdf welded at X_WE), C trocar (on the eye) and S_true, the true
-sensor (S with the scenario's calibration error).
+(planning/data/eye.sdf welded at X_WE), C trocar (on the eye; the pivot in the air of a
+planning.phantom scene) and S_true, the true sensor (S with the scenario's calibration
+error).
 
 Poses and Jacobians come from the plant's chain compiled once (planning.chain: a
 product of exponentials read off the plant, held to it by tests): the 1 kHz loop asks

@@ -1,7 +1,9 @@
 """`vitreoguard record`: a simulated rig recording (eval.recording.simulate): a ROS 2 bag
 (MCAP storage) in OUT/recording with the robot's JointState at the joint rate on the
 robot's clock and the iiOCT A-scans (one-row mono16 Image) at 2 kHz on the OCT's clock,
-offset by --time-offset-ms; the synchronisation motion first, then the spiral. The run's
+offset by --time-offset-ms; the synchronisation motion first, then the spiral: through
+the trocar of the eye in surgery (--scan surgery, the default), or over the printed lower
+half open on the bench, seen from above (--scan phantom, planning.phantom). The run's
 ground truth (the eye and its placement, the sensor's calibration error, the offset)
 goes to OUT/truth.json, never into the bag."""
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
 from eval.cli.io import UsageError, prepare_out_dir, write_json
 from eval.cli.progress import progress_bar
+from eval.recording import SCANS
 from models.eyes import EYE_SHAPES
 
 OFFSET_MS = number(-100.0, 100.0, "ms")
@@ -31,6 +34,9 @@ def register(sub) -> None:
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
     add_eye_param(p)
+    p.add_argument("--scan", type=choice("scan", SCANS), default="surgery",
+                   help="surgery: the eye in the head, the spiral through the trocar; phantom: the eye's printed lower "
+                        "half open on the bench, the spiral above it (the whole half seen from above)")
     p.add_argument("--time-offset-ms", type=OFFSET_MS, default=0.0,
                    help=f"OCT clock minus robot clock (positive: the OCT stream lags), {OFFSET_MS.range}")
     p.add_argument("--seed", type=SEED, default=0, help=f"speckle, noise and encoder-noise seed, {SEED.range}")
@@ -49,7 +55,7 @@ def spec_of(args):
     """The RecordingSpec of validated args."""
     from eval.recording.simulate import RecordingSpec
 
-    return RecordingSpec(shape=args.shape, eye_params=args.eye_params, time_offset_s=1e-3 * args.time_offset_ms,
+    return RecordingSpec(shape=args.shape, eye_params=args.eye_params, scan=args.scan, time_offset_s=1e-3 * args.time_offset_ms,
                          seed=args.seed, encoder_noise_rad=1e-6 * args.encoder_noise_urad,
                          joint_rate_hz=args.joint_rate_hz, pitch_mm=9.0 / args.revolutions,
                          revolutions=args.revolutions, speed_mm_s=args.speed_mm_s, sync_s=args.sync_s)
@@ -66,7 +72,7 @@ def main(args) -> int:
     spec = spec_of(args)
     tmp = Path(tempfile.mkdtemp(dir=out, prefix=".recording-"))
     try:
-        bar = progress_bar(1000, f"recording ({args.shape} eye)", unit="permille")
+        bar = progress_bar(1000, f"recording ({args.shape} eye, {args.scan})", unit="permille")
         with bar:
             def progress(done_s, total_s):
                 bar.update(int(1000 * done_s / total_s) - bar.n)

@@ -4,3 +4,6 @@
 (eval.recording.extraction), the fit of a recording: synchronisation, points, adaptive
 and local-global model (eval.recording.fit), and its registration to an STL ground truth
 (eval.recording.ground_truth)."""
+
+# the scenes a recording is simulated in (eval.recording.simulate.RecordingSpec.scan)
+SCANS = ("surgery", "phantom")

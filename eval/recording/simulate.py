@@ -1,10 +1,13 @@
 """A simulated rig recording: what a Meca500 + iiOCT rig writes while it synchronises
 its streams and scans the spiral, as a ROS 2 bag, with the run's ground truth apart.
 
-The true motion (the surgery scenario, planning.scenario): a rest at the spiral's start
-posture, the synchronisation motion (planning.clock_sync: the tip in and out along the
-shaft, an amplitude-modulated sinusoid), the spiral through the trocar (RCM differential
-kinematics at the joint rate, planning.scan.run_diffik), a rest. The robot publishes its
+The true motion (`scan` "surgery": the surgery scenario, planning.scenario, the spiral
+through the trocar; "phantom": a printed lower half open on the bench, planning.phantom,
+the spiral above the cup with the shaft through a pivot in the air): a rest at the
+spiral's start posture, the synchronisation motion (planning.clock_sync: the tip in and
+out along the shaft, an amplitude-modulated sinusoid), the spiral (differential
+kinematics keeping the shaft on the trocar or pivot at the joint rate,
+planning.scan.run_diffik), a rest. The robot publishes its
 joint angles at `joint_rate_hz` stamped on its clock, with encoder noise; the OCT makes
 an A-scan at `oct_rate_hz` from the TRUE sensor pose (the scenario's calibration error)
 on the true eye (models.iioct synthesis), stamped on its clock: true time plus the time
@@ -19,6 +22,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from eval.recording import SCANS
 from eval.recording.bag import BagWriter, counts_of
 from models.iioct import synthesize_ascan
 from planning.clock_sync import SYNC_AMPLITUDE_MM, SYNC_CARRIER_HZ, SYNC_DURATION_S, sync_joint_path
@@ -32,7 +36,11 @@ ENCODER_NOISE_RAD = 2e-5
 
 @dataclass(frozen=True)
 class RecordingSpec:
-    """What to record: the eye (`shape`, its `eye_params`), the OCT clock's offset
+    """What to record: the eye (`shape`, its `eye_params`), the scene (`scan`: "surgery",
+    the eye in the head entered through the trocar, or "phantom", its printed lower half on
+    the bench scanned from above; module docstring), the eye's placement (`eye_pose`:
+    X_WE as a rotation vector (rad) and a position (mm), 6 numbers; None: the scene's
+    default, planning.scenario.SURGERY_EYE_POSE or planning.phantom.PHANTOM_EYE_POSE), the OCT clock's offset
     (s, OCT minus robot: positive when the OCT stream lags), the seed, the encoder noise
     (rad SD per joint), the streams' rates (Hz), the spiral (pitch mm, revolutions, tip
     speed mm/s), the synchronisation motion (amplitude mm, carrier Hz, duration s) and
@@ -40,6 +48,8 @@ class RecordingSpec:
 
     shape: str = "emmetropic"
     eye_params: dict = field(default_factory=dict)
+    scan: str = "surgery"
+    eye_pose: tuple | None = None
     time_offset_s: float = 0.0
     seed: int = 0
     encoder_noise_rad: float = ENCODER_NOISE_RAD
@@ -66,10 +76,23 @@ class TrueMotion:
 
 
 def scenario_of(spec: RecordingSpec):
-    """The planning.SurgeryScenario of `spec`'s eye."""
+    """The scenario of `spec`'s eye and scene: planning.SurgeryScenario ("surgery") or
+    planning.phantom.PhantomScenario ("phantom"); ValueError naming the scenes otherwise."""
     from planning import SurgeryScenario
+    from planning.phantom import PhantomScenario
 
-    return SurgeryScenario(eye_name=spec.shape, eye_params=dict(spec.eye_params))
+    if spec.scan not in SCANS:
+        raise ValueError(f"scan must be one of {', '.join(SCANS)}, got {spec.scan!r}")
+    kind = SurgeryScenario if spec.scan == "surgery" else PhantomScenario
+    placed = {}
+    if spec.eye_pose is not None:
+        from scipy.spatial.transform import Rotation
+
+        from models.eyes import EyePose
+
+        v = np.asarray(spec.eye_pose, dtype=float)
+        placed["eye_pose"] = EyePose(Rotation.from_rotvec(v[:3]).as_matrix(), v[3:])
+    return kind(eye_name=spec.shape, eye_params=dict(spec.eye_params), **placed)
 
 
 def true_motion(robot, scenario, spec: RecordingSpec) -> TrueMotion:
@@ -79,11 +102,19 @@ def true_motion(robot, scenario, spec: RecordingSpec) -> TrueMotion:
     dt = 1.0 / spec.joint_rate_hz
     P = scenario.eye_pose.to_W(scenario.spiral_E(spec.pitch_mm, spec.revolutions, 0.1))
     q0 = start_posture(robot, P[0], scenario.p_WC)
+    phantom = spec.scan == "phantom"
+    if phantom:  # two passes with the instrument turned about its shaft between them (planning.phantom)
+        from planning.phantom import return_pass, rolled
+
+        q0 = rolled(q0)
     n_rest, n_sync = int(round(spec.rest_s / dt)), int(round(spec.sync_s / dt))
     Q_sync = sync_joint_path(robot, q0, np.arange(n_sync + 1) * dt, amplitude_mm=spec.sync_amplitude_mm,
                              carrier_hz=spec.sync_carrier_hz, duration_s=spec.sync_s)
     scan = run_diffik(robot, P, scenario.p_WC, Q_sync[-1], spec.speed_mm_s, rate_hz=spec.joint_rate_hz)
-    Q = np.vstack([np.repeat(q0[None], n_rest, axis=0), Q_sync, scan.q[1:], np.repeat(scan.q[-1:], n_rest, axis=0)])
+    Q_scan = scan.q[1:]
+    if phantom:
+        Q_scan = np.vstack([Q_scan, return_pass(robot, P, scenario.p_WC, Q_scan[-1], spec.speed_mm_s, spec.joint_rate_hz)])
+    Q = np.vstack([np.repeat(q0[None], n_rest, axis=0), Q_sync, Q_scan, np.repeat(Q_scan[-1:], n_rest, axis=0)])
     return TrueMotion(np.arange(len(Q)) * dt, Q, n_rest * dt, (n_rest + n_sync) * dt)
 
 
@@ -132,7 +163,7 @@ def write_recording(path, spec: RecordingSpec, progress=None, block_s: float = 0
 
 def truth_of(spec: RecordingSpec, scenario, robot, motion: TrueMotion, n_ascans: int) -> dict:
     """The recording's ground truth (truth.json): the spec, the eye's placement X_WE, the
-    trocar, the true and nominal sensor poses in the flange frame, the sync span."""
+    trocar (the phantom's pivot), the true and nominal sensor poses in the flange frame, the sync span."""
     q0 = np.zeros(6)
     R_WF, p_WF = robot.pose("F", q0)
     poses = {}

@@ -178,6 +178,7 @@ def test_record_refuses_bad_flags_and_writes_nothing(tmp_path, capsys):
     out = tmp_path / "rec"
     _refused(capsys, ["record", "--out", str(out), "--time-offset-ms", "150"], out, "--time-offset-ms")
     _refused(capsys, ["record", "--out", str(out), "--shape", "myopic", "--eye-param", "height_mm=3"], out, "height_mm")
+    _refused(capsys, ["record", "--out", str(out), "--scan", "bench"], out, "unknown scan 'bench'; choose from surgery, phantom")
 
 
 def test_a_csv_pair_with_extracted_distances_is_fitted(tmp_path):

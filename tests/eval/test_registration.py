@@ -11,6 +11,7 @@ from models import fit_sphere
 from models.eyes import EYE_SHAPES, make_eye
 from models.eyes.mesh import lower_half_shell
 from models.shapes.sampling import unit_sphere_grid
+from planning.phantom import PHANTOM_EYE_POSE
 
 # the targets (a simulated printed eye at a known placement)
 POSITION_UM, ROTATION_DEG = 20.0, 0.05
@@ -60,3 +61,51 @@ def test_a_phantom_placed_anywhere_is_registered_within_the_targets_where_its_ge
     # semi-axes differ by 10-90 um about it, so the ICP's cost changes by a few per cent
     # over tens of degrees of turn and its damped steps stop 4-10 SDs short (0.2-0.7 deg,
     # measured: bench/bench_recording.py phantom)
+
+
+
+@pytest.fixture(scope="module")
+def bench_recording(tmp_path_factory):
+    """record (the phantom scene: the lower half open on the bench, scanned from above in
+    two passes, planning.phantom) -> fit -> registration to the STL, on the detached eye
+    at a placement no other test uses: turned 130 deg about the bench's vertical, tilted
+    3 deg, moved 9 mm from the default. A short scan (3 turns each way), the default
+    sensor calibration error in the points (fitted with the nominal pose), encoder noise
+    on. (truth, FitResult, placement_error's dict)."""
+    from eval.recording.fit import fit_recording, read_recording
+    from eval.recording.simulate import RecordingSpec, write_recording
+
+    axis = np.array([0.023, 0.0, 1.0]) / np.linalg.norm([0.023, 0.0, 1.0])
+    placement = (*(np.radians(130.0) * axis), *(PHANTOM_EYE_POSE.p_WE + np.array([4.0, -6.0, -5.0])))
+    spec = RecordingSpec(shape="detached", scan="phantom", eye_pose=tuple(placement), revolutions=3.0, pitch_mm=3.0,
+                         sync_s=1.5, time_offset_s=-0.0041, seed=5)
+    bag = tmp_path_factory.mktemp("bench") / "bag"
+    truth = write_recording(bag, spec)
+    r = fit_recording(*read_recording(bag))
+    mesh = lower_half_shell(make_eye("detached"), edge_mm=0.25)
+    reg = register_fit(r.accepted, r.model.shape, *mesh)
+    return truth, r, placement_error(reg, truth["R_WE"], truth["p_WE_mm"], defined_deg=ROTATION_DEG,
+                                     symmetries=mesh_symmetries(*mesh))
+
+
+@pytest.mark.slow
+def test_a_recording_of_the_phantom_on_the_bench_is_registered_within_the_position_target(bench_recording):
+    from eval.recording.simulate import RecordingSpec, scenario_of
+    from planning import Robot
+    from planning.phantom import scan_joint_margin_deg
+
+    truth, r, err = bench_recording
+    scenario = scenario_of(RecordingSpec(shape="detached", scan="phantom", eye_pose=tuple(truth["eye_pose"])))
+    assert scan_joint_margin_deg(Robot(scenario), scenario, 3.0, 3.0) > 0.0  # the placement is reachable
+    assert abs(1e3 * r.offset.offset_s - truth["time_offset_ms"]) < 0.5
+    assert err["position_error_um"] <= POSITION_UM
+    assert err["defined_axes"] >= 2  # the detachment, off the axis, pins the tilts to the target's 3 SD
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="missed: the extractor's error depends on the incidence and the distance (median "
+                   "0 at normal incidence, +5 to +7 um at 15-45 deg), the detachment tilts the retina against the beam, "
+                   "and the registration, placing the mesh where the points are, turns with them (README, Results)")
+def test_a_recording_of_the_phantom_on_the_bench_is_registered_within_the_rotation_target(bench_recording):
+    _, _, err = bench_recording
+    assert err["rotation_error_defined_deg"] <= ROTATION_DEG
