@@ -49,9 +49,9 @@ def default_constraints(config: FilterConfig, q_min, q_max, qdot_max, retina_gro
 
 
 def rcm_constraint(config: FilterConfig, p_WC, gain_per_s: float) -> RcmEquality:
-    """The RCM through the trocar p_WC (3,) mm, drift corrected at gain_per_s (1/s), the
-    correction no faster than config's tip speed limit allows in every direction
-    (safety.constraints.rcm: a correction the tip cannot follow leaves no velocity)."""
+    """The RCM through the trocar p_WC (3,) mm, drift corrected at gain_per_s (1/s); its
+    planned stop at the correction speed config's tip speed limit allows in every direction
+    (safety.constraints.rcm: a growing correction the tip cannot follow leaves no velocity)."""
     return RcmEquality(np.asarray(p_WC, dtype=float), gain_per_s,
                        max_correction_mm_s=TipSpeedLimit(config.max_tip_speed_mm_s).every_direction_mm_s)
 

@@ -17,25 +17,25 @@ the correction it needs exceeds what the speed limits allow and the QP has no so
 Correcting the predicted error (a Smith predictor on the drift loop) makes every step's
 correction act once: e decays by (1 - gain dt) per step as with the ideal actuator.
 
-Bounded correction. The correction's speed is at most `max_correction_mm_s`, the speed
-the tip speed limit allows in every direction (safety.filter.rcm_constraint:
-TipSpeedLimit.every_direction_mm_s, 17.4 mm/s at the default 20 mm/s limit): a robot that
-cannot pivot about the tip (a joint at its position limit) corrects the trocar error by
-moving the whole shaft, tip included, and a faster correction can leave the QP no
-velocity (measured: a robot with a 20 ms lag on the staphyloma, 19.8 mm/s of correction,
-the third joint 0.34 rad/s from its limit bound). A larger error is corrected at that
-speed, along the error.
-
 Planned stop. When the actuator's pending motion carries the shaft further from the
 trocar (|e| predicted > |e| now) to an error whose correction at the gain would exceed
-`max_correction_mm_s` (0.087 mm at 200/s), the filler refuses the step with the reason
-"actuator cannot hold the trocar": zero command, the fastest braking the actuator allows.
-A robot at rest with an error keeps correcting it, as with the ideal actuator, which
-never stops here: its prediction is today's error. A robot whose acceleration limit keeps
-it on a velocity it was given several millimetres of joint travel earlier can owe the
-trocar tenths of a millimetre; correcting that is a lateral speed no speed limit allows,
-and the QP would find no velocity a few steps later. The ideal loop's errors
-(micrometres) stay far below it.
+`max_correction_mm_s`, the filler refuses the step with the reason "actuator cannot hold
+the trocar": zero command, the fastest braking the actuator allows. The threshold is the
+speed the tip speed limit allows in every direction (safety.filter.rcm_constraint:
+TipSpeedLimit.every_direction_mm_s, 17.4 mm/s at the default 20 mm/s limit; 0.087 mm of
+error at 200/s): a robot that cannot pivot about the tip (a joint at its position limit)
+corrects the trocar by moving the whole shaft, tip included, and a growing error whose
+correction the tip could not follow in every direction leaves the QP no velocity a step
+later (measured: a 20 ms lag on the staphyloma, 19.8 mm/s of correction, the third joint
+0.34 rad/s from its limit bound). A robot at rest with an error keeps correcting it at
+the gain, as with the ideal actuator, which never stops here: its prediction is today's
+error. (Bounding the correction's speed at the threshold instead was measured worse: an
+acceleration-limited robot then carried a 0.1-0.2 mm error for tens of steps at its joint
+speed limits until the QP had no solution.) A robot whose acceleration limit keeps it on
+a velocity it was given several millimetres of joint travel earlier can owe the trocar
+tenths of a millimetre; correcting that is a lateral speed no speed limit allows, and the
+QP would find no velocity a few steps later. The ideal loop's errors (micrometres) stay
+far below the threshold.
 """
 from __future__ import annotations
 
@@ -53,9 +53,9 @@ CANNOT_HOLD = 1  # the filler's fault code
 @njit(cache=True)
 def fill_rcm(sp, J, start, R_WI, p_WI, pending, A, b, p):
     """sp = [p_WC (3) mm, gain 1/s, max correction mm/s]: two rows A qdot = b for the point
-    J[start], its predicted position after the `pending` displacements (r, n) rad, the
-    correction no faster than the max; both rows written, then -CANNOT_HOLD if the pending
-    motion takes the error where its correction at the gain is faster (module docstring)."""
+    J[start], its predicted position after the `pending` displacements (r, n) rad; both rows
+    written, then -CANNOT_HOLD if the pending motion takes the error where its correction
+    is faster than the max (module docstring)."""
     n = J.shape[2]
     d0, d1, d2 = sp[0] - p_WI[0], sp[1] - p_WI[1], sp[2] - p_WI[2]
     now = 0.0  # the present error's squared length
@@ -68,26 +68,24 @@ def fill_rcm(sp, J, start, R_WI, p_WI, pending, A, b, p):
             d2 -= J[start, 2, j] * pending[k, j]
     e1 = R_WI[0, 1] * d0 + R_WI[1, 1] * d1 + R_WI[2, 1] * d2
     e2 = R_WI[0, 2] * d0 + R_WI[1, 2] * d1 + R_WI[2, 2] * d2
-    predicted = e1 * e1 + e2 * e2
-    needed = sp[3] * np.sqrt(predicted)  # the correction's speed at the gain, mm/s
-    rate = sp[3] if needed <= sp[4] else sp[4] / np.sqrt(predicted)  # bounded by the max
     for a in range(2):
-        b[p] = rate * (e1 if a == 0 else e2)
+        b[p] = sp[3] * (e1 if a == 0 else e2)
         for j in range(n):
             A[p, j] = (R_WI[0, a + 1] * J[start, 0, j] + R_WI[1, a + 1] * J[start, 1, j]
                        + R_WI[2, a + 1] * J[start, 2, j])
         p += 1
-    if predicted > now and needed > sp[4]:
+    predicted = e1 * e1 + e2 * e2
+    if predicted > now and sp[3] * np.sqrt(predicted) > sp[4]:
         return -CANNOT_HOLD
     return p
 
 
 @dataclass(frozen=True, eq=False)
 class RcmEquality(Constraint):
-    """The shaft passes through the trocar p_WC (3,) mm in W, drift corrected at gain_per_s
-    and at most max_correction_mm_s (mm/s; the default: what the default tip speed limit
-    allows in every direction); a growing error that needs a faster correction stops the
-    robot (module docstring)."""
+    """The shaft passes through the trocar p_WC (3,) mm in W, drift corrected at gain_per_s;
+    a growing error whose correction is faster than max_correction_mm_s (mm/s; the default:
+    what the default tip speed limit allows in every direction) stops the robot (module
+    docstring)."""
 
     p_WC: np.ndarray
     gain_per_s: float

@@ -12,7 +12,6 @@ from eval.experiments.boundary import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
 from planning import SurgeryScenario
 from safety import FilterConfig, SafetyFilter
-from safety.constraints.tip_speed import REACH
 from test_closed_loop import model_from_spiral_beams
 
 QUADRIC = LoopConfig(local_model=False, filter=FilterConfig())  # the quadric model's boundary (margins, trust angle)
@@ -101,8 +100,6 @@ def test_the_rcm_follows_the_active_trocar_without_a_new_filter(setup):
         assert err == pytest.approx(loop.robot.rcm_error_mm(q, p_new), abs=1e-9)
         x = loop.filter.inputs(0.001, q, np.zeros(4), snaps["ellipsoid"], 0.0)[0]
         A, b = loop.robot.rcm_rows(q, p_new)  # the loop's gain is the default, RCM_GAIN_PER_S
-        # the 3 mm error's correction is bounded by what the tip speed limit allows in every direction
-        b = b * min(1.0, loop.config.filter.max_tip_speed_mm_s / REACH / np.linalg.norm(b))
         assert np.allclose(np.abs(x.rcm_A), np.abs(A), atol=1e-9) and np.allclose(np.abs(x.rcm_b), np.abs(b), atol=1e-9)
         assert loop.filter.stack.module is module
     finally:

@@ -82,32 +82,33 @@ def test_the_rcm_rows_hold_the_trocar_and_correct_a_lateral_error():
     assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), pending, A, b, 0) == 2
     np.testing.assert_allclose(b, [50.0 * 0.04, 50.0 * -0.02])
     # the pending motion carries the shaft 0.3 mm further off (y) and 0.4 mm (z): a correction
-    # of 50 x 0.5 = 25 mm/s > the max, a planned stop (the rows written all the same, the
-    # correction bounded: 20 mm/s along the error)
+    # of 50 x 0.5 = 25 mm/s > the max, a planned stop (the rows written all the same)
     far = RcmEquality(np.array([0.0, 0.0, 0.0]), gain_per_s=50.0, max_correction_mm_s=20.0)
     away = np.array([[0.0, -0.3, -0.4]])
     assert fill_rcm(far.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), away, A, b, 0) == -CANNOT_HOLD
-    np.testing.assert_allclose(b, [12.0, 16.0])
+    np.testing.assert_allclose(b, [15.0, 20.0])
     assert far.fault_reason(CANNOT_HOLD) == "actuator cannot hold the trocar"
-    # the same error today, at rest: corrected at the max, along the error; a pending motion
-    # that brings the shaft back to (0.2, 0.3) mm: 50 x 0.36 = 18 mm/s, at the gain
+    # the same error today, at rest (nothing pending, or the motion brings the shaft back): corrected at the gain
     offset = RcmEquality(np.array([0.0, 0.3, 0.4]), gain_per_s=50.0, max_correction_mm_s=20.0)
-    for pending, want in ((np.zeros((0, 3)), [12.0, 16.0]), (np.array([[0.0, 0.1, 0.1]]), [10.0, 15.0])):
+    for pending, want in ((np.zeros((0, 3)), [15.0, 20.0]), (np.array([[0.0, 0.1, 0.1]]), [10.0, 15.0])):
         assert fill_rcm(offset.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), pending, A, b, 0) == 2
         np.testing.assert_allclose(b, want)
 
 
-@given(st.floats(1.0, 100.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(1.0, 50.0))
-def test_the_rcm_correction_is_never_faster_than_its_max(gain, ey, ez, vmax):
+@given(st.floats(1.0, 100.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0),
+       st.floats(1.0, 50.0))
+def test_the_rcm_stops_exactly_when_a_growing_error_needs_more_than_its_max(gain, ey, ez, dy, dz, vmax):
     A, b = np.zeros((2, 3)), np.zeros(2)
     c = RcmEquality(np.array([0.0, ey, ez]), gain_per_s=gain, max_correction_mm_s=vmax)
-    fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), np.zeros((0, 3)), A, b, 0)
-    e = np.array([ey, ez])
-    assert np.linalg.norm(b) <= vmax * (1 + 1e-12)
-    np.testing.assert_allclose(b, e * min(gain, vmax / max(np.linalg.norm(e), 1e-300)), atol=1e-12)
+    pending = np.array([[0.0, dy, dz]])  # J = I: the point moves by the pending displacement
+    code = fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), pending, A, b, 0)
+    now, predicted = np.hypot(ey, ez), np.hypot(ey - dy, ez - dz)
+    np.testing.assert_allclose(b, gain * np.array([ey - dy, ez - dz]), atol=1e-12)
+    if abs(predicted - now) > 1e-9 and abs(gain * predicted - vmax) > 1e-9:  # away from the rule's edges
+        assert (code == -CANNOT_HOLD) == (predicted > now and gain * predicted > vmax)
 
 
-def test_the_filters_rcm_corrects_no_faster_than_the_tip_can_move_in_every_direction():
+def test_the_filters_rcm_stops_at_the_speed_the_tip_can_move_in_every_direction():
     from safety.filter import rcm_constraint
     # the tip speed polytope holds the ball of radius v_max / REACH (its faces' distance)
     assert RcmEquality(np.zeros(3), 200.0).max_correction_mm_s == pytest.approx(20.0 / REACH)
