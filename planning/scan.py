@@ -119,6 +119,7 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         Q, solve_ms = ik_waypoints(robot, P, p_WC, q_start, roll)
     else:
         Q, solve_ms = np.array(Q_waypoints, dtype=float), float("nan")
+    out_of_reach = set()  # midpoints already found out of reach: not tried again
     for _ in range(6):
         traj = joint_trajectory(robot, Q, P, tip_speed_mm_s)
         t = np.asarray(traj.get_segment_times())
@@ -137,11 +138,13 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         roll_mid = None if roll is None else np.angle(np.exp(1j * roll[bad]) + np.exp(1j * roll[bad + 1]))
         added = []
         for k, (m, i) in enumerate(zip(mids, bad)):
+            if m.tobytes() in out_of_reach:
+                continue
             try:
                 added.append((i, m, rcm_ik(robot, m, p_WC, 0.5 * (Q[i] + Q[i + 1]),
                                            roll_rad=None if roll is None else roll_mid[k]), k))
             except IKFailure:  # the midpoint itself is out of reach (a chord over a gap): keep the segment
-                continue
+                out_of_reach.add(m.tobytes())
         if not added:
             break
         at = np.array([a[0] for a in added]) + 1

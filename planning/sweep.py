@@ -10,7 +10,7 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from planning.closed_form import shaft_ik
-from planning.ik import IKFailure, rcm_ik, signed_angle
+from planning.ik import IKFailure, rcm_ik, roll_direction_W, signed_angle
 from planning.instrument_points import instrument_points
 from planning.robot import Robot
 from planning.scan import plan_ik_scan, start_posture
@@ -24,10 +24,10 @@ CHORD_STEP_MM = 0.25  # the first look's samples on the tip's segment between ce
 
 def port_roll_rad(p_WT: np.ndarray, p_WC: np.ndarray, normal_in_W: np.ndarray) -> float:
     """Roll about the shaft (planning.ik.roll_direction_W convention) that turns the
-    cutter port (on the instrument's -y side) toward the retina (outward normal)."""
+    cutter port (on the instrument's -y side) toward the retina (outward normal).
+    ValueError for a shaft within 1 deg of vertical, where the convention has no roll."""
     u = (p_WT - p_WC) / np.linalg.norm(p_WT - p_WC)
-    h = np.cross([0.0, 0.0, 1.0], u)
-    h /= np.linalg.norm(h)
+    h = roll_direction_W(p_WT, p_WC, 0.0)
     out = -normal_in_W
     m = out - (out @ u) * u
     y = -m / np.linalg.norm(m)  # the port is at -y: y points away from the retina
@@ -59,13 +59,16 @@ def watched_clearance_mm(robot: Robot, Q, p_WC, model) -> np.ndarray:
     return _watched_clearances_mm(robot, Q, p_WC, model, shaft_only=False)
 
 
-def _watched_clearances_mm(robot: Robot, Q, p_WC, model, shaft_only: bool) -> np.ndarray:
+def _watched_clearances_mm(robot: Robot, Q, p_WC, model, shaft_only: bool, tips: list | None = None) -> np.ndarray:
     """(K,) the smallest clearance from `model` of the watched points (only the shaft's with
-    `shaft_only`) per posture; inf where there are none."""
+    `shaft_only`) per posture; inf where there are none. `tips`, when given, receives each
+    posture's tip position (W, mm) from the same kinematics."""
     Q = np.atleast_2d(np.asarray(Q, dtype=float))
     pts = []
     for ip in (instrument_points(robot, q, p_WC) for q in Q):
         pts.append(ip.P_W[[k for k, name in enumerate(ip.names) if name.startswith("shaft")]] if shaft_only else ip.P_W)
+        if tips is not None:
+            tips.append(ip.P_W[0])
     owner = np.repeat(np.arange(len(Q)), [len(P) for P in pts])
     out = np.full(len(Q), np.inf)
     if len(owner):
@@ -88,11 +91,10 @@ def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: 
             j += 1
         cell_knot[k] = j
     ts = np.union1d(np.arange(knots[0], knots[-1], SHAFT_CHECK_DT_S), knots)
-    Q = traj.vector_values(ts).T
-    near = shaft_clearances_mm(robot, Q, p_WC, model) < limit_mm
+    tips = []
+    near = _watched_clearances_mm(robot, traj.vector_values(ts).T, p_WC, model, True, tips) < limit_mm
     if lens_W is not None:
-        tips = np.array([robot.pose("T", q)[1] for q in Q])
-        near |= lens_clearances_mm(lens_W, p_WC, tips) < LENS_CLEARANCE_MM
+        near |= lens_clearances_mm(lens_W, p_WC, np.array(tips)) < LENS_CLEARANCE_MM
     # a sample belongs to the first cell reached at or after it
     return np.unique(np.searchsorted(knots[cell_knot], ts[near] - 1e-12, side="left"))
 
@@ -121,8 +123,11 @@ def _port_facing_ik(robot: Robot, p_WT, p_WC, normal_W, seed, margin_rad: float)
     run out of its range (the port turns about the shaft all the way round a ring), the
     same posture with J6 a full turn back (the roll unwinds between two cells: J6 turns
     the instrument about its own axis, which moves neither the shaft nor the tip). None
-    when neither lies within the joint margins."""
-    roll = port_roll_rad(p_WT, p_WC, normal_W)
+    when neither lies within the joint margins, or the shaft is vertical (port_roll_rad)."""
+    try:
+        roll = port_roll_rad(p_WT, p_WC, normal_W)
+    except ValueError:  # a vertical shaft
+        return None
     for unwind in (0.0, -2 * np.pi, 2 * np.pi):
         s = np.array(seed, dtype=float)
         s[5] += unwind

@@ -55,3 +55,22 @@ def test_the_flipped_serpentine_visits_the_same_cells_each_ring_the_other_way(ro
     for r in range(mask.shape[0]):
         ring_a, ring_b = [c for c in a if c[0] == r], [c for c in b if c[0] == r]
         assert ring_b == ring_a[::-1]
+
+
+def test_a_cell_straight_below_the_trocar_is_not_swept_rather_than_an_error(setup):
+    """The roll convention (planning.ik.roll_direction_W) has no roll for a vertical shaft:
+    such a cell is left out like one the arm cannot reach (IKFailure when it is the only one)."""
+    from models import Ellipsoid
+    from planning.ik import IKFailure
+    from planning.peripheral import BandSpec
+    from planning.sweep import plan_sweep
+
+    scenario, robot, _ = setup
+    t = scenario.p_WC - np.array([0.0, 0.0, 6.0])
+    cell = np.broadcast_to(t, (1, 1, 3)).copy()
+    band = Band(np.zeros(1), np.zeros(1), cell, np.broadcast_to([0.0, 0.0, 1.0], (1, 1, 3)).copy(), cell,
+                np.full((1, 1), "ok", dtype=object), np.zeros((1, 1)))
+    eye = scenario.eye
+    model = Ellipsoid(eye.pose.p_WE, eye.radii, eye.pose.R_WE)
+    with pytest.raises(IKFailure):
+        plan_sweep(robot, band, scenario.p_WC, model, BandSpec(), [(0, 0)])
