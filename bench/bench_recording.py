@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from eval.experiments.campaign import default_jobs
 from eval.recording.bag import RecordingError
 from eval.recording.fit import fit_recording, read_recording
-from eval.recording.ground_truth import mesh_symmetries, placed_mae_um, placement_error, register_fit
+from eval.recording.ground_truth import mesh_symmetries, placed_mae_um, placement_error, register_fit, register_recording
 from eval.recording.simulate import RecordingSpec, direct_model, write_recording
 from models import fit_sphere
 from models.calibration.plate import SensorPose
@@ -75,10 +75,11 @@ def _true_sensor(truth) -> SensorPose:
     return SensorPose(s["p_FS_mm"], s["u_F"])
 
 
-def _placement(points, model, shape: str, R_WE, p_WE) -> tuple[dict, dict]:
-    """(register_fit's dict, placement_error's dict modulo the mesh's symmetries)."""
+def _placement(points, shape: str, R_WE, p_WE, model=None) -> tuple[dict, dict]:
+    """(register_fit's dict, placement_error's dict modulo the mesh's symmetries) of a
+    FitResult (register_recording) or of points (N, 3) mm with a `model`."""
     mesh = lower_half_shell(make_eye(shape))
-    reg = register_fit(points, model, *mesh)
+    reg = register_fit(points, model, *mesh) if model is not None else register_recording(points, *mesh)
     return reg, placement_error(reg, R_WE, p_WE, symmetries=mesh_symmetries(*mesh))
 
 
@@ -102,7 +103,7 @@ def phantom(n: int = 40000, noise_mm: float = 0.012) -> dict:
         rng = np.random.default_rng(k + 40)
         V = U[rng.choice(len(U), n, replace=False)]
         P_W = (make_eye(shape).surface_points(V) + noise_mm * rng.standard_normal(n)[:, None] * V) @ R_WE.T + p_WE
-        reg, err = _placement(P_W, fit_sphere(P_W), shape, R_WE, p_WE)
+        reg, err = _placement(P_W, shape, R_WE, p_WE, fit_sphere(P_W))
         out[shape] = {**err, "registration_rmse_um": reg["registration_rmse_um"]}
         _print_placement(f"phantom {shape:10s}", err, reg["registration_rmse_um"])
     return out
@@ -118,7 +119,7 @@ def registration(shapes=("staphyloma", "detached", "emmetropic") if FULL else ("
         truth, r, *_ = _record_and_fit(spec)
         for label, sensor in (("nominal", None), ("true", _true_sensor(truth)))[:2 if FULL else 1]:
             res = r if sensor is None else fit_recording(r.joints, r.oct, sensor)
-            reg, err = _placement(res.accepted, res.model.shape, shape, truth["R_WE"], truth["p_WE_mm"])
+            reg, err = _placement(res, shape, truth["R_WE"], truth["p_WE_mm"])
             out[f"{shape} {label} sensor pose"] = {**err, "registration_rmse_um": reg["registration_rmse_um"],
                                                    "mae_um": reg["mae_um"]}
             _print_placement(f"registration {shape:10s} ({label:7s} sensor pose)", err, reg["registration_rmse_um"])
@@ -137,7 +138,7 @@ def mae(shapes=("emmetropic", "myopic", "hyperopic") if FULL else ("emmetropic",
         mesh = lower_half_shell(make_eye(shape))
         for label, true_pose in (("nominal", False), ("true", True))[:2 if FULL else 1]:
             res = fit_recording(r.joints, r.oct, _true_sensor(truth)) if true_pose else r
-            reg = register_fit(res.accepted, res.model.shape, *mesh, local=res.local)
+            reg = register_recording(res, *mesh)
             rec_true = placed_mae_um(*mesh, res.model.shape, truth["R_WE"], truth["p_WE_mm"])
             ref = direct_model(spec, true_sensor_pose=true_pose)
             ref_mae = placed_mae_um(*mesh, ref.shape, truth["R_WE"], truth["p_WE_mm"])
@@ -167,7 +168,7 @@ def phantom_scan(shapes=EYE_SHAPES if FULL else ("staphyloma",)) -> dict:
         for label, true_pose in (("nominal", False), ("true", True))[:2 if FULL else 1]:
             res = fit_recording(r.joints, r.oct, _true_sensor(truth)) if true_pose else r
             try:
-                reg = register_fit(res.accepted, res.model.shape, *mesh, local=res.local)
+                reg = register_recording(res, *mesh)
             except RecordingError as exc:  # no start matches: reported, the other shapes go on
                 out[f"{shape} {label} sensor pose"] = {"registration_failed": str(exc), "model": res.summary()["model"]}
                 print(f"  phantom scan {shape:10s} ({label:7s} sensor pose): registration failed: {exc}", flush=True)

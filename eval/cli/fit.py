@@ -1,8 +1,9 @@
 """`vitreoguard fit`: fit a recording (a ROS 2 bag or a CSV pair, eval.recording.bag):
 extract every A-scan's distance, estimate the OCT-robot time offset from the
 synchronisation segment, rebuild the retinal points with the calibrated sensor pose, run
-the adaptive model (eval.recording.fit); with --ground-truth, register the points to the
-phantom's STL and measure the model there (eval.recording.ground_truth).
+the adaptive model (eval.recording.fit); with --ground-truth, register the points (the
+extractor's bias taken out of them) to the phantom's STL and measure the model there
+(eval.recording.ground_truth).
 
 fit.json: `time_offset_ms` (OCT clock minus robot clock, positive when the OCT stream
 lags), `kind`, `n_points`, `sf_fmae_um`, `ef_fmae_um`, `lf_fmae_um` (the local-global
@@ -57,7 +58,7 @@ def _check_writable(out: Path) -> None:
 def run_fit(args) -> tuple[dict, object]:
     """(fit.json's content, the FitResult) of validated args; RecordingError / SyncError on bad input."""
     from eval.recording.fit import fit_recording, read_calibration, read_recording
-    from eval.recording.ground_truth import load_stl, register_fit
+    from eval.recording.ground_truth import load_stl, register_recording
 
     sensor = read_calibration(args.calibration) if args.calibration is not None else None
     mesh = load_stl(args.ground_truth) if args.ground_truth is not None else None
@@ -84,8 +85,7 @@ def run_fit(args) -> tuple[dict, object]:
         if result.model.shape is None:
             raise UsageError("--ground-truth: the recording gave no model to register")
         with phase("registering the points to the ground-truth mesh (ICP)"):
-            reg = register_fit(result.accepted, result.model.shape, *mesh, args.icp_max_distance_mm, args.icp_sweep,
-                               local=result.local)
+            reg = register_recording(result, *mesh, args.icp_max_distance_mm, args.icp_sweep)
         out.update({"mae_um": reg["mae_um"], "lf_mae_um": reg["lf_mae_um"],
                     "registration_rmse_um": reg["registration_rmse_um"], "registration": reg,
                     "ground_truth": str(args.ground_truth)})

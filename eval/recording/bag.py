@@ -50,11 +50,14 @@ class JointStream:
 @dataclass(frozen=True)
 class OctStream:
     """The OCT stream after extraction: stamps t_s (N,) s (OCT clock, sorted), distances
-    (N,) mm (NaN where invalid) and the extractor's confidences (N,)."""
+    (N,) mm (NaN where invalid) and the extractor's confidences (N,); `extracted`: the
+    distances come from the project's extractor (models.iioct), whose bias is tabulated
+    (False: distances a rig extracted, an oct.csv)."""
 
     t_s: np.ndarray
     distance_mm: np.ndarray
     confidence: np.ndarray
+    extracted: bool = True
 
 
 class BagWriter:

@@ -45,7 +45,9 @@ NOMINAL_TOLERANCE_MM = 20.0  # a calibrated sensor origin further than this from
 class FitResult:
     """The fit of one recording: the streams, the synchronisation (segment indices into
     the joint stream, the beam's travel along itself there (mm), the offset estimate), the rebuilt points (N, 3) mm in W with their
-    OCT stamps (N,) s, the model, the points it accepted (M, 3) mm, the sensor pose used."""
+    OCT stamps (N,) s, the model, the points it accepted (M, 3) mm, the sensor pose used,
+    the local-global model, and the accepted points' beams (origins (M, 3) mm, unit
+    directions (M, 3) in W)."""
 
     joints: JointStream
     oct: OctStream
@@ -59,6 +61,7 @@ class FitResult:
     sensor: SensorPose
     calibrated: bool
     local: object = None  # models.local.field.LocalField (step 6), None without a global quadric
+    accepted_beams: tuple = None
 
     def summary(self) -> dict:
         """fit.json's recording keys (module docstring of eval.cli.fit)."""
@@ -128,16 +131,18 @@ def read_recording(path, engine: OctEngine = OctEngine(), joint_topic=None, asca
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"--recording {p} does not exist")
+    extracted = True
     with Extraction(engine, jobs) as sink:
         if p.is_dir() and (p / "joints.csv").exists():
             joints, t_oct, d = read_csv_pair(p, sink, engine.n_samples)
+            extracted = d is None
             d, conf = sink.result() if d is None else (d, np.ones(len(t_oct)))
         else:
             joints, t_oct = read_bag(p, sink, engine.full_scale, engine.n_samples, joint_topic, ascan_topic, progress)
             d, conf = sink.result()
     order = np.argsort(t_oct, kind="stable")
     t0 = joints.t_s[0]  # times from the first joint state: ROS stamps are ~1.7e9 s
-    return JointStream(joints.t_s - t0, joints.q_rad), OctStream(t_oct[order] - t0, d[order], conf[order])
+    return JointStream(joints.t_s - t0, joints.q_rad), OctStream(t_oct[order] - t0, d[order], conf[order], extracted)
 
 
 def beams_W(sensor: SensorPose, Q) -> tuple[np.ndarray, np.ndarray]:
@@ -195,11 +200,13 @@ def fit_recording(joints: JointStream, oct: OctStream, sensor: SensorPose | None
     model = AdaptiveEyeModel(criteria=PredictiveCriteria())
     accepted = []
     for k in range(0, len(P), PACKET):
-        if model.update(np.ascontiguousarray(P[k:k + PACKET])) is not None:
-            accepted.append(model.last_accepted.copy())
-    acc = np.vstack(accepted) if accepted else np.zeros((0, 3))
-    return FitResult(joints, oct, (i0, i1), s, offset, oct.t_s[use], P, model, acc, sensor, calibrated,
-                     local_fit(acc, model.shape))
+        packet = P[k:k + PACKET]
+        if model.update(np.ascontiguousarray(packet)) is not None:
+            # the gate keeps a packet's points in order: each accepted one is a row of the packet
+            accepted.append(k + np.argmax(np.all(model.last_accepted[:, None] == packet[None], axis=2), axis=1))
+    acc = np.concatenate(accepted) if accepted else np.zeros(0, dtype=int)
+    return FitResult(joints, oct, (i0, i1), s, offset, oct.t_s[use], P, model, P[acc], sensor, calibrated,
+                     local_fit(P[acc], model.shape), (O_p[acc], U_p[acc]))
 
 
 LOCAL_BATCH = 2000  # points per local-model update: its kernels' working set stays small

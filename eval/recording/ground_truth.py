@@ -10,7 +10,16 @@ with a 3 mm correspondence distance (30 iterations); the start with the smallest
 residual is turned about its least defined axis to the best angle (every 3 deg, then
 0.25 deg: about a near-symmetry axis the cost is too flat for the ICP to follow) and run
 again; the result is refined with `max_distance_mm` (the paper: 0.1-1.0 mm; `sweep`
-refines from it with each of 0.1, 0.2, ..., 1.0 mm).
+refines from it with each of 0.1, 0.2, ..., 1.0 mm). With the points' beams, when their
+distances come from the project's extractor (the default OctEngine), the extractor's bias
+is then removed before a last refinement: each point moves back along its beam by the
+bias the extractor's table gives (models.iioct.error_model on the grid BIAS_DISTANCES_MM
+x BIAS_INCIDENCES_DEG, about 30 s to tabulate once per process) at its distance and its
+incidence on the placed mesh (the face it lies on). The bias (0 at normal incidence, 4-9
+um at 20-40 deg, more beyond 14 mm) is shared by the points and the model fitted to them;
+left in, it moves the mesh with the points where the retina tilts against the beam, and
+drops out of `mae_um`; removed from the registration's points alone, it stays in the
+model, where `mae_um` measures it.
 
 `mae_um`: the area-weighted mean, over the mesh's retina faces (facing the model's centre
 within 60 deg, within 2 mm of the model), of each face centroid's exact distance to the
@@ -41,6 +50,13 @@ COARSE_DISTANCE_MM = 3.0
 MAX_POINTS = 40000
 EYE_SIZE_MM = (10.0, 80.0)  # the extent of an eye phantom in mm
 SWEEP_MM = tuple(np.round(np.arange(0.1, 1.01, 0.1), 1))
+# The extractor's bias table for the registration: 200 A-scans per cell (its median to
+# about 1 um: the extracted distance's SD is 2-30 um below 45 deg of incidence), on a grid
+# finer than the closed loop's where the bias changes fastest (0 at normal incidence, 5-7
+# um from 15-20 deg on) over the distances a scan of the posterior eye meets
+BIAS_SAMPLES = 200
+BIAS_DISTANCES_MM = (2.0, 4.0, 6.0, 8.0, 11.0, 14.0, 17.0, 20.0)
+BIAS_INCIDENCES_DEG = (0.0, 2.5, 5.0, 7.5, 10.0, 12.5, 15.0, 17.5, 20.0, 22.5, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0, 55.0)
 
 
 def load_stl(path) -> tuple[np.ndarray, np.ndarray]:
@@ -165,18 +181,39 @@ def _turned_about_weak_axis(P: np.ndarray, index: MeshIndex, reg: Registration, 
     return turned if turned.rmse_mm <= reg.rmse_mm else reg
 
 
+def debiased(P: np.ndarray, beams, index: MeshIndex, R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N, 3) mm in W: the points P (N, 3) moved back along their beams (origins, unit
+    directions, (N, 3) each, W) by the extractor's tabulated bias at their distance and
+    their incidence on the mesh of `index` placed by X_MW = (R, p) (module docstring)."""
+    from models.iioct import OctEngine
+    from models.iioct.error_model import extractor_error_model
+    from models.shapes.rays import incidences_rad
+
+    O, U = (np.asarray(b, dtype=float) for b in beams)
+    d = np.einsum("ij,ij->i", P - O, U)
+    _, k = index.tree.query(P @ R.T + p)
+    N_W = np.ascontiguousarray(index.normals[k] @ R)
+    table = extractor_error_model(OctEngine(), BIAS_SAMPLES, 0, BIAS_DISTANCES_MM, BIAS_INCIDENCES_DEG)
+    bias = table.interpolate(d, incidences_rad(N_W, np.ascontiguousarray(U)))[:, 1]
+    return O + (d - bias)[:, None] * U
+
+
 def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0, sweep: bool = False,
-                 local=None) -> dict:
+                 local=None, beams=None) -> dict:
     """Register the recording's points (N, 3) mm in W to the mesh (frame M = the phantom's
     E) and measure `model` (the fitted Sphere or Ellipsoid in W) there (module docstring):
     {"mae_um", "lf_mae_um" (the same for `local`, the local-global model's LocalField in
     W, on the same faces; None without it), "registration_rmse_um", "R_WE", "p_WE_mm" (the
     registered placement), "rotation_sd_deg", "rotation_axes_E" (its principal SDs and
     axes, models.shapes.icp.rotation_covariance),
-    ..., and with `sweep` "sweep": one such dict per correspondence distance}."""
+    ..., and with `sweep` "sweep": one such dict per correspondence distance}. `beams`
+    (origins, unit directions (N, 3) each, W) of the points, whose distances the
+    project's extractor gave: its bias removed before the last refinement (module
+    docstring)."""
     P = np.asarray(points_W, dtype=float)
-    if len(P) > MAX_POINTS:
-        P = P[np.linspace(0, len(P) - 1, MAX_POINTS).astype(int)]
+    keep = np.linspace(0, len(P) - 1, MAX_POINTS).astype(int) if len(P) > MAX_POINTS else np.arange(len(P))
+    P = P[keep]
+    beams = None if beams is None else tuple(np.asarray(b, dtype=float)[keep] for b in beams)
     index = mesh_index(vertices, faces)
     c_M = _mesh_centre(index, model)
     best = None
@@ -192,10 +229,21 @@ def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0,
         raise RecordingError("--ground-truth: the recording's points do not match the mesh at any start (fewer than half "
                              f"lie within {COARSE_DISTANCE_MM:g} mm of it): is it the phantom of this recording, in mm?")
     start = _turned_about_weak_axis(P, index, best[1], c_M)
+    if beams is not None:
+        start = register_to_mesh(P, index, start.R, start.p, max_distance_mm)
+        P = debiased(P, beams, index, start.R, start.p)
     out = _result(register_to_mesh(P, index, start.R, start.p, max_distance_mm), index, model, max_distance_mm, local)
     if sweep:
         out["sweep"] = [_result(register_to_mesh(P, index, start.R, start.p, d), index, model, d, local) for d in SWEEP_MM]
     return out
+
+
+def register_recording(result, vertices, faces, max_distance_mm: float = 1.0, sweep: bool = False) -> dict:
+    """register_fit of a recording's fit (eval.recording.fit.FitResult): the points its
+    model accepted, its model and local-global model, and their beams when the project's
+    extractor gave the distances."""
+    beams = result.accepted_beams if result.oct.extracted else None
+    return register_fit(result.accepted, result.model.shape, vertices, faces, max_distance_mm, sweep, result.local, beams)
 
 
 def placed_mae_um(vertices, faces, model, R_WE, p_WE, local=None) -> float:

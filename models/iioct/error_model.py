@@ -111,15 +111,20 @@ class ExtractorErrorModel:
         return _draw(D, A, tables, d, a, rng.random(len(d)), rng.standard_normal(len(d)))
 
 
+DISTANCES_MM = (0.5, 1.0, 2.0, 4.0, 8.0, 14.0, 20.0, 25.0)
+INCIDENCES_DEG = (0.0, 20.0, 40.0, 55.0, 65.0, 75.0)
+
+
 @lru_cache(maxsize=4)
-def extractor_error_model(engine: OctEngine = OctEngine(), samples: int = 24, seed: int = 0) -> ExtractorErrorModel:
+def extractor_error_model(engine: OctEngine = OctEngine(), samples: int = 24, seed: int = 0,
+                          distances_mm: tuple = DISTANCES_MM, incidences_deg: tuple = INCIDENCES_DEG) -> ExtractorErrorModel:
     """Tabulate the extractor's bias, SD (robust: 1.4826 x MAD) and invalid fraction over
-    distances 0.5-25 mm and incidences 0-75 deg with `samples` A-scans per cell (about
-    1 s; cached per process)."""
+    the grid `distances_mm` x `incidences_deg` (default 0.5-25 mm, 0-75 deg) with `samples`
+    A-scans per cell (about 1 s with the defaults; cached per process)."""
     rng = np.random.default_rng(seed)
     extractor = DistanceExtractor(engine)
-    D = np.array([0.5, 1.0, 2.0, 4.0, 8.0, 14.0, 20.0, 25.0])
-    A = np.radians([0.0, 20.0, 40.0, 55.0, 65.0, 75.0])
+    D = np.array(distances_mm, dtype=float)
+    A = np.radians(np.array(incidences_deg, dtype=float))
     bias, sd, p_invalid = (np.zeros((len(D), len(A))) for _ in range(3))
     for i, d in enumerate(D):
         for j, a in enumerate(A):
