@@ -19,7 +19,10 @@ port, where no shaft point the filter watches is that deep and the shaft crosses
 wall right behind the cutter, goes to another port that reaches it. A port sweeps its
 cells region by region; a cell a sweep drops (IK branch, the shaft or the lens on the
 way) gets another pass through the same port (a re-entry) or is offered to the ports
-after it. A pass enters and leaves along the shaft line of an end cell of its
+after it. A region of fewer than MIN_PASS_CELLS cells gets no pass of its own, nor does
+one left after MAX_SWEEPS_PER_PORT passes: a port reaches its cells, but unless a later
+port sweeps them their reason is "declined" (the planner declined the pass), not the
+geometry's. A pass enters and leaves along the shaft line of an end cell of its
 serpentine, or of a door cell nearer the trocar's side when the wrist cannot take the
 instrument out along the end cell's line.
 
@@ -61,7 +64,7 @@ from planning.sweep import SHAFT_SLACK_MM, watched_clearance_mm
 
 DEFAULT_PORTS = ("superonasal", "superotemporal")  # the two working ports of planning.ports' layout
 CHECK_ORDER = ("lens", "port", "reach", "shaft")  # how far a cell got through a port's checks
-UNREACHABLE = ("lens", "port", "reach", "shaft", "depression")
+UNREACHABLE = ("lens", "port", "reach", "shaft", "depression", "declined")
 DEPRESSION_MM = 2.0  # indentation of the wall by a scleral depressor (a few mm in practice)
 SHALLOW_RANK = -1e9  # plan_ports' rank of a cell next to the port (below any clearance, above not reaching it)
 MAX_SWEEPS_PER_PORT = 8  # passes through one port (each after the first is a re-entry)
@@ -301,8 +304,13 @@ def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec()
             # a sweep drops the cells it cannot join on its path (an IK branch, the shaft on the
             # way); from a fresh entry they may be swept: another pass (a re-entry)
             queue = sorted(queue + regions(left), key=lambda m: -int(m.sum()))
+            for m in queue:
+                if m.sum() < MIN_PASS_CELLS:
+                    band.reason[m & (port_of < 0)] = "declined"
             queue = [m for m in queue if m.sum() >= MIN_PASS_CELLS]
             segments.append(seg)
+        for m in queue:  # left after MAX_SWEEPS_PER_PORT passes
+            band.reason[m & (port_of < 0)] = "declined"
         open_cells = (open_cells | mask) & (port_of < 0)
     band.reason[port_of >= 0] = "ok"
     band.reason[(port_of < 0) & (band.reason == "ok")] = "shaft"  # reached, but every sweep dropped it

@@ -27,7 +27,7 @@ TRAJECTORY_TOPIC = "/vitreoguard/plan/joint_trajectory"
 JOINT_NAMES = tuple(f"meca500_joint{k}" for k in range(1, 7))
 PORT_COLORS = ("tab:green", "tab:cyan", "tab:olive", "tab:pink")
 REASON_COLORS = {"lens": "tab:blue", "port": "tab:orange", "reach": "tab:red", "shaft": "tab:purple",
-                 "depression": "tab:brown"}
+                 "depression": "tab:brown", "declined": "tab:gray"}
 
 
 def plan_pieces(plan) -> list[tuple[str, str, object, float, float]]:

@@ -76,7 +76,7 @@ PLAN_BAND = [
     ("superotemporal (cells)", "ports.superotemporal.cells_assigned", "int"),
     ("shaft (cells)", "unreachable.shaft", "int"), ("reach (cells)", "unreachable.reach", "int"),
     ("lens (cells)", "unreachable.lens", "int"), ("port (cells)", "unreachable.port", "int"),
-    ("scleral depression (cells)", "unreachable.depression", "int"),
+    ("scleral depression (cells)", "unreachable.depression", "int"), ("declined (cells)", "unreachable.declined", "int"),
 ]
 SENSOR = [
     ("shape", "shape", "str"), ("mode", "mode", "str"), ("samples", "n_samples", "int"),
@@ -109,7 +109,7 @@ TABLES = [
      "assigned to a port; violations: control steps whose true clearance is below 0.45 mm.", PLAN_PATH),
     ("Peripheral vitrectomy plan: band", "plan", "The band's cells: how many each working port sweeps, and why the "
      "others are not reached (shaft: the shaft would graze the retina; scleral depression: reachable only with the "
-     "wall indented).", PLAN_BAND),
+     "wall indented; declined: reached, but too few for a pass of their own).", PLAN_BAND),
     ("iiOCT sensor chain", "sensor", "The spiral through robot, simulated iiOCT (full A-scans) and adaptive model; "
      "distance errors against the true distance (median, robust SD, p99 of |error|).", SENSOR),
     ("Paper reproduction (1 seed)", "paper", "The paper's simulation (Table 2, Fig. 5) with the predictive transition "

@@ -156,3 +156,18 @@ def test_a_cell_keeps_the_reason_of_the_port_that_got_furthest():
     r = combined_reason([np.array(["lens", "ok", "port", "lens"], dtype=object),
                          np.array(["reach", "lens", "port", "shaft"], dtype=object)])
     assert list(r) == ["reach", "ok", "port", "shaft"]
+
+
+def test_cells_too_few_for_a_pass_are_reported_declined_not_as_geometry(layout, monkeypatch):
+    """With every re-entry declined (MIN_PASS_CELLS above the band's size), each cell some
+    port reaches but no pass sweeps is "declined", never a geometric reason."""
+    import planning.multiport as multiport
+
+    scenario, robot, model, ports = layout
+    monkeypatch.setattr(multiport, "MIN_PASS_CELLS", 10**6)
+    plan = plan_ports(robot, scenario, model, ports[:2], ANTERIOR)
+    reached = np.any([r == "ok" for r in plan.reasons_by_port.values()], axis=0)
+    left = reached & (plan.port_of < 0)
+    assert left.sum() > 0  # one pass per port cannot sweep the anterior band (test above: re-entries and doors)
+    assert np.all(plan.band.reason[left] == "declined")
+    assert set(np.unique(plan.band.reason)) <= {"ok", *multiport.UNREACHABLE}
