@@ -14,7 +14,7 @@ refines from it with each of 0.1, 0.2, ..., 1.0 mm). With the points' beams, whe
 distances come from the project's extractor (the default OctEngine), the extractor's bias
 is then removed before a last refinement: each point moves back along its beam by the
 bias the extractor's table gives (models.iioct.error_model on the grid BIAS_DISTANCES_MM
-x BIAS_INCIDENCES_DEG, about 30 s to tabulate once per process) at its distance and its
+x BIAS_INCIDENCES_DEG, about 10 s to tabulate once per process) at its distance and its
 incidence on the placed mesh (the face it lies on). The bias (0 at normal incidence, 4-9
 um at 20-40 deg, more beyond 14 mm) is shared by the points and the model fitted to them;
 left in, it moves the mesh with the points where the retina tilts against the beam, and
@@ -50,11 +50,14 @@ COARSE_DISTANCE_MM = 3.0
 MAX_POINTS = 40000
 EYE_SIZE_MM = (10.0, 80.0)  # the extent of an eye phantom in mm
 SWEEP_MM = tuple(np.round(np.arange(0.1, 1.01, 0.1), 1))
-# The extractor's bias table for the registration: 200 A-scans per cell (its median to
-# about 1 um: the extracted distance's SD is 2-30 um below 45 deg of incidence), on a grid
-# finer than the closed loop's where the bias changes fastest (0 at normal incidence, 5-7
-# um from 15-20 deg on) over the distances a scan of the posterior eye meets
+# The extractor's bias table for the registration: 200 A-scans per cell (the extracted
+# distance's SD is 2-30 um below 45 deg of incidence: the bias to about 1 um), each cell's
+# mean error over the errors within BIAS_WITHIN_MM (what the ICP's least squares sees at
+# its default correspondence distance; the median differs by up to 4 um below 45 deg), on
+# a grid finer than the closed loop's where the bias changes fastest (0 at normal
+# incidence, 5-7 um from 15-20 deg on) over the distances a scan of the posterior eye meets
 BIAS_SAMPLES = 200
+BIAS_WITHIN_MM = 1.0
 BIAS_DISTANCES_MM = (2.0, 4.0, 6.0, 8.0, 11.0, 14.0, 17.0, 20.0)
 BIAS_INCIDENCES_DEG = (0.0, 2.5, 5.0, 7.5, 10.0, 12.5, 15.0, 17.5, 20.0, 22.5, 25.0, 30.0, 35.0, 40.0, 45.0, 50.0, 55.0)
 
@@ -193,7 +196,7 @@ def debiased(P: np.ndarray, beams, index: MeshIndex, R: np.ndarray, p: np.ndarra
     d = np.einsum("ij,ij->i", P - O, U)
     _, k = index.tree.query(P @ R.T + p)
     N_W = np.ascontiguousarray(index.normals[k] @ R)
-    table = extractor_error_model(OctEngine(), BIAS_SAMPLES, 0, BIAS_DISTANCES_MM, BIAS_INCIDENCES_DEG)
+    table = extractor_error_model(OctEngine(), BIAS_SAMPLES, 0, BIAS_DISTANCES_MM, BIAS_INCIDENCES_DEG, BIAS_WITHIN_MM)
     bias = table.interpolate(d, incidences_rad(N_W, np.ascontiguousarray(U)))[:, 1]
     return O + (d - bias)[:, None] * U
 

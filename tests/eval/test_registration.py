@@ -107,7 +107,7 @@ def test_a_recording_of_the_phantom_on_the_bench_is_registered_within_the_target
 def test_the_extractors_bias_is_removed_along_each_beam():
     """Points measured with the extractor's tabulated bias, on beams from above the cup as
     the bench scan's, move back onto the retina (eval.recording.ground_truth.debiased)."""
-    from eval.recording.ground_truth import BIAS_DISTANCES_MM, BIAS_INCIDENCES_DEG, BIAS_SAMPLES, debiased
+    from eval.recording.ground_truth import BIAS_DISTANCES_MM, BIAS_INCIDENCES_DEG, BIAS_SAMPLES, BIAS_WITHIN_MM, debiased
     from models.iioct import OctEngine
     from models.iioct.error_model import extractor_error_model
     from models.shapes.icp import mesh_index
@@ -122,7 +122,7 @@ def test_the_extractors_bias_is_removed_along_each_beam():
     O = np.array([0.0, 0.0, 12.0]) + (10.0 / -U[:, 2])[:, None] * U
     d = eye.ray_cast(O, U)
     on_retina = O + d[:, None] * U
-    table = extractor_error_model(OctEngine(), BIAS_SAMPLES, 0, BIAS_DISTANCES_MM, BIAS_INCIDENCES_DEG)
+    table = extractor_error_model(OctEngine(), BIAS_SAMPLES, 0, BIAS_DISTANCES_MM, BIAS_INCIDENCES_DEG, BIAS_WITHIN_MM)
     bias = table.interpolate(d, incidences_rad(eye.gradient(on_retina), U))[:, 1]
     assert np.percentile(np.abs(bias), 90) > 5e-3  # several um off the retina: something to remove
     back = debiased(on_retina + bias[:, None] * U, (O, U), mesh_index(*lower_half_shell(eye, edge_mm=0.25)),
