@@ -42,6 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from eval.recording.bag import RecordingError
 from models import fit_ellipsoid, fit_sphere
+from models.adaptive.model import EYE_RADII_MM
 from models.shapes.icp import MeshIndex, Registration, mesh_index, point_to_plane, register_to_mesh
 
 N_ROTATIONS = 4000
@@ -229,6 +230,11 @@ def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0,
         if best is None or score < best[0]:
             best = (score, reg)
     if best is None or not np.isfinite(best[0]):
+        radii = np.atleast_1d(getattr(model, "radii", getattr(model, "radius", np.nan)))
+        lo, hi = EYE_RADII_MM
+        if not np.all((radii >= lo) & (radii <= hi)):  # the start is the model's centre: no eye's, no start
+            raise RecordingError("--ground-truth: the fitted model (semi-axes " + ", ".join(f"{r:.1f}" for r in radii)
+                                 + f" mm) is no eye's ({lo:g}-{hi:g} mm), so it gives the registration no start")
         raise RecordingError("--ground-truth: the recording's points do not match the mesh at any start (fewer than half "
                              f"lie within {COARSE_DISTANCE_MM:g} mm of it): is it the phantom of this recording, in mm?")
     start = _turned_about_weak_axis(P, index, best[1], c_M)

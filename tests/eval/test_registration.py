@@ -63,6 +63,19 @@ def test_a_phantom_placed_anywhere_is_registered_within_the_targets_where_its_ge
     # measured: bench/bench_recording.py phantom)
 
 
+def test_a_fitted_model_that_is_no_eye_is_named_as_why_the_registration_has_no_start():
+    from eval.recording.bag import RecordingError
+    from models import Ellipsoid
+
+    rng = np.random.default_rng(7)
+    eye = make_eye("pointed")
+    P = _phantom_points(eye, rng, n=2000)
+    # a pointed eye's partial scan can fit a cigar: 177 x 32 x 31 mm, its centre 160 mm off
+    cigar = Ellipsoid(eye.pose.p_WE + np.array([160.0, 0.0, 0.0]), np.array([177.0, 32.0, 31.0]), np.eye(3))
+    with pytest.raises(RecordingError, match=r"semi-axes 177.0, 32.0, 31.0 mm\) is no eye's \(8-16 mm\)"):
+        register_fit(P, cigar, *lower_half_shell(eye, edge_mm=0.5))
+
+
 @pytest.fixture(scope="module")
 def bench_recording(tmp_path_factory):
     """record (the phantom scene: the lower half open on the bench, scanned from above in
