@@ -29,9 +29,9 @@ correction the tip could not follow in every direction leaves the QP no velocity
 later (measured: a 20 ms lag on the staphyloma, 19.8 mm/s of correction, the third joint
 0.34 rad/s from its limit bound). A robot at rest with an error keeps correcting it at
 the gain, as with the ideal actuator, which never stops here: its prediction is today's
-error. (Bounding the correction's speed at the threshold instead was measured worse: an
-acceleration-limited robot then carried a 0.1-0.2 mm error for tens of steps at its joint
-speed limits until the QP had no solution.) A robot whose acceleration limit keeps it on
+error. (A bound on the correction's speed at the threshold does worse: an
+acceleration-limited robot then carries a 0.1-0.2 mm error for tens of steps at its joint
+speed limits until the QP has no solution; measured on the fault matrix.) A robot whose acceleration limit keeps it on
 a velocity it was given several millimetres of joint travel earlier can owe the trocar
 tenths of a millimetre; correcting that is a lateral speed no speed limit allows, and the
 QP would find no velocity a few steps later. The ideal loop's errors (micrometres) stay
