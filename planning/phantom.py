@@ -44,12 +44,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from models.eyes import EyePose, make_eye
 from models.scan.spiral import archimedean_spiral
 from models.shapes.validation import as_vector3
-from planning.scenario import SENSOR_OFFSET_S_MM, SENSOR_ROTVEC_S_RAD
+from planning.scenario import SENSOR_OFFSET_S_MM, SENSOR_ROTVEC_S_RAD, TrueSensorPose
 
 PHANTOM_TIP_PLANE_Z_E_MM = 2.0
 PHANTOM_PIVOT_Z_E_MM = 12.0
@@ -60,7 +59,7 @@ WRIST_SINGULAR_DEG = 15.0  # |J5| below this counts as lost margin (the wrist's 
 
 
 @dataclass(frozen=True, eq=False)
-class PhantomScenario:
+class PhantomScenario(TrueSensorPose):
     """A printed phantom (`eye_name`, make_eye's `eye_params`) placed at `eye_pose` (X_WE),
     scanned from above through the pivot p_EC (mm, E; module docstring), with the true
     sensor pose's calibration error (offset mm and rotation vector rad, in S) as in
@@ -96,11 +95,6 @@ class PhantomScenario:
     def p_WC(self) -> np.ndarray:
         """The pivot in W, mm."""
         return self.eye_pose.to_W(self.p_EC[None])[0]
-
-    @property
-    def X_S_Strue(self) -> tuple[np.ndarray, np.ndarray]:
-        """(R, p mm) of the true sensor frame in the nominal sensor frame S."""
-        return Rotation.from_rotvec(self.sensor_rotvec_S_rad).as_matrix(), self.sensor_offset_S_mm.copy()
 
     def spiral_E(self, pitch_mm: float = 1.5, revolutions: float = 6.0, spacing_mm: float = 0.1) -> np.ndarray:
         """(N, 3) tip targets in E: the Archimedean spiral centred on the axis in the tip

@@ -91,8 +91,18 @@ def default_trocar_E(eye_name: str, eye_params: dict | None = None) -> np.ndarra
     return u * (np.linalg.norm(p) + radial[eye_name] - radial["emmetropic"])
 
 
+class TrueSensorPose:
+    """What a scenario with `sensor_offset_S_mm` (3,) mm and `sensor_rotvec_S_rad` (3,) rad,
+    the calibration error of the true sensor in the nominal sensor frame S, answers."""
+
+    @property
+    def X_S_Strue(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, p mm) of the true sensor frame in the nominal sensor frame S."""
+        return Rotation.from_rotvec(self.sensor_rotvec_S_rad).as_matrix(), self.sensor_offset_S_mm.copy()
+
+
 @dataclass(frozen=True, eq=False)
-class SurgeryScenario:
+class SurgeryScenario(TrueSensorPose):
     """Eye pose X_WE, trocar p_EC (mm, E; default `default_trocar_E(eye_name)`), eye shape name and its
     shape parameters (make_eye's keywords, models.eyes.EYE_PARAMS), lens keep-out (E) and the
     true sensor pose's calibration error (offset mm and rotation vector rad, both in S).
@@ -164,11 +174,6 @@ class SurgeryScenario:
     def lens_W(self) -> Ellipsoid:
         """The lens keep-out ellipsoid in W (signed distance > 0 inside the lens)."""
         return Ellipsoid(self.eye_pose.to_W(self._lens_E.center[None])[0], self._lens_E.radii, self.eye_pose.R_WE)
-
-    @property
-    def X_S_Strue(self) -> tuple[np.ndarray, np.ndarray]:
-        """(R, p mm) of the true sensor frame in the nominal sensor frame S."""
-        return Rotation.from_rotvec(self.sensor_rotvec_S_rad).as_matrix(), self.sensor_offset_S_mm.copy()
 
     def tip_targets_W(self, P_ET) -> np.ndarray:
         """(N, 3) W positions (mm) of tip targets P_ET (N, 3) given in E, after checking
