@@ -199,12 +199,12 @@ def fit_recording(joints: JointStream, oct: OctStream, sensor: SensorPose | None
     P = O_p + oct.distance_mm[use, None] * U_p
     model = AdaptiveEyeModel(criteria=PredictiveCriteria())
     accepted = []
+    row = {p.tobytes(): i for i, p in enumerate(P)}  # the model keeps points as given: each is a row of P
     for k in range(0, len(P), PACKET):
-        packet = P[k:k + PACKET]
-        if model.update(np.ascontiguousarray(packet)) is not None:
-            # the gate keeps a packet's points in order: each accepted one is a row of the packet
-            accepted.append(k + np.argmax(np.all(model.last_accepted[:, None] == packet[None], axis=2), axis=1))
-    acc = np.concatenate(accepted) if accepted else np.zeros(0, dtype=int)
+        if model.update(np.ascontiguousarray(P[k:k + PACKET])) is not None:
+            # the gate may add a point it held back from an earlier packet: looked up in all of P
+            accepted.append([row[p.tobytes()] for p in model.last_accepted])
+    acc = np.concatenate(accepted).astype(int) if accepted else np.zeros(0, dtype=int)
     return FitResult(joints, oct, (i0, i1), s, offset, oct.t_s[use], P, model, P[acc], sensor, calibrated,
                      local_fit(P[acc], model.shape), (O_p[acc], U_p[acc]))
 
