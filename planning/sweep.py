@@ -77,12 +77,13 @@ def _watched_clearances_mm(robot: Robot, Q, p_WC, model, shaft_only: bool, tips:
 
 
 def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: np.ndarray, p_WC, model,
-                               limit_mm: float, lens_W=None) -> np.ndarray:
-    """Indices into P_cells (K, 3) of the cells on whose way (from the previous waypoint of
-    the timed joint trajectory, sampled every SHAFT_CHECK_DT_S) or at whose posture a
-    watched shaft point comes within `limit_mm` of the model, or the shaft within
-    LENS_CLEARANCE_MM of the lens keep-out `lens_W` (when given). P_used (M, 3): the
-    targets of the trajectory's knots, P_cells in order among them (plan_ik_scan adds midpoints)."""
+                               limit_mm: float, lens_W=None) -> dict:
+    """{index into P_cells (K, 3): reason} for the cells on whose way (from the previous
+    waypoint of the timed joint trajectory, sampled every SHAFT_CHECK_DT_S) or at whose
+    posture a watched shaft point comes within `limit_mm` of the model ("shaft"), or else
+    the shaft within LENS_CLEARANCE_MM of the lens keep-out `lens_W` (when given; "lens").
+    P_used (M, 3): the targets of the trajectory's knots, P_cells in order among them
+    (plan_ik_scan adds midpoints)."""
     knots = np.asarray(traj.get_segment_times())
     cell_knot = np.empty(len(P_cells), dtype=int)
     j = 0
@@ -93,10 +94,13 @@ def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: 
     ts = np.union1d(np.arange(knots[0], knots[-1], SHAFT_CHECK_DT_S), knots)
     tips = []
     near = _watched_clearances_mm(robot, traj.vector_values(ts).T, p_WC, model, True, tips) < limit_mm
-    if lens_W is not None:
-        near |= lens_clearances_mm(lens_W, p_WC, np.array(tips)) < LENS_CLEARANCE_MM
-    # a sample belongs to the first cell reached at or after it
-    return np.unique(np.searchsorted(knots[cell_knot], ts[near] - 1e-12, side="left"))
+    lens = (lens_clearances_mm(lens_W, p_WC, np.array(tips)) < LENS_CLEARANCE_MM if lens_W is not None
+            else np.zeros_like(near))
+    # a sample belongs to the first cell reached at or after it; the shaft's reason first
+    owner = np.searchsorted(knots[cell_knot], ts - 1e-12, side="left")
+    out = {int(k): "lens" for k in np.unique(owner[lens])}
+    out.update({int(k): "shaft" for k in np.unique(owner[near])})
+    return out
 
 
 def chord_postures(robot: Robot, p_a, p_b, p_WC, q_a, q_b, step_mm: float = CHORD_STEP_MM) -> tuple[np.ndarray, list]:
@@ -153,7 +157,7 @@ class Sweep:
     """One trocar's shaving sweep: the cells kept ((ring, azimuth index) in path order), their
     targets (K, 3) W, port rolls (K,) rad and IK postures (K, 6) rad, the timed joint
     trajectory through them and its knots' targets (plan_ik_scan adds midpoints), and the
-    cells dropped on the way with their reason ("reach" or "shaft")."""
+    cells dropped on the way with their reason ("reach", "shaft" or "lens")."""
 
     cells: list
     targets_W: np.ndarray
@@ -171,7 +175,7 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None,
     path, cells beyond the joint margins or only on another IK branch dropped as "reach",
     cells at or on whose way the watched shaft nears the boundary, or the shaft the lens
     keep-out `lens_W` (W, when given; the cells' own rule, LENS_CLEARANCE_MM), dropped as
-    "shaft". IKFailure when no cell is left."""
+    "shaft" or "lens". IKFailure when no cell is left."""
     limit = spec.boundary_mm + SHAFT_SLACK_MM
     p_WC = np.asarray(p_WC, dtype=float)
     q = q_start
@@ -192,9 +196,11 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None,
         # at the cell and on the way there from the last cell kept (a first, cheap look along
         # the straight tip segment the timed path follows, RCM held)
         tips, on_way = chord_postures(robot, band.target_W[kept[-1]], t, p_WC, Q[-1], q) if Q else (t[None], [])
-        if (shaft_clearances_mm(robot, [q] + on_way, p_WC, model).min() < limit
-                or (lens_W is not None and lens_clearances_mm(lens_W, p_WC, tips).min() < LENS_CLEARANCE_MM)):
+        if shaft_clearances_mm(robot, [q] + on_way, p_WC, model).min() < limit:
             dropped[(r, i)] = "shaft"
+        elif lens_W is not None and lens_clearances_mm(lens_W, p_WC, tips).min() < LENS_CLEARANCE_MM:
+            dropped[(r, i)] = "lens"
+        if (r, i) in dropped:
             q = Q[-1] if Q else None
             continue
         kept.append((r, i))
@@ -210,9 +216,9 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None,
                          P[[0, 0]], dropped)
         traj, P_used, _ = plan_ik_scan(robot, P, p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q)
         bad = _cells_too_near_on_the_way(robot, traj, P_used, P, p_WC, model, limit, lens_W)
-        if not len(bad):
+        if not bad:
             return Sweep(kept, P, roll, np.array(Q), traj, P_used, dropped)
-        for k in bad:
-            dropped[kept[k]] = "shaft"
-        keep = np.setdiff1d(np.arange(len(kept)), bad)
+        for k, why in bad.items():
+            dropped[kept[k]] = why
+        keep = np.setdiff1d(np.arange(len(kept)), list(bad))
         kept, Q = [kept[k] for k in keep], [Q[k] for k in keep]

@@ -74,3 +74,27 @@ def test_a_cell_straight_below_the_trocar_is_not_swept_rather_than_an_error(setu
     model = Ellipsoid(eye.pose.p_WE, eye.radii, eye.pose.R_WE)
     with pytest.raises(IKFailure):
         plan_sweep(robot, band, scenario.p_WC, model, BandSpec(), [(0, 0)])
+
+
+def test_a_cell_whose_shaft_crosses_the_lens_on_the_way_is_dropped_as_lens(setup):
+    """Three mid-vitreous cells 2 mm apart, far from the retina; a 0.3 mm keep-out sphere
+    on the straight shaft to the third, 60 % of the way in: that shaft crosses it, the
+    second cell's passes 2 mm x 0.6 - 0.3 mm = 0.9 mm from it (> LENS_CLEARANCE_MM 0.5 mm).
+    The third cell is dropped for the lens, not the shaft; the other two are swept."""
+    from models import Ellipsoid
+    from planning.peripheral import BandSpec
+    from planning.sweep import plan_sweep
+
+    scenario, robot, _ = setup
+    T = scenario.eye_pose.to_W(np.array([[1.0, -2.0, -3.0], [1.0, 0.0, -3.0], [1.0, 2.0, -3.0]]))
+    N = T - scenario.eye_pose.p_WE
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    band = Band(np.zeros(3), np.zeros(1), T[None].copy(), N[None].copy(), T[None].copy(),
+                np.full((1, 3), "ok", dtype=object), np.zeros((1, 3)))
+    lens = Sphere(scenario.p_WC + 0.6 * (T[2] - scenario.p_WC), 0.3)
+    eye = scenario.eye
+    model = Ellipsoid(eye.pose.p_WE, eye.radii, eye.pose.R_WE)
+    sweep = plan_sweep(robot, band, scenario.p_WC, model, BandSpec(), [(0, 0), (0, 1), (0, 2)], lens_W=lens)
+    assert sweep.dropped == {(0, 2): "lens"}
+    assert sweep.cells == [(0, 0), (0, 1)]
+    assert lens_clearances_mm(lens, scenario.p_WC, sweep.targets_W).min() >= 0.5
