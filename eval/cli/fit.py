@@ -2,8 +2,8 @@
 extract every A-scan's distance, estimate the OCT-robot time offset from the
 synchronisation segment, rebuild the retinal points with the calibrated sensor pose, run
 the adaptive model (eval.recording.fit); with --ground-truth, register the points (the
-extractor's bias taken out of them) to the phantom's STL and measure the model there
-(eval.recording.ground_truth).
+extractor's bias taken out of them, unless --no-bias-removal) to the phantom's STL and
+measure the model there (eval.recording.ground_truth).
 
 fit.json: `time_offset_ms` (OCT clock minus robot clock, positive when the OCT stream
 lags), `kind`, `n_points`, `sf_fmae_um`, `ef_fmae_um`, `lf_fmae_um` (the local-global
@@ -42,6 +42,9 @@ def register(sub) -> None:
                    help=f"ICP's maximum correspondence distance, {ICP_DISTANCE.range} (paper: 0.1-1.0)")
     p.add_argument("--icp-sweep", action="store_true",
                    help="also register with every correspondence distance 0.1, 0.2, ..., 1.0 mm (the paper's sweep)")
+    p.add_argument("--no-bias-removal", action="store_true",
+                   help="register the points as extracted, without taking out the extractor's bias tabulated on the "
+                        "project's simulated OCT engine (for an engine unlike it)")
     add_worker_flags(p, ray=False)
     p.set_defaults(func=main)
 
@@ -85,7 +88,7 @@ def run_fit(args) -> tuple[dict, object]:
         if result.model.shape is None:
             raise UsageError("--ground-truth: the recording gave no model to register")
         with phase("registering the points to the ground-truth mesh (ICP)"):
-            reg = register_recording(result, *mesh, args.icp_max_distance_mm, args.icp_sweep)
+            reg = register_recording(result, *mesh, args.icp_max_distance_mm, args.icp_sweep, not args.no_bias_removal)
         out.update({"mae_um": reg["mae_um"], "lf_mae_um": reg["lf_mae_um"],
                     "registration_rmse_um": reg["registration_rmse_um"], "registration": reg,
                     "ground_truth": str(args.ground_truth)})

@@ -247,12 +247,15 @@ def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0,
     return out
 
 
-def register_recording(result, vertices, faces, max_distance_mm: float = 1.0, sweep: bool = False) -> dict:
+def register_recording(result, vertices, faces, max_distance_mm: float = 1.0, sweep: bool = False,
+                       remove_bias: bool = True) -> dict:
     """register_fit of a recording's fit (eval.recording.fit.FitResult): the points its
     model accepted, its model and local-global model, and their beams when the project's
-    extractor gave the distances."""
-    beams = result.accepted_beams if result.oct.extracted else None
-    return register_fit(result.accepted, result.model.shape, vertices, faces, max_distance_mm, sweep, result.local, beams)
+    extractor gave the distances and `remove_bias` (False: the points registered as
+    extracted). The dict's "bias_removed" says which."""
+    beams = result.accepted_beams if remove_bias and result.oct.extracted else None
+    out = register_fit(result.accepted, result.model.shape, vertices, faces, max_distance_mm, sweep, result.local, beams)
+    return {**out, "bias_removed": beams is not None}
 
 
 def placed_mae_um(vertices, faces, model, R_WE, p_WE, local=None) -> float:

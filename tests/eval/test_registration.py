@@ -76,6 +76,34 @@ def test_a_fitted_model_that_is_no_eye_is_named_as_why_the_registration_has_no_s
         register_fit(P, cigar, *lower_half_shell(eye, edge_mm=0.5))
 
 
+@pytest.mark.parametrize("remove_bias, extracted", [(False, True), (True, False)])
+def test_without_bias_removal_the_points_are_registered_as_extracted(monkeypatch, remove_bias, extracted):
+    """`fit --no-bias-removal` (remove_bias False), or distances a rig extracted itself:
+    the registration never touches the points (the tabulated bias is the project's
+    simulated engine's) and says so."""
+    from types import SimpleNamespace
+
+    import eval.recording.ground_truth as gt
+
+    def no_table(*args, **kwargs):
+        raise AssertionError("the extractor's bias was removed")
+
+    monkeypatch.setattr(gt, "debiased", no_table)
+    eye = make_eye("staphyloma")  # no symmetry: the placement is defined about every axis
+    rng = np.random.default_rng(11)
+    P = _phantom_points(eye, rng, n=3000)
+    beams = (P + 10.0 * np.array([0.0, 0.0, 1.0]), np.tile([0.0, 0.0, -1.0], (len(P), 1)))
+    result = SimpleNamespace(accepted=P, model=SimpleNamespace(shape=fit_sphere(P)), local=None,
+                             oct=SimpleNamespace(extracted=extracted), accepted_beams=beams)
+    mesh = lower_half_shell(eye, edge_mm=0.5)
+    reg = register_recording(result, *mesh, remove_bias=remove_bias)
+    assert reg["bias_removed"] is False
+    plain = register_fit(P, result.model.shape, *mesh)  # the same points, no beams: the same registration
+    assert np.allclose(reg["R_WE"], plain["R_WE"], atol=1e-12) and np.allclose(reg["p_WE_mm"], plain["p_WE_mm"], atol=1e-12)
+    # the points as they are: the noise and the 0.5 mm facets' sag (2.6 um), nothing more
+    assert reg["registration_rmse_um"] == pytest.approx(1e3 * NOISE_MM, rel=0.15)
+
+
 @pytest.fixture(scope="module")
 def bench_recording(tmp_path_factory):
     """record (the phantom scene: the lower half open on the bench, scanned from above in
