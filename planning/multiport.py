@@ -3,8 +3,9 @@
 Every band cell (planning.peripheral: equator to ora serrata, all the way round, on the
 FITTED model) gets its reason from each port (planning.peripheral.cell_reasons with the
 port's trocar). A cell no port reaches keeps the reason of the port that got furthest
-through the checks (lens, then port, then reach: "reach" says the geometry allows it and
-only the arm does not); when pushing the wall in by DEPRESSION_MM along the normal (a
+through the checks (uncertain, lens, then port, then reach: "reach" says the geometry
+allows it and only the arm does not; "uncertain" that the model's uncertainty puts the
+filter's boundary across the shaving target, planning.field_model); when pushing the wall in by DEPRESSION_MM along the normal (a
 scleral depressor's indentation) would let some port reach it, its reason is
 "depression": it needs scleral depression, which this simulation does not model.
 
@@ -54,6 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
+from planning.field_model import retina_of
 from planning.ik import IKFailure
 from planning.peripheral import (Band, BandSpec, Sweep, band_surface, cell_reach, cell_reasons, plan_sweep, port_roll_rad,
                                  serpentine)
@@ -63,8 +65,8 @@ from planning.robot import Robot
 from planning.sweep import SHAFT_SLACK_MM, watched_clearance_mm
 
 DEFAULT_PORTS = ("superonasal", "superotemporal")  # the two working ports of planning.ports' layout
-CHECK_ORDER = ("lens", "port", "reach", "shaft")  # how far a cell got through a port's checks
-UNREACHABLE = ("lens", "port", "reach", "shaft", "depression", "declined")
+CHECK_ORDER = ("uncertain", "lens", "port", "reach", "shaft")  # how far a cell got through a port's checks
+UNREACHABLE = ("uncertain", "lens", "port", "reach", "shaft", "depression", "declined")
 DEPRESSION_MM = 2.0  # indentation of the wall by a scleral depressor (a few mm in practice)
 SHALLOW_RANK = -1e9  # plan_ports' rank of a cell next to the port (below any clearance, above not reaching it)
 MAX_SWEEPS_PER_PORT = 8  # passes through one port (each after the first is a re-entry)
@@ -315,7 +317,7 @@ def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec()
     band.reason[port_of >= 0] = "ok"
     band.reason[(port_of < 0) & (band.reason == "ok")] = "shaft"  # reached, but every sweep dropped it
     _mark_depression(robot, scenario, band, spec, ports, static_miss)
-    switches, moves = port_switches(robot, model, segments, scenario.eye_pose.p_WE)
+    switches, moves = port_switches(robot, retina_of(model), segments, scenario.eye_pose.p_WE)
     if not segments:
         raise IKFailure("no cell of the band can be swept from these ports")
     return MultiPortPlan(band, ports, port_of, {n: r[0].reshape(shape) for n, r in by_port.items()}, segments,

@@ -32,7 +32,7 @@ from planning.scenario import LENS_CLEARANCE_MM, ORA_SERRATA_Z_E_MM
 from planning.sweep import (MAX_JOINT_STEP_RAD, SHAFT_CHECK_DT_S, SHAFT_SLACK_MM, Sweep, lens_clearances_mm,  # noqa: F401
                             plan_sweep, port_roll_rad, shaft_clearances_mm)
 
-REASONS = ("ok", "lens", "port", "reach", "shaft")
+REASONS = ("ok", "uncertain", "lens", "port", "reach", "shaft")
 BOUNDARY_MM = 0.5  # the virtual boundary's d_safe: a standoff must leave room above it
 # The port rule: the cutter port (a side window) faces the retina when its normal lies
 # within this angle of the retina's normal, i.e. when the shaft meets the retina at most
@@ -148,8 +148,9 @@ def cell_reach(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.ndar
     """cell_reasons' (reasons, port angles deg) and the smallest clearance (mm) of the
     watched shaft points from `model` at each cell's posture (the closed-form branch with
     the largest joint margin; inf where none or without a model). With a model, a cell
-    whose shaft comes within spec.boundary_mm + SHAFT_SLACK_MM of it is "shaft" (the
-    sweep's own check, at the cell)."""
+    whose shaving target lies within spec.boundary_mm + SHAFT_SLACK_MM of it is
+    "uncertain" (a planning.field_model.FieldModel's uncertainty puts the filter's boundary
+    there), one whose shaft comes that near "shaft" (the sweep's own check, at the cell)."""
     p_EC = scenario.p_EC if p_EC is None else np.asarray(p_EC, dtype=float)
     p_WC = scenario.eye_pose.to_W(p_EC[None])[0]
     U = targets_W - p_WC
@@ -159,8 +160,12 @@ def cell_reach(robot: Robot, scenario, targets_W: np.ndarray, normals_W: np.ndar
     margin = np.radians(spec.min_margin_deg)
     reasons = np.full(len(targets_W), "ok", dtype=object)
     shaft = np.full(len(targets_W), np.inf)
+    near = (np.zeros(len(targets_W), dtype=bool) if model is None
+            else np.asarray(model.signed_distance(targets_W), dtype=float) < spec.boundary_mm + SHAFT_SLACK_MM)
     for i, (t, u) in enumerate(zip(targets_W, U)):
-        if lens[i] < LENS_CLEARANCE_MM:
+        if near[i]:
+            reasons[i] = "uncertain"
+        elif lens[i] < LENS_CLEARANCE_MM:
             reasons[i] = "lens"
         elif port[i] > spec.port_max_deg:
             reasons[i] = "port"

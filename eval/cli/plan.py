@@ -123,6 +123,9 @@ def register(sub) -> None:
     p.add_argument("--port-angle-deg", type=PORT_ANGLE, default=PORT_FACING_MAX_DEG,
                    help="port rule: the cutter port faces the retina when its normal lies within this angle of the "
                         f"retina's normal, {PORT_ANGLE.range}")
+    p.add_argument("--local-model", action="store_true",
+                   help="bound the motion by the local-global model at d_safe + 3 sigma (models.local) instead of the "
+                        "quadric with its phase margin; the plan keeps to the same boundary")
     p.add_argument("--trust-angle-deg", type=TRUST_ANGLE, default=180.0,
                    help=f"during the shaving the filter trusts the model this far (from the eye centre, "
                         f"{TRUST_ANGLE.range}) from measured directions; beyond, the conservative prior also bounds the "
@@ -172,15 +175,16 @@ def main(args) -> int:
     spec = spec_of(args)
     args.eye_params = eye_params(args.eye_param, args.shape)
     from eval.experiments.model_report import model_summary
-    from safety import FilterConfig
     from eval.cli.boundary import make_loop
     from eval.cli.plan_export import coverage_figure, write_ros2_trajectories, write_trajectory_csv
     from eval.closed_loop import LoopConfig, semi_axes_mm
+    from eval.loop_config import default_filter
     from eval.experiments.boundary import build_model_by_spiral
     from eval.experiments.plan_execution import executed_passes, phase_figures, step_phases
     from eval.log.writer import RunLogger
     from planning import SurgeryScenario
     from planning.ik import IKFailure
+    from planning.field_model import FieldModel, least_uncertainty_mm
     from planning.multiport import IN_EYE_PHASES, UNREACHABLE, plan_ports
     from planning.scenario import PORTS_EYE_POSE
 
@@ -190,24 +194,24 @@ def main(args) -> int:
                                    ports=layout)
     except ValueError as exc:
         raise UsageError(f"--port-clock/--port-limbus-mm: {exc}") from None
-    # the quadric boundary with the trust angle: the band is never measured, and the local model's
-    # honest sigma there (its global model's 1.5 mm far from data) would hold the cutter ~5 mm off it
-    loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=False,
-                                          filter=FilterConfig()), sensor_seed=args.seed)
+    # the quadric boundary (its phase margin) or, with --local-model, the local model's d_safe + k sigma
+    loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=args.local_model,
+                                          filter=default_filter(args.local_model)), sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
     trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
-    if trusted.shape is None:
+    if (trusted.field if args.local_model else trusted.shape) is None:
         radii = semi_axes_mm(build.model.shape)
         raise UsageError(f"cannot plan: the filter does not trust this {build.kind_final} model (semi-axes "
                          f"{', '.join(f'{r:.1f}' for r in radii)} mm; an eye's lie in {loop.config.model_radius_range_mm} "
                          f"mm) and would hold the instrument inside the conservative prior, away from the band")
-    model = trusted.shape  # what the filter will bound the motion with (the sphere if the ellipsoid is no eye's)
-    boundary = loop.config.filter.boundary_mm(trusted.margin_mm(loop.config.margins))
+    # what the filter will bound the shaft with (the sphere if the ellipsoid is no eye's), as one rule: h - k u
+    model = FieldModel(loop.filter.field_objects(trusted)[1], loop.config.filter.sigma_factor, trusted.kind)
+    spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
+    boundary = spec.boundary_mm + least_uncertainty_mm(model, scenario.eye_pose, spec)
     if spec.standoff_mm < boundary + 0.2:
         raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
                          f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
                          f"stepping in); use at least {boundary + 0.2:.2f} mm")
-    spec = dataclasses.replace(spec, boundary_mm=boundary)  # the whole instrument plans outside it
     try:
         with phase(f"planning the band through {len(visit)} ports (reachability, assignment, sweeps, switches)"):
             plan = plan_ports(loop.robot, scenario, model, visit, spec)
@@ -249,7 +253,7 @@ def main(args) -> int:
         "switches": [{"from": sw.from_port, "to": sw.to_port, "withdraw_s": sw.withdraw_s, "move_s": sw.move_s,
                       "insert_s": sw.insert_s, "duration_s": sw.duration_s,
                       "move_min_outside_mm": sw.move_min_outside_mm} for sw in plan.switches],
-        "min_model_clearance_mm": float(np.min(model.signed_distance(all_tips))),
+        "min_model_clearance_mm": float(np.min(model.retina.signed_distance(all_tips))),
         "min_true_clearance_mm": None,
         "violations": None,
         "duration_s": float(sum(durations.values()) + switch_s),
@@ -260,7 +264,7 @@ def main(args) -> int:
         "plan_time_s": plan.plan_time_s,
         "shape": args.shape, "eye_params": args.eye_params, "side": args.side, "model_kind": trusted.kind,
         "fitted_kind": build.kind_final,
-        "standoff_mm": spec.standoff_mm, "boundary_mm": spec.boundary_mm, "port_angle_deg": spec.port_max_deg,
+        "standoff_mm": spec.standoff_mm, "boundary_mm": boundary, "port_angle_deg": spec.port_max_deg,
         "trust_angle_deg": args.trust_angle_deg, "band_z_E_mm": [spec.z_min_E, spec.z_max_E],
         "max_port_angle_deg_on_path": float(np.nanmax(band.port_deg)) if (plan.port_of >= 0).any() else None,
         "max_planned_rcm_error_um": float(1e3 * max(max(robot.rcm_error_mm(q, p.p_WC) for q in p.Q) for p in passes)),

@@ -119,11 +119,8 @@ class FilterSystem(LeafSystem):
         self._kp = step_kinematics_params(robot, self.p_WC, config.points)
         self.drake_diffik = DrakeDiffIK(robot, config.control_rate_hz)
         self._lens_field = lens.params
-        if self.local:
-            self._prior_local = LocalField.exact(prior, robot.scenario.eye_pose.p_WE)
-            self._prior_field, self._none_field = self._prior_local.params, LocalField.none().params
-        else:
-            self._prior_field, self._none_field = ModelField(prior).params, ModelField.none().params
+        self._prior_fields = ((LocalField.exact(prior, robot.scenario.eye_pose.p_WE), LocalField.none()) if self.local
+                              else (ModelField(prior), ModelField.none()))  # before the model has a shape
         self._bounded = None  # the local field with the prior as its second bound (fields)
         chord = max(band_chord(np.radians(config.trust_angle_deg)), band_chord(np.radians(config.misfit_angle_deg)))
         self._field_options = dict(trust_angle_rad=float(np.radians(config.trust_angle_deg)),
@@ -196,29 +193,37 @@ class FilterSystem(LeafSystem):
         self.command_wall_s = 0.0  # of which in the command source
         self.stack.reset()
 
+    def field_objects(self, snap: ModelSnapshot) -> tuple:
+        """(eye, shaft) distance fields for a snapshot: what the tip and the port keep to (the
+        model with the prior as a second bound) and what the watched shaft points keep to
+        (the model alone); before the model has a shape, the prior and no bound. The quadric's
+        is a models.adaptive.model_field.ModelField with the phase's margin; the local model's
+        its models.local.field.LocalField (d_safe + sigma_factor x sigma)."""
+        if self.local:
+            if snap.field is None:
+                return self._prior_fields
+            return snap.field.with_fallback(self.config.filter.sigma_factor, self.prior), snap.field
+        if snap.shape is None:
+            return self._prior_fields
+        field = ModelField(snap.shape, float(snap.margin_mm(self.config.margins)), snap.coverage, self.prior,
+                           **self._field_options)
+        return field, field.without_fallback()
+
     def fields(self, snap: ModelSnapshot) -> tuple:
-        """The field slots' params ("eye", "eye_shaft", "lens") for a snapshot: made once per
-        model; a snapshot that differs from the last only in its time reuses them. With the
-        local model: its field, with the prior as a second bound for the tip and the port."""
+        """The field slots' params ("eye", "eye_shaft", "lens") for a snapshot (field_objects):
+        made once per model; a snapshot that differs from the last only in its time reuses them."""
         if self.local:
             if self._key is not snap.field or not self._fields:
-                self._bounded = None if snap.field is None else snap.field.with_fallback(self.config.filter.sigma_factor,
-                                                                                        self.prior)
-                eye, shaft = ((self._prior_field, self._none_field) if snap.field is None
-                              else (self._bounded.params, snap.field.params))
-                self._fields, self._key = (eye, shaft, self._lens_field), snap.field
+                eye, shaft = self.field_objects(snap)
+                self._bounded = None if snap.field is None else eye
+                self._fields, self._key = (eye.params, shaft.params, self._lens_field), snap.field
             return self._fields
         key = (snap.shape, snap.coverage, snap.kind, snap.residual_mm)
         last = self._key
         if last is None or not (key[0] is last[0] and key[1] is last[1] and key[2] == last[2]
                                 and (key[3] == last[3] or (key[3] != key[3] and last[3] != last[3]))):
-            if snap.shape is None:
-                eye, shaft = self._prior_field, self._none_field
-            else:
-                margin = float(snap.margin_mm(self.config.margins))
-                field = ModelField(snap.shape, margin, snap.coverage, self.prior, **self._field_options)
-                eye, shaft = field.params, field.without_fallback().params
-            self._fields, self._key = (eye, shaft, self._lens_field), key
+            eye, shaft = self.field_objects(snap)
+            self._fields, self._key = (eye.params, shaft.params, self._lens_field), key
         return self._fields
 
     def pending(self, context) -> np.ndarray:
