@@ -26,7 +26,7 @@ ROS_DT_S = 0.02
 TRAJECTORY_TOPIC = "/vitreoguard/plan/joint_trajectory"
 JOINT_NAMES = tuple(f"meca500_joint{k}" for k in range(1, 7))
 PORT_COLORS = ("tab:green", "tab:cyan", "tab:olive", "tab:pink")
-REASON_COLORS = {"lens": "tab:blue", "port": "tab:orange", "reach": "tab:red", "shaft": "tab:purple",
+REASON_COLORS = {"uncertain": "gold", "lens": "tab:blue", "port": "tab:orange", "reach": "tab:red", "shaft": "tab:purple",
                  "depression": "tab:brown", "declined": "tab:gray"}
 
 

@@ -114,3 +114,10 @@ def test_with_the_local_model_the_plan_keeps_to_its_sigma(tmp_path):
     assert r["boundary_mm"] >= 0.564 + 3 * 0.03 - 1e-6
     assert r["unreachable"]["uncertain"] >= 0.9 * r["cells"]
     assert sum(r["unreachable"].values()) + r["planned_cells"] == r["cells"]
+
+
+def test_every_reason_a_cell_can_get_has_a_colour_in_the_coverage_map():
+    from eval.cli.plan_export import REASON_COLORS
+    from planning.multiport import UNREACHABLE
+
+    assert set(REASON_COLORS) == set(UNREACHABLE)

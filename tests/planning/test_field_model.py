@@ -62,3 +62,4 @@ def test_cells_whose_target_the_uncertainty_reaches_are_uncertain(setup):
         assert (reasons == "uncertain").all() == uncertain and ((reasons == "uncertain").any() == uncertain)
     assert least_uncertainty_mm(FieldModel(ModelField(ell, 0.3), 2.0), scenario.eye_pose, spec) == pytest.approx(0.6)
     assert least_uncertainty_mm(ell, scenario.eye_pose, spec) == 0.0
+
