@@ -2,10 +2,13 @@
 the recording's points to it (models.shapes.icp), and the fitted model's error there.
 
 The mesh (frame M, mm) is the phantom's lower half as `vitreoguard eyes --stl` writes
-it, or any watertight mesh whose inner surface is the retina. Registration needs no
-initial placement: the fitted model's centre goes onto the mesh retina's centre (the
-same kind of fit to the faces that face it); of 4,000 uniformly random rotations about
-it, the 3 that bring 300 of the points closest to the mesh start a point-to-plane ICP
+it, or any watertight mesh whose inner surface is the retina. The points are paired with
+the retina's faces alone (those facing its centre within 60 deg: not the outer wall or
+the rim). Registration needs no initial placement: the fitted model's centre goes onto
+the mesh retina's centre (the same kind of fit to the faces that face it; a model whose
+semi-axes are no eye's, as a pointed eye's scan can fit, gives way to a sphere fitted to
+the points); of 4,000 uniformly random rotations about it, the 3 that bring 300 of the
+points closest to the mesh start a point-to-plane ICP
 with a 3 mm correspondence distance (30 iterations); the start with the smallest RMS
 residual is turned about its least defined axis to the best angle (every 3 deg, then
 0.25 deg: about a near-symmetry axis the cost is too flat for the ICP to follow) and run
@@ -21,8 +24,8 @@ left in, it moves the mesh with the points where the retina tilts against the be
 drops out of `mae_um`; removed from the registration's points alone, it stays in the
 model, where `mae_um` measures it.
 
-`mae_um`: the area-weighted mean, over the mesh's retina faces (facing the model's centre
-within 60 deg, within 2 mm of the model), of each face centroid's exact distance to the
+`mae_um`: the area-weighted mean, over the mesh's retina faces (those the points are
+paired with) within 2 mm of the model, of each face centroid's exact distance to the
 fitted model after registration: the closed loop's exact MAE, on the printed half;
 `lf_mae_um` the same for the local-global model (eval.recording.fit, step 6).
 
@@ -38,6 +41,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from eval.recording.bag import RecordingError
@@ -88,19 +92,33 @@ def load_stl(path) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)
 
 
-def _mesh_centre(index: MeshIndex, model) -> np.ndarray:
-    """The centre (mm, M) of the mesh's retina: the fit of the model's kind (ellipsoid or
-    sphere) to the centroids of the faces that face the centre of a first sphere fit
-    (the inner surface of a shell, the curved surface of a solid half)."""
+def _retina(index: MeshIndex, shape) -> tuple[np.ndarray, MeshIndex]:
+    """(the centre (3,) mm in M of the mesh's retina, the MeshIndex of the retina's faces):
+    the fit of `shape`'s kind (ellipsoid or sphere) to the centroids of the faces that face
+    the centre of a first sphere fit within 60 deg (the inner surface of a shell, the
+    curved surface of a solid half), and those faces. The registration pairs points with
+    the retina's faces alone: a start about a wall's thickness off would pair points with
+    the outer wall, where the ICP stops."""
     c = fit_sphere(index.centroids).center
+    inner = np.ones(len(index.centroids), dtype=bool)
     for _ in range(2):
         to_c = c - index.centroids
-        inner = np.einsum("ij,ij->i", index.normals, to_c) > 0.5 * np.linalg.norm(to_c, axis=1)
-        if inner.sum() < 10:
+        facing = np.einsum("ij,ij->i", index.normals, to_c) > 0.5 * np.linalg.norm(to_c, axis=1)
+        if facing.sum() < 10:
             break
+        inner = facing
         C = index.centroids[inner]
-        c = fit_ellipsoid(C).center if hasattr(model, "radii") else fit_sphere(C).center
-    return c
+        c = fit_ellipsoid(C).center if hasattr(shape, "radii") else fit_sphere(C).center
+    return c, MeshIndex(index.centroids[inner], index.normals[inner], index.areas[inner], cKDTree(index.centroids[inner]))
+
+
+def _start_shape(model, P: np.ndarray):
+    """The shape whose centre starts the registration: the fitted `model` (Sphere or
+    Ellipsoid) when its semi-axes are an eye's (EYE_RADII_MM), else a sphere fitted to
+    the points P (N, 3) mm (a pointed eye's partial scan can fit a 177 mm cigar whose
+    centre lies 160 mm from the retina's)."""
+    radii = np.atleast_1d(getattr(model, "radii", getattr(model, "radius", np.nan)))
+    return model if np.all((radii >= EYE_RADII_MM[0]) & (radii <= EYE_RADII_MM[1])) else fit_sphere(P)
 
 
 def _best_rotations(P: np.ndarray, c_W: np.ndarray, index: MeshIndex, c_M: np.ndarray, k: int = 3) -> list[np.ndarray]:
@@ -115,15 +133,12 @@ def _best_rotations(P: np.ndarray, c_W: np.ndarray, index: MeshIndex, c_M: np.nd
     return [Rs[i] for i in np.argsort(score)[:k]]
 
 
-def _retina_faces(index: MeshIndex, R: np.ndarray, p: np.ndarray, model) -> tuple[np.ndarray, np.ndarray]:
-    """(centroids in W (K, 3) mm, areas (K,) mm^2) of the mesh's retina faces (module
-    docstring) under X_MW = (R, p)."""
-    C_W = (index.centroids - p) @ R
-    N_W = index.normals @ R
-    to_centre = model.center - C_W
-    cos = np.einsum("ij,ij->i", N_W, to_centre) / np.linalg.norm(to_centre, axis=1)
-    keep = (cos > 0.5) & (np.abs(model.signed_distance(C_W)) < 2.0)
-    return C_W[keep], index.areas[keep]
+def _retina_faces(retina: MeshIndex, R: np.ndarray, p: np.ndarray, model) -> tuple[np.ndarray, np.ndarray]:
+    """(centroids in W (K, 3) mm, areas (K,) mm^2) of the retina's faces (`_retina`) within
+    2 mm of `model` under X_MW = (R, p)."""
+    C_W = (retina.centroids - p) @ R
+    keep = np.abs(model.signed_distance(C_W)) < 2.0
+    return C_W[keep], retina.areas[keep]
 
 
 def _mae_um(C: np.ndarray, A: np.ndarray, model) -> float:
@@ -218,23 +233,18 @@ def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0,
     keep = np.linspace(0, len(P) - 1, MAX_POINTS).astype(int) if len(P) > MAX_POINTS else np.arange(len(P))
     P = P[keep]
     beams = None if beams is None else tuple(np.asarray(b, dtype=float)[keep] for b in beams)
-    index = mesh_index(vertices, faces)
-    c_M = _mesh_centre(index, model)
+    start_shape = _start_shape(model, P)
+    c_M, index = _retina(mesh_index(vertices, faces), start_shape)
     best = None
-    for R0 in _best_rotations(P, model.center, index, c_M):
+    for R0 in _best_rotations(P, start_shape.center, index, c_M):
         try:
-            reg = register_to_mesh(P, index, R0, c_M - R0 @ model.center, COARSE_DISTANCE_MM, max_iterations=30)
+            reg = register_to_mesh(P, index, R0, c_M - R0 @ start_shape.center, COARSE_DISTANCE_MM, max_iterations=30)
         except ValueError:
             continue
         score = reg.rmse_mm if reg.n_pairs >= 0.5 * len(P) else np.inf
         if best is None or score < best[0]:
             best = (score, reg)
     if best is None or not np.isfinite(best[0]):
-        radii = np.atleast_1d(getattr(model, "radii", getattr(model, "radius", np.nan)))
-        lo, hi = EYE_RADII_MM
-        if not np.all((radii >= lo) & (radii <= hi)):  # the start is the model's centre: no eye's, no start
-            raise RecordingError("--ground-truth: the fitted model (semi-axes " + ", ".join(f"{r:.1f}" for r in radii)
-                                 + f" mm) is no eye's ({lo:g}-{hi:g} mm), so it gives the registration no start")
         raise RecordingError("--ground-truth: the recording's points do not match the mesh at any start (fewer than half "
                              f"lie within {COARSE_DISTANCE_MM:g} mm of it): is it the phantom of this recording, in mm?")
     start = _turned_about_weak_axis(P, index, best[1], c_M)
@@ -261,10 +271,10 @@ def register_recording(result, vertices, faces, max_distance_mm: float = 1.0, sw
 def placed_mae_um(vertices, faces, model, R_WE, p_WE, local=None) -> float:
     """`mae_um` of `model` (in W) on the mesh placed at the known X_WE (R_WE (3, 3),
     p_WE (3,) mm), without registration; with `local` (a LocalField in W) its `lf_mae_um`
-    on the faces of `model`'s retina instead."""
+    on the same faces instead."""
     R = np.asarray(R_WE, dtype=float).T
     reg = Registration(R, -R @ np.asarray(p_WE, dtype=float), 0.0, 0, 0, True)
-    out = _result(reg, mesh_index(vertices, faces), model, 0.0, local)
+    out = _result(reg, _retina(mesh_index(vertices, faces), model)[1], model, 0.0, local)
     return out["mae_um"] if local is None else out["lf_mae_um"]
 
 
