@@ -15,6 +15,7 @@ from models.adaptive.update_kernel import (
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, IncrementalEllipsoidFit
 from models.fit.quadric_kernels import FIT_STATUS
 from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig
+from models.fit.streaming_robust import StreamingRobustFit, biweight_losses_mm2
 from models.fit.sphere_kalman import SphereKalmanFilter
 from models.shapes.ellipsoid import Ellipsoid
 from models.shapes.sphere import Sphere
@@ -22,6 +23,7 @@ from models.local.selection import LocalChoice
 from models.shapes.validation import as_points
 
 EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5 mm)
+GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
 
 
 class ModelUpdate(NamedTuple):
@@ -104,6 +106,8 @@ class AdaptiveEyeModel:
         self.last_accepted = np.zeros((0, 3))
         self.local = local
         self.local_choice = LocalChoice() if local is not None else None
+        self.globe = StreamingRobustFit() if local is not None else None
+        self.sphere_loss_mm2 = np.nan  # the sphere's biweight loss on the points the globe scores (StreamingRobustFit)
 
     def __deepcopy__(self, memo) -> AdaptiveEyeModel:
         """An independent copy (it updates without touching this model) that shares the
@@ -136,14 +140,22 @@ class AdaptiveEyeModel:
         return self.ellipsoid if self.kind == "ellipsoid" else self.sphere
 
     def global_for_local(self) -> Sphere | Ellipsoid | None:
-        """The global quadric under the local model: the current shape, or the sphere fit
-        while the ellipsoid's semi-axes are no eye's (EYE_RADII_MM)."""
+        """The global quadric under the local model: the ellipsoid while the model is one
+        and its semi-axes are an eye's (EYE_RADII_MM); else the robust globe
+        (models.fit.streaming_robust) once its semi-axes are an eye's, the scan range is
+        at least GLOBE_MIN_SCAN_RANGE_MM and it predicts the new points better than the
+        sphere (a lower biweight loss: a pathology counts as much against either); else
+        the sphere fit."""
+        lo, hi = EYE_RADII_MM
         shape = self.shape
-        if self.kind == "ellipsoid" and shape is not None:
-            lo, hi = EYE_RADII_MM
-            if not (lo <= float(np.min(shape.radii)) and float(np.max(shape.radii)) <= hi):
-                shape = self.sphere
-        return shape
+        if self.kind == "ellipsoid" and shape is not None and lo <= float(np.min(shape.radii)) and float(np.max(shape.radii)) <= hi:
+            return shape
+        globe = self.globe
+        if globe is not None and globe.last_ok is not None and self._range.diameter_mm >= GLOBE_MIN_SCAN_RANGE_MM:
+            radii = globe.last_ok.radii
+            if lo <= radii[-1] and radii[0] <= hi and globe.loss_mm2 < self.sphere_loss_mm2:
+                return globe.last_ok.ellipsoid
+        return self.sphere
 
     @property
     def level(self) -> str:
@@ -194,6 +206,9 @@ class AdaptiveEyeModel:
         if ef.p0 is None:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
         if self.local is not None:
+            self._score_sphere(self.last_accepted)
+            self.globe.add(self.last_accepted)
+            self.globe.step()
             self.local_choice.absorb(self.local, self.last_accepted, self.global_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)
@@ -215,6 +230,17 @@ class AdaptiveEyeModel:
         if sf_ok:
             return self._evaluate(fit, v_sf, (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res, axis_change)
         return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
+
+    def _score_sphere(self, P: np.ndarray) -> None:
+        """The sphere's biweight loss on the points P (K, 3) mm before they join, averaged as
+        the globe's (StreamingRobustFit.loss_mm2) while the globe has a fit."""
+        sphere = self._sf.sphere
+        if sphere is None or self.globe.last_ok is None:
+            return
+        d = np.abs(np.linalg.norm(P - sphere.center, axis=1) - sphere.radius)
+        loss = float(biweight_losses_mm2(d, self.globe.config.cutoff_mm).mean())
+        a = min(len(P) / self.globe.memory, 1.0)
+        self.sphere_loss_mm2 = loss if np.isnan(self.sphere_loss_mm2) else self.sphere_loss_mm2 + a * (loss - self.sphere_loss_mm2)
 
     def _evaluate(self, fit, v_sf, sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
         """The criteria, the transition and the history entry of an update whose fits are

@@ -33,10 +33,12 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
     """(radius mm, sd mm) of the field at the unit direction u: the nodes within `blend`
     rad (their quadratics, or the global radius at nodes without data) averaged with
     Wendland's weight over each one's variance there (a node extrapolating across its
-    data counts little), and their standard deviations with the same weights."""
+    data counts little); the sd their standard deviations with the same weights and the
+    spread of their radii about that mean in Wendland's weights alone (the variance of a
+    mixture: a confident node must not hide the others' disagreement)."""
     cos_b = np.cos(blend)
     rg = np.nan
-    sw, sr, ss = 0.0, 0.0, 0.0
+    sw, sr, ss, sW, sWr, sWrr = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for j in range(nc):
         k = cand[j]
         d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
@@ -63,15 +65,21 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
                 rg = global_radius(c0, gp, u0, u1, u2)
             r = rg
             sd = global_sd(np.arccos(min(near[k], 1.0)), prior)
-            v = sd * sd
+            v = sd * sd + excess[k]  # and the departure of the data nodes nearby (spread_departures)
         v += prior[5] * prior[5]  # the floor: what the quadratics' spread near data leaves unexplained
+        sW += w  # the nodes' spread about the mean in their plain Wendland weights (a confident node
+        sWr += w * r  # that extrapolates must not hide the others' disagreement)
+        sWrr += w * r * r
         w /= v
         sw += w
         sr += w * r
         ss += w * np.sqrt(v)
     if sw <= 0.0:
         return global_radius(c0, gp, u0, u1, u2), prior[2]
-    return sr / sw, ss / sw
+    rm = sr / sw
+    spread = max((sWrr - 2.0 * rm * sWr) / sW + rm * rm, 0.0)  # the nodes' disagreement about the mean
+    sd = ss / sw
+    return rm, np.sqrt(sd * sd + spread)
 
 
 @njit(cache=True)

@@ -255,6 +255,50 @@ def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, x, cov,
         solved_w[k] = wsum[k]
 
 
+@njit(cache=True)
+def spread_departures(dirs, c0, gp, x, has, excess, reach, floor, cross, out):
+    """out (n,) mm^2: a node's variance beyond its quadratic's posterior.
+
+    A node with data j: its excess plus the largest squared error of its quadratic at the
+    nodes with data k within `cross` rad, against their own value x[k, 0] (how wrong its
+    extrapolation is where the data show the retina: at the rim of a detachment a node's
+    quadratic from one side misses the other side by as much; on a smooth retina the
+    quadratics agree). A node without data j: the largest D_k^2 (1 - a / reach) over the
+    nodes with data k within `reach` rad (angle a) whose |D_k| > floor mm, D_k = x[k, 0] -
+    the global radius at k (how far the retina measured at k departs from the global
+    quadric): beyond the edge of the data a pathology may go on as the data next to it
+    depart, and the field reads the global quadric there."""
+    n = dirs.shape[0]
+    for k in range(n):
+        out[k] = excess[k] if has[k] != 0.0 else 0.0
+    chord = 2.0 * np.sin(0.5 * max(reach, cross))
+    cos_r, cos_x = np.cos(reach), np.cos(cross)
+    for k in range(n):
+        if has[k] == 0.0:
+            continue
+        d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        D = x[k, 0] - global_radius(c0, gp, d0, d1, d2)
+        spread = abs(D) > floor
+        k0, k1 = band(n, d2, chord)
+        for j in range(k0, k1):
+            c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
+            if has[j] != 0.0:
+                if c <= cos_x or j == k:
+                    continue
+                e10, e11, e12, e20, e21, e22 = node_frame(dirs[j, 0], dirs[j, 1], dirs[j, 2])
+                t1 = (d0 * e10 + d1 * e11 + d2 * e12) / c  # node k's direction in node j's gnomonic frame
+                t2 = (d0 * e20 + d1 * e21 + d2 * e22) / c
+                e = (x[j, 0] + x[j, 1] * t1 + x[j, 2] * t2 + x[j, 3] * t1 * t1 + x[j, 4] * t1 * t2 + x[j, 5] * t2 * t2
+                     - x[k, 0])
+                if excess[j] + e * e > out[j]:
+                    out[j] = excess[j] + e * e
+            elif spread and c > cos_r:
+                v = D * D * (1.0 - np.arccos(min(c, 1.0)) / reach)
+                if v > out[j]:
+                    out[j] = v
+    return out
+
+
 def global_params(shape) -> np.ndarray:
     """The kernels' (GLOBAL_SIZE,) packing of a models.Sphere or Ellipsoid."""
     gp = np.zeros(GLOBAL_SIZE)

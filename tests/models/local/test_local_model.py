@@ -75,6 +75,37 @@ def test_the_local_model_follows_the_measured_retina(bumped):
     assert np.mean(err <= 3.0 * S) >= 0.99
 
 
+def test_a_detachment_past_the_data_edge_is_covered():
+    """A 2 mm detachment (30 deg across) centred 45 deg off the pole, measured on a 50 deg
+    cap: half of it lies past the data's edge. On an exact global ellipsoid (whose standard
+    deviation is 0.05 mm next to the data) the field must follow the retina within the
+    issue's 50 um (p95) within 1 deg of the data, and its 3 sigma must cover the true
+    error on 99 % of the directions out to 20 deg past the data (the issue's coverage
+    target), where the data show the retina departing from the global quadric by mm."""
+    from scipy.spatial import cKDTree
+
+    axis = np.array([np.sin(np.radians(45.0)), 0.0, -np.cos(np.radians(45.0))])
+
+    def radius_of(u):
+        t = np.clip(np.degrees(np.arccos(np.clip(u @ axis, -1, 1))) / 15.0, 0.0, 1.0)
+        return 11.0 - 2.0 * (1.0 - t * t) ** 2
+
+    u, P = cap_points(radius_of, n=8000, cap_deg=50.0)
+    m = LocalRetinaModel(np.zeros(3))
+    g = Ellipsoid(np.zeros(3), np.array([11.0, 11.0, 11.0]))
+    for k in range(0, len(P), 20):
+        m.update(P[k:k + 20], g)
+    m.solve_all()
+    _, Q = cap_points(radius_of, n=20000, cap_deg=75.0, seed=5, noise=0.0)
+    U = Q / np.linalg.norm(Q, axis=1, keepdims=True)
+    R, S = m.radius_and_sd(U)
+    err = np.abs(R - radius_of(U))
+    angle = 2.0 * np.arcsin(np.minimum(cKDTree(u).query(U)[0], 2.0) / 2.0)  # chord -> angle to the nearest datum
+    near, reach = angle <= np.radians(1.0), angle <= np.radians(20.0)
+    assert np.percentile(err[near], 95) <= 0.050
+    assert np.mean(err[reach] <= 3.0 * S[reach]) >= 0.99
+
+
 def test_far_from_data_the_sd_is_the_global_models(bumped):
     m, _ = bumped
     R, S = m.radius_and_sd(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]))  # anterior pole, equator: > 30 deg from data

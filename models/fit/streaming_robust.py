@@ -1,0 +1,176 @@
+"""The robust ellipsoid fit (models.fit.robust_fit: Tukey's biweight on the Sampson
+distance) with its reweighting spread over updates: the healthy globe under a local
+model, at a bounded cost per A-scan.
+
+Iteratively reweighted least squares (IRLS) needs every stored point's weight under the
+current fit; RobustEllipsoidFit recomputes them all at once whenever the point count has
+grown by 5 % (O(N) in one update: 1.5 ms at 20,000 points). Here one IRLS iteration is a
+pass over the stored points in chunks: each update weighs `chunk` more of them under the
+current fit into the pass's scatter matrix, and the pass's end refits from it (the next
+iterate), so an update costs O(chunk) whatever N, and the fit follows the data one pass
+(N / chunk updates) behind. New points join both the current scatter matrix and the
+running pass's, weighted by the fit of their arrival. A pass that leaves fewer than
+`min_inlier_fraction` of the points any weight restarts from the plain fit (weights 1),
+as RobustEllipsoidFit does, and the `iterations` passes after a restart run unchecked (as
+its iterations after a restart do: IRLS from the plain fit needs a few to leave a
+pathology out). Coordinates: the fits' (models.fit.ellipsoid_fit: origin at
+the first point, lengths / LENGTH_SCALE_MM).
+
+How well the fit predicts: before a point joins, its biweight loss (Tukey's rho,
+(c^2 / 6) (1 - (1 - (d / c)^2)^3), c^2 / 6 beyond c) under the current fit is averaged
+exponentially over about `memory` points (`loss_mm2`), for the caller to compare with
+another model's on the same points (models.adaptive.model.AdaptiveEyeModel).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_scatter
+from models.fit.quadric_residuals import sampson_one
+from models.fit.robust_fit import RobustFitConfig
+
+
+@njit(cache=True)
+def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
+    """Weigh the scaled points X[i0:i1] by the biweight of their Sampson distance from the
+    quadric v (scaled units; cut-off `cutoff` scaled; weight 1 without a fit), write the
+    weights to w[i0:i1] and add their weighted design rows to S (10, 10) in place; returns
+    how many got a weight > 0."""
+    m = np.empty(10)
+    inliers = 0
+    for n in range(i0, i1):
+        x, y, z = X[n, 0], X[n, 1], X[n, 2]
+        wn = 1.0
+        if has_fit:
+            u = min(sampson_one(v, x, y, z) / cutoff, 1.0)
+            wn = (1.0 - u * u) * (1.0 - u * u)
+        w[n] = wn
+        if wn <= 0.0:
+            continue
+        inliers += 1
+        m[0], m[1], m[2], m[3], m[4] = x * x, y * y, z * z, 2 * y * z, 2 * x * z
+        m[5], m[6], m[7], m[8], m[9] = 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0
+        for i in range(10):
+            a = wn * m[i]
+            for j in range(i, 10):
+                S[i, j] += a * m[j]
+                if j != i:
+                    S[j, i] += a * m[j]
+    return inliers
+
+
+@njit(cache=True, inline="always")
+def tukey_rho(d, cutoff):
+    """Tukey's rho of the distance d with the cut-off c: (c^2 / 6) (1 - (1 - (d / c)^2)^3),
+    c^2 / 6 beyond c (the loss whose IRLS weight is the biweight; units of d^2)."""
+    u = min(abs(d) / cutoff, 1.0)
+    t = 1.0 - u * u
+    return cutoff * cutoff / 6.0 * (1.0 - t * t * t)
+
+
+@njit(cache=True)
+def biweight_loss(X, i0, i1, v, cutoff):
+    """Sum of tukey_rho (scaled units^2) of the points X[i0:i1]' Sampson distances from the quadric v."""
+    s = 0.0
+    for n in range(i0, i1):
+        s += tukey_rho(sampson_one(v, X[n, 0], X[n, 1], X[n, 2]), cutoff)
+    return s
+
+
+@njit(cache=True)
+def biweight_losses_mm2(d_mm, cutoff_mm):
+    """(N,) tukey_rho (mm^2) of the distances d (N,) mm with the cut-off c mm."""
+    out = np.empty(d_mm.shape[0])
+    for n in range(d_mm.shape[0]):
+        out[n] = tukey_rho(d_mm[n], cutoff_mm)
+    return out
+
+
+class StreamingRobustFit:
+    """Robust ellipsoid fit with the reweighting spread over updates (module doc).
+
+    `add(P)` stores finite points P (N, 3) mm and weighs them; `step()` reweighs up to
+    `chunk_per_point` x (points of the last add, at least `min_chunk`) stored points of the
+    running pass and, at a pass's end, refits; `last_ok` the newest good EllipsoidFit (None
+    before one); `loss_mm2` the exponential average of the new points' biweight loss
+    under the fit before they joined (mm^2; NaN before a fit); `passes` completed passes;
+    `last_step_weighed` the stored points the last step reweighed."""
+
+    def __init__(self, config: RobustFitConfig | None = None, chunk_per_point: int = 10, min_chunk: int = 50,
+                 memory: float = 400.0):
+        self.config = RobustFitConfig() if config is None else config
+        self.chunk_per_point, self.min_chunk, self.memory = int(chunk_per_point), int(min_chunk), float(memory)
+        self.p0: np.ndarray | None = None
+        self.last_ok: EllipsoidFit | None = None
+        self.passes = 0
+        self.loss_mm2 = np.nan
+        self._cut = self.config.cutoff_mm / LENGTH_SCALE_MM
+        self._X = np.empty((1024, 3))
+        self._w = np.empty(1024)
+        self._n = 0
+        self._next = np.zeros((10, 10))  # the running pass's scatter matrix
+        self._cursor = self._end = 0  # the pass reweighs the points [0, end); later ones join it as they arrive
+        self._inliers = 0  # points of the running pass with a weight > 0
+        self._plain = True  # the running pass weighs every point 1 (no fit yet, or a restart)
+        self._settling = 0  # passes left after a restart before the next may restart (`iterations`)
+        self._v = np.zeros(10)
+        self._last_add = 0
+        self.last_step_weighed = 0  # stored points the last step reweighed
+
+    @property
+    def n_points(self) -> int:
+        return self._n
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(N,) every stored point's latest weight in [0, 1]."""
+        return self._w[:self._n]
+
+    def _weighing(self) -> bool:
+        return self.last_ok is not None and not self._plain
+
+    def add(self, P: np.ndarray) -> None:
+        """Store the finite points P (N, 3) mm; they join the running pass at the current
+        fit's weights."""
+        k = len(P)
+        self._last_add = k
+        if k == 0:
+            return
+        if self.p0 is None:
+            self.p0 = np.array(P[0], dtype=float)
+        n = self._n + k
+        if n > len(self._X):
+            size = max(n, 2 * len(self._X))
+            self._X = np.concatenate([self._X[:self._n], np.empty((size - self._n, 3))])
+            self._w = np.concatenate([self._w[:self._n], np.empty(size - self._n)])
+        self._X[self._n:n] = (P - self.p0) / LENGTH_SCALE_MM
+        if self.last_ok is not None:
+            loss = biweight_loss(self._X, self._n, n, self._v, self._cut) * LENGTH_SCALE_MM ** 2 / k
+            a = min(k / self.memory, 1.0)
+            self.loss_mm2 = loss if np.isnan(self.loss_mm2) else self.loss_mm2 + a * (loss - self.loss_mm2)
+        self._inliers += weigh_rows(self._next, self._X, self._w, self._n, n, self._v, self._weighing(), self._cut)
+        self._n = n
+
+    def step(self) -> EllipsoidFit | None:
+        """Weigh the next chunk of the running pass; at its end, refit and start the next
+        pass (the new fit, or None when no pass ended or the fit failed)."""
+        self.last_step_weighed = 0
+        if self._cursor < self._end:
+            i1 = min(self._cursor + max(self.min_chunk, self.chunk_per_point * self._last_add), self._end)
+            self._inliers += weigh_rows(self._next, self._X, self._w, self._cursor, i1, self._v, self._weighing(),
+                                        self._cut)
+            self.last_step_weighed = i1 - self._cursor
+            self._cursor = i1
+        if self._cursor < self._end or self._n == 0:
+            return None
+        fit = fit_scatter(self._next, self.p0)
+        self.passes += 1
+        restart = not self._plain and self._settling == 0 and self._inliers < self.config.min_inlier_fraction * self._n
+        self._settling = self.config.iterations if restart else max(self._settling - 1, 0)
+        self._plain = restart or self.last_ok is None
+        if fit.ok:
+            self.last_ok, self._v = fit, fit.v
+        self._next = np.zeros((10, 10))
+        self._cursor, self._end, self._inliers = 0, self._n, 0
+        return fit if fit.ok else None
