@@ -7,7 +7,8 @@ the instrument's way through the eye wall at the trocar and the moves between tr
 outside the eye are planned, timed and exported, not simulated.
 
 The model is built as the system would build it (spiral scan through the loop, through
-the first port); each cell's reachability from each port, the assignment of cells to
+the first port; with --survey-mm, then a first sweep of the band that much deeper, whose
+A-scans the model takes in before the shaving is planned); each cell's reachability from each port, the assignment of cells to
 ports, the per-port sweeps and the port switches come from planning.multiport. Writes
 plan.json (band coverage, per-port figures, switches, why cells are not reached,
 clearances, timing, the execution per phase and per pass), coverage.png (the band unrolled, each cell coloured by the port
@@ -40,6 +41,7 @@ POSITIVE_MM = number(0.0, None, "mm", lo_open=True)
 POSITIVE_MM_S = number(0.0, None, "mm/s", lo_open=True)
 TRUST_ANGLE = number(0.0, 180.0, "deg", lo_open=True)
 PORT_ANGLE = number(0.0, 90.0, "deg", lo_open=True)
+SURVEY_MM = number(0.0, 3.0, "mm")
 LIMBUS_MM = number(*PARS_PLANA_MM, "mm")  # the pars plana (planning.ports)
 
 
@@ -126,6 +128,10 @@ def register(sub) -> None:
     p.add_argument("--local-model", action="store_true",
                    help="bound the motion by the local-global model at d_safe + 3 sigma (models.local) instead of the "
                         "quadric with its phase margin; the plan keeps to the same boundary")
+    p.add_argument("--survey-mm", type=SURVEY_MM, default=0.0,
+                   help="first sweep the band this much deeper than --standoff-mm through the same ports, filter on, "
+                        "so that the fibre measures the band and the model takes it in; the shaving is then planned "
+                        f"on that model. 0: no survey; {SURVEY_MM.range}")
     p.add_argument("--trust-angle-deg", type=TRUST_ANGLE, default=180.0,
                    help=f"during the shaving the filter trusts the model this far (from the eye centre, "
                         f"{TRUST_ANGLE.range}) from measured directions; beyond, the conservative prior also bounds the "
@@ -177,15 +183,13 @@ def main(args) -> int:
     from eval.experiments.model_report import model_summary
     from eval.cli.boundary import make_loop
     from eval.cli.plan_export import coverage_figure, write_ros2_trajectories, write_trajectory_csv
-    from eval.closed_loop import LoopConfig, semi_axes_mm
+    from eval.closed_loop import LoopConfig
     from eval.loop_config import default_filter
     from eval.experiments.boundary import build_model_by_spiral
-    from eval.experiments.plan_execution import executed_passes, phase_figures, step_phases
+    from eval.experiments.plan_execution import execution_figures, executed_passes, phase_figures, swept_cells
     from eval.log.writer import RunLogger
     from planning import SurgeryScenario
-    from planning.ik import IKFailure
-    from planning.field_model import FieldModel, least_uncertainty_mm
-    from planning.multiport import IN_EYE_PHASES, UNREACHABLE, plan_ports
+    from planning.multiport import IN_EYE_PHASES, UNREACHABLE
     from planning.scenario import PORTS_EYE_POSE
 
     layout, visit, p_EC = ports_of(args, args.shape, args.eye_params)
@@ -198,25 +202,20 @@ def main(args) -> int:
     loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=args.local_model,
                                           filter=default_filter(args.local_model)), sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
-    trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
-    if (trusted.field if args.local_model else trusted.shape) is None:
-        radii = semi_axes_mm(build.model.shape)
-        raise UsageError(f"cannot plan: the filter does not trust this {build.kind_final} model (semi-axes "
-                         f"{', '.join(f'{r:.1f}' for r in radii)} mm; an eye's lie in {loop.config.model_radius_range_mm} "
-                         f"mm) and would hold the instrument inside the conservative prior, away from the band")
-    # what the filter will bound the shaft with (the sphere if the ellipsoid is no eye's), as one rule: h - k u
-    model = FieldModel(loop.filter.field_objects(trusted)[1], loop.config.filter.sigma_factor, trusted.kind)
-    spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
-    boundary = spec.boundary_mm + least_uncertainty_mm(model, scenario.eye_pose, spec)
-    if spec.standoff_mm < boundary + 0.2:
-        raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
-                         f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
-                         f"stepping in); use at least {boundary + 0.2:.2f} mm")
-    try:
-        with phase(f"planning the band through {len(visit)} ports (reachability, assignment, sweeps, switches)"):
-            plan = plan_ports(loop.robot, scenario, model, visit, spec)
-    except (ValueError, IKFailure) as exc:
-        raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
+    survey = None
+    if args.survey_mm:
+        deeper = dataclasses.replace(spec, standoff_mm=spec.standoff_mm + args.survey_mm)
+        *_, survey_spec, _, survey_plan = plan_on_model(args, loop, build, scenario, visit, deeper)
+        survey_passes = executed_passes(loop.robot, survey_plan)
+        with phase(f"surveying the band {deeper.standoff_mm:g} mm deep ({len(survey_passes)} passes through the "
+                   f"closed loop, the model taking in what the fibre measures): "
+                   f"{sum(p.duration_s for p in survey_passes):.0f} simulated s"):
+            run = loop.run_segments([p.segment() for p in survey_passes], model=build.model, coverage=build.coverage)
+        survey = {"standoff_mm": deeper.standoff_mm, "planned_cells": int((survey_plan.port_of >= 0).sum()),
+                  "duration_s": float(run.duration_s), "plan_time_s": survey_plan.plan_time_s,
+                  **execution_figures(loop.robot, run, survey_passes, survey_plan, survey_spec.spacing_mm,
+                                      loop.config.filter.d_safe_mm)}
+    trusted, model, spec, boundary, plan = plan_on_model(args, loop, build, scenario, visit, spec)
     out = prepare_out_dir(args.out)
     robot, band = loop.robot, plan.band
     shape2 = band.reason.shape
@@ -271,6 +270,7 @@ def main(args) -> int:
         "outside_loop_s": {name: float(sum(b - a for seg in plan.segments for n, _, a, b in seg.pieces() if n == name))
                            for name in ("enter", "exit")} | {"move": float(switch_s)},
         "model": model_summary(loop, build),
+        "survey": None if survey is None else {k: v for k, v in survey.items() if k != "swept"},
     }
     swept = swept_planned
     if not args.no_execute:
@@ -282,21 +282,17 @@ def main(args) -> int:
                 execution_wall_s = time.perf_counter() - t0
         d_safe = loop.config.filter.d_safe_mm
         figs = phase_figures(robot, run, passes, d_safe)
-        _, step_phase = step_phases(run, passes)
-        ports_W = np.array([robot.pose("P", q)[1] for q in run.q[step_phase == "sweep"][::5]])
-        swept = swept_cells(band, ports_W, spec.spacing_mm)
-        planned = plan.port_of >= 0
-        result["band_coverage"] = float(swept.mean())
-        result["planned_cells_swept"] = float(swept[planned].mean()) if planned.any() else None
+        executed = execution_figures(robot, run, passes, plan, spec.spacing_mm, d_safe)
+        swept = executed.pop("swept")
+        for key in ("band_coverage", "planned_cells_swept", "min_true_clearance_mm", "violations",
+                    "filter_intervention_fraction"):
+            result[key] = executed[key]
         for k, p in enumerate(plan.ports):
             mine = plan.port_of == k
             result["ports"][p.name]["coverage"] = float(swept[mine].mean()) if mine.any() else None
             result["ports"][p.name]["executed_s"] = {
                 ph: float(sum(f["phases"][ph]["executed_s"] for f in figs["passes"] if f["port"] == p.name and ph in f["phases"]))
                 for ph in IN_EYE_PHASES}
-        result["min_true_clearance_mm"] = float(run.true_clearance_mm.min())
-        result["violations"] = int(np.sum(run.true_clearance_mm < d_safe - 0.05))
-        result["filter_intervention_fraction"] = float(run.intervened.mean())
         result["phases"], result["passes"] = figs["phases"], figs["passes"]
         result["execution"] = {"failsafe_stops": run.failsafe_stops, "max_rcm_error_um": float(1e3 * np.nanmax(run.rcm_error_mm)),
                                "realtime_factor": run.realtime_factor, "steps": int(len(run.t)),
@@ -314,6 +310,10 @@ def main(args) -> int:
         v = result[key]
         print(f"{key:30s} {v:.4g}" if isinstance(v, float) else f"{key:30s} {v}")
     print(f"unreachable                    {result['unreachable']}")
+    if survey is not None:
+        print(f"survey    {survey['standoff_mm']:g} mm deep: band {survey['band_coverage']:.1%}, filter intervened in "
+              f"{survey['filter_intervention_fraction']:.2%} of steps, min true clearance "
+              f"{survey['min_true_clearance_mm']:.3f} mm, {survey['duration_s']:.1f} simulated s")
     for name, f in result.get("phases", {}).items():
         print(f"{name:9s} executed {f['executed_s']:7.2f} s of {f['planned_s']:7.2f} planned, filter intervened in "
               f"{f['filter_intervention_fraction'] or 0.0:.2%} of steps, min true clearance "
@@ -323,10 +323,35 @@ def main(args) -> int:
     return 0
 
 
-def swept_cells(band, ports_W: np.ndarray, sweep_mm: float) -> np.ndarray:
-    """(n_rings, n_az) bool: the cutter port (positions ports_W (K, 3) mm, W, densely
-    sampled) passed within half a sweep width of the cell's shaving target."""
-    from scipy.spatial import cKDTree
+def plan_on_model(args, loop, build, scenario, visit, spec):
+    """(the filter's snapshot of the model, the planning.field_model.FieldModel of the field it
+    bounds the shaft with, `spec` with its boundary (d_safe + calibration), the least boundary
+    over the band's targets (mm), the planning.multiport plan) on the model `build.model`
+    as it is now; UsageError when the filter does not trust it, the standoff lies below its
+    boundary, or no cell can be swept."""
+    from eval.closed_loop import semi_axes_mm
+    from planning.field_model import FieldModel, least_uncertainty_mm
+    from planning.ik import IKFailure
+    from planning.multiport import plan_ports
 
-    d, _ = cKDTree(ports_W).query(band.target_W.reshape(-1, 3))
-    return (d <= 0.5 * sweep_mm).reshape(band.reason.shape)
+    trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
+    if (trusted.field if args.local_model else trusted.shape) is None:
+        radii = semi_axes_mm(build.model.shape)
+        raise UsageError(f"cannot plan: the filter does not trust this {build.kind_final} model (semi-axes "
+                         f"{', '.join(f'{r:.1f}' for r in radii)} mm; an eye's lie in {loop.config.model_radius_range_mm} "
+                         f"mm) and would hold the instrument inside the conservative prior, away from the band")
+    # what the filter will bound the shaft with (the sphere if the ellipsoid is no eye's), as one rule: h - k u
+    model = FieldModel(loop.filter.field_objects(trusted)[1], loop.config.filter.sigma_factor, trusted.kind)
+    spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
+    boundary = spec.boundary_mm + least_uncertainty_mm(model, scenario.eye_pose, spec)
+    if spec.standoff_mm < boundary + 0.2:
+        raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
+                         f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
+                         f"stepping in); use at least {boundary + 0.2:.2f} mm")
+    try:
+        with phase(f"planning the band {spec.standoff_mm:g} mm deep through {len(visit)} ports (reachability, "
+                   f"assignment, sweeps, switches)"):
+            plan = plan_ports(loop.robot, scenario, model, visit, spec)
+    except (ValueError, IKFailure) as exc:
+        raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
+    return trusted, model, spec, boundary, plan

@@ -145,3 +145,29 @@ def phase_figures(robot, run, passes: list[ExecutedPass], d_safe_mm: float) -> d
         ends = [f["phases"][ph]["max_end_error_mm"] for f in per_pass if ph in f["phases"]]
         totals[ph] = figures(m, sum(b - a for p in passes for n, a, b in p.phases if n == ph), [e for e in ends if e is not None])
     return {"phases": totals, "passes": per_pass}
+
+
+def swept_cells(band, ports_W: np.ndarray, sweep_mm: float) -> np.ndarray:
+    """(n_rings, n_az) bool: the cutter port (positions ports_W (K, 3) mm, W, densely
+    sampled) passed within half a sweep width of the cell's shaving target."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(ports_W).query(band.target_W.reshape(-1, 3))
+    return (d <= 0.5 * sweep_mm).reshape(band.reason.shape)
+
+
+def execution_figures(robot, run, passes: list[ExecutedPass], plan, sweep_mm: float, d_safe_mm: float) -> dict:
+    """What the closed-loop `run` of the plan's `passes` did: `swept` (n_rings, n_az) bool (the
+    cutter port within half a sweep width `sweep_mm` of the cell's target during the
+    sweeps), `band_coverage` (fraction of all the band's cells swept), `planned_cells_swept`,
+    `min_true_clearance_mm`, `violations` (steps more than 0.05 mm inside d_safe_mm of the
+    true retina), `filter_intervention_fraction`, `failsafe_stops`."""
+    _, step_phase = step_phases(run, passes)
+    ports_W = np.array([robot.pose("P", q)[1] for q in run.q[step_phase == "sweep"][::5]])
+    swept = swept_cells(plan.band, ports_W, sweep_mm)
+    planned = plan.port_of >= 0
+    return {"swept": swept, "band_coverage": float(swept.mean()),
+            "planned_cells_swept": float(swept[planned].mean()) if planned.any() else None,
+            "min_true_clearance_mm": float(run.true_clearance_mm.min()),
+            "violations": int(np.sum(run.true_clearance_mm < d_safe_mm - 0.05)),
+            "filter_intervention_fraction": float(run.intervened.mean()), "failsafe_stops": run.failsafe_stops}

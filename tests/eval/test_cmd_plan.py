@@ -82,7 +82,8 @@ def test_the_ros2_bag_holds_one_joint_trajectory_per_port_segment(planned):
     (["--ports", "superonasal,nasal"], "unknown port 'nasal'"), (["--port-clock", "superonasal=13"], "[1, 12]"),
     (["--port-clock", "superonasal=0.5"], "[1, 12]"), (["--port-clock", "lateral=3"], "unknown port"),
     (["--port-limbus-mm", "2"], "--port-limbus-mm: must be a number in [3, 5] mm"), (["--port-limbus-mm", "6.5"], "[3, 5] mm"),
-    (["--side", "middle"], "unknown eye side")])
+    (["--side", "middle"], "unknown eye side"), (["--survey-mm", "3.5"], "--survey-mm: must be a number in [0, 3] mm"),
+    (["--survey-mm", "-1"], "--survey-mm")])
 def test_bad_plans_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
     out = tmp_path / "never"
     assert main(["plan", "--out", str(out), "--no-execute", *argv]) == 2
@@ -121,3 +122,19 @@ def test_every_reason_a_cell_can_get_has_a_colour_in_the_coverage_map():
     from planning.multiport import UNREACHABLE
 
     assert set(REASON_COLORS) == set(UNREACHABLE)
+
+
+def test_a_survey_sweeps_the_band_deeper_before_the_plan_is_made(tmp_path):
+    """`--survey-mm 1`: the band (rings 0 and 1 mm) is first swept 1 mm deeper than the
+    2 mm standoff, filter on, through the closed loop against the true eye; plan.json
+    reports that pass: its depth, its cells, how much of the band it swept, and its true
+    clearance (the default boundary, 0.5 mm, kept: 0 violations)."""
+    out = tmp_path / "plan"
+    assert main(["plan", "--out", str(out), "--band", "0,1", "--standoff-mm", "2", "--survey-mm", "1", "--no-execute"]) == 0
+    r = json.loads((out / "plan.json").read_text())
+    s = r["survey"]
+    assert s["standoff_mm"] == pytest.approx(3.0) and s["planned_cells"] > 0.5 * r["cells"]
+    assert s["planned_cells_swept"] == 1.0 and s["band_coverage"] >= s["planned_cells"] / r["cells"] - 1e-9
+    assert s["duration_s"] > 0
+    assert s["violations"] == 0 and s["min_true_clearance_mm"] >= 0.5 and s["failsafe_stops"] == 0
+    assert r["min_true_clearance_mm"] is None  # the shaving itself not executed
