@@ -39,16 +39,26 @@ def _finite(v, name: str, shape: tuple[int, ...], unit: str) -> np.ndarray:
     return a
 
 
+VERTICAL_SHAFT_DEG = 1.0  # within this of z_W the roll from the horizontal is undefined
+
+
+def has_roll(p_WT_mm, p_WC_mm) -> bool:
+    """Whether the shaft from the trocar C to the tip T (mm, W) has a roll from the
+    horizontal: it lies more than VERTICAL_SHAFT_DEG from vertical."""
+    u = np.asarray(p_WT_mm, dtype=float) - np.asarray(p_WC_mm, dtype=float)
+    return bool(np.linalg.norm(np.cross([0.0, 0.0, 1.0], u / np.linalg.norm(u))) >= np.sin(np.radians(VERTICAL_SHAFT_DEG)))
+
+
 def roll_direction_W(p_WT_mm, p_WC_mm, roll_rad: float) -> np.ndarray:
     """Unit direction (3,) in W of the instrument's y axis for a shaft from the trocar C
     to the tip T rolled by `roll_rad` about the shaft: roll 0 is horizontal (along
     z_W x u), positive roll turns it about u (right-handed). Raises ValueError when the
     shaft is within 1 deg of vertical (roll from the horizontal is undefined there)."""
+    if not has_roll(p_WT_mm, p_WC_mm):
+        raise ValueError("roll_rad is undefined for a vertical shaft (within 1 deg of z_W); give roll_rad=None")
     u = np.asarray(p_WT_mm, dtype=float) - np.asarray(p_WC_mm, dtype=float)
     u /= np.linalg.norm(u)
     h = np.cross([0.0, 0.0, 1.0], u)
-    if np.linalg.norm(h) < np.sin(np.radians(1.0)):
-        raise ValueError("roll_rad is undefined for a vertical shaft (within 1 deg of z_W); give roll_rad=None")
     h /= np.linalg.norm(h)
     return np.cos(roll_rad) * h + np.sin(roll_rad) * np.cross(u, h)
 

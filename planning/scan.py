@@ -14,7 +14,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from models.shapes.validation import as_positive
 from planning.closed_form import shaft_ik
 from planning.diffik import rcm_joint_velocity
-from planning.ik import IKFailure, rcm_ik
+from planning.ik import IKFailure, has_roll, rcm_ik
 from planning.robot import RCM_GAIN_PER_S, Robot
 
 SPEED_HEADROOM = 0.9  # time parameterisation keeps every joint below this fraction of its limit
@@ -141,8 +141,9 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
             if m.tobytes() in out_of_reach:
                 continue
             try:
-                added.append((i, m, rcm_ik(robot, m, p_WC, 0.5 * (Q[i] + Q[i + 1]),
-                                           roll_rad=None if roll is None else roll_mid[k]), k))
+                # a midpoint whose shaft is vertical has no roll: IK from the neighbours' mean posture
+                mid_roll = roll_mid[k] if roll is not None and has_roll(m, p_WC) else None
+                added.append((i, m, rcm_ik(robot, m, p_WC, 0.5 * (Q[i] + Q[i + 1]), roll_rad=mid_roll), k))
             except IKFailure:  # the midpoint itself is out of reach (a chord over a gap): keep the segment
                 out_of_reach.add(m.tobytes())
         if not added:

@@ -98,3 +98,19 @@ def test_a_cell_whose_shaft_crosses_the_lens_on_the_way_is_dropped_as_lens(setup
     assert sweep.dropped == {(0, 2): "lens"}
     assert sweep.cells == [(0, 0), (0, 1)]
     assert lens_clearances_mm(lens, scenario.p_WC, sweep.targets_W).min() >= 0.5
+
+
+def test_a_midpoint_straight_below_the_trocar_is_solved_without_a_roll(setup):
+    """Two targets 6 mm below the trocar, 1 mm either side (shafts 9.5 deg off vertical, each
+    with a roll): the chord's midpoint puts the shaft vertical, where the roll convention
+    has none; the scan solves it from the neighbours' mean posture instead of failing, and
+    the trajectory still holds the RCM and the tip on the chord (0.5 um checks)."""
+    from planning.scan import plan_ik_scan
+
+    scenario, robot, _ = setup
+    P = scenario.p_WC + np.array([[1.0, 0.0, -6.0], [-1.0, 0.0, -6.0]])
+    traj, P_used, _ = plan_ik_scan(robot, P, scenario.p_WC, 2.0, roll_rad=np.array([0.3, 0.3]))
+    ts = np.linspace(traj.start_time(), traj.end_time(), 41)
+    for q in traj.vector_values(ts).T:
+        assert robot.rcm_error_mm(q, scenario.p_WC) < 0.01  # 0.5 um at the checks, the spline between them
+    np.testing.assert_allclose(robot.pose("T", traj.value(traj.end_time()).ravel())[1], P[-1], atol=1e-6)
