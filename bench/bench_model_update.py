@@ -143,6 +143,9 @@ def run() -> None:
         # the same update in each pass does the same work: its fastest pass is that work
         # without the machine's interruptions (a shared VM's p99 is ~2.7 x its median)
         print(f"    the same, per update the fastest of the 3 passes (work alone):    {summary_us(passes.min(axis=0))}")
+    detached = paper_scan(make_eye("detached"), seed=0).points  # the local model on the robust globe
+    passes = np.array([_update_times(detached, PredictiveCriteria(), 1, None, True) for _ in range(3)])
+    print(f"  the same, predictive + local, detached eye, fastest of 3 passes:     {summary_us(passes.min(axis=0))}")
     t = _update_times(points, None, 10)
     print(f"  AdaptiveEyeModel.update, 10 A-scans per call (200 Hz), per A-scan:       {summary_us(t)}")
     t = _update_times(points, PredictiveCriteria(), 20, local=True)

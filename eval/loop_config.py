@@ -45,8 +45,9 @@ class LoopConfig:
     extrapolation is only as good as the eye is regular (models.adaptive.coverage); nearer, its
     margin grows by the model's measured misfit there (how far inside the model the
     retina was measured within `misfit_angle_deg`: a detachment the sphere averages away).
-    With `local_model` (opt-in: its sphere phase let the tip 0.18 mm from a detached retina in
-    1 of 100 scenarios, README) the model is the local-global one (models.local): the
+    With `local_model` (opt-in: measured on 200 scenarios per pathological eye, and on the
+    pointed eye its global quadric is the sphere, README) the model is the local-global
+    one (models.local): the
     filter keeps every point d_safe + k sigma inside it, k = filter.sigma_factor (3 by
     default here: LOCAL_SIGMA_FACTOR) and sigma its standard deviation at the point's
     direction, which replaces the phase margins, the trust angle and the misfit rule

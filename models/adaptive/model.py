@@ -15,7 +15,7 @@ from models.adaptive.update_kernel import (
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, IncrementalEllipsoidFit
 from models.fit.quadric_kernels import FIT_STATUS
 from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig
-from models.fit.streaming_robust import StreamingRobustFit, biweight_losses_mm2
+from models.fit.streaming_robust import StreamingRobustFit
 from models.fit.sphere_kalman import SphereKalmanFilter
 from models.shapes.ellipsoid import Ellipsoid
 from models.shapes.sphere import Sphere
@@ -24,6 +24,7 @@ from models.shapes.validation import as_points
 
 EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5 mm)
 GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
+GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
 
 
 class ModelUpdate(NamedTuple):
@@ -107,7 +108,6 @@ class AdaptiveEyeModel:
         self.local = local
         self.local_choice = LocalChoice() if local is not None else None
         self.globe = StreamingRobustFit() if local is not None else None
-        self.sphere_loss_mm2 = np.nan  # the sphere's biweight loss on the points the globe scores (StreamingRobustFit)
 
     def __deepcopy__(self, memo) -> AdaptiveEyeModel:
         """An independent copy (it updates without touching this model) that shares the
@@ -148,12 +148,13 @@ class AdaptiveEyeModel:
         the sphere fit."""
         lo, hi = EYE_RADII_MM
         shape = self.shape
-        if self.kind == "ellipsoid" and shape is not None and lo <= float(np.min(shape.radii)) and float(np.max(shape.radii)) <= hi:
+        if (self.kind == "ellipsoid" and shape is not None
+                and lo <= float(np.min(shape.radii)) and float(np.max(shape.radii)) <= hi):
             return shape
         globe = self.globe
         if globe is not None and globe.last_ok is not None and self._range.diameter_mm >= GLOBE_MIN_SCAN_RANGE_MM:
             radii = globe.last_ok.radii
-            if lo <= radii[-1] and radii[0] <= hi and globe.loss_mm2 < self.sphere_loss_mm2:
+            if lo <= radii[-1] and radii[0] <= hi and globe.loss_mm2 < globe.rival_loss_mm2:
                 return globe.last_ok.ellipsoid
         return self.sphere
 
@@ -206,9 +207,9 @@ class AdaptiveEyeModel:
         if ef.p0 is None:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
         if self.local is not None:
-            self._score_sphere(self.last_accepted)
             self.globe.add(self.last_accepted)
-            self.globe.step()
+            if self.globe.pending >= GLOBE_BATCH:
+                self.globe.step(self._sf.sphere)
             self.local_choice.absorb(self.local, self.last_accepted, self.global_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)
@@ -230,17 +231,6 @@ class AdaptiveEyeModel:
         if sf_ok:
             return self._evaluate(fit, v_sf, (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res, axis_change)
         return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
-
-    def _score_sphere(self, P: np.ndarray) -> None:
-        """The sphere's biweight loss on the points P (K, 3) mm before they join, averaged as
-        the globe's (StreamingRobustFit.loss_mm2) while the globe has a fit."""
-        sphere = self._sf.sphere
-        if sphere is None or self.globe.last_ok is None:
-            return
-        d = np.abs(np.linalg.norm(P - sphere.center, axis=1) - sphere.radius)
-        loss = float(biweight_losses_mm2(d, self.globe.config.cutoff_mm).mean())
-        a = min(len(P) / self.globe.memory, 1.0)
-        self.sphere_loss_mm2 = loss if np.isnan(self.sphere_loss_mm2) else self.sphere_loss_mm2 + a * (loss - self.sphere_loss_mm2)
 
     def _evaluate(self, fit, v_sf, sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
         """The criteria, the transition and the history entry of an update whose fits are

@@ -5,21 +5,24 @@ model, at a bounded cost per A-scan.
 Iteratively reweighted least squares (IRLS) needs every stored point's weight under the
 current fit; RobustEllipsoidFit recomputes them all at once whenever the point count has
 grown by 5 % (O(N) in one update: 1.5 ms at 20,000 points). Here one IRLS iteration is a
-pass over the stored points in chunks: each update weighs `chunk` more of them under the
+pass over the stored points in chunks: each step weighs a chunk more of them under the
 current fit into the pass's scatter matrix, and the pass's end refits from it (the next
-iterate), so an update costs O(chunk) whatever N, and the fit follows the data one pass
-(N / chunk updates) behind. New points join both the current scatter matrix and the
-running pass's, weighted by the fit of their arrival. A pass that leaves fewer than
+iterate), so a step costs O(chunk) whatever N, and the fit follows the data one pass
+(N / chunk steps) behind. New points join the running pass weighted by the fit of their
+arrival. A pass that leaves fewer than
 `min_inlier_fraction` of the points any weight restarts from the plain fit (weights 1),
 as RobustEllipsoidFit does, and the `iterations` passes after a restart run unchecked (as
 its iterations after a restart do: IRLS from the plain fit needs a few to leave a
 pathology out). Coordinates: the fits' (models.fit.ellipsoid_fit: origin at
 the first point, lengths / LENGTH_SCALE_MM).
 
-How well the fit predicts: before a point joins, its biweight loss (Tukey's rho,
-(c^2 / 6) (1 - (1 - (d / c)^2)^3), c^2 / 6 beyond c) under the current fit is averaged
-exponentially over about `memory` points (`loss_mm2`), for the caller to compare with
-another model's on the same points (models.adaptive.model.AdaptiveEyeModel).
+How well the fit predicts: before points join (at the step after their add: a caller
+adding one A-scan at a time steps once per packet, the per-call cost spread over it),
+their biweight loss (Tukey's rho, (c^2 / 6) (1 - (1 - (d / c)^2)^3), c^2 / 6 beyond c)
+under the current fit is averaged exponentially over about `memory` points
+(`loss_mm2`), and the same of a rival sphere the caller names (`rival_loss_mm2`: the
+model to beat, models.adaptive.model.AdaptiveEyeModel.global_for_local); a pathology's
+points cost either model at most c^2 / 6 each.
 """
 from __future__ import annotations
 
@@ -79,23 +82,28 @@ def biweight_loss(X, i0, i1, v, cutoff):
 
 
 @njit(cache=True)
-def biweight_losses_mm2(d_mm, cutoff_mm):
-    """(N,) tukey_rho (mm^2) of the distances d (N,) mm with the cut-off c mm."""
-    out = np.empty(d_mm.shape[0])
-    for n in range(d_mm.shape[0]):
-        out[n] = tukey_rho(d_mm[n], cutoff_mm)
-    return out
+def sphere_loss(X, i0, i1, c, r, cutoff):
+    """Sum of tukey_rho (scaled units^2) of the points X[i0:i1]' distances from the sphere
+    of centre c (3,) and radius r (scaled coordinates)."""
+    s = 0.0
+    for n in range(i0, i1):
+        d0, d1, d2 = X[n, 0] - c[0], X[n, 1] - c[1], X[n, 2] - c[2]
+        s += tukey_rho(np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - r, cutoff)
+    return s
 
 
 class StreamingRobustFit:
     """Robust ellipsoid fit with the reweighting spread over updates (module doc).
 
-    `add(P)` stores finite points P (N, 3) mm and weighs them; `step()` reweighs up to
-    `chunk_per_point` x (points of the last add, at least `min_chunk`) stored points of the
-    running pass and, at a pass's end, refits; `last_ok` the newest good EllipsoidFit (None
-    before one); `loss_mm2` the exponential average of the new points' biweight loss
-    under the fit before they joined (mm^2; NaN before a fit); `passes` completed passes;
-    `last_step_weighed` the stored points the last step reweighed."""
+    `add(P)` stores finite points P (N, 3) mm; `step(rival)` weighs the points added since
+    the last step into the running pass, reweighs up to `chunk_per_point` x as many (at
+    least `min_chunk`) stored points of the pass and, at its end, refits. `last_ok` the
+    newest good EllipsoidFit (None before one); `loss_mm2` the exponential average (over
+    about `memory` points) of the new points' biweight loss under the fit before they
+    joined (mm^2; NaN before a fit), `rival_loss_mm2` the same of the Sphere `rival` the
+    caller passes (the model to beat; NaN without one); `passes` completed passes;
+    `pending` points added since the last step; `last_step_weighed` the stored points the
+    last step reweighed."""
 
     def __init__(self, config: RobustFitConfig | None = None, chunk_per_point: int = 10, min_chunk: int = 50,
                  memory: float = 400.0):
@@ -104,37 +112,39 @@ class StreamingRobustFit:
         self.p0: np.ndarray | None = None
         self.last_ok: EllipsoidFit | None = None
         self.passes = 0
-        self.loss_mm2 = np.nan
+        self.loss_mm2 = self.rival_loss_mm2 = np.nan
         self._cut = self.config.cutoff_mm / LENGTH_SCALE_MM
         self._X = np.empty((1024, 3))
         self._w = np.empty(1024)
-        self._n = 0
+        self._n = 0  # points stored
+        self._taken = 0  # points weighed into the running pass (the rest are pending)
         self._next = np.zeros((10, 10))  # the running pass's scatter matrix
         self._cursor = self._end = 0  # the pass reweighs the points [0, end); later ones join it as they arrive
         self._inliers = 0  # points of the running pass with a weight > 0
         self._plain = True  # the running pass weighs every point 1 (no fit yet, or a restart)
         self._settling = 0  # passes left after a restart before the next may restart (`iterations`)
         self._v = np.zeros(10)
-        self._last_add = 0
-        self.last_step_weighed = 0  # stored points the last step reweighed
+        self.last_step_weighed = 0
 
     @property
     def n_points(self) -> int:
         return self._n
 
     @property
+    def pending(self) -> int:
+        return self._n - self._taken
+
+    @property
     def weights(self) -> np.ndarray:
-        """(N,) every stored point's latest weight in [0, 1]."""
+        """(N,) every stored point's latest weight in [0, 1] (pending points: undefined)."""
         return self._w[:self._n]
 
     def _weighing(self) -> bool:
         return self.last_ok is not None and not self._plain
 
     def add(self, P: np.ndarray) -> None:
-        """Store the finite points P (N, 3) mm; they join the running pass at the current
-        fit's weights."""
+        """Store the finite points P (N, 3) mm (they join the running pass at the next step)."""
         k = len(P)
-        self._last_add = k
         if k == 0:
             return
         if self.p0 is None:
@@ -145,32 +155,43 @@ class StreamingRobustFit:
             self._X = np.concatenate([self._X[:self._n], np.empty((size - self._n, 3))])
             self._w = np.concatenate([self._w[:self._n], np.empty(size - self._n)])
         self._X[self._n:n] = (P - self.p0) / LENGTH_SCALE_MM
-        if self.last_ok is not None:
-            loss = biweight_loss(self._X, self._n, n, self._v, self._cut) * LENGTH_SCALE_MM ** 2 / k
-            a = min(k / self.memory, 1.0)
-            self.loss_mm2 = loss if np.isnan(self.loss_mm2) else self.loss_mm2 + a * (loss - self.loss_mm2)
-        self._inliers += weigh_rows(self._next, self._X, self._w, self._n, n, self._v, self._weighing(), self._cut)
         self._n = n
 
-    def step(self) -> EllipsoidFit | None:
-        """Weigh the next chunk of the running pass; at its end, refit and start the next
-        pass (the new fit, or None when no pass ended or the fit failed)."""
+    def _score(self, loss: float, current: float, k: int) -> float:
+        loss *= LENGTH_SCALE_MM ** 2 / k
+        return loss if np.isnan(current) else current + min(k / self.memory, 1.0) * (loss - current)
+
+    def step(self, rival=None) -> EllipsoidFit | None:
+        """Score and weigh the pending points (against the fit and the Sphere `rival`), go on
+        with the running pass; at its end, refit and start the next pass (the new fit, or
+        None when no pass ended or the fit failed)."""
+        i0, n = self._taken, self._n
+        k = n - i0
+        if k:
+            if self.last_ok is not None:
+                self.loss_mm2 = self._score(biweight_loss(self._X, i0, n, self._v, self._cut), self.loss_mm2, k)
+                if rival is not None:
+                    c = (np.asarray(rival.center, dtype=float) - self.p0) / LENGTH_SCALE_MM
+                    loss = sphere_loss(self._X, i0, n, c, float(rival.radius) / LENGTH_SCALE_MM, self._cut)
+                    self.rival_loss_mm2 = self._score(loss, self.rival_loss_mm2, k)
+            self._inliers += weigh_rows(self._next, self._X, self._w, i0, n, self._v, self._weighing(), self._cut)
+            self._taken = n
         self.last_step_weighed = 0
         if self._cursor < self._end:
-            i1 = min(self._cursor + max(self.min_chunk, self.chunk_per_point * self._last_add), self._end)
+            i1 = min(self._cursor + max(self.min_chunk, self.chunk_per_point * k), self._end)
             self._inliers += weigh_rows(self._next, self._X, self._w, self._cursor, i1, self._v, self._weighing(),
                                         self._cut)
             self.last_step_weighed = i1 - self._cursor
             self._cursor = i1
-        if self._cursor < self._end or self._n == 0:
+        if self._cursor < self._end or n == 0:
             return None
         fit = fit_scatter(self._next, self.p0)
         self.passes += 1
-        restart = not self._plain and self._settling == 0 and self._inliers < self.config.min_inlier_fraction * self._n
+        restart = not self._plain and self._settling == 0 and self._inliers < self.config.min_inlier_fraction * n
         self._settling = self.config.iterations if restart else max(self._settling - 1, 0)
         self._plain = restart or self.last_ok is None
         if fit.ok:
             self.last_ok, self._v = fit, fit.v
         self._next = np.zeros((10, 10))
-        self._cursor, self._end, self._inliers = 0, self._n, 0
+        self._cursor, self._end, self._inliers = 0, n, 0
         return fit if fit.ok else None

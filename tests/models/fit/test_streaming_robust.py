@@ -18,7 +18,7 @@ from models.adaptive.model import EYE_RADII_MM
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
 from models.fit.robust_fit import RobustFitConfig, biweight
-from models.fit.streaming_robust import StreamingRobustFit, biweight_losses_mm2
+from models.fit.streaming_robust import StreamingRobustFit, tukey_rho
 from models.local.grid import LocalRetinaModel
 from models.metrics import mae_exact
 from models.scan.paper_scan import paper_scan
@@ -41,14 +41,13 @@ def _streamed(shape: str, extra_steps: int = 0):
 
 
 def test_loss_is_tukeys_rho():
+    """rho(d) = (c^2 / 6) (1 - (1 - (d/c)^2)^3) below c, c^2 / 6 beyond; rho' = d w(d), w the biweight."""
     c = 0.1
+    rho = np.vectorize(lambda d: tukey_rho(d, c))
     d = np.array([0.0, 0.05, 0.1, 0.3])
-    # rho' = d w(d) with w the biweight: rho(d) = (c^2 / 6) (1 - (1 - (d/c)^2)^3)
-    np.testing.assert_allclose(biweight_losses_mm2(d, c), c * c / 6 * (1 - (1 - (d / c) ** 2) ** 3) * (d < c)
-                               + c * c / 6 * (d >= c), atol=1e-15)
+    np.testing.assert_allclose(rho(d), [0.0, c * c / 6 * (1 - 0.75 ** 3), c * c / 6, c * c / 6], atol=1e-15)
     h = 1e-6
-    np.testing.assert_allclose((biweight_losses_mm2(d[1:2] + h, c) - biweight_losses_mm2(d[1:2] - h, c)) / (2 * h),
-                               d[1:2] * biweight(d[1:2], c), rtol=1e-6)
+    np.testing.assert_allclose((rho(0.05 + h) - rho(0.05 - h)) / (2 * h), 0.05 * biweight(np.array([0.05]), c), rtol=1e-6)
 
 
 def test_regular_eye_matches_the_least_squares_accuracy():
@@ -99,7 +98,7 @@ def test_adaptive_model_puts_the_local_model_on_the_globe():
     T = eye.reference_samples(120, 120)
     floor = mae_exact(eye.ellipsoid, T).mean
     assert mae_exact(g, T).mean <= floor + 3 * EF_MAE_TARGET_MM  # up to a pass behind the last points
-    assert model.globe.loss_mm2 < model.sphere_loss_mm2
+    assert model.globe.loss_mm2 < model.globe.rival_loss_mm2
 
 
 @pytest.mark.parametrize("kwargs", [{"noise_sd_mm": 0.0}, {"tukey_factor": -1.0}])
