@@ -184,8 +184,14 @@ def phantom_scan(shapes=EYE_SHAPES if FULL else ("staphyloma",)) -> dict:
             m = _against_reference(spec, truth, res, reg, mesh, true_pose)
             rec_true, ref_mae = m["recording_mae_true_placement_um"], m["reference_mae_um"]
             out[f"{shape} {label} sensor pose"] = {
-                **err, "registration_rmse_um": reg["registration_rmse_um"], "n_points": int(len(res.accepted)), **m}
+                **err, "registration_rmse_um": reg["registration_rmse_um"], "n_points": int(len(res.accepted)), **m,
+                "sensor_error": reg["sensor_error"]}
             _print_placement(f"phantom scan {shape:10s} ({label:7s} sensor pose)", err, reg["registration_rmse_um"])
+            if label == "nominal":
+                s, true = reg["sensor_error"], truth["calibration_error"]
+                print(f"    sensor error estimated: offset {1e3 * np.array(s['offset_S_mm'])} um, tilt "
+                      f"{np.array(s['rotvec_S_deg'])} deg (true {1e3 * np.array(true['sensor_offset_S_mm'][:2])} um, "
+                      f"{np.degrees(true['sensor_rotvec_S_rad'][:2])} deg)", flush=True)
             print(f"    mae: {reg['mae_um']:.1f} um after registration ({rec_true:.1f} um at the true placement; "
                   f"local-global {reg['lf_mae_um']:.1f} um; {res.model.kind}), the same scan without the round trip "
                   f"{ref_mae:.1f} um ({m['reference_kind']}); ratio {reg['mae_um'] / ref_mae:.2f} (target within 20 %)", flush=True)

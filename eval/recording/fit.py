@@ -47,7 +47,8 @@ class FitResult:
     the joint stream, the beam's travel along itself there (mm), the offset estimate), the rebuilt points (N, 3) mm in W with their
     OCT stamps (N,) s, the model, the points it accepted (M, 3) mm, the sensor pose used,
     the local-global model, and the accepted points' beams (origins (M, 3) mm, unit
-    directions (M, 3) in W)."""
+    directions (M, 3) in W) and how they move under the sensor's lateral calibration error
+    (sensor_displacements)."""
 
     joints: JointStream
     oct: OctStream
@@ -62,6 +63,7 @@ class FitResult:
     calibrated: bool
     local: object = None  # models.local.field.LocalField (step 6), None without a global quadric
     accepted_beams: tuple = None
+    accepted_displacements: np.ndarray = None  # (M, 3, 4): sensor_displacements of the accepted points
 
     def summary(self) -> dict:
         """fit.json's recording keys (module docstring of eval.cli.fit)."""
@@ -153,13 +155,33 @@ def beams_W(sensor: SensorPose, Q) -> tuple[np.ndarray, np.ndarray]:
 
     chain = _robot().chain
     R_F, p_F = chain.homes["F"]
-    z = sensor.u_F
-    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    R_FS = np.column_stack([x, np.cross(z, x), z])
+    R_FS = sensor_frame(sensor.u_F)
     R_h, p_h = np.ascontiguousarray(R_F @ R_FS), R_F @ sensor.p_FS + p_F
     Q = np.ascontiguousarray(Q, dtype=float)
     return sensor_beams(chain.S, R_h, p_h, R_h, p_h, Q, Q)[2:]
+
+
+def sensor_frame(u_F) -> np.ndarray:
+    """R_FS (3, 3): the sensor frame S in the flange frame for the unit beam u_F (3,), z
+    along the beam, x across it in the flange's x-z plane (or y-z, for a beam near y)."""
+    z = np.asarray(u_F, dtype=float)
+    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def sensor_displacements(sensor: SensorPose, Q, distances_mm) -> np.ndarray:
+    """(M, 3, 4) mm per unit: how each point (the beam at joint angles Q (M, 6) rad,
+    `distances_mm` (M,) along it) moves in W under the sensor pose's lateral calibration
+    error xi = (offset along S's x and y (mm), rotation about S's x and y (rad)), the true
+    sensor in the nominal frame S (sensor_frame): the registration estimates xi with the
+    placement (eval.recording.ground_truth). The axial offset and the roll about the beam
+    are left out: the first acts as a distance bias, the second moves no point."""
+    R_FS = sensor_frame(sensor.u_F)
+    X = beams_W(SensorPose(sensor.p_FS, R_FS[:, 0]), Q)[1]  # S's x and y axes in W
+    Y = beams_W(SensorPose(sensor.p_FS, R_FS[:, 1]), Q)[1]
+    d = np.asarray(distances_mm, dtype=float)[:, None]
+    return np.stack([X, Y, -d * Y, d * X], axis=2)
 
 
 _ROBOT = []
@@ -206,7 +228,8 @@ def fit_recording(joints: JointStream, oct: OctStream, sensor: SensorPose | None
             accepted.append([row[p.tobytes()] for p in model.last_accepted])
     acc = np.concatenate(accepted).astype(int) if accepted else np.zeros(0, dtype=int)
     return FitResult(joints, oct, (i0, i1), s, offset, oct.t_s[use], P, model, P[acc], sensor, calibrated,
-                     local_fit(P[acc], model.shape), (O_p[acc], U_p[acc]))
+                     local_fit(P[acc], model.shape), (O_p[acc], U_p[acc]),
+                     sensor_displacements(sensor, Q[acc], oct.distance_mm[use][acc]))
 
 
 LOCAL_BATCH = 2000  # points per local-model update: its kernels' working set stays small

@@ -24,6 +24,20 @@ left in, it moves the mesh with the points where the retina tilts against the be
 drops out of `mae_um`; removed from the registration's points alone, it stays in the
 model, where `mae_um` measures it.
 
+With the points' displacements under the sensor's lateral calibration error
+(eval.recording.fit.sensor_displacements: an offset across the beam and a tilt of it, 4
+parameters in the sensor frame), the refinements estimate that error with the placement
+(models.shapes.icp.register_to_mesh's `displacements`; prior SD: the safety filter's
+declared calibration bound, 0.03 mm and 0.13 deg), and the dict's "sensor_error" holds
+it. The bench scan's two passes, the instrument turned by 180 deg about its shaft
+between them, see it displace their points in opposite directions; they cancel it in
+the sum of squares only where both passes put as many points, and the half turn itself
+(1 s at the rim, the error turning with the instrument), the model's gate and the passes'
+different sampling leave them unequal: on the hyperopic eye, whose tilts only its
+asphericity defines, what they left tilted the placement 0.076 deg off (0.045 with the
+true sensor pose). Estimated, the error leaves the points (recovered there to 0.3 um and
+0.002 deg; the placement 0.032 deg off).
+
 `mae_um`: the area-weighted mean, over the mesh's retina faces (those the points are
 paired with) within 2 mm of the model, of each face centroid's exact distance to the
 fitted model after registration: the closed loop's exact MAE, on the printed half;
@@ -48,6 +62,7 @@ from eval.recording.bag import RecordingError
 from models import fit_ellipsoid, fit_sphere
 from models.adaptive.model import EYE_RADII_MM
 from models.shapes.icp import MeshIndex, Registration, mesh_index, point_to_plane, register_to_mesh
+from safety.inputs import FilterConfig
 
 N_ROTATIONS = 4000
 N_SCORE_POINTS = 300
@@ -55,6 +70,10 @@ COARSE_DISTANCE_MM = 3.0
 MAX_POINTS = 40000
 EYE_SIZE_MM = (10.0, 80.0)  # the extent of an eye phantom in mm
 SWEEP_MM = tuple(np.round(np.arange(0.1, 1.01, 0.1), 1))
+# the prior of the sensor's lateral calibration error the registration estimates (offset
+# along S's x, y in mm, rotation about them in rad): the filter's declared calibration bound
+SENSOR_PRIOR_SD = (FilterConfig.calibration_bound_mm, FilterConfig.calibration_bound_mm,
+                   np.radians(FilterConfig.calibration_bound_deg), np.radians(FilterConfig.calibration_bound_deg))
 # The extractor's bias table for the registration: 200 A-scans per cell (the extracted
 # distance's SD is 2-30 um below 45 deg of incidence: the bias to about 1 um), each cell's
 # mean error over the errors within BIAS_WITHIN_MM (what the ICP's least squares sees at
@@ -94,11 +113,11 @@ def load_stl(path) -> tuple[np.ndarray, np.ndarray]:
 
 def _retina(index: MeshIndex, shape) -> tuple[np.ndarray, MeshIndex]:
     """(the centre (3,) mm in M of the mesh's retina, the MeshIndex of the retina's faces):
-    the fit of `shape`'s kind (ellipsoid or sphere) to the centroids of the faces that face
-    the centre of a first sphere fit within 60 deg (the inner surface of a shell, the
-    curved surface of a solid half), and those faces. The registration pairs points with
-    the retina's faces alone: a start about a wall's thickness off would pair points with
-    the outer wall, where the ICP stops."""
+    the faces that face the centre of a sphere fitted to them within 60 deg (from a sphere
+    fitted to every face, twice: the inner surface of a shell, the curved surface of a
+    solid half), and the centre of the fit of `shape`'s kind (ellipsoid or sphere) to
+    them. The registration pairs points with the retina's faces alone: a start about a
+    wall's thickness off would pair points with the outer wall, where the ICP stops."""
     c = fit_sphere(index.centroids).center
     inner = np.ones(len(index.centroids), dtype=bool)
     for _ in range(2):
@@ -107,8 +126,9 @@ def _retina(index: MeshIndex, shape) -> tuple[np.ndarray, MeshIndex]:
         if facing.sum() < 10:
             break
         inner = facing
-        C = index.centroids[inner]
-        c = fit_ellipsoid(C).center if hasattr(shape, "radii") else fit_sphere(C).center
+        c = fit_sphere(index.centroids[inner]).center
+    if hasattr(shape, "radii") and inner.sum() >= 10:
+        c = fit_ellipsoid(index.centroids[inner]).center
     return c, MeshIndex(index.centroids[inner], index.normals[inner], index.areas[inner], cKDTree(index.centroids[inner]))
 
 
@@ -156,7 +176,9 @@ def _result(reg, index: MeshIndex, model, max_distance_mm: float, local=None) ->
             "n_pairs": reg.n_pairs, "iterations": reg.iterations, "converged": reg.converged,
             "R_WE": R_WE.tolist(), "p_WE_mm": p_WE.tolist(),
             "rotation_sd_deg": [_finite_or_none(v) for v in np.degrees(reg.rotation_sd_rad)],
-            "rotation_axes_E": reg.rotation_axes.T.tolist()}
+            "rotation_axes_E": reg.rotation_axes.T.tolist(),
+            "sensor_error": None if not len(reg.xi) else {"offset_S_mm": reg.xi[:2].tolist(),
+                                                          "rotvec_S_deg": np.degrees(reg.xi[2:]).tolist()}}
 
 
 def _finite_or_none(v: float):
@@ -218,7 +240,7 @@ def debiased(P: np.ndarray, beams, index: MeshIndex, R: np.ndarray, p: np.ndarra
 
 
 def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0, sweep: bool = False,
-                 local=None, beams=None) -> dict:
+                 local=None, beams=None, displacements=None) -> dict:
     """Register the recording's points (N, 3) mm in W to the mesh (frame M = the phantom's
     E) and measure `model` (the fitted Sphere or Ellipsoid in W) there (module docstring):
     {"mae_um", "lf_mae_um" (the same for `local`, the local-global model's LocalField in
@@ -228,11 +250,15 @@ def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0,
     ..., and with `sweep` "sweep": one such dict per correspondence distance}. `beams`
     (origins, unit directions (N, 3) each, W) of the points, whose distances the
     project's extractor gave: its bias removed before the last refinement (module
-    docstring)."""
+    docstring). `displacements` (N, 3, 4): how each point moves under the sensor's lateral
+    calibration error (eval.recording.fit.sensor_displacements): the refinements estimate
+    it with the placement ("sensor_error")."""
     P = np.asarray(points_W, dtype=float)
     keep = np.linspace(0, len(P) - 1, MAX_POINTS).astype(int) if len(P) > MAX_POINTS else np.arange(len(P))
     P = P[keep]
     beams = None if beams is None else tuple(np.asarray(b, dtype=float)[keep] for b in beams)
+    sensor = {} if displacements is None else {"displacements": np.asarray(displacements, dtype=float)[keep],
+                                               "prior_sd": SENSOR_PRIOR_SD}
     start_shape = _start_shape(model, P)
     c_M, index = _retina(mesh_index(vertices, faces), start_shape)
     best = None
@@ -248,12 +274,15 @@ def register_fit(points_W, model, vertices, faces, max_distance_mm: float = 1.0,
         raise RecordingError("--ground-truth: the recording's points do not match the mesh at any start (fewer than half "
                              f"lie within {COARSE_DISTANCE_MM:g} mm of it): is it the phantom of this recording, in mm?")
     start = _turned_about_weak_axis(P, index, best[1], c_M)
+    if beams is not None or sensor:
+        start = register_to_mesh(P, index, start.R, start.p, max_distance_mm, **sensor)
     if beams is not None:
-        start = register_to_mesh(P, index, start.R, start.p, max_distance_mm)
         P = debiased(P, beams, index, start.R, start.p)
-    out = _result(register_to_mesh(P, index, start.R, start.p, max_distance_mm), index, model, max_distance_mm, local)
+    refined = [register_to_mesh(P, index, start.R, start.p, d, xi0=start.xi if sensor else None, **sensor)
+               for d in (max_distance_mm, *(SWEEP_MM if sweep else ()))]
+    out = _result(refined[0], index, model, max_distance_mm, local)
     if sweep:
-        out["sweep"] = [_result(register_to_mesh(P, index, start.R, start.p, d), index, model, d, local) for d in SWEEP_MM]
+        out["sweep"] = [_result(reg, index, model, d, local) for reg, d in zip(refined[1:], SWEEP_MM)]
     return out
 
 
@@ -264,7 +293,8 @@ def register_recording(result, vertices, faces, max_distance_mm: float = 1.0, sw
     extractor gave the distances and `remove_bias` (False: the points registered as
     extracted). The dict's "bias_removed" says which."""
     beams = result.accepted_beams if remove_bias and result.oct.extracted else None
-    out = register_fit(result.accepted, result.model.shape, vertices, faces, max_distance_mm, sweep, result.local, beams)
+    out = register_fit(result.accepted, result.model.shape, vertices, faces, max_distance_mm, sweep, result.local, beams,
+                       result.accepted_displacements)
     return {**out, "bias_removed": beams is not None}
 
 

@@ -37,6 +37,11 @@ Why this and not a library's ICP (the same points, mesh and start):
   rendering and GUI libraries (not measured here);
 - this routine: 60 lines over SciPy, which the project has.
 
+Points that share a systematic error with a known linear effect on each (a sensor's
+calibration error: `displacements`, (N, 3, k) per unit of k parameters) can be registered
+with it: the parameters join the 6 of the placement in the same least squares, with a
+Gaussian prior, and their SDs are marginalised out of `rotation_covariance`.
+
 Units: mm, rad.
 """
 from __future__ import annotations
@@ -69,7 +74,9 @@ class Registration(NamedTuple):
     the mesh's frame M. `rmse_mm`: RMS point-to-plane residual of the final pairs;
     `n_pairs`: their number; `iterations`; `converged`; `rotation_sd_rad` (3,), ascending,
     and `rotation_axes` (3, 3), its columns the unit axes in M: the standard deviations of
-    the registered rotation about its principal axes (`rotation_covariance`)."""
+    the registered rotation about its principal axes (`rotation_covariance`); `xi` (k,):
+    the points' own displacement parameters estimated with it (register_to_mesh's
+    `displacements`; empty without them)."""
 
     R: np.ndarray
     p: np.ndarray
@@ -79,6 +86,7 @@ class Registration(NamedTuple):
     converged: bool
     rotation_sd_rad: np.ndarray = np.full(3, np.nan)
     rotation_axes: np.ndarray = np.eye(3)
+    xi: np.ndarray = np.zeros(0)
 
 
 def mesh_index(vertices, faces) -> MeshIndex:
@@ -111,17 +119,22 @@ def _cost(index: MeshIndex, P: np.ndarray, R: np.ndarray, p: np.ndarray, max_d: 
     return float(np.mean(np.where(pair, r * r, max_d * max_d))), X, r, pair, k
 
 
-def rotation_covariance(X: np.ndarray, normals: np.ndarray, sigma_mm: float) -> tuple[np.ndarray, np.ndarray]:
+def rotation_covariance(X: np.ndarray, normals: np.ndarray, sigma_mm: float, extra=None,
+                        extra_information=None) -> tuple[np.ndarray, np.ndarray]:
     """(sd (3,) rad ascending, axes (3, 3) unit columns in M): the principal standard
     deviations of a point-to-plane registration's rotation (about the points' centroid,
     the translation marginalised), for points X (N, 3) mm on planes with unit normals
     (N, 3) and independent residuals of SD sigma_mm: sigma^2 (J^T J)^-1, J the residuals'
-    Jacobian (the Cramer-Rao bound of the least squares). A rotation about an axis the
-    surface does not change under (a sphere's any axis, a surface of revolution's own
-    axis) has an infinite SD: the geometry does not define it."""
-    J = np.hstack([np.cross(X - X.mean(axis=0), normals), normals])
+    Jacobian (the Cramer-Rao bound of the least squares). `extra` (N, k): the residuals'
+    derivatives with respect to k further parameters estimated with the placement
+    (marginalised too), `extra_information` (k,) their prior's sigma_mm^2 / prior SD^2. A
+    rotation about an axis the surface does not change under (a sphere's any axis, a
+    surface of revolution's own axis) has an infinite SD: the geometry does not define it."""
+    J = np.hstack([np.cross(X - X.mean(axis=0), normals), normals] + ([] if extra is None else [extra]))
     H = J.T @ J
-    # the rotation block of H^-1 = the inverse of H's Schur complement on the translation
+    if extra_information is not None:
+        H[6:, 6:] += np.diag(extra_information)
+    # the rotation block of H^-1 = the inverse of H's Schur complement on the other parameters
     S = H[:3, :3] - H[:3, 3:] @ np.linalg.solve(H[3:, 3:], H[3:, :3])
     w, V = np.linalg.eigh(S)
     with np.errstate(divide="ignore"):
@@ -131,31 +144,48 @@ def rotation_covariance(X: np.ndarray, normals: np.ndarray, sigma_mm: float) -> 
 
 
 def register_to_mesh(points, index: MeshIndex, R0=None, p0=None, max_distance_mm: float = 1.0,
-                     max_iterations: int = 100) -> Registration:
+                     max_iterations: int = 100, displacements=None, prior_sd=None, xi0=None) -> Registration:
     """Point-to-plane ICP of `points` (N, 3) mm onto the mesh of `index`, from the initial
     X_MW (R0, p0) (default identity); pairs further than `max_distance_mm` from their
-    centroid are left out (module docstring). Raises ValueError when fewer than 6 pairs
-    remain (the points are nowhere near the mesh)."""
-    P = as_points(points, "points")
+    centroid are left out (module docstring). With `displacements` (N, 3, k) mm per unit
+    in the points' frame, each point moves by displacements[i] @ xi, and the k parameters
+    xi (from xi0, default 0) are estimated with the placement (a sensor's calibration error
+    the points share), with a Gaussian prior of SD `prior_sd` (k,) against the residual's
+    mean square at the start. Raises ValueError when fewer than 6 pairs remain (the points
+    are nowhere near the mesh)."""
+    P0 = as_points(points, "points")
     max_d = as_positive(max_distance_mm, "max_distance_mm")
     R = np.eye(3) if R0 is None else np.array(R0, dtype=float)
     p = np.zeros(3) if p0 is None else np.array(p0, dtype=float)
+    A = np.zeros((len(P0), 3, 0)) if displacements is None else np.asarray(displacements, dtype=float)
+    n_xi = A.shape[2]
+    xi = np.zeros(n_xi) if xi0 is None else np.array(xi0, dtype=float)
+    P = P0 + A @ xi
     cost, X, r, pair, k = _cost(index, P, R, p, max_d)
+    # the prior as pseudo-residuals: sum r^2 + s^2 sum (xi / prior_sd)^2, s^2 the start's mean square
+    s2 = cost
+    info = s2 / np.asarray(prior_sd, dtype=float) ** 2 if n_xi else np.zeros(0)
+    cost += float(np.sum(info * xi * xi)) / len(P)
     converged, it, lam = False, 0, None
     for it in range(1, max_iterations + 1):
         if pair.sum() < 6:
             raise ValueError(f"only {int(pair.sum())} of {len(P)} points lie within max_distance_mm = {max_d:g} mm "
                              "of the mesh: the initial placement is too far off, or the mesh is not of these points")
         n, x = index.normals[k[pair]], X[pair]
-        J = np.hstack([np.cross(x, n), n])  # d r / d (rotation vector, translation) at the identity step
+        E = np.einsum("ia,ab,ibk->ik", n, R, A[pair])  # d r / d xi
+        J = np.hstack([np.cross(x, n), n, E])  # d r / d (rotation vector, translation, xi) at the identity step
         H, g = J.T @ J, J.T @ r[pair]
-        scale = np.trace(H) / 6.0
+        H[6:, 6:] += np.diag(info)
+        g[6:] += info * xi
+        scale = np.trace(H[:6, :6]) / 6.0
         lam = LAMBDA_START if lam is None else lam
         while True:  # Levenberg-Marquardt: a step that lowers the cost, damped until it does
-            step = np.linalg.solve(H + lam * scale * np.eye(6), -g)
+            step = np.linalg.solve(H + lam * scale * np.eye(6 + n_xi), -g)
             dR = Rotation.from_rotvec(step[:3]).as_matrix()
-            R1, p1 = dR @ R, dR @ p + step[3:]
-            trial = _cost(index, P, R1, p1, max_d)
+            R1, p1, xi1 = dR @ R, dR @ p + step[3:6], xi + step[6:]
+            P1 = P0 + A @ xi1 if n_xi else P
+            c1, *rest = _cost(index, P1, R1, p1, max_d)
+            trial = (c1 + float(np.sum(info * xi1 * xi1)) / len(P), *rest)
             if trial[0] <= cost:
                 lam = max(lam / 4.0, LAMBDA_MIN)
                 break
@@ -165,11 +195,16 @@ def register_to_mesh(points, index: MeshIndex, R0=None, p0=None, max_distance_mm
         if lam > LAMBDA_MAX:
             converged = True
             break
-        R, p = R1, p1
+        R, p, xi, P = R1, p1, xi1, P1
         cost, X, r, pair, k = trial
         if np.linalg.norm(step[:3]) < STEP_TOL and np.linalg.norm(step[3:]) < STEP_TOL:
             converged = True
             break
     rmse = float(np.sqrt(np.mean(r[pair] ** 2))) if pair.any() else float("nan")
-    sd, axes = rotation_covariance(X[pair], index.normals[k[pair]], rmse) if pair.sum() >= 6 else (np.full(3, np.nan), np.eye(3))
-    return Registration(R, p, rmse, int(pair.sum()), it, converged, sd, axes)
+    if pair.sum() >= 6:
+        n = index.normals[k[pair]]
+        E = np.einsum("ia,ab,ibk->ik", n, R, A[pair]) if n_xi else None
+        sd, axes = rotation_covariance(X[pair], n, rmse, E, info * rmse ** 2 / s2 if n_xi else None)
+    else:
+        sd, axes = np.full(3, np.nan), np.eye(3)
+    return Registration(R, p, rmse, int(pair.sum()), it, converged, sd, axes, xi)

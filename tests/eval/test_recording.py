@@ -233,3 +233,27 @@ def test_a_bad_calibration_is_refused_before_any_work(tmp_path, capsys, content,
     out = tmp_path / "out"
     _refused(capsys, ["fit", "--recording", str(tmp_path / "missing"), "--out", str(out), "--calibration", str(cal)],
              out, match)
+
+
+def test_sensor_displacements_are_how_a_lateral_calibration_error_moves_each_point():
+    """eval.recording.fit.sensor_displacements against the beams of a sensor pose off by a
+    known error (0.02 and -0.01 mm across the beam, 0.1 and -0.05 deg of tilt): the point at
+    each distance moves by the displacements times the error, to the second order's
+    d x tilt^2 (15 mm x (2e-3 rad)^2 = 0.06 um)."""
+    from scipy.spatial.transform import Rotation
+
+    from eval.cli.calibrate import nominal_sensor
+    from eval.recording.fit import beams_W, sensor_displacements, sensor_frame
+    from models.calibration.plate import SensorPose
+
+    rng = np.random.default_rng(4)
+    Q = rng.uniform(-0.4, 0.4, (50, 6))
+    d = rng.uniform(3.0, 15.0, 50)
+    nominal = nominal_sensor()
+    R_FS = sensor_frame(nominal.u_F)
+    xi = np.array([0.02, -0.01, np.radians(0.1), np.radians(-0.05)])
+    true = SensorPose(nominal.p_FS + R_FS[:, :2] @ xi[:2], R_FS @ Rotation.from_rotvec([xi[2], xi[3], 0.0]).apply([0, 0, 1.0]))
+    (O, U), (O_t, U_t) = beams_W(nominal, Q), beams_W(true, Q)
+    moved = (O_t + d[:, None] * U_t) - (O + d[:, None] * U)
+    assert np.abs(moved).max() > 0.02  # the error moves the points by tens of um
+    assert np.allclose(sensor_displacements(nominal, Q, d) @ xi, moved, atol=1e-4)
