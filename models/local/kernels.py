@@ -271,7 +271,7 @@ def spread_departures(dirs, c0, gp, x, has, excess, reach, floor, cross, out):
     n = dirs.shape[0]
     for k in range(n):
         out[k] = excess[k] if has[k] != 0.0 else 0.0
-    chord = 2.0 * np.sin(0.5 * max(reach, cross))
+    chord_x, chord_r = 2.0 * np.sin(0.5 * cross), 2.0 * np.sin(0.5 * max(reach, cross))
     cos_r, cos_x = np.cos(reach), np.cos(cross)
     for k in range(n):
         if has[k] == 0.0:
@@ -279,7 +279,7 @@ def spread_departures(dirs, c0, gp, x, has, excess, reach, floor, cross, out):
         d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
         D = x[k, 0] - global_radius(c0, gp, d0, d1, d2)
         spread = abs(D) > floor
-        k0, k1 = band(n, d2, chord)
+        k0, k1 = band(n, d2, chord_r if spread else chord_x)  # the departure's reach only where there is one
         for j in range(k0, k1):
             c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
             if has[j] != 0.0:
