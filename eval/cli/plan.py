@@ -343,7 +343,10 @@ def plan_on_model(args, loop, build, scenario, visit, spec):
     # what the filter will bound the shaft with (the sphere if the ellipsoid is no eye's), as one rule: h - k u
     model = FieldModel(loop.filter.field_objects(trusted)[1], loop.config.filter.sigma_factor, trusted.kind)
     spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
-    boundary = spec.boundary_mm + least_uncertainty_mm(model, scenario.eye_pose, spec)
+    try:
+        boundary = spec.boundary_mm + least_uncertainty_mm(model, scenario.eye_pose, spec)
+    except ValueError as exc:  # the band leaves this model
+        raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
     if spec.standoff_mm < boundary + 0.2:
         raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
                          f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
