@@ -7,41 +7,40 @@ the instrument's way through the eye wall at the trocar and the moves between tr
 outside the eye are planned, timed and exported, not simulated.
 
 The model is built as the system would build it (spiral scan through the loop, through
-the first port; with --survey-mm, then a first sweep of the band that much deeper, whose
-A-scans the model takes in before the shaving is planned); each cell's reachability from each port, the assignment of cells to
-ports, the per-port sweeps and the port switches come from planning.multiport. Writes
+the first port; with --survey-mm, then --survey-passes sweeps of the band that much
+deeper, each planned on the model the one before left, whose A-scans the model takes in
+before the shaving is planned: eval.cli.plan_model); each cell's reachability from each
+port, the assignment of cells to ports, the per-port sweeps and the port switches come
+from planning.multiport. Writes
 plan.json (band coverage, per-port figures, switches, why cells are not reached,
 clearances, timing, the execution per phase and per pass), coverage.png (the band unrolled, each cell coloured by the port
 that swept it or the reason it was not reached), plan.mcap (the execution's log),
-plan_trajectory.csv and plan_trajectory/ (a ROS 2 bag, MCAP storage: one
+survey_<k>.mcap (each survey pass's log), plan_trajectory.csv and plan_trajectory/ (a ROS 2 bag, MCAP storage: one
 trajectory_msgs/JointTrajectory per port segment).
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
-import re
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
-from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
+from eval.cli.plan_model import flags_named, move_logs, plan_on_model, survey_band
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES
 from planning.ports import PARS_PLANA_MM
 
-# planning.peripheral.BandSpec's parameters (named in its messages) -> the flags that set them
-FLAG_OF_PARAMETER = {"spacing_mm": "--sweep-mm", "standoff_mm": "--standoff-mm", "tip_speed_mm_s": "--tip-speed-mm-s",
-                     "band z_E range": "--band", "z_min": "z0", "z_max": "z1", "z_min_E": "z0", "z_max_E": "z1",
-                     "trust_angle_deg": "--trust-angle-deg", "port_max_deg": "--port-angle-deg"}
-_PARAMETER = re.compile(r"\b(" + "|".join(sorted(map(re.escape, FLAG_OF_PARAMETER), key=len, reverse=True)) + r")\b")
 POSITIVE_MM = number(0.0, None, "mm", lo_open=True)
 POSITIVE_MM_S = number(0.0, None, "mm/s", lo_open=True)
 TRUST_ANGLE = number(0.0, 180.0, "deg", lo_open=True)
 PORT_ANGLE = number(0.0, 90.0, "deg", lo_open=True)
 SURVEY_MM = number(0.0, 3.0, "mm")
+SURVEY_PASSES = integer(1, 4)
 LIMBUS_MM = number(*PARS_PLANA_MM, "mm")  # the pars plana (planning.ports)
 
 
@@ -74,11 +73,6 @@ def port_list(text: str) -> tuple[str, ...]:
     if len(set(out)) != len(out):
         raise argparse.ArgumentTypeError(f"each port at most once, got {text!r}")
     return out
-
-
-def flags_named(message: str) -> str:
-    """`message` with planning's parameter names replaced by the flags that set them."""
-    return _PARAMETER.sub(lambda m: FLAG_OF_PARAMETER[m.group(1)], message)
 
 
 def band_range(text: str) -> tuple[float, float]:
@@ -132,6 +126,10 @@ def register(sub) -> None:
                    help="first sweep the band this much deeper than --standoff-mm through the same ports, filter on, "
                         "so that the fibre measures the band and the model takes it in; the shaving is then planned "
                         f"on that model. 0: no survey; {SURVEY_MM.range}")
+    p.add_argument("--survey-passes", type=SURVEY_PASSES, default=1,
+                   help="with --survey-mm: how many times to survey the band, each pass planned on the model the "
+                        "previous one left (a pass reaches band the model could not place before it), "
+                        f"{SURVEY_PASSES.range}")
     p.add_argument("--trust-angle-deg", type=TRUST_ANGLE, default=180.0,
                    help=f"during the shaving the filter trusts the model this far (from the eye centre, "
                         f"{TRUST_ANGLE.range}) from measured directions; beyond, the conservative prior also bounds the "
@@ -202,21 +200,15 @@ def main(args) -> int:
     loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=args.local_model,
                                           filter=default_filter(args.local_model)), sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
+    if args.survey_passes > 1 and not args.survey_mm:
+        raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")
     survey = None
-    if args.survey_mm:
-        deeper = dataclasses.replace(spec, standoff_mm=spec.standoff_mm + args.survey_mm)
-        *_, survey_spec, _, survey_plan = plan_on_model(args, loop, build, scenario, visit, deeper)
-        survey_passes = executed_passes(loop.robot, survey_plan)
-        with phase(f"surveying the band {deeper.standoff_mm:g} mm deep ({len(survey_passes)} passes through the "
-                   f"closed loop, the model taking in what the fibre measures): "
-                   f"{sum(p.duration_s for p in survey_passes):.0f} simulated s"):
-            run = loop.run_segments([p.segment() for p in survey_passes], model=build.model, coverage=build.coverage)
-        survey = {"standoff_mm": deeper.standoff_mm, "planned_cells": int((survey_plan.port_of >= 0).sum()),
-                  "duration_s": float(run.duration_s), "plan_time_s": survey_plan.plan_time_s,
-                  **execution_figures(loop.robot, run, survey_passes, survey_plan, survey_spec.spacing_mm,
-                                      loop.config.filter.d_safe_mm)}
-    trusted, model, spec, boundary, plan = plan_on_model(args, loop, build, scenario, visit, spec)
-    out = prepare_out_dir(args.out)
+    with tempfile.TemporaryDirectory(prefix="vitreoguard-survey-") as survey_logs:
+        if args.survey_mm:
+            survey = survey_band(args, loop, build, scenario, visit, spec, Path(survey_logs))
+        trusted, model, spec, boundary, plan = plan_on_model(args, loop, build, scenario, visit, spec)
+        out = prepare_out_dir(args.out)
+        survey_files = move_logs(Path(survey_logs), out)
     robot, band = loop.robot, plan.band
     shape2 = band.reason.shape
     with phase(f"sampling the {len(plan.segments)} passes' in-eye phases (insert, sweep, withdraw)"):
@@ -287,6 +279,10 @@ def main(args) -> int:
         for key in ("band_coverage", "planned_cells_swept", "min_true_clearance_mm", "violations",
                     "filter_intervention_fraction"):
             result[key] = executed[key]
+        if survey is not None:  # the whole surgery: the survey's passes and the shaving
+            result["filter_intervention_fraction_with_survey"] = (
+                (survey["intervened_steps"] + int(np.sum(run.intervened))) / (survey["steps"] + len(run.t)))
+            result["min_true_clearance_mm_with_survey"] = min(survey["min_true_clearance_mm"], executed["min_true_clearance_mm"])
         for k, p in enumerate(plan.ports):
             mine = plan.port_of == k
             result["ports"][p.name]["coverage"] = float(swept[mine].mean()) if mine.any() else None
@@ -311,50 +307,17 @@ def main(args) -> int:
         print(f"{key:30s} {v:.4g}" if isinstance(v, float) else f"{key:30s} {v}")
     print(f"unreachable                    {result['unreachable']}")
     if survey is not None:
-        print(f"survey    {survey['standoff_mm']:g} mm deep: band {survey['band_coverage']:.1%}, filter intervened in "
-              f"{survey['filter_intervention_fraction']:.2%} of steps, min true clearance "
-              f"{survey['min_true_clearance_mm']:.3f} mm, {survey['duration_s']:.1f} simulated s")
+        for k, f in enumerate(survey["passes"], 1):
+            print(f"survey {k}  {survey['standoff_mm']:g} mm deep on the {f['model_kind']}: band {f['band_coverage']:.1%}, "
+                  f"filter intervened in {f['filter_intervention_fraction']:.2%} of steps, min true clearance "
+                  f"{f['min_true_clearance_mm']:.3f} mm, {f['duration_s']:.1f} simulated s")
+        if "filter_intervention_fraction_with_survey" in result:
+            print(f"with the survey: filter intervened in {result['filter_intervention_fraction_with_survey']:.2%} of steps, "
+                  f"min true clearance {result['min_true_clearance_mm_with_survey']:.3f} mm")
     for name, f in result.get("phases", {}).items():
         print(f"{name:9s} executed {f['executed_s']:7.2f} s of {f['planned_s']:7.2f} planned, filter intervened in "
               f"{f['filter_intervention_fraction'] or 0.0:.2%} of steps, min true clearance "
               f"{'-' if f['min_true_clearance_mm'] is None else format(f['min_true_clearance_mm'], '.3f')} mm")
     print(f"wrote {out / 'plan.json'}, {out / 'coverage.png'}, {out / 'plan_trajectory.csv'}, {out / 'plan_trajectory'}"
-          + ("" if args.no_execute else f", {out / 'plan.mcap'}"))
+          + ("" if args.no_execute else f", {out / 'plan.mcap'}") + "".join(f", {f}" for f in survey_files))
     return 0
-
-
-def plan_on_model(args, loop, build, scenario, visit, spec):
-    """(the filter's snapshot of the model, the planning.field_model.FieldModel of the field it
-    bounds the shaft with, `spec` with its boundary (d_safe + calibration), the least boundary
-    over the band's targets (mm), the planning.multiport plan) on the model `build.model`
-    as it is now; UsageError when the filter does not trust it, the standoff lies below its
-    boundary, or no cell can be swept."""
-    from eval.closed_loop import semi_axes_mm
-    from planning.field_model import FieldModel, least_uncertainty_mm
-    from planning.ik import IKFailure
-    from planning.multiport import plan_ports
-
-    trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
-    if (trusted.field if args.local_model else trusted.shape) is None:
-        radii = semi_axes_mm(build.model.shape)
-        raise UsageError(f"cannot plan: the filter does not trust this {build.kind_final} model (semi-axes "
-                         f"{', '.join(f'{r:.1f}' for r in radii)} mm; an eye's lie in {loop.config.model_radius_range_mm} "
-                         f"mm) and would hold the instrument inside the conservative prior, away from the band")
-    # what the filter will bound the shaft with (the sphere if the ellipsoid is no eye's), as one rule: h - k u
-    model = FieldModel(loop.filter.field_objects(trusted)[1], loop.config.filter.sigma_factor, trusted.kind)
-    spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
-    try:
-        boundary = spec.boundary_mm + least_uncertainty_mm(model, scenario.eye_pose, spec)
-    except ValueError as exc:  # the band leaves this model
-        raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
-    if spec.standoff_mm < boundary + 0.2:
-        raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
-                         f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
-                         f"stepping in); use at least {boundary + 0.2:.2f} mm")
-    try:
-        with phase(f"planning the band {spec.standoff_mm:g} mm deep through {len(visit)} ports (reachability, "
-                   f"assignment, sweeps, switches)"):
-            plan = plan_ports(loop.robot, scenario, model, visit, spec)
-    except (ValueError, IKFailure) as exc:
-        raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
-    return trusted, model, spec, boundary, plan

@@ -156,15 +156,20 @@ def swept_cells(band, ports_W: np.ndarray, sweep_mm: float) -> np.ndarray:
     return (d <= 0.5 * sweep_mm).reshape(band.reason.shape)
 
 
+def sweep_ports_W(robot, run, passes: list[ExecutedPass]) -> np.ndarray:
+    """(K, 3) mm: where the cutter port was (frame W) at every 5th control step of the
+    `run` of `passes` spent in a sweep (what swept_cells takes)."""
+    _, step_phase = step_phases(run, passes)
+    return np.array([robot.pose("P", q)[1] for q in run.q[step_phase == "sweep"][::5]]).reshape(-1, 3)
+
+
 def execution_figures(robot, run, passes: list[ExecutedPass], plan, sweep_mm: float, d_safe_mm: float) -> dict:
     """What the closed-loop `run` of the plan's `passes` did: `swept` (n_rings, n_az) bool (the
     cutter port within half a sweep width `sweep_mm` of the cell's target during the
     sweeps), `band_coverage` (fraction of all the band's cells swept), `planned_cells_swept`,
     `min_true_clearance_mm`, `violations` (steps more than 0.05 mm inside d_safe_mm of the
     true retina), `filter_intervention_fraction`, `failsafe_stops`."""
-    _, step_phase = step_phases(run, passes)
-    ports_W = np.array([robot.pose("P", q)[1] for q in run.q[step_phase == "sweep"][::5]])
-    swept = swept_cells(plan.band, ports_W, sweep_mm)
+    swept = swept_cells(plan.band, sweep_ports_W(robot, run, passes), sweep_mm)
     planned = plan.port_of >= 0
     return {"swept": swept, "band_coverage": float(swept.mean()),
             "planned_cells_swept": float(swept[planned].mean()) if planned.any() else None,

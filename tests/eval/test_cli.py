@@ -63,7 +63,7 @@ BAD_NUMBERS = [
     ("plan", "--tip-speed-mm-s", "0", "> 0 mm/s"), ("plan", "--trust-angle-deg", "181", "(0, 180] deg"),
     ("plan", "--band", "5,0", "z0 < z1"), ("plan", "--band", "1", "'z0,z1' in mm"), ("plan", "--seed", "-2", "[0, "),
     ("plan", "--port-angle-deg", "91", "(0, 90] deg"), ("plan", "--port-limbus-mm", "2.9", "[3, 5] mm"),
-    ("plan", "--survey-mm", "3.1", "[0, 3] mm"),
+    ("plan", "--survey-mm", "3.1", "[0, 3] mm"), ("plan", "--survey-passes", "5", "[1, 4]"),
     ("calibrate", "--poses", "9", "[10, 10000]"), ("calibrate", "--noise-um", "-1", "[0, 500] um"),
     ("calibrate", "--offset-um", "inf", "[0, 500] um"), ("calibrate", "--tilt-deg", "6", "[0, 5] deg"),
     ("calibrate", "--seed", "-1", f"[0, {SEED_MAX}]"),

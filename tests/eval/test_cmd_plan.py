@@ -83,7 +83,8 @@ def test_the_ros2_bag_holds_one_joint_trajectory_per_port_segment(planned):
     (["--port-clock", "superonasal=0.5"], "[1, 12]"), (["--port-clock", "lateral=3"], "unknown port"),
     (["--port-limbus-mm", "2"], "--port-limbus-mm: must be a number in [3, 5] mm"), (["--port-limbus-mm", "6.5"], "[3, 5] mm"),
     (["--side", "middle"], "unknown eye side"), (["--survey-mm", "3.5"], "--survey-mm: must be a number in [0, 3] mm"),
-    (["--survey-mm", "-1"], "--survey-mm")])
+    (["--survey-mm", "-1"], "--survey-mm"), (["--survey-passes", "0"], "--survey-passes: must be an integer in [1, 4]"),
+    (["--survey-passes", "2"], "--survey-passes needs --survey-mm above 0 mm")])
 def test_bad_plans_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
     out = tmp_path / "never"
     assert main(["plan", "--out", str(out), "--no-execute", *argv]) == 2
@@ -125,16 +126,30 @@ def test_every_reason_a_cell_can_get_has_a_colour_in_the_coverage_map():
 
 
 def test_a_survey_sweeps_the_band_deeper_before_the_plan_is_made(tmp_path):
-    """`--survey-mm 1`: the band (rings 0 and 1 mm) is first swept 1 mm deeper than the
-    2 mm standoff, filter on, through the closed loop against the true eye; plan.json
-    reports that pass: its depth, its cells, how much of the band it swept, and its true
-    clearance (the default boundary, 0.5 mm, kept: 0 violations)."""
+    """`--survey-mm 1 --survey-passes 2`: the band (rings 0 and 1 mm) is first swept twice
+    1 mm deeper than the 2 mm standoff, filter on, through the closed loop against the true
+    eye, the second pass planned on the model the first left; plan.json reports each pass
+    (its cells, how much of the band it swept, its true clearance: the default boundary,
+    0.5 mm, kept: 0 violations) and the survey as a whole (the last model's band swept by either pass, the
+    interventions over both passes' steps); each pass's log is written beside plan.json."""
+    from mcap.reader import make_reader
+
     out = tmp_path / "plan"
-    assert main(["plan", "--out", str(out), "--band", "0,1", "--standoff-mm", "2", "--survey-mm", "1", "--no-execute"]) == 0
+    assert main(["plan", "--out", str(out), "--band", "0,1", "--standoff-mm", "2", "--survey-mm", "1",
+                 "--survey-passes", "2", "--no-execute"]) == 0
     r = json.loads((out / "plan.json").read_text())
     s = r["survey"]
-    assert s["standoff_mm"] == pytest.approx(3.0) and s["planned_cells"] > 0.5 * r["cells"]
-    assert s["planned_cells_swept"] == 1.0 and s["band_coverage"] >= s["planned_cells"] / r["cells"] - 1e-9
-    assert s["duration_s"] > 0
-    assert s["violations"] == 0 and s["min_true_clearance_mm"] >= 0.5 and s["failsafe_stops"] == 0
+    assert s["standoff_mm"] == pytest.approx(3.0) and len(s["passes"]) == 2
+    for p in s["passes"]:
+        assert p["planned_cells"] > 0.5 * r["cells"] and p["planned_cells_swept"] == 1.0
+        assert p["band_coverage"] >= p["planned_cells"] / r["cells"] - 1e-9 and p["duration_s"] > 0
+        assert p["violations"] == 0 and p["min_true_clearance_mm"] >= 0.5 and p["failsafe_stops"] == 0
+        assert p["filter_intervention_fraction"] == pytest.approx(p["intervened_steps"] / p["steps"])
+    assert s["band_coverage"] >= s["passes"][-1]["band_coverage"] - 1e-12  # the last model's band, by either pass
+    assert s["steps"] == sum(p["steps"] for p in s["passes"])
+    assert s["duration_s"] == pytest.approx(sum(p["duration_s"] for p in s["passes"]))
+    assert s["min_true_clearance_mm"] == min(p["min_true_clearance_mm"] for p in s["passes"])
+    for k in (1, 2):
+        with open(out / f"survey_{k}.mcap", "rb") as f:
+            assert sum(1 for _ in make_reader(f).iter_messages(topics=["/filter/step"])) > 0
     assert r["min_true_clearance_mm"] is None  # the shaving itself not executed
