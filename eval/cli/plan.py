@@ -252,6 +252,7 @@ def main(args) -> int:
         "path_length_mm": float(sum(np.linalg.norm(np.diff(p.tips_W[m], axis=0), axis=1).sum() for p, m in zip(passes, sweeping))),
         "min_joint_margin_deg": float(np.degrees(min(robot.joint_margin_rad(q).min() for q in all_Q))),
         "filter_intervention_fraction": None,
+        "sweep_true_depth_mm": None,
         "plan_time_s": plan.plan_time_s,
         "shape": args.shape, "eye_params": args.eye_params, "side": args.side, "model_kind": trusted.kind,
         "fitted_kind": build.kind_final,
@@ -274,10 +275,10 @@ def main(args) -> int:
                 execution_wall_s = time.perf_counter() - t0
         d_safe = loop.config.filter.d_safe_mm
         figs = phase_figures(robot, run, passes, d_safe)
-        executed = execution_figures(robot, run, passes, plan, spec.spacing_mm, d_safe)
+        executed = execution_figures(robot, run, passes, plan, spec.spacing_mm, d_safe, loop.scenario.eye)
         swept = executed.pop("swept")
         for key in ("band_coverage", "planned_cells_swept", "min_true_clearance_mm", "violations",
-                    "filter_intervention_fraction"):
+                    "filter_intervention_fraction", "sweep_true_depth_mm"):
             result[key] = executed[key]
         if survey is not None:  # the whole surgery: the survey's passes and the shaving
             result["filter_intervention_fraction_with_survey"] = (
@@ -306,6 +307,9 @@ def main(args) -> int:
         v = result[key]
         print(f"{key:30s} {v:.4g}" if isinstance(v, float) else f"{key:30s} {v}")
     print(f"unreachable                    {result['unreachable']}")
+    if result["sweep_true_depth_mm"] is not None:
+        d = result["sweep_true_depth_mm"]
+        print(f"shaved at (true retina, mm)    p5 {d['p5']:.3f}, median {d['median']:.3f}, p95 {d['p95']:.3f}")
     if survey is not None:
         for k, f in enumerate(survey["passes"], 1):
             print(f"survey {k}  {survey['standoff_mm']:g} mm deep on the {f['model_kind']}: band {f['band_coverage']:.1%}, "

@@ -94,7 +94,8 @@ def survey_band(args, loop, build, scenario, visit, spec, log_dir: Path) -> dict
                            metadata={"shape": args.shape, "run": f"survey pass {k}"}) as log:
                 run = loop.run_segments([p.segment() for p in executed], model=build.model, coverage=build.coverage,
                                         logger=log)
-        figures = execution_figures(loop.robot, run, executed, plan, survey_spec.spacing_mm, loop.config.filter.d_safe_mm)
+        figures = execution_figures(loop.robot, run, executed, plan, survey_spec.spacing_mm, loop.config.filter.d_safe_mm,
+                                    loop.scenario.eye)
         figures.pop("swept")
         ports_W.append(sweep_ports_W(loop.robot, run, executed))
         passes.append({"model_kind": trusted.kind, "planned_cells": int((plan.port_of >= 0).sum()),

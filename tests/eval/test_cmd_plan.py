@@ -145,6 +145,7 @@ def test_a_survey_sweeps_the_band_deeper_before_the_plan_is_made(tmp_path):
         assert p["band_coverage"] >= p["planned_cells"] / r["cells"] - 1e-9 and p["duration_s"] > 0
         assert p["violations"] == 0 and p["min_true_clearance_mm"] >= 0.5 and p["failsafe_stops"] == 0
         assert p["filter_intervention_fraction"] == pytest.approx(p["intervened_steps"] / p["steps"])
+        assert p["sweep_true_depth_mm"]["median"] == pytest.approx(3.0, abs=0.15)  # the emmetropic model is exact
     assert s["band_coverage"] >= s["passes"][-1]["band_coverage"] - 1e-12  # the last model's band, by either pass
     assert s["steps"] == sum(p["steps"] for p in s["passes"])
     assert s["duration_s"] == pytest.approx(sum(p["duration_s"] for p in s["passes"]))
