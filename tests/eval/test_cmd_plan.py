@@ -131,12 +131,13 @@ def test_a_survey_sweeps_the_band_deeper_before_the_plan_is_made(tmp_path):
     eye, the second pass planned on the model the first left; plan.json reports each pass
     (its cells, how much of the band it swept, its true clearance: the default boundary,
     0.5 mm, kept: 0 violations) and the survey as a whole (the last model's band swept by either pass, the
-    interventions over both passes' steps); each pass's log is written beside plan.json."""
+    interventions over both passes' steps) and the whole surgery (survey and shaving);
+    each pass's log is written beside plan.json."""
     from mcap.reader import make_reader
 
     out = tmp_path / "plan"
     assert main(["plan", "--out", str(out), "--band", "0,1", "--standoff-mm", "2", "--survey-mm", "1",
-                 "--survey-passes", "2", "--no-execute"]) == 0
+                 "--survey-passes", "2"]) == 0
     r = json.loads((out / "plan.json").read_text())
     s = r["survey"]
     assert s["standoff_mm"] == pytest.approx(3.0) and len(s["passes"]) == 2
@@ -153,4 +154,8 @@ def test_a_survey_sweeps_the_band_deeper_before_the_plan_is_made(tmp_path):
     for k in (1, 2):
         with open(out / f"survey_{k}.mcap", "rb") as f:
             assert sum(1 for _ in make_reader(f).iter_messages(topics=["/filter/step"])) > 0
-    assert r["min_true_clearance_mm"] is None  # the shaving itself not executed
+    steps = s["steps"] + r["execution"]["steps"]  # the whole surgery: both survey passes and the shaving
+    intervened = s["intervened_steps"] + r["filter_intervention_fraction"] * r["execution"]["steps"]
+    assert r["filter_intervention_fraction_with_survey"] == pytest.approx(intervened / steps)
+    assert r["min_true_clearance_mm_with_survey"] == min(s["min_true_clearance_mm"], r["min_true_clearance_mm"])
+    assert r["sweep_true_depth_mm"]["median"] == pytest.approx(2.0, abs=0.15) and r["violations"] == 0
