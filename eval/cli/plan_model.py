@@ -79,7 +79,7 @@ def survey_band(args, loop, build, scenario, visit, spec, log_dir: Path) -> dict
     pass's model that any pass swept),
     `filter_intervention_fraction`, `steps`, `intervened_steps`, `min_true_clearance_mm`,
     `violations`, `failsafe_stops`, `duration_s`. UsageError as plan_on_model."""
-    from eval.experiments.plan_execution import execution_figures, executed_passes, swept_cells, sweep_ports_W
+    from eval.experiments.plan_execution import execution_figures, executed_passes, swept_cells
     from eval.log.writer import RunLogger
 
     deeper = dataclasses.replace(spec, standoff_mm=spec.standoff_mm + args.survey_mm)
@@ -97,7 +97,7 @@ def survey_band(args, loop, build, scenario, visit, spec, log_dir: Path) -> dict
         figures = execution_figures(loop.robot, run, executed, plan, survey_spec.spacing_mm, loop.config.filter.d_safe_mm,
                                     loop.scenario.eye)
         figures.pop("swept")
-        ports_W.append(sweep_ports_W(loop.robot, run, executed))
+        ports_W.append(figures.pop("sweep_ports_W"))
         passes.append({"model_kind": trusted.kind, "planned_cells": int((plan.port_of >= 0).sum()),
                        "plan_time_s": plan.plan_time_s, "duration_s": float(run.duration_s), "steps": int(len(run.t)),
                        "intervened_steps": int(np.sum(run.intervened)), **figures})

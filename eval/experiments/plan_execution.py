@@ -166,7 +166,7 @@ def sweep_ports_W(robot, run, passes: list[ExecutedPass]) -> np.ndarray:
 def execution_figures(robot, run, passes: list[ExecutedPass], plan, sweep_mm: float, d_safe_mm: float, eye) -> dict:
     """What the closed-loop `run` of the plan's `passes` did: `swept` (n_rings, n_az) bool (the
     cutter port within half a sweep width `sweep_mm` of the cell's target during the
-    sweeps), `band_coverage` (fraction of all the band's cells swept), `planned_cells_swept`,
+    sweeps), `sweep_ports_W` (sweep_ports_W's), `band_coverage` (fraction of all the band's cells swept), `planned_cells_swept`,
     `min_true_clearance_mm`, `violations` (steps more than 0.05 mm inside d_safe_mm of the
     true retina), `filter_intervention_fraction`, `failsafe_stops`, and
     `sweep_true_depth_mm` (p5, median, p95 of the cutter port's distance from the TRUE
@@ -176,7 +176,7 @@ def execution_figures(robot, run, passes: list[ExecutedPass], plan, sweep_mm: fl
     swept = swept_cells(plan.band, ports_W, sweep_mm)
     planned = plan.port_of >= 0
     depth = eye.signed_distance(ports_W) if len(ports_W) else None
-    return {"swept": swept, "band_coverage": float(swept.mean()),
+    return {"swept": swept, "sweep_ports_W": ports_W, "band_coverage": float(swept.mean()),
             "planned_cells_swept": float(swept[planned].mean()) if planned.any() else None,
             "min_true_clearance_mm": float(run.true_clearance_mm.min()),
             "violations": int(np.sum(run.true_clearance_mm < d_safe_mm - 0.05)),
