@@ -46,8 +46,9 @@ class LocalField(KernelQueries):
         return cls(head, "none")
 
     def with_fallback(self, sigma_factor: float, fallback) -> LocalField:
-        """A copy whose points answer the `fallback` Sphere (inside every retina) wherever it
-        allows more than the model's h - sigma_factor x sigma (local_field)."""
+        """The barrier's form: a copy whose points answer the `fallback` Sphere (inside every
+        retina) wherever it allows more than the model's h - sigma_factor x sigma, and
+        whose gradient elsewhere is that of h - sigma_factor x sigma (local_field)."""
         params = self.params.copy()
         params[BOUND:HEAD] = [sigma_factor, *np.asarray(fallback.center, dtype=float), float(fallback.radius)]
         return LocalField(params, self.kind)

@@ -89,10 +89,14 @@ def local_field(fp, P):
     the first-order signed distance F / |grad F| of F = R(u) - |p - c0| (the tangential
     gradient of R by central differences of 1e-4 rad), g = grad F / |grad F|, u the
     blended standard deviation. With a fallback sphere (a conservative prior inside every
-    retina) and the barrier's k, a point answers the sphere's distance and no uncertainty
-    wherever that allows more than h - k u (each is a bound on the true clearance; the
-    larger holds). NaN and +inf for a non-finite point; +inf, 0, 0 everywhere for the field
-    without a boundary (local flag -1)."""
+    retina) and the barrier's k (the barrier's form, LocalField.with_fallback), a point
+    answers the sphere's distance and no uncertainty wherever that allows more than
+    h - k u (each is a bound on the true clearance; the larger holds), and elsewhere g is
+    the gradient of the bound h - k u itself, g - k grad u (not a unit vector): the
+    barrier's rate row then holds the bound's own rate, so a point moving along the
+    surface towards directions the model knows less of (u growing) is held back as much
+    as one moving towards the surface. NaN and +inf for a non-finite point; +inf, 0, 0
+    everywhere for the field without a boundary (local flag -1)."""
     M = P.shape[0]
     if fp[2] < 0.0:  # no boundary
         return np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M)
@@ -114,37 +118,54 @@ def local_field(fp, P):
         R0, sd = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
         e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
         grad0, grad1, grad2 = 0.0, 0.0, 0.0
+        gs0, gs1, gs2 = 0.0, 0.0, 0.0  # grad of the sd (it depends on the direction alone)
         for s in range(2):
             a0, a1, a2 = (e10, e11, e12) if s == 0 else (e20, e21, e22)
             w0, w1, w2 = u0 + eps * a0, u1 + eps * a1, u2 + eps * a2
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-            Rp = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)[0]
+            Rp, Sp = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            if local == 0.0:
+                Sp = _global_form_sd(Sp, Rp, c0, gp, w0 / q, w1 / q, w2 / q)
             w0, w1, w2 = u0 - eps * a0, u1 - eps * a1, u2 - eps * a2
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-            Rm = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)[0]
+            Rm, Sm = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            if local == 0.0:
+                Sm = _global_form_sd(Sm, Rm, c0, gp, w0 / q, w1 / q, w2 / q)
             dR = (Rp - Rm) / (2.0 * eps)  # mm per rad along the tangent a
+            dS = (Sp - Sm) / (2.0 * eps)
             grad0 += dR * a0 / r
             grad1 += dR * a1 / r
             grad2 += dR * a2 / r
+            gs0, gs1, gs2 = gs0 + dS * a0 / r, gs1 + dS * a1 / r, gs2 + dS * a2 / r
         grad0, grad1, grad2 = grad0 - u0, grad1 - u1, grad2 - u2  # grad of R(u) - r
         gn = np.sqrt(grad0 * grad0 + grad1 * grad1 + grad2 * grad2)
         if local == 0.0:  # the global surface, uncertain by the local estimate's disagreement too
-            rg = global_radius(c0, gp, u0, u1, u2)
-            sd = np.sqrt(sd * sd + (R0 - rg) * (R0 - rg))
-            R0 = rg
+            sd = _global_form_sd(sd, R0, c0, gp, u0, u1, u2)
+            R0 = global_radius(c0, gp, u0, u1, u2)
             grad0, grad1, grad2 = _global_gradient(c0, gp, u0, u1, u2, r, e10, e11, e12, e20, e21, e22, eps)
             gn = np.sqrt(grad0 * grad0 + grad1 * grad1 + grad2 * grad2)
         h[m] = (R0 - r) / gn
         g[m, 0], g[m, 1], g[m, 2] = grad0 / gn, grad1 / gn, grad2 / gn
         u[m] = sd
         rp = fp[BOUND + 4]
-        if rp > 0.0:  # the fallback sphere, inside every retina: a bound of its own, with no uncertainty
+        if rp > 0.0:  # the barrier's form: the gradient of h - k u, or the fallback sphere's bound
+            k = fp[BOUND]
             w0, w1, w2 = fp[BOUND + 1] - P[m, 0], fp[BOUND + 2] - P[m, 1], fp[BOUND + 3] - P[m, 2]
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-            if rp - q > h[m] - fp[BOUND] * sd and q > 0.0:
+            if rp - q > h[m] - k * sd and q > 0.0:  # the sphere, inside every retina: no uncertainty
                 h[m], u[m] = rp - q, 0.0
                 g[m, 0], g[m, 1], g[m, 2] = w0 / q, w1 / q, w2 / q
+            else:
+                g[m, 0], g[m, 1], g[m, 2] = g[m, 0] - k * gs0, g[m, 1] - k * gs1, g[m, 2] - k * gs2
     return h, g, u
+
+
+@njit(cache=True, inline="always")
+def _global_form_sd(sd, R, c0, gp, u0, u1, u2):
+    """The sd of the global surface at the unit direction u where the blended field has
+    radius R and sd `sd`: uncertain by the local estimate's disagreement with it too."""
+    rg = global_radius(c0, gp, u0, u1, u2)
+    return np.sqrt(sd * sd + (R - rg) * (R - rg))
 
 
 @njit(cache=True, inline="always")

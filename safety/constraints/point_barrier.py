@@ -5,8 +5,10 @@ kept side), its unit gradient and its uncertainty u(p) (mm). The point must keep
 h >= h_min = d_safe + k u + c, with c the declared bound of the sensor calibration's
 error on the model (`calibration_mm`: a model built from the points of a mis-calibrated
 sensor lies off the retina by up to c: FilterConfig.calibration_margin_mm). A control barrier row
-enforces it at the joint-velocity level: dh/dt = grad . J_p qdot >= -gain (h - h_min)
-(gain 1/s). Below h_min (a model update can move the boundary past a point) the point
+enforces it at the joint-velocity level: grad . J_p qdot >= -gain (h - h_min) (gain 1/s),
+grad the field's gradient: the distance's, or, where u varies over space (the local
+model's barrier form, models.local.field_kernels.local_field), that of h - k u, so
+that the row holds the rate of the bound itself. Below h_min (a model update can move the boundary past a point) the point
 must recover at gain (h_min - h), capped at `max_recovery_mm_s`, a rate the speed
 limits can give, so that the QP stays feasible instead of refusing every step.
 
