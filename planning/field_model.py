@@ -78,14 +78,12 @@ def retina_of(model):
     return model.retina if isinstance(model, FieldModel) else model
 
 
-def least_uncertainty_mm(model, eye_pose, spec) -> float:
-    """k u (mm) least over the shaving targets of the band `spec` (planning.peripheral.BandSpec)
-    of `model`: what the filter's boundary adds to spec.boundary_mm at the best cell (0 for a
-    shape without uncertainty). ValueError when the band leaves the model."""
+def least_uncertainty_mm(model, surface, standoff_mm: float) -> float:
+    """k u (mm) least over the shaving targets `standoff_mm` inside the band `surface`
+    (planning.peripheral.band_surface of `model`): what the filter's boundary adds to the
+    spec's boundary_mm at the best cell (0 for a shape without uncertainty)."""
     if not isinstance(model, FieldModel):
         return 0.0
-    from planning.peripheral import band_surface
-
-    _, _, S, N = band_surface(model, eye_pose, spec)
-    T = (S + spec.standoff_mm * N).reshape(-1, 3)
+    _, _, S, N = surface
+    T = (S + standoff_mm * N).reshape(-1, 3)
     return float(model.sigma_factor * np.min(model.uncertainty(T)))

@@ -255,14 +255,15 @@ def _reversed(traj: PiecewisePolynomial) -> PiecewisePolynomial:
     return PiecewisePolynomial.CubicShapePreserving(t[-1] - t[::-1], Q[::-1].T, zero_end_point_derivatives=True)
 
 
-def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec()) -> MultiPortPlan:
+def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec(), surface=None) -> MultiPortPlan:
     """Plan the band of `model` through `ports` (planning.ports.Port, in visiting order;
-    each named in scenario.ports). ValueError for a bad band or an unknown port,
-    IKFailure when no port sweeps any cell."""
+    each named in scenario.ports); `surface`: the band's planning.peripheral.band_surface
+    of `model` when the caller has it (else computed here). ValueError for a bad band or
+    an unknown port, IKFailure when no port sweeps any cell."""
     t0 = time.perf_counter()
     ports = tuple(ports)
     trocars = [scenario.p_WC_of(p.name) for p in ports]  # ValueError for an unknown port
-    az, z, S, N = band_surface(model, scenario.eye_pose, spec)
+    az, z, S, N = band_surface(model, scenario.eye_pose, spec) if surface is None else surface
     shape = S.shape[:2]
     T = S + spec.standoff_mm * N
     Tf, Nf = T.reshape(-1, 3), N.reshape(-1, 3)

@@ -42,6 +42,7 @@ def plan_on_model(args, loop, build, scenario, visit, spec):
     from planning.field_model import FieldModel, least_uncertainty_mm
     from planning.ik import IKFailure
     from planning.multiport import plan_ports
+    from planning.peripheral import band_surface
 
     trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
     if (trusted.field if args.local_model else trusted.shape) is None:
@@ -53,9 +54,10 @@ def plan_on_model(args, loop, build, scenario, visit, spec):
     model = FieldModel(loop.filter.field_objects(trusted)[1], loop.config.filter.sigma_factor, trusted.kind)
     spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
     try:
-        boundary = spec.boundary_mm + least_uncertainty_mm(model, scenario.eye_pose, spec)
+        surface = band_surface(model, scenario.eye_pose, spec)
     except ValueError as exc:  # the band leaves this model
         raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
+    boundary = spec.boundary_mm + least_uncertainty_mm(model, surface, spec.standoff_mm)
     if spec.standoff_mm < boundary + 0.2:
         raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
                          f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
@@ -63,7 +65,7 @@ def plan_on_model(args, loop, build, scenario, visit, spec):
     try:
         with phase(f"planning the band {spec.standoff_mm:g} mm deep through {len(visit)} ports (reachability, "
                    f"assignment, sweeps, switches)"):
-            plan = plan_ports(loop.robot, scenario, model, visit, spec)
+            plan = plan_ports(loop.robot, scenario, model, visit, spec, surface)
     except (ValueError, IKFailure) as exc:
         raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
     return trusted, model, spec, boundary, plan

@@ -11,7 +11,7 @@ from models import Ellipsoid, Sphere
 from models.adaptive.model_field import ModelField
 from models.local.field import LocalField
 from planning.field_model import FieldModel, least_uncertainty_mm, retina_of
-from planning.peripheral import BandSpec, cell_reach
+from planning.peripheral import BandSpec, band_surface, cell_reach
 
 
 def _unit(v):
@@ -60,6 +60,7 @@ def test_cells_whose_target_the_uncertainty_reaches_are_uncertain(setup):
     for m, uncertain in ((0.2, False), (0.3, True)):
         reasons, _, _ = cell_reach(robot, scenario, T, N, spec, model=FieldModel(ModelField(ell, m), 1.0))
         assert (reasons == "uncertain").all() == uncertain and ((reasons == "uncertain").any() == uncertain)
-    assert least_uncertainty_mm(FieldModel(ModelField(ell, 0.3), 2.0), scenario.eye_pose, spec) == pytest.approx(0.6)
-    assert least_uncertainty_mm(ell, scenario.eye_pose, spec) == 0.0
+    fm = FieldModel(ModelField(ell, 0.3), 2.0)
+    assert least_uncertainty_mm(fm, band_surface(fm, scenario.eye_pose, spec), spec.standoff_mm) == pytest.approx(0.6)
+    assert least_uncertainty_mm(ell, band_surface(ell, scenario.eye_pose, spec), spec.standoff_mm) == 0.0
 
