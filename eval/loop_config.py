@@ -17,23 +17,13 @@ from safety.margins import UncertaintyMargins
 # holds 99.87 % of a normal error one-sided, and the measured 3-sigma coverage of the true
 # retina (boundary.json: model.sigma3_coverage) checks it
 LOCAL_SIGMA_FACTOR = 3.0
-# how fast a point the local model's update has left inside its margin may slide along the
-# surface while it backs out (safety.constraints.point_barrier): the update that leaves it
-# there can move the bound 0.5 mm (a detachment's flank, measured), which the capped
-# recovery (5 mm/s) undoes in 0.1 s; at 0.5 mm/s in each of two directions the point slides
-# 0.07 mm meanwhile, against the 0.05 mm the violation count allows below d_safe, on a
-# surface whose normal may be off the true one by up to 70 deg (the same flank)
-LOCAL_RECOVERY_SLIDE_MM_S = 0.5
 
 
 def default_filter(local_model: bool) -> FilterConfig:
     """The loop's filter settings by model: k = LOCAL_SIGMA_FACTOR on the local-global model's
-    sigma and a recovering point's slide bounded (LOCAL_RECOVERY_SLIDE_MM_S); FilterConfig's
-    own k = 1 on the quadric model's coverage misfit (its phase margins hold the rest of its
-    uncertainty)."""
-    if local_model:
-        return FilterConfig(sigma_factor=LOCAL_SIGMA_FACTOR, max_recovery_slide_mm_s=LOCAL_RECOVERY_SLIDE_MM_S)
-    return FilterConfig()
+    sigma, FilterConfig's own k = 1 on the quadric model's coverage misfit (its phase margins
+    hold the rest of its uncertainty)."""
+    return FilterConfig(sigma_factor=LOCAL_SIGMA_FACTOR) if local_model else FilterConfig()
 
 
 @dataclass(frozen=True)

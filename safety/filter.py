@@ -39,8 +39,7 @@ def default_constraints(config: FilterConfig, q_min, q_max, qdot_max, retina_gro
                                config.joint_margin_rad)]
     for group, field, always in retina_groups:
         out.append(PointBarrier(group, field, config.d_safe_mm, config.gain_per_s, config.max_recovery_mm_s, reach,
-                                always, config.sigma_factor, calibration_mm=config.calibration_margin_mm,
-                                max_slide_mm_s=config.max_recovery_slide_mm_s))
+                                always, config.sigma_factor, calibration_mm=config.calibration_margin_mm))
     if lens_group is not None:
         out.append(KeepOut(lens_group[0], lens_group[1], config.lens_margin_mm, config.gain_per_s,
                            config.max_recovery_mm_s, reach))

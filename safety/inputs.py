@@ -32,7 +32,6 @@ class FilterConfig:
     max_sensor_age_s: float = 0.045  # + a 1 ms control period: a stream fault stops within 46 ms (planning.iioct.stream)
     cutter_clearance_mm: float = 1.0
     max_recovery_mm_s: float = 5.0
-    max_recovery_slide_mm_s: float = np.inf  # a recovering point's speed along the surface (safety.constraints.point_barrier)
     solver: str = "daqp"  # fastest on this QP (bench_safety); "clarabel" also works
     sigma_factor: float = 1.0  # k of the retina barrier's d_safe + k u (u: the field's uncertainty, mm)
     calibration_bound_mm: float = 0.03
@@ -50,8 +49,6 @@ class FilterConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"FilterConfig.{name} must be finite and >= 0, got {v}")
-        if not self.max_recovery_slide_mm_s > 0:
-            raise ValueError(f"FilterConfig.max_recovery_slide_mm_s must be > 0 (inf: no bound), got {self.max_recovery_slide_mm_s}")
         if not (np.isfinite(self.calibration_bound_deg) and 0.0 <= self.calibration_bound_deg < 45.0):
             raise ValueError(f"FilterConfig.calibration_bound_deg must be in [0, 45) deg, got {self.calibration_bound_deg}")
 

@@ -50,38 +50,6 @@ def test_a_point_barrier_row_is_the_barrier_condition():
     assert h[0] == -5.0
 
 
-@given(gx=st.floats(-1, 1), gy=st.floats(-1, 1), gz=st.floats(-1, 1), inside=st.booleans())
-def test_a_recovering_point_slides_at_most_the_bound_along_the_surface(gx, gy, gz, inside):
-    """With max_slide_mm_s, a point inside its margin gets four rows more: its speed along
-    two directions perpendicular to the gradient (and to each other) within +-max_slide.
-    So every velocity the rows allow has a tangential part of at most sqrt(2) x max_slide,
-    and the barrier row's outward speed is untouched; a point outside its margin gets none."""
-    g = np.array([gx, gy, gz])
-    if np.linalg.norm(g) < 0.1:
-        g = np.array([0.0, 0.0, 1.0])
-    g /= np.linalg.norm(g)
-    b = PointBarrier("g", "f", d_safe_mm=0.5, max_slide_mm_s=0.5)
-    assert b.max_rows(2) == 10 and b.row_name(6, ("tip", "port")) == "boundary:port slide"
-    assert b.row_name(5, ("tip", "port")) == "boundary:port"
-    G, h, ids = buffers(10, 3)
-    m = fill_point_barrier(b.params(), np.zeros((1, 3)), np.eye(3)[None], 0, 1, np.array([0.2 if inside else 2.0]),
-                           g[None], np.zeros(1), G, h, ids, 0, 10, np.zeros(1))
-    if not inside:
-        assert m == 1 and ids[0] == 10
-        return
-    assert m == 5 and list(ids[:5]) == [10, 11, 12, 13, 14]
-    T = G[1:5]
-    np.testing.assert_allclose(T @ g, 0.0, atol=1e-12)  # along the surface only
-    np.testing.assert_allclose(np.abs(T[0] @ T[2]), 0.0, atol=1e-12)  # two perpendicular directions
-    np.testing.assert_allclose(np.linalg.norm(T, axis=1), 1.0)
-    np.testing.assert_allclose(h[1:5], 0.5)
-    rng = np.random.default_rng(0)
-    v = rng.normal(size=(500, 3)) * 3.0
-    ok = np.all(T @ v.T <= 0.5 + 1e-12, axis=0)
-    tangential = v[ok] - np.outer(v[ok] @ g, g)
-    assert np.all(np.linalg.norm(tangential, axis=1) <= np.sqrt(2.0) * 0.5 + 1e-9)
-
-
 def test_rows_out_of_reach_are_screened_and_infinity_means_no_boundary_and_nan_refuses():
     b = PointBarrier("g", "f", screen_reach_mm=1.0, always_first=1)
     G, h, ids = buffers(3, 3)
