@@ -103,12 +103,23 @@ def field_report(field, truth, angle_from_data_rad, n_grid: int = 100, scanned_d
     (95th percentile over the samples within `scanned_deg` of a measured direction;
     `angle_from_data_rad(Q)` gives that angle, e.g. a CoverageView's), sigma3_coverage
     (fraction of the samples whose error is within 3 sigma; None for a field without a
-    standard deviation, NaN uncertainty), scanned_fraction, and sigma_um median and p95."""
+    standard deviation, NaN uncertainty), scanned_fraction, sigma_um median and p95, and
+    the side the barrier depends on (None without a standard deviation): the model's
+    retina beyond the true one (the field's signed distance at the true retina's points
+    > 0: it overstates clearance there) by more than 3 sigma, `sigma3_unsafe_fraction` of
+    the samples, and `sigma3_worst_excess_um` the largest such excess (um; <= 0 when 3
+    sigma holds on that side everywhere): a point held at d_safe + 3 sigma there comes
+    that much inside d_safe."""
     T = truth.reference_samples(n_grid, n_grid)
-    err = np.abs(np.asarray(field.signed_distance(T), dtype=float))
+    signed = np.asarray(field.signed_distance(T), dtype=float)
+    err = np.abs(signed)
     sigma = np.asarray(field.uncertainty(T), dtype=float)
     scanned = np.asarray(angle_from_data_rad(T)) <= np.radians(scanned_deg)
-    return {"mae_um": 1e3 * float(err.mean()),
+    has_sigma = bool(np.isfinite(sigma).all())
+    excess = signed - 3.0 * sigma
+    return {"sigma3_unsafe_fraction": float(np.mean(excess > 0.0)) if has_sigma else None,
+            "sigma3_worst_excess_um": 1e3 * float(excess.max()) if has_sigma else None,
+            "mae_um": 1e3 * float(err.mean()),
             "scanned_p95_um": 1e3 * float(np.percentile(err[scanned], 95)) if scanned.any() else float("nan"),
             "sigma3_coverage": float(np.mean(err <= 3.0 * sigma)) if np.isfinite(sigma).all() else None,
             "scanned_fraction": float(scanned.mean()),

@@ -161,6 +161,11 @@ def test_field_report_measures_against_the_truth():
     # less between them (the normal offset of confocal-like ellipsoids)
     assert 0.085 * 1e3 <= r["mae_um"] <= 0.1 * 1e3 + 1.0 and r["scanned_p95_um"] <= 0.1 * 1e3 + 1.0
     assert r["sigma3_coverage"] == 0.0 and r["scanned_fraction"] == 1.0  # sigma 0: no error is covered
+    # and every one lies on the side the barrier depends on: the model's retina beyond the true one
+    assert r["sigma3_unsafe_fraction"] == 1.0 and 0.085 * 1e3 <= r["sigma3_worst_excess_um"] <= 0.1 * 1e3 + 1.0
+    shrunk = LocalField.exact(Ellipsoid(np.zeros(3), np.array([11.355, 11.265, 10.048])), np.zeros(3))
+    r = field_report(shrunk, eye, lambda Q: np.zeros(len(Q)), n_grid=40)
+    assert r["sigma3_unsafe_fraction"] == 0.0 and -0.1 * 1e3 - 1.0 <= r["sigma3_worst_excess_um"] <= -0.085 * 1e3
 
 
 @settings(max_examples=20, deadline=None)
