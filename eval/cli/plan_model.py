@@ -32,6 +32,7 @@ def flags_named(message: str) -> str:
     """`message` with planning's parameter names replaced by the flags that set them."""
     return _PARAMETER.sub(lambda m: FLAG_OF_PARAMETER[m.group(1)], message)
 
+
 def plan_on_model(args, loop, build, scenario, visit, spec):
     """(the filter's snapshot of the model, the planning.field_model.FieldModel of the field it
     bounds the shaft with, `spec` with its boundary (d_safe + calibration), the least boundary
