@@ -103,6 +103,7 @@ def local_field(fp, P):
     dirs, blend, local, c0, prior, gp, x, cov, excess, has, near = unpack(fp)
     h, g, u = np.empty(M), np.empty((M, 3)), np.empty(M)
     eps = 1e-4
+    barrier = fp[BOUND + 4] > 0.0  # the barrier's form: it needs the sd's gradient too
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
     for m in range(M):
         v0, v1, v2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
@@ -124,12 +125,12 @@ def local_field(fp, P):
             w0, w1, w2 = u0 + eps * a0, u1 + eps * a1, u2 + eps * a2
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             Rp, Sp = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
-            if local == 0.0:
+            if barrier and local == 0.0:
                 Sp = _global_form_sd(Sp, Rp, c0, gp, w0 / q, w1 / q, w2 / q)
             w0, w1, w2 = u0 - eps * a0, u1 - eps * a1, u2 - eps * a2
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             Rm, Sm = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
-            if local == 0.0:
+            if barrier and local == 0.0:
                 Sm = _global_form_sd(Sm, Rm, c0, gp, w0 / q, w1 / q, w2 / q)
             dR = (Rp - Rm) / (2.0 * eps)  # mm per rad along the tangent a
             dS = (Sp - Sm) / (2.0 * eps)
