@@ -263,7 +263,7 @@ def main(args) -> int:
         "outside_loop_s": {name: float(sum(b - a for seg in plan.segments for n, _, a, b in seg.pieces() if n == name))
                            for name in ("enter", "exit")} | {"move": float(switch_s)},
         "model": model_summary(loop, build),
-        "survey": None if survey is None else {k: v for k, v in survey.items() if k != "swept"},
+        "survey": survey,
     }
     swept = swept_planned
     if not args.no_execute:
@@ -276,14 +276,14 @@ def main(args) -> int:
         d_safe = loop.config.filter.d_safe_mm
         figs = phase_figures(robot, run, passes, d_safe)
         executed = execution_figures(robot, run, passes, plan, spec.spacing_mm, d_safe, loop.scenario.eye)
-        swept = executed.pop("swept")
+        swept = executed.swept
         for key in ("band_coverage", "planned_cells_swept", "min_true_clearance_mm", "violations",
                     "filter_intervention_fraction", "sweep_true_depth_mm"):
-            result[key] = executed[key]
+            result[key] = executed.figures[key]
         if survey is not None:  # the whole surgery: the survey's passes and the shaving
             result["filter_intervention_fraction_with_survey"] = (
                 (survey["intervened_steps"] + int(np.sum(run.intervened))) / (survey["steps"] + len(run.t)))
-            result["min_true_clearance_mm_with_survey"] = min(survey["min_true_clearance_mm"], executed["min_true_clearance_mm"])
+            result["min_true_clearance_mm_with_survey"] = min(survey["min_true_clearance_mm"], result["min_true_clearance_mm"])
         for k, p in enumerate(plan.ports):
             mine = plan.port_of == k
             result["ports"][p.name]["coverage"] = float(swept[mine].mean()) if mine.any() else None

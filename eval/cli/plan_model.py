@@ -99,11 +99,10 @@ def survey_band(args, loop, build, scenario, visit, spec, log_dir: Path) -> dict
                                         logger=log)
         figures = execution_figures(loop.robot, run, executed, plan, survey_spec.spacing_mm, loop.config.filter.d_safe_mm,
                                     loop.scenario.eye)
-        figures.pop("swept")
-        ports_W.append(figures.pop("sweep_ports_W"))
+        ports_W.append(figures.sweep_ports_W)
         passes.append({"model_kind": trusted.kind, "planned_cells": int((plan.port_of >= 0).sum()),
                        "plan_time_s": plan.plan_time_s, "duration_s": float(run.duration_s), "steps": int(len(run.t)),
-                       "intervened_steps": int(np.sum(run.intervened)), **figures})
+                       "intervened_steps": int(np.sum(run.intervened)), **figures.figures})
     steps = sum(p["steps"] for p in passes)
     swept = swept_cells(plan.band, np.vstack(ports_W), survey_spec.spacing_mm)  # the last model's band, by any pass
     return {"standoff_mm": deeper.standoff_mm, "passes": passes, "band_coverage": float(swept.mean()),

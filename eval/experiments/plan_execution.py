@@ -163,23 +163,38 @@ def sweep_ports_W(robot, run, passes: list[ExecutedPass]) -> np.ndarray:
     return np.array([robot.pose("P", q)[1] for q in run.q[step_phase == "sweep"][::5]]).reshape(-1, 3)
 
 
-def execution_figures(robot, run, passes: list[ExecutedPass], plan, sweep_mm: float, d_safe_mm: float, eye) -> dict:
-    """What the closed-loop `run` of the plan's `passes` did: `swept` (n_rings, n_az) bool (the
-    cutter port within half a sweep width `sweep_mm` of the cell's target during the
-    sweeps), `sweep_ports_W` (sweep_ports_W's), `band_coverage` (fraction of all the band's cells swept), `planned_cells_swept`,
-    `min_true_clearance_mm`, `violations` (steps more than 0.05 mm inside d_safe_mm of the
-    true retina), `filter_intervention_fraction`, `failsafe_stops`, and
-    `sweep_true_depth_mm` (p5, median, p95 of the cutter port's distance from the TRUE
-    retina `eye` while it sweeps: the depth the vitreous was shaved at, which on a model
-    that is off differs from the planned standoff; None without a sweep)."""
+@dataclass(frozen=True, eq=False)
+class ExecutionFigures:
+    """What execution_figures measured: `figures` (plan.json's keys, JSON-ready), the band's
+    cells `swept` (n_rings, n_az) bool (the cutter port within half a sweep width of the
+    cell's target during the sweeps) and the cutter port's positions `sweep_ports_W`
+    (K, 3) mm, frame W, every 5th control step of the sweeps (sweep_ports_W's)."""
+
+    figures: dict
+    swept: np.ndarray
+    sweep_ports_W: np.ndarray
+
+
+def execution_figures(robot, run, passes: list[ExecutedPass], plan, sweep_mm: float, d_safe_mm: float,
+                      eye) -> ExecutionFigures:
+    """What the closed-loop `run` of the plan's `passes` did (ExecutionFigures), the cells
+    swept within half a sweep width `sweep_mm` (mm) of their target. Its `figures`:
+    `band_coverage` (fraction of all the band's cells swept), `planned_cells_swept` (fraction
+    of the planned cells swept; None without one), `min_true_clearance_mm` (mm),
+    `violations` (steps more than 0.05 mm inside d_safe_mm (mm) of the true retina),
+    `filter_intervention_fraction`, `failsafe_stops`, and `sweep_true_depth_mm` (p5,
+    median, p95 in mm of the cutter port's distance from the TRUE retina `eye` while it
+    sweeps: the depth the vitreous was shaved at, which on a model that is off differs from
+    the planned standoff; None without a sweep)."""
     ports_W = sweep_ports_W(robot, run, passes)
     swept = swept_cells(plan.band, ports_W, sweep_mm)
     planned = plan.port_of >= 0
     depth = eye.signed_distance(ports_W) if len(ports_W) else None
-    return {"swept": swept, "sweep_ports_W": ports_W, "band_coverage": float(swept.mean()),
-            "planned_cells_swept": float(swept[planned].mean()) if planned.any() else None,
-            "min_true_clearance_mm": float(run.true_clearance_mm.min()),
-            "violations": int(np.sum(run.true_clearance_mm < d_safe_mm - 0.05)),
-            "filter_intervention_fraction": float(run.intervened.mean()), "failsafe_stops": run.failsafe_stops,
-            "sweep_true_depth_mm": None if depth is None else dict(zip(("p5", "median", "p95"),
-                                                                       map(float, np.percentile(depth, [5, 50, 95]))))}
+    figures = {"band_coverage": float(swept.mean()),
+               "planned_cells_swept": float(swept[planned].mean()) if planned.any() else None,
+               "min_true_clearance_mm": float(run.true_clearance_mm.min()),
+               "violations": int(np.sum(run.true_clearance_mm < d_safe_mm - 0.05)),
+               "filter_intervention_fraction": float(run.intervened.mean()), "failsafe_stops": run.failsafe_stops,
+               "sweep_true_depth_mm": None if depth is None else dict(zip(("p5", "median", "p95"),
+                                                                          map(float, np.percentile(depth, [5, 50, 95]))))}
+    return ExecutionFigures(figures, swept, ports_W)

@@ -98,7 +98,10 @@ def test_the_band_is_shaved_at_the_standoff_from_the_true_retina(executed):
     cutter port shaves at the planned standoff from the TRUE retina: the median within
     0.1 mm, the 5th and 95th percentiles within 0.15 mm."""
     loop, model, spec, plan, passes, run = executed
-    f = execution_figures(loop.robot, run, passes, plan, spec.spacing_mm, D_SAFE_MM, loop.scenario.eye)
+    executed_figures = execution_figures(loop.robot, run, passes, plan, spec.spacing_mm, D_SAFE_MM, loop.scenario.eye)
+    f, swept = executed_figures.figures, executed_figures.swept
+    assert swept.shape == plan.band.reason.shape and executed_figures.sweep_ports_W.shape[1] == 3
+    assert f["band_coverage"] == pytest.approx(swept.mean())
     depth = f["sweep_true_depth_mm"]
     assert depth["median"] == pytest.approx(spec.standoff_mm, abs=0.1)
     assert spec.standoff_mm - 0.15 <= depth["p5"] <= depth["median"] <= depth["p95"] <= spec.standoff_mm + 0.15
