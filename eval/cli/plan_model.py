@@ -79,9 +79,11 @@ def survey_band(args, loop, build, scenario, visit, spec, log_dir: Path) -> dict
     log_dir/survey_<k>.mcap. Returns plan.json's `survey`: its depth (`standoff_mm`), per
     pass its planned cells, band coverage, true clearance, interventions and durations
     (`passes`), and over all passes `band_coverage` (the cells of the band of the last
-    pass's model that any pass swept),
-    `filter_intervention_fraction`, `steps`, `intervened_steps`, `min_true_clearance_mm`,
-    `violations`, `failsafe_stops`, `duration_s`. UsageError as plan_on_model."""
+    pass's model that any pass swept), `planned_cells` (the last pass's planned cells),
+    `planned_cells_swept` (the least, over the passes, of a pass's fraction of its own
+    planned cells swept), `filter_intervention_fraction`, `steps`, `intervened_steps`,
+    `min_true_clearance_mm`, `violations`, `failsafe_stops`, `duration_s`. UsageError as
+    plan_on_model."""
     from eval.experiments.plan_execution import execution_figures, executed_passes, swept_cells
     from eval.log.writer import RunLogger
 

@@ -148,6 +148,8 @@ def test_a_survey_sweeps_the_band_deeper_before_the_plan_is_made(tmp_path):
         assert p["filter_intervention_fraction"] == pytest.approx(p["intervened_steps"] / p["steps"])
         assert p["sweep_true_depth_mm"]["median"] == pytest.approx(3.0, abs=0.15)  # the emmetropic model is exact
     assert s["band_coverage"] >= s["passes"][-1]["band_coverage"] - 1e-12  # the last model's band, by either pass
+    assert s["planned_cells"] == s["passes"][-1]["planned_cells"]  # the last pass's plan
+    assert s["planned_cells_swept"] == min(p["planned_cells_swept"] for p in s["passes"])
     assert s["steps"] == sum(p["steps"] for p in s["passes"])
     assert s["duration_s"] == pytest.approx(sum(p["duration_s"] for p in s["passes"]))
     assert s["min_true_clearance_mm"] == min(p["min_true_clearance_mm"] for p in s["passes"])
