@@ -10,7 +10,9 @@ first-order (Sampson) distance d from the current fit,
 so that points within a few noise SDs of the ellipsoid count almost fully and points on a
 pathology (millimetres off) not at all: the fit minimises v^T S_w v over the weighted
 scatter matrix S_w = sum w m m^T (models.fit.ellipsoid_fit) by iteratively reweighted least
-squares (IRLS).
+squares (IRLS). The weight (biweight_one), its loss (tukey_rho) and the cut-off
+(RobustFitConfig.cutoff_mm) are defined here once; models.fit.streaming_robust's fit
+weighs its points with the same functions.
 
 Cost: a new point gets its weight from the current fit and joins S_w (O(1), the compiled
 Sampson distance and weighted design-row accumulation of models.fit.quadric_residuals
@@ -35,6 +37,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_scatter
 from models.fit.quadric_kernels import add_weighted_design_rows
@@ -73,10 +76,35 @@ class RobustFitConfig:
         return self.tukey_factor * self.noise_sd_mm
 
 
-def biweight(d_mm: np.ndarray, cutoff_mm: float) -> np.ndarray:
-    """Tukey's biweight (1 - (d / c)^2)^2 of distances d (mm), 0 beyond the cut-off c (mm)."""
-    u = np.minimum(np.abs(d_mm) / cutoff_mm, 1.0)
-    return (1.0 - u * u) ** 2
+@njit(cache=True, inline="always")
+def _inside_share(d, cutoff):
+    """1 - (d / c)^2 for |d| < c, else 0: the cut-off's rule, which the weight and the loss share."""
+    u = min(abs(d) / cutoff, 1.0)
+    return 1.0 - u * u
+
+
+@njit(cache=True, inline="always")
+def biweight_one(d, cutoff):
+    """Tukey's biweight (1 - (d / c)^2)^2 of the distance d, 0 beyond the cut-off c (c in d's units)."""
+    t = _inside_share(d, cutoff)
+    return t * t
+
+
+@njit(cache=True, inline="always")
+def tukey_rho(d, cutoff):
+    """Tukey's rho of the distance d with the cut-off c: (c^2 / 6) (1 - (1 - (d / c)^2)^3),
+    c^2 / 6 beyond c (the loss whose IRLS weight is biweight_one; units of d^2)."""
+    t = _inside_share(d, cutoff)
+    return cutoff * cutoff / 6.0 * (1.0 - t * t * t)
+
+
+@njit(cache=True)
+def biweight(d_mm, cutoff_mm):
+    """(N,) biweight_one of the distances d_mm (N,) mm with the cut-off cutoff_mm (mm)."""
+    out = np.empty(d_mm.shape[0])
+    for k in range(d_mm.shape[0]):
+        out[k] = biweight_one(d_mm[k], cutoff_mm)
+    return out
 
 
 class RobustEllipsoidFit:

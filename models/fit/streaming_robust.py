@@ -31,23 +31,20 @@ from numba import njit
 
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_scatter
 from models.fit.quadric_residuals import sampson_one
-from models.fit.robust_fit import RobustFitConfig
+from models.fit.robust_fit import RobustFitConfig, biweight_one, tukey_rho
 
 
 @njit(cache=True)
 def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
-    """Weigh the scaled points X[i0:i1] by the biweight of their Sampson distance from the
-    quadric v (scaled units; cut-off `cutoff` scaled; weight 1 without a fit), write the
-    weights to w[i0:i1] and add their weighted design rows to S (10, 10) in place; returns
-    how many got a weight > 0."""
+    """Weigh the scaled points X[i0:i1] by the biweight (biweight_one) of their Sampson
+    distance from the quadric v (scaled units; cut-off `cutoff` scaled; weight 1 without a
+    fit), write the weights to w[i0:i1] and add their weighted design rows to S (10, 10) in
+    place; returns how many got a weight > 0."""
     m = np.empty(10)
     inliers = 0
     for n in range(i0, i1):
         x, y, z = X[n, 0], X[n, 1], X[n, 2]
-        wn = 1.0
-        if has_fit:
-            u = min(sampson_one(v, x, y, z) / cutoff, 1.0)
-            wn = (1.0 - u * u) * (1.0 - u * u)
+        wn = biweight_one(sampson_one(v, x, y, z), cutoff) if has_fit else 1.0
         w[n] = wn
         if wn <= 0.0:
             continue
@@ -61,15 +58,6 @@ def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
                 if j != i:
                     S[j, i] += a * m[j]
     return inliers
-
-
-@njit(cache=True, inline="always")
-def tukey_rho(d, cutoff):
-    """Tukey's rho of the distance d with the cut-off c: (c^2 / 6) (1 - (1 - (d / c)^2)^3),
-    c^2 / 6 beyond c (the loss whose IRLS weight is the biweight; units of d^2)."""
-    u = min(abs(d) / cutoff, 1.0)
-    t = 1.0 - u * u
-    return cutoff * cutoff / 6.0 * (1.0 - t * t * t)
 
 
 @njit(cache=True)

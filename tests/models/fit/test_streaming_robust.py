@@ -17,8 +17,8 @@ from models import AdaptiveEyeModel
 from models.adaptive.model import EYE_RADII_MM
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
-from models.fit.robust_fit import RobustFitConfig, biweight
-from models.fit.streaming_robust import StreamingRobustFit, tukey_rho
+from models.fit.robust_fit import RobustFitConfig, biweight, tukey_rho
+from models.fit.streaming_robust import StreamingRobustFit
 from models.local.grid import LocalRetinaModel
 from models.metrics import mae_exact
 from models.scan.paper_scan import paper_scan
