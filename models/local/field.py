@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.local.field_kernels import BOUND, HEAD, local_field, radii_at, unpack
+from models.local.field_kernels import BOUND, HEAD, N_CAL, local_field, radii_at, unpack
 from models.local.kernels import global_params
 from models.shapes.field import FieldKernel, KernelQueries
 from models.shapes.sampling import unit_sphere_grid
@@ -35,7 +35,8 @@ class LocalField(KernelQueries):
         """The global `shape` (Sphere or Ellipsoid) alone, exact (sd 0), seen from `center`
         (3,) mm (inside it): the conservative prior in the same field form."""
         head = np.concatenate([[0.0, np.radians(5.0), 1.0], np.asarray(center, dtype=float),
-                               [0.02, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0], global_params(shape), np.zeros(5)])
+                               [0.02, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0], global_params(shape), np.ones(N_CAL),
+                               np.zeros(5)])
         return cls(head, "prior")
 
     @classmethod
@@ -66,11 +67,11 @@ class LocalField(KernelQueries):
 
     def radius_and_sd(self, U) -> tuple[np.ndarray, np.ndarray]:
         """((M,) radius mm, (M,) sd mm) along unit directions U (M, 3) from the centre."""
-        dirs, blend, local, c0, prior, gp, x, cov, excess, has, near = unpack(self.params)
+        dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near = unpack(self.params)
         U = np.ascontiguousarray(np.asarray(U, dtype=float).reshape(-1, 3))
-        R, S = radii_at(dirs, blend, c0, prior, gp, x, cov, excess, has, near, U)
+        R, S = radii_at(dirs, blend, c0, prior, gp, cal, x, cov, excess, has, near, U)
         if local == 0.0:
-            G = radii_at(dirs, blend, c0, prior, gp, x, cov, excess, np.zeros(len(has)), near, U)[0]
+            G = radii_at(dirs, blend, c0, prior, gp, cal, x, cov, excess, np.zeros(len(has)), near, U)[0]
             S = np.sqrt(S * S + (R - G) ** 2)
             R = G
         return R, S

@@ -12,6 +12,8 @@ from numba import njit
 from models.local.kernels import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, global_sd, node_frame, wendland
 
 MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60)
+CAL_KNOTS_RAD = np.radians(np.array([0.0, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0]))  # the sd calibration's gaps
+N_CAL = CAL_KNOTS_RAD.shape[0]
 
 
 @njit(cache=True, inline="always")
@@ -30,15 +32,17 @@ def candidates(dirs, u0, u1, u2, angle, cand):
 
 @njit(cache=True, inline="always")
 def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc):
-    """(radius mm, sd mm) of the field at the unit direction u: the nodes within `blend`
+    """(radius mm, sd mm, gap rad) of the field at the unit direction u: the nodes within `blend`
     rad (their quadratics, or the global radius at nodes without data) averaged with
     Wendland's weight over each one's variance there (a node extrapolating across its
     data counts little); the sd their standard deviations with the same weights and the
     spread of their radii about that mean in Wendland's weights alone (the variance of a
-    mixture: a confident node must not hide the others' disagreement)."""
+    mixture: a confident node must not hide the others' disagreement); the gap the nodes'
+    angles from the nearest data in Wendland's weights (smooth over directions: what the
+    sd's calibration is indexed by, calibrated_sd). The sd is the uncalibrated one."""
     cos_b = np.cos(blend)
     rg = np.nan
-    sw, sr, ss, sW, sWr, sWrr = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    sw, sr, ss, sW, sWr, sWrr, sWa = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for j in range(nc):
         k = cand[j]
         d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
@@ -67,6 +71,7 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
             sd = global_sd(np.arccos(min(near[k], 1.0)), prior)
             v = sd * sd + excess[k]  # and the departure of the data nodes nearby (spread_departures)
         v += prior[5] * prior[5]  # the floor: what the quadratics' spread near data leaves unexplained
+        sWa += w * np.arccos(max(min(near[k], 1.0), -1.0))
         sW += w  # the nodes' spread about the mean in their plain Wendland weights (a confident node
         sWr += w * r  # that extrapolates must not hide the others' disagreement)
         sWrr += w * r * r
@@ -75,11 +80,25 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
         sr += w * r
         ss += w * np.sqrt(v)
     if sw <= 0.0:
-        return global_radius(c0, gp, u0, u1, u2), prior[2]
+        return global_radius(c0, gp, u0, u1, u2), prior[2], np.pi
     rm = sr / sw
     spread = max((sWrr - 2.0 * rm * sWr) / sW + rm * rm, 0.0)  # the nodes' disagreement about the mean
     sd = ss / sw
-    return rm, np.sqrt(sd * sd + spread)
+    return rm, np.sqrt(sd * sd + spread), sWa / sW
+
+
+@njit(cache=True, inline="always")
+def calibrated_sd(sd, gap, cal):
+    """The sd times the calibration's factor at `gap` rad from the data: cal (N_CAL,) the
+    factors at CAL_KNOTS_RAD, linear between them, the last one beyond
+    (models.local.calibration measures them on the model's own predictions)."""
+    if gap >= CAL_KNOTS_RAD[-1]:
+        return sd * cal[-1]
+    j = 0
+    while gap >= CAL_KNOTS_RAD[j + 1]:
+        j += 1
+    t = (gap - CAL_KNOTS_RAD[j]) / (CAL_KNOTS_RAD[j + 1] - CAL_KNOTS_RAD[j])
+    return sd * (cal[j] + t * (cal[j + 1] - cal[j]))
 
 
 @njit(cache=True)
@@ -100,7 +119,7 @@ def local_field(fp, P):
     M = P.shape[0]
     if fp[2] < 0.0:  # no boundary
         return np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M)
-    dirs, blend, local, c0, prior, gp, x, cov, excess, has, near = unpack(fp)
+    dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near = unpack(fp)
     h, g, u = np.empty(M), np.empty((M, 3)), np.empty(M)
     eps = 1e-4
     barrier = fp[BOUND + 4] > 0.0  # the barrier's form: it needs the sd's gradient too
@@ -116,7 +135,8 @@ def local_field(fp, P):
             v0, v1, v2, r = 0.0, 0.0, -1e-9, 1e-9
         u0, u1, u2 = v0 / r, v1 / r, v2 / r
         nc = candidates(dirs, u0, u1, u2, blend + 2.0 * eps, cand)
-        R0, sd = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        R0, sd, gap = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        sd = calibrated_sd(sd, gap, cal)
         e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
         grad0, grad1, grad2 = 0.0, 0.0, 0.0
         gs0, gs1, gs2 = 0.0, 0.0, 0.0  # grad of the sd (it depends on the direction alone)
@@ -124,12 +144,14 @@ def local_field(fp, P):
             a0, a1, a2 = (e10, e11, e12) if s == 0 else (e20, e21, e22)
             w0, w1, w2 = u0 + eps * a0, u1 + eps * a1, u2 + eps * a2
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-            Rp, Sp = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            Rp, Sp, gap = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            Sp = calibrated_sd(Sp, gap, cal)
             if barrier and local == 0.0:
                 Sp = _global_form_sd(Sp, Rp, c0, gp, w0 / q, w1 / q, w2 / q)
             w0, w1, w2 = u0 - eps * a0, u1 - eps * a1, u2 - eps * a2
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-            Rm, Sm = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            Rm, Sm, gap = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            Sm = calibrated_sd(Sm, gap, cal)
             if barrier and local == 0.0:
                 Sm = _global_form_sd(Sm, Rm, c0, gp, w0 / q, w1 / q, w2 / q)
             dR = (Rp - Rm) / (2.0 * eps)  # mm per rad along the tangent a
@@ -186,15 +208,16 @@ def _global_gradient(c0, gp, u0, u1, u2, r, e10, e11, e12, e20, e21, e22, eps):
     return grad0, grad1, grad2
 
 
-HEAD = 6 + 7 + GLOBAL_SIZE + 5  # n, blend, local, c0 (3), prior (7), global (16), k and the fallback sphere (4)
+HEAD = 6 + 7 + GLOBAL_SIZE + N_CAL + 5  # n, blend, local, c0 (3), prior (7), global (16), sd calibration, k and the fallback sphere (4)
+CAL = 13 + GLOBAL_SIZE  # where the sd calibration's factors begin
 BOUND = HEAD - 5  # where [k, fallback centre (3), fallback radius] begin (radius 0: none)
 
 
 @njit(cache=True)
 def unpack(fp):
-    """(dirs (n, 3), blend rad, local flag, c0 (3,), prior (7,), global (16,), x (n, 6), cov (n, 21),
-    excess (n,), has (n,), near (n,): the cosine of each node's nearest data angle) of a
-    LocalField's params."""
+    """(dirs (n, 3), blend rad, local flag, c0 (3,), prior (7,), global (16,), sd calibration
+    (N_CAL,), x (n, 6), cov (n, 21), excess (n,), has (n,), near (n,): the cosine of each
+    node's nearest data angle) of a LocalField's params."""
     n = int(fp[0])
     o = HEAD
     dirs = fp[o:o + 3 * n].reshape((n, 3))
@@ -203,31 +226,35 @@ def unpack(fp):
     o += N_BASIS * n
     cov = fp[o:o + N_COV * n].reshape((n, N_COV))
     o += N_COV * n
-    return (dirs, fp[1], fp[2], fp[3:6], fp[6:13], fp[13:BOUND], x, cov, fp[o:o + n], fp[o + n:o + 2 * n],
+    return (dirs, fp[1], fp[2], fp[3:6], fp[6:13], fp[13:CAL], fp[CAL:BOUND], x, cov, fp[o:o + n], fp[o + n:o + 2 * n],
             fp[o + 2 * n:o + 3 * n])
 
 
 @njit(cache=True)
-def radii_at(dirs, blend, c0, prior, gp, x, cov, excess, has, near, U):
-    """(M,) radius (mm) and (M,) standard deviation (mm) of the blended field along the
-    unit directions U (M, 3) from c0 (_blend_at per row)."""
+def radii_at(dirs, blend, c0, prior, gp, cal, x, cov, excess, has, near, U):
+    """(M,) radius (mm) and (M,) calibrated standard deviation (mm) of the blended field
+    along the unit directions U (M, 3) from c0 (_blend_at per row)."""
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
     R, S = np.empty(U.shape[0]), np.empty(U.shape[0])
     for m in range(U.shape[0]):
         nc = candidates(dirs, U[m, 0], U[m, 1], U[m, 2], blend, cand)
-        R[m], S[m] = _blend_at(U[m, 0], U[m, 1], U[m, 2], dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        R[m], sd, gap = _blend_at(U[m, 0], U[m, 1], U[m, 2], dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        S[m] = calibrated_sd(sd, gap, cal)
     return R, S
 
 
 @njit(cache=True)
-def prediction_errors(P, c0, gp, gate, dirs, blend, prior, x, cov, excess, has, near, min_gap):
-    """(sum of squared errors of the local field, of the global quadric, count) over the
-    points P (M, 3) mm that absorb_points would take (gate) and whose direction's nearest
-    node lies at least `min_gap` rad from the data so far (a prediction across a gap
-    between scan lines, not along one), each predicted before it is absorbed (mm^2)."""
+def predictions(P, c0, gp, gate, dirs, blend, prior, x, cov, excess, has, near, out):
+    """Each point of P (M, 3) mm predicted along its direction from c0 before it is absorbed:
+    out (M, 6) rows [measured radius, the local field's radius, its uncalibrated sd (mm),
+    its gap (rad: _blend_at), the global quadric's radius (mm), the angle from the data of
+    the node nearest the point (rad)], for the points absorb_points
+    would take (gate); NaN rows for the others. Returns out. What the local model is
+    chosen by (models.local.selection) and its sd calibrated on
+    (models.local.calibration): the data's own held-out errors."""
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
-    el, eg, m = 0.0, 0.0, 0
     for i in range(P.shape[0]):
+        out[i, :] = np.nan
         v0, v1, v2 = P[i, 0] - c0[0], P[i, 1] - c0[1], P[i, 2] - c0[2]
         r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
         if not (np.isfinite(r) and gate[0] <= r <= gate[1]):
@@ -237,15 +264,15 @@ def prediction_errors(P, c0, gp, gate, dirs, blend, prior, x, cov, excess, has, 
         if not abs(r - rg) <= gate[2]:
             continue
         nc = candidates(dirs, u0, u1, u2, blend, cand)
-        best, kb = -2.0, -1
+        best = -2.0
         for j in range(nc):
-            c = u0 * dirs[cand[j], 0] + u1 * dirs[cand[j], 1] + u2 * dirs[cand[j], 2]
-            if c > best:
-                best, kb = c, cand[j]
-        if kb < 0 or near[kb] > np.cos(min_gap):
-            continue
-        rl = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)[0]
-        el += (r - rl) * (r - rl)
-        eg += (r - rg) * (r - rg)
-        m += 1
-    return el, eg, m
+            best = max(best, u0 * dirs[cand[j], 0] + u1 * dirs[cand[j], 1] + u2 * dirs[cand[j], 2])
+        nearest = np.nan
+        for j in range(nc):
+            k = cand[j]
+            if u0 * dirs[k, 0] + u1 * dirs[k, 1] + u2 * dirs[k, 2] == best:
+                nearest = np.arccos(max(min(near[k], 1.0), -1.0))
+                break
+        rl, sd, gap = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = r, rl, sd, gap, rg, nearest
+    return out

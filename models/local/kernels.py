@@ -136,15 +136,18 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
 
 
 @njit(cache=True)
-def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, x, cov, excess):
+def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, has, dev, x, cov, excess):
     """Node k's posterior: the local quadratic x[k] (6,) (mm, mm/rad, mm/rad^2), its
     covariance cov[k] (N_COV,: the upper triangle row by row, mm^2 per basis products)
     and the misfit variance excess[k] (mm^2). Data: the weighted normal equations
     (A, b, rr, wsum) with noise prior[0] mm; prior: the global quadric gp's Taylor
     expansion at the node (finite differences of global_radius, step 0.02 rad); the
     correction to it (its first prior[6] terms, the rest 0) has the standard deviations
-    of a smooth random field's value, slopes and curvatures with sd s = global_sd(angle of near[k])
-    (prior[1] near data growing to prior[2] at prior[3] rad from it) and length scale
+    of a smooth random field's value, slopes and curvatures with sd s: global_sd(angle of near[k])
+    (prior[1] near data growing to prior[2] at prior[3] rad from it) and the departure
+    variance of the data nodes within `reach` rad (gathered_departure, with dev[k], the
+    departure of node k's own data, set first: where the data nearby depart from the
+    global quadric, the global quadric is that uncertain there) added in quadrature, and length scale
     l = prior[4] rad: s, s / l, sqrt(3) s / l^2 (Rasmussen & Williams 2006, 9.4). The variance is the posterior's, scaled by the weighted
     mean square residual over the noise's (the Birge ratio, when > 1); the excess is
     that residual's excess over the noise: a quadratic that does not follow the retina
@@ -168,7 +171,9 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, x, cov, excess):
     m[5] = (R[1, 2] - 2.0 * R[1, 1] + R[1, 0]) / (2.0 * h * h)
     noise2 = prior[0] * prior[0]
     nf = int(prior[6])  # the correction's fitted terms: 1 (a height), 3 (and its slopes) or 6 (and curvatures)
-    sd0 = global_sd(np.arccos(min(near[k], 1.0)), prior)
+    dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
+    dep = gathered_departure(k, dirs, has, dev, reach, prior[5])
+    sd0 = np.sqrt(global_sd(np.arccos(min(near[k], 1.0)), prior) ** 2 + dep)
     pinv = np.empty(N_BASIS)
     pinv[0] = 1.0 / (sd0 * sd0)
     ell2 = prior[4] * prior[4]  # the correction's length scale: slopes sd0 / l, curvatures sqrt(3) sd0 / l^2
@@ -243,42 +248,83 @@ def global_sd(angle, prior):
     return prior[1] + (prior[2] - prior[1]) * t
 
 
+@njit(cache=True, inline="always")
+def node_departure(k, dirs, c0, gp, b, wsum):
+    """The departure (mm) of node k's data from the global quadric gp: their weighted mean
+    radius (b[k, 0] / wsum[k], the data alone) less the global radius at the node."""
+    if not wsum[k] > 0.0:
+        return 0.0
+    return b[k, 0] / wsum[k] - global_radius(c0, gp, dirs[k, 0], dirs[k, 1], dirs[k, 2])
+
+
 @njit(cache=True)
-def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, x, cov, excess, has, listed, solved_w):
+def node_departures(nodes, dirs, c0, gp, b, wsum, dev):
+    """dev[k] = node_departure(k) for the nodes listed (before a pass that solves them all)."""
+    for k in nodes:
+        dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
+
+
+@njit(cache=True, inline="always")
+def departure_variance(D, a, reach):
+    """D^2 (1 - a / reach) mm^2 (0 beyond `reach` rad): what a departure D mm of the retina
+    from the global quadric, measured at a node, says of the retina `a` rad from it (a
+    pathology goes on past the data as the data next to it depart, fading over about a
+    detachment's or a staphyloma's radius)."""
+    return D * D * (1.0 - a / reach) if a < reach else 0.0
+
+
+@njit(cache=True)
+def gathered_departure(k, dirs, has, dev, reach, floor):
+    """The largest departure_variance (mm^2) at node k over node k and the data nodes j
+    within `reach` rad whose departure |dev[j]| > floor mm."""
+    d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+    k0, k1 = band(dirs.shape[0], d2, 2.0 * np.sin(0.5 * reach))
+    cos_r = np.cos(reach)
+    best = dev[k] * dev[k] if abs(dev[k]) > floor else 0.0
+    for j in range(k0, k1):
+        if has[j] == 0.0 or j == k or not abs(dev[j]) > floor:
+            continue
+        c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
+        if c > cos_r:
+            best = max(best, departure_variance(dev[j], np.arccos(min(c, 1.0)), reach))
+    return best
+
+
+@njit(cache=True)
+def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, dev, x, cov, excess, has, listed, solved_w):
     """Solve the first `count` nodes listed in `nodes` (solve_node), mark them as holding
     data (has) and no longer listed, their weight then in solved_w."""
     for j in range(count):
         k = nodes[j]
-        solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, x, cov, excess)
+        solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, has, dev, x, cov, excess)
         has[k] = 1.0
         listed[k] = False
         solved_w[k] = wsum[k]
 
 
 @njit(cache=True)
-def spread_departures(dirs, c0, gp, x, has, excess, reach, floor, cross, out):
+def spread_departures(dirs, x, has, excess, dev, reach, floor, cross, out):
     """out (n,) mm^2: a node's variance beyond its quadratic's posterior.
 
     A node with data j: its excess plus the largest squared error of its quadratic at the
     nodes with data k within `cross` rad, against their own value x[k, 0] (how wrong its
     extrapolation is where the data show the retina: at the rim of a detachment a node's
     quadratic from one side misses the other side by as much; on a smooth retina the
-    quadratics agree). A node without data j: the largest D_k^2 (1 - a / reach) over the
-    nodes with data k within `reach` rad (angle a) whose |D_k| > floor mm, D_k = x[k, 0] -
-    the global radius at k (how far the retina measured at k departs from the global
-    quadric): beyond the edge of the data a pathology may go on as the data next to it
-    depart, and the field reads the global quadric there."""
+    quadratics agree). A node without data j: the largest departure_variance of the data
+    nodes k within `reach` rad whose departure |dev[k]| > floor mm (dev: the mean radius
+    of a node's data less the global radius there, at its last solve): beyond the edge of
+    the data a pathology may go on as the data next to it depart, and the field reads the
+    global quadric there (the same departures loosen every node's prior: solve_node)."""
     n = dirs.shape[0]
     for k in range(n):
         out[k] = excess[k] if has[k] != 0.0 else 0.0
     chord_x, chord_r = 2.0 * np.sin(0.5 * cross), 2.0 * np.sin(0.5 * max(reach, cross))
-    cos_r, cos_x = np.cos(reach), np.cos(cross)
+    cos_x = np.cos(cross)
     for k in range(n):
         if has[k] == 0.0:
             continue
         d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
-        D = x[k, 0] - global_radius(c0, gp, d0, d1, d2)
-        spread = abs(D) > floor
+        spread = abs(dev[k]) > floor
         k0, k1 = band(n, d2, chord_r if spread else chord_x)  # the departure's reach only where there is one
         for j in range(k0, k1):
             c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
@@ -292,10 +338,8 @@ def spread_departures(dirs, c0, gp, x, has, excess, reach, floor, cross, out):
                      - x[k, 0])
                 if excess[j] + e * e > out[j]:
                     out[j] = excess[j] + e * e
-            elif spread and c > cos_r:
-                v = D * D * (1.0 - np.arccos(min(c, 1.0)) / reach)
-                if v > out[j]:
-                    out[j] = v
+            elif spread:
+                out[j] = max(out[j], departure_variance(dev[k], np.arccos(min(c, 1.0)), reach))
     return out
 
 

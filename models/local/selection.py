@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.local.field_kernels import prediction_errors
 
 
 class LocalChoice:
@@ -25,11 +24,16 @@ class LocalChoice:
         self.active = False
 
     def absorb(self, local, P: np.ndarray, shape) -> None:
-        """Score the points P (N, 3) mm against `local` (a LocalRetinaModel) and the global
-        `shape`, then let `local` absorb them."""
-        if shape is not None and local.global_params is not None and len(P):
-            el, eg, m = prediction_errors(P, local.center, local.global_params, local.gate, local.dirs,
-                                          local.blend_rad, local.prior, *local.state, self.min_gap_rad)
+        """Let `local` (a LocalRetinaModel) absorb the points P (N, 3) mm on the global `shape`,
+        and score its predictions of them, made before it absorbed them, against the global
+        quadric's (models.local.field_kernels.predictions)."""
+        scored = shape is not None and local.global_params is not None
+        local.update(P, shape)
+        if scored:
+            pred = local.last_predictions  # made before the points were absorbed
+            gap = pred[:, 5] >= self.min_gap_rad
+            m = int(gap.sum())
+            el, eg = float(((pred[gap, 0] - pred[gap, 1]) ** 2).sum()), float(((pred[gap, 0] - pred[gap, 4]) ** 2).sum())
             if m:
                 a = min(m / self.memory, 1.0)
                 if np.isnan(self.mse_local):
@@ -37,5 +41,4 @@ class LocalChoice:
                 else:
                     self.mse_local += a * (el / m - self.mse_local)
                     self.mse_global += a * (eg / m - self.mse_global)
-        local.update(P, shape)
         self.active = bool(local.n_points >= self.min_points and self.mse_local < self.ratio * self.mse_global)
