@@ -66,6 +66,7 @@ Units: mm, rad (deg where named).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -74,8 +75,8 @@ from models.local.field import LocalField
 from models.local.calibration import SigmaCalibration
 from models.local.field_kernels import predictions, radii_at
 from models.local.kernels import (
-    ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV, absorb_points, global_params, node_departures, solve_nodes,
-    spread_departures,
+    ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV, absorb_points, global_params, neighbour_table, node_departures,
+    solve_nodes, spread_departures,
 )
 from models.shapes.validation import as_points, as_vector3
 
@@ -144,6 +145,15 @@ class LocalConfig:
 _NO_GLOBAL = np.zeros(GLOBAL_SIZE)
 
 
+@lru_cache(maxsize=4)
+def _neighbours(n: int, reach_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """kernels.neighbour_table of the n-node grid, once per process (read-only: shared)."""
+    off, idx = neighbour_table(fibonacci_directions(n), np.radians(reach_deg))
+    off.setflags(write=False)
+    idx.setflags(write=False)
+    return off, idx
+
+
 def _contains(shape, p) -> bool:
     """Whether the point p (3,) mm lies at least 1 mm inside the Sphere or Ellipsoid `shape`
     (radii about the centre are defined only then; an early fit through a few points of a
@@ -191,6 +201,7 @@ class LocalRetinaModel:
         self._support, self._track, self._blend = (np.radians(cfg.support_deg), np.radians(cfg.track_deg),
                                                    np.radians(cfg.blend_deg))
         self._reach = np.radians(cfg.departure_deg)
+        self._nb_off, self._nb_idx = _neighbours(n, cfg.departure_deg)
         self.n_points = 0
         self._updates = 0
         self._field, self._field_key, self._field_at = None, None, 0
@@ -246,7 +257,7 @@ class LocalRetinaModel:
         cfg = self.config
         count = min(self._n_dirty, budget)
         args = (self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum, self._near, self._prior,
-                self._reach, self._dev, self._x,
+                self._reach, self._nb_off, self._nb_idx, self._dev, self._x,
                 self._cov, self._excess, self._has, self._listed, self._solved_w)
         if count:
             solve_nodes(self._dirty[:count], count, *args)
@@ -270,8 +281,8 @@ class LocalRetinaModel:
         node_departures(nodes, self._dirs, self.center, self._gp, self._b, self._wsum, self._dev)  # all first: order-free
         self._has[nodes] = 1.0
         solve_nodes(nodes, len(nodes), self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum,
-                    self._near, self._prior, self._reach, self._dev, self._x, self._cov, self._excess, self._has,
-                    self._listed, self._solved_w)
+                    self._near, self._prior, self._reach, self._nb_off, self._nb_idx, self._dev, self._x, self._cov,
+                    self._excess, self._has, self._listed, self._solved_w)
         self._n_dirty = 0
 
     def _spread(self) -> None:

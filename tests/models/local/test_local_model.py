@@ -238,3 +238,17 @@ def test_between_and_past_scan_lines_over_a_detachment_the_sd_covers_the_unsafe_
     beyond = R - radius_of(U[gap])  # > 0: the model's retina further than the true one
     assert gap.sum() > 2000 and np.max(beyond) > 0.3  # the test reaches the flank
     assert np.mean(beyond > 3.0 * S) <= 0.01
+
+
+@pytest.mark.parametrize("n, reach_deg", [(500, 15.0), (4584, 15.0), (4584, 40.0)])
+def test_the_neighbour_table_is_every_node_within_reach(n, reach_deg):
+    from models.adaptive.coverage import fibonacci_directions
+    from models.local.kernels import neighbour_table
+
+    dirs = fibonacci_directions(n)
+    off, idx = neighbour_table(dirs, np.radians(reach_deg))
+    near = dirs @ dirs.T > np.cos(np.radians(reach_deg))
+    np.fill_diagonal(near, False)
+    assert off[-1] == near.sum()
+    for k in range(0, n, 7):
+        assert sorted(idx[off[k]:off[k + 1]]) == list(np.flatnonzero(near[k]))
