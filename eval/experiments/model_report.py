@@ -37,11 +37,13 @@ def filter_model(loop, build):
 
 def model_summary(loop, build, n_grid: int = 100) -> dict:
     """boundary.json's, sensor.json's and plan.json's `model` figures of the filter's
-    model: kind, mae_um, scanned_p95_um, sigma3_coverage (field_report)."""
+    model: kind, mae_um, scanned_p95_um, sigma3_coverage (field_report), and the local
+    model's sigma calibration (LocalField.sigma_calibration; None for the quadric)."""
     kind, field = filter_model(loop, build)
     out = {"kind": kind}
     if field is not None:
         out.update(field_report(field, loop.scenario.eye, build.coverage.view().angle_from_data_rad, n_grid))
+    out["sigma_calibration"] = getattr(field, "sigma_calibration", None)
     return out
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.local.field_kernels import BOUND, HEAD, N_CAL, local_field, radii_at, unpack
+from models.local.field_kernels import BOUND, CAL, CAL_KNOTS_RAD, HEAD, N_CAL, local_field, radii_at, unpack
 from models.local.kernels import global_params
 from models.shapes.field import FieldKernel, KernelQueries
 from models.shapes.sampling import unit_sphere_grid
@@ -56,6 +56,13 @@ class LocalField(KernelQueries):
 
     def __deepcopy__(self, memo) -> LocalField:
         return self  # immutable by convention: its params are never written
+
+    @property
+    def sigma_calibration(self) -> dict:
+        """The sd's calibration factors (models.local.calibration) at their angles from the
+        data: {"gap_deg": [...], "factor": [...]} (JSON-ready)."""
+        return {"gap_deg": [round(float(a), 3) for a in np.degrees(CAL_KNOTS_RAD)],
+                "factor": [float(f) for f in self.params[CAL:CAL + N_CAL]]}
 
     def field_kernel(self) -> FieldKernel:
         """FieldKernel(local_field, params)."""

@@ -116,6 +116,9 @@ def test_with_the_local_model_the_plan_keeps_to_its_sigma(tmp_path):
     assert r["boundary_mm"] >= 0.564 + 3 * 0.03 - 1e-6
     assert r["unreachable"]["uncertain"] >= 0.9 * r["cells"]
     assert sum(r["unreachable"].values()) + r["planned_cells"] == r["cells"]
+    cal = r["model"]["sigma_calibration"]  # the sd's calibration factors: at least 1, never falling with the gap
+    assert cal["gap_deg"][0] == 0.0 and len(cal["gap_deg"]) == len(cal["factor"])
+    assert all(f >= 1.0 for f in cal["factor"]) and all(b >= a for a, b in zip(cal["factor"], cal["factor"][1:]))
 
 
 def test_every_reason_a_cell_can_get_has_a_colour_in_the_coverage_map():
