@@ -143,16 +143,18 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     (A, b, rr, wsum) with noise prior[0] mm; prior: the global quadric gp's Taylor
     expansion at the node (finite differences of global_radius, step 0.02 rad); the
     correction to it (its first prior[6] terms, the rest 0) has the standard deviations
-    of a smooth random field's value, slopes and curvatures, s, s / l and sqrt(3) s_g / l^2
+    of a smooth random field's value, slopes and curvatures, s, s / l and sqrt(3) s_c / l^2
     (Rasmussen & Williams 2006, 9.4; length scale l = prior[4] rad), with s_g =
     global_sd(angle of near[k]) (prior[1] near data growing to prior[2] at prior[3] rad
-    from it) and s^2 = s_g^2 + the departure variance of node k and of its neighbours
-    within `reach` rad that hold data (gathered_departure; nb_idx[nb_off[k]:nb_off[k + 1]];
-    dev[k], node k's own departure, set first): where the data nearby depart from the
-    global quadric by D, the correction's offset and tilt there are that uncertain (a
-    detachment's flank is a tilt at a node's scale), its curvature stays the global
-    model's (loosened too, the quadratics bend between scan lines: the scanned p95 on the
-    staphyloma grew from 300 to 380 um on the spiral's beams). The variance is the posterior's, scaled by the weighted
+    from it), s^2 = s_g^2 + the departure variance of node k and of its neighbours within
+    `reach` rad that hold data (gathered_departure; nb_idx[nb_off[k]:nb_off[k + 1]];
+    dev[k], node k's own departure, set first) and s_c^2 = s_g^2 + node k's own departure^2
+    (when over the floor prior[5]): where the data nearby depart from the global quadric
+    by D, the correction's offset and tilt are that uncertain (a detachment's flank is a
+    tilt at a node's scale), and where the node's own data depart, its curvature too (the
+    top of a detachment 3.5 mm high bends more than the global model's curvature prior
+    allows; loosening the curvature of every node near a departure bends the quadratics
+    between scan lines: the scanned p95 on the staphyloma's spiral beams 303 -> 377 um). The variance is the posterior's, scaled by the weighted
     mean square residual over the noise's (the Birge ratio, when > 1); the excess is
     that residual's excess over the noise: a quadratic that does not follow the retina
     within the support says so."""
@@ -180,9 +182,10 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     sg = global_sd(np.arccos(min(near[k], 1.0)), prior)
     pinv = np.empty(N_BASIS)
     pinv[0] = 1.0 / (sg * sg + dep)
-    ell2 = prior[4] * prior[4]  # the correction's length scale: slopes s / l, curvatures sqrt(3) s_g / l^2
+    ell2 = prior[4] * prior[4]  # the correction's length scale: slopes s / l, curvatures sqrt(3) s_c / l^2
     pinv[1] = pinv[2] = ell2 * pinv[0]
-    pinv[3] = pinv[4] = pinv[5] = ell2 * ell2 / (sg * sg) / 3.0
+    own = dev[k] * dev[k] if abs(dev[k]) > prior[5] else 0.0
+    pinv[3] = pinv[4] = pinv[5] = ell2 * ell2 / (sg * sg + own) / 3.0
     Am = np.zeros(N_BASIS)  # A m: the global's Taylor expansion's share of the normal equations
     for a in range(N_BASIS):
         s = 0.0

@@ -50,15 +50,16 @@ def emmetropic():
     return ClosedLoop(scenario), State(model, coverage)
 
 
-def test_the_local_models_sigma_covers_a_detachment_on_the_unsafe_side():
-    """The population's detachment (2 mm high, 10 mm across, 40 deg off the pole) scanned by
-    the spiral: between its rings and past its edge the flank rises away from the global
-    ellipsoid by up to 1 mm. The barrier keeps d_safe + 3 sigma from the model's retina, so
+@pytest.mark.parametrize("params", [{}, {"height_mm": 3.5, "angle_deg": 25.0}])
+def test_the_local_models_sigma_covers_a_detachment_on_the_unsafe_side(params):
+    """The population's detachment (2 mm high, 10 mm across, 40 deg off the pole; and one
+    3.5 mm high at 25 deg) scanned by the spiral: between its rings and past its edge the
+    flank rises away from the global ellipsoid by up to 1 mm (3 mm). The barrier keeps d_safe + 3 sigma from the model's retina, so
     wherever the model puts the retina beyond the true one, 3 sigma must cover the excess
     (models.metrics.field_report's unsafe side); the global quadric under it stays an eye's."""
     from models.metrics import field_report
 
-    scenario = SurgeryScenario(eye_name="detached")
+    scenario = SurgeryScenario(eye_name="detached", eye_params=params)
     model, coverage = model_from_spiral_beams(scenario, local=True)
     field = model.local.field()
     r = field_report(field, scenario.eye, coverage.view().angle_from_data_rad)
