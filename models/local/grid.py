@@ -148,12 +148,12 @@ _NO_GLOBAL = np.zeros(GLOBAL_SIZE)
 
 
 @lru_cache(maxsize=4)
-def _neighbours(n: int, reach_deg: float) -> tuple[np.ndarray, np.ndarray]:
+def _neighbours(n: int, reach_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """kernels.neighbour_table of the n-node grid, once per process (read-only: shared)."""
-    off, idx = neighbour_table(fibonacci_directions(n), np.radians(reach_deg))
-    off.setflags(write=False)
-    idx.setflags(write=False)
-    return off, idx
+    table = neighbour_table(fibonacci_directions(n), np.radians(reach_deg))
+    for a in table:
+        a.setflags(write=False)
+    return table
 
 
 def _contains(shape, p) -> bool:
@@ -203,7 +203,7 @@ class LocalRetinaModel:
         self._support, self._track, self._blend = (np.radians(cfg.support_deg), np.radians(cfg.track_deg),
                                                    np.radians(cfg.blend_deg))
         self._reach = np.radians(cfg.departure_deg)
-        self._nb_off, self._nb_idx = _neighbours(n, cfg.departure_deg)
+        self._nb = _neighbours(n, cfg.departure_deg)  # (off, idx, angle)
         self.n_points = 0
         self._updates = 0
         self._field, self._field_key, self._field_at = None, None, 0
@@ -259,7 +259,7 @@ class LocalRetinaModel:
         cfg = self.config
         count = min(self._n_dirty, budget)
         args = (self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum, self._near, self._prior,
-                self._reach, self._nb_off, self._nb_idx, self._dev, self._x,
+                self._reach, *self._nb, self._dev, self._x,
                 self._cov, self._excess, self._has, self._listed, self._solved_w)
         if count:
             solve_nodes(self._dirty[:count], count, *args)
@@ -283,7 +283,7 @@ class LocalRetinaModel:
         node_departures(nodes, self._dirs, self.center, self._gp, self._b, self._wsum, self._dev)  # all first: order-free
         self._has[nodes] = 1.0
         solve_nodes(nodes, len(nodes), self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum,
-                    self._near, self._prior, self._reach, self._nb_off, self._nb_idx, self._dev, self._x, self._cov,
+                    self._near, self._prior, self._reach, *self._nb, self._dev, self._x, self._cov,
                     self._excess, self._has, self._listed, self._solved_w)
         self._n_dirty = 0
 

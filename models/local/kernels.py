@@ -136,7 +136,7 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
 
 
 @njit(cache=True)
-def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, has, dev, x, cov, excess):
+def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, x, cov, excess):
     """Node k's posterior: the local quadratic x[k] (6,) (mm, mm/rad, mm/rad^2), its
     covariance cov[k] (N_COV,: the upper triangle row by row, mm^2 per basis products)
     and the misfit variance excess[k] (mm^2). Data: the weighted normal equations
@@ -147,7 +147,7 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     (Rasmussen & Williams 2006, 9.4; length scale l = prior[4] rad), with s_g =
     global_sd(angle of near[k]) (prior[1] near data growing to prior[2] at prior[3] rad
     from it), s^2 = s_g^2 + the departure variance of node k and of its neighbours within
-    `reach` rad that hold data (gathered_departure; nb_idx[nb_off[k]:nb_off[k + 1]];
+    `reach` rad that hold data (gathered_departure over neighbour_table's rows;
     dev[k], node k's own departure, set first) and s_c^2 = s_g^2 + node k's own departure^2
     (when over the floor prior[5]): where the data nearby depart from the global quadric
     by D, the correction's offset and tilt are that uncertain (a detachment's flank is a
@@ -178,7 +178,7 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     noise2 = prior[0] * prior[0]
     nf = int(prior[6])  # the correction's fitted terms: 1 (a height), 3 (and its slopes) or 6 (and curvatures)
     dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
-    dep = gathered_departure(k, dirs, has, dev, reach, prior[5], nb_off, nb_idx)
+    dep = gathered_departure(k, has, dev, reach, prior[5], nb_off, nb_idx, nb_ang)
     sg = global_sd(np.arccos(min(near[k], 1.0)), prior)
     pinv = np.empty(N_BASIS)
     pinv[0] = 1.0 / (sg * sg + dep)
@@ -281,55 +281,55 @@ def departure_variance(D, a, reach):
 
 
 @njit(cache=True)
-def gathered_departure(k, dirs, has, dev, reach, floor, nb_off, nb_idx):
+def gathered_departure(k, has, dev, reach, floor, nb_off, nb_idx, nb_ang):
     """The largest departure_variance (mm^2) at node k over node k and its neighbours j
-    within `reach` rad (nb_idx[nb_off[k]:nb_off[k + 1]]: neighbour_table) that hold data
-    and whose departure |dev[j]| > floor mm."""
-    d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+    within `reach` rad (nb_idx[nb_off[k]:nb_off[k + 1]] at the angles nb_ang: neighbour_table)
+    that hold data and whose departure |dev[j]| > floor mm."""
     best = dev[k] * dev[k] if abs(dev[k]) > floor else 0.0
     for i in range(nb_off[k], nb_off[k + 1]):
         j = nb_idx[i]
-        if has[j] == 0.0 or not abs(dev[j]) > floor:
-            continue
-        c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
-        best = max(best, departure_variance(dev[j], np.arccos(min(c, 1.0)), reach))
+        if has[j] != 0.0 and abs(dev[j]) > floor:
+            best = max(best, departure_variance(dev[j], nb_ang[i], reach))
     return best
 
 
 @njit(cache=True)
 def neighbour_table(dirs, reach):
-    """(off (n + 1,), idx): the nodes within `reach` rad of node k, itself excluded, are
-    idx[off[k]:off[k + 1]] (compressed rows, built once per grid: a gather then reads the
-    ~80 nodes of a 15 deg disc instead of scanning the ~1,200 of its z band)."""
+    """(off (n + 1,), idx, ang): the nodes within `reach` rad of node k, itself excluded,
+    are idx[off[k]:off[k + 1]], at the angles ang[off[k]:off[k + 1]] rad (compressed rows,
+    built once per grid: a gather then reads the ~200 nodes of a 25 deg disc instead of
+    scanning the ~2,000 of its z band, and no angle)."""
     n = dirs.shape[0]
     chord, cos_r = 2.0 * np.sin(0.5 * reach), np.cos(reach)
     off = np.zeros(n + 1, dtype=np.int64)
     for sweep in range(2):
         idx = np.empty(off[n] if sweep else 0, dtype=np.int64)
+        ang = np.empty(off[n] if sweep else 0)
         for k in range(n):
             m = off[k]
             k0, k1 = band(n, dirs[k, 2], chord)
             for j in range(k0, k1):
-                if j != k and dirs[k, 0] * dirs[j, 0] + dirs[k, 1] * dirs[j, 1] + dirs[k, 2] * dirs[j, 2] > cos_r:
+                c = dirs[k, 0] * dirs[j, 0] + dirs[k, 1] * dirs[j, 1] + dirs[k, 2] * dirs[j, 2]
+                if j != k and c > cos_r:
                     if sweep:
-                        idx[m] = j
+                        idx[m], ang[m] = j, np.arccos(min(c, 1.0))
                         m += 1
                     else:
                         off[k + 1] += 1
         if not sweep:
             for k in range(n):
                 off[k + 1] += off[k]
-    return off, idx
+    return off, idx, ang
 
 
 @njit(cache=True)
-def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, dev, x, cov, excess, has,
-                listed, solved_w):
+def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, x, cov,
+                excess, has, listed, solved_w):
     """Solve the first `count` nodes listed in `nodes` (solve_node), mark them as holding
     data (has) and no longer listed, their weight then in solved_w."""
     for j in range(count):
         k = nodes[j]
-        solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, has, dev, x, cov, excess)
+        solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, x, cov, excess)
         has[k] = 1.0
         listed[k] = False
         solved_w[k] = wsum[k]

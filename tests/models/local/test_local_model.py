@@ -246,9 +246,10 @@ def test_the_neighbour_table_is_every_node_within_reach(n, reach_deg):
     from models.local.kernels import neighbour_table
 
     dirs = fibonacci_directions(n)
-    off, idx = neighbour_table(dirs, np.radians(reach_deg))
+    off, idx, ang = neighbour_table(dirs, np.radians(reach_deg))
     near = dirs @ dirs.T > np.cos(np.radians(reach_deg))
     np.fill_diagonal(near, False)
     assert off[-1] == near.sum()
     for k in range(0, n, 7):
         assert sorted(idx[off[k]:off[k + 1]]) == list(np.flatnonzero(near[k]))
+        np.testing.assert_allclose(np.cos(ang[off[k]:off[k + 1]]), dirs[idx[off[k]:off[k + 1]]] @ dirs[k], atol=1e-12)
