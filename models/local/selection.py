@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from models.local.field_kernels import gap_errors
 
 
 class LocalChoice:
@@ -30,10 +31,7 @@ class LocalChoice:
         scored = shape is not None and local.global_params is not None
         local.update(P, shape)
         if scored:
-            pred = local.last_predictions  # made before the points were absorbed
-            gap = pred[:, 5] >= self.min_gap_rad
-            m = int(gap.sum())
-            el, eg = float(((pred[gap, 0] - pred[gap, 1]) ** 2).sum()), float(((pred[gap, 0] - pred[gap, 4]) ** 2).sum())
+            el, eg, m = gap_errors(local.last_predictions, self.min_gap_rad)  # predicted before they were absorbed
             if m:
                 a = min(m / self.memory, 1.0)
                 if np.isnan(self.mse_local):
