@@ -56,7 +56,8 @@ the data has p95 27-29 um; it grows to 350-870 um at 4-10 deg from it over the
 detachment and the staphyloma, beyond the scan lines' ends (the quadratics' bias between
 lines 4-10 deg apart and their extrapolation past the edge of the data, not the noise),
 and the standard deviation with it: 3 sigma covers 99.3-100 % of the reference region
-(99.1-99.4 % in the closed loop's own runs, the README's table).
+(100 % on the six shapes and four variants in the closed loop's own runs, seed 11: the
+README's table).
 The support does not change that: 6, 9 and 12 deg give a p95 within 10 deg of the data of
 152, 153 and 159 um on the detached eye and 536, 394 and 413 um on the staphyloma (within
 2 deg: 30-45 um for all three); a narrower support extrapolates past the data's edge from
