@@ -25,6 +25,31 @@ def cap_points(radius_of, n=6000, cap_deg=50.0, seed=0, noise=NOISE_MM):
     return u, (radius_of(u) + rng.normal(0.0, noise, len(u)))[:, None] * u
 
 
+def detachment(centre_deg, base_deg, height_mm):
+    """The radius (mm) along unit directions of an 11 mm globe lifted inward by `height_mm`
+    with the profile (1 - t^2)^2 over `base_deg` about a direction `centre_deg` off the
+    posterior pole (-z), like models.eyes' detachment."""
+    a = np.radians(centre_deg)
+    axis = np.array([np.sin(a), 0.0, -np.cos(a)])
+
+    def radius_of(u):
+        t = np.clip(np.degrees(np.arccos(np.clip(u @ axis, -1, 1))) / base_deg, 0.0, 1.0)
+        return 11.0 - height_mm * (1.0 - t * t) ** 2
+
+    return radius_of
+
+
+def model_on_the_globe(P):
+    """The local model of the points P (N, 3) mm, taken in 20 at a time (the loop's packet)
+    on the exact global 11 mm sphere as an ellipsoid, every node then solved."""
+    m = LocalRetinaModel(np.zeros(3))
+    g = Ellipsoid(np.zeros(3), np.array([11.0, 11.0, 11.0]))
+    for k in range(0, len(P), 20):
+        m.update(P[k:k + 20], g)
+    m.solve_all()
+    return m
+
+
 def test_an_exact_field_is_its_shape():
     s = Sphere(np.zeros(3), 10.0)
     f = LocalField.exact(s, np.zeros(3))
@@ -84,18 +109,9 @@ def test_a_detachment_past_the_data_edge_is_covered():
     target), where the data show the retina departing from the global quadric by mm."""
     from scipy.spatial import cKDTree
 
-    axis = np.array([np.sin(np.radians(45.0)), 0.0, -np.cos(np.radians(45.0))])
-
-    def radius_of(u):
-        t = np.clip(np.degrees(np.arccos(np.clip(u @ axis, -1, 1))) / 15.0, 0.0, 1.0)
-        return 11.0 - 2.0 * (1.0 - t * t) ** 2
-
+    radius_of = detachment(45.0, 15.0, 2.0)
     u, P = cap_points(radius_of, n=8000, cap_deg=50.0)
-    m = LocalRetinaModel(np.zeros(3))
-    g = Ellipsoid(np.zeros(3), np.array([11.0, 11.0, 11.0]))
-    for k in range(0, len(P), 20):
-        m.update(P[k:k + 20], g)
-    m.solve_all()
+    m = model_on_the_globe(P)
     _, Q = cap_points(radius_of, n=20000, cap_deg=75.0, seed=5, noise=0.0)
     U = Q / np.linalg.norm(Q, axis=1, keepdims=True)
     R, S = m.radius_and_sd(U)
@@ -218,18 +234,9 @@ def test_between_and_past_scan_lines_over_a_detachment_the_sd_covers_the_unsafe_
     while the global ellipsoid is off there by up to the detachment's height."""
     from scipy.spatial import cKDTree
 
-    axis = np.array([np.sin(np.radians(40.0)), 0.0, -np.cos(np.radians(40.0))])
-
-    def radius_of(u):
-        t = np.clip(np.degrees(np.arccos(np.clip(u @ axis, -1, 1))) / 25.0, 0.0, 1.0)
-        return 11.0 - 2.5 * (1.0 - t * t) ** 2
-
+    radius_of = detachment(40.0, 25.0, 2.5)
     u, P = ring_points(radius_of, np.arange(4.0, 37.0, 4.0))
-    m = LocalRetinaModel(np.zeros(3))
-    g = Ellipsoid(np.zeros(3), np.array([11.0, 11.0, 11.0]))
-    for k in range(0, len(P), 20):
-        m.update(P[k:k + 20], g)
-    m.solve_all()
+    m = model_on_the_globe(P)
     _, Q = cap_points(radius_of, n=40000, cap_deg=60.0, seed=7, noise=0.0)
     U = Q / np.linalg.norm(Q, axis=1, keepdims=True)
     angle = 2.0 * np.arcsin(np.minimum(cKDTree(u).query(U)[0], 2.0) / 2.0)
