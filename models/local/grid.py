@@ -41,15 +41,17 @@ take the global model's standard deviation, `sd_near_mm` next to measured direct
 growing linearly to `sd_far_mm` at `far_deg` from them and beyond, and the departure of
 the retina from the global quadric at the data nodes within `departure_deg` (tapered
 linearly to 0 there: a pathology may go on past the data's edge as far as the data show
-it departing). The same departure loosens every node's prior, data nodes' included: a
-node on a detachment's flank, fitted from data several degrees off, is not held to a
-global quadric the data nearby show to be off by a millimetre (measured on the loop's
-spiral, seed 0: with the global model's standard deviation alone in the prior, 0.85 % of
-the detached eye's reference samples had the model's retina beyond the true one by more
-than 3 sigma, up to 8 sigma and 0.60 mm, 2-10 deg from the data; with the departure, none).
-Last, the standard deviation is calibrated on the model's own held-out predictions
-(models.local.calibration: each point predicted before it is absorbed), a factor per
-angle from the data that makes 99 % of those errors lie within 3 sigma. The field blends the nodes' standard deviations and adds the spread of
+it departing). The same departures set the prior of every node's offset and tilt, data
+nodes' included, and a node's own departure its curvature's (kernels.solve_node): a node
+on a detachment's flank, fitted from data several degrees off, is not held to a global
+quadric the data nearby show to be off by a millimetre (measured on the loop's spiral,
+seed 0: with the global model's standard deviation alone in the prior, 0.85 % of the
+detached eye's reference samples had the model's retina beyond the true one by more
+than 3 sigma, up to 8 sigma and 0.60 mm, 2-10 deg from the data; with the departures,
+none, in the 1,000-scenario campaign's model as in the seed-11 runs). Last, the standard
+deviation is calibrated on the model's own held-out predictions (models.local.calibration:
+each point predicted before it is absorbed), a factor per angle from the data that makes
+99 % of those errors lie within 3 sigma. The field blends the nodes' standard deviations and adds the spread of
 their radii about the blended one (the variance of a mixture: where the nodes disagree,
 none of them is to be trusted). Measured on the same spiral: the error within 1 deg of
 the data has p95 27-29 um; it grows to 350-870 um at 4-10 deg from it over the
@@ -90,8 +92,8 @@ class LocalConfig:
     `sd_near_mm` 0.15, `sd_far_mm` 2.0 (a sphere fitted to a posterior cap is off by
     1.3-1.6 mm at the equator of the oblate emmetropic globe, 11.46/10.15 mm semi-axes, and
     by up to 4.9 mm within the paper's reference region on the pointed eye, whose cap's
-    sphere in the loop has a radius of 9.5-9.7 mm: 3 x 2.0 covers it; next to the data, the largest RMS residual of a sphere over a
-    detachment, 0.1-0.15 mm); on an ellipsoid (one whose semi-axes are an eye's)
+    sphere in the loop has a radius of 9.5-9.7 mm: 3 x 2.0 covers it; next to the data,
+    the largest RMS residual of a sphere over a detachment, 0.1-0.15 mm); on an ellipsoid (one whose semi-axes are an eye's)
     `ellipsoid_sd_near_mm` 0.05 and `ellipsoid_sd_far_mm` 0.3 (the ellipsoid's exact MAE
     over the whole retina on the regular eyes, 25-65 um in the loop, its worst extrapolated
     points a few times that). `sd_floor_mm` 0.03: every node's sd at least the spread of
@@ -204,7 +206,6 @@ class LocalRetinaModel:
         self._support, self._track, self._blend = (np.radians(cfg.support_deg), np.radians(cfg.track_deg),
                                                    np.radians(cfg.blend_deg))
         self._reach = np.radians(cfg.departure_deg)
-        self._nb = _neighbours(n, cfg.departure_deg)  # (off, idx, angle)
         self.n_points = 0
         self._updates = 0
         self._field, self._field_key, self._field_at = None, None, 0
@@ -260,7 +261,7 @@ class LocalRetinaModel:
         cfg = self.config
         count = min(self._n_dirty, budget)
         args = (self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum, self._near, self._prior,
-                self._reach, *self._nb, self._dev, self._x,
+                self._reach, *self._neighbours(), self._dev, self._x,
                 self._cov, self._excess, self._has, self._listed, self._solved_w)
         if count:
             solve_nodes(self._dirty[:count], count, *args)
@@ -284,9 +285,14 @@ class LocalRetinaModel:
         node_departures(nodes, self._dirs, self.center, self._gp, self._b, self._wsum, self._dev)  # all first: order-free
         self._has[nodes] = 1.0
         solve_nodes(nodes, len(nodes), self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum,
-                    self._near, self._prior, self._reach, *self._nb, self._dev, self._x, self._cov,
+                    self._near, self._prior, self._reach, *self._neighbours(), self._dev, self._x, self._cov,
                     self._excess, self._has, self._listed, self._solved_w)
         self._n_dirty = 0
+
+    def _neighbours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The grid's neighbour table within departure_deg (shared by every model of the
+        process, never copied with one: ~16 MB)."""
+        return _neighbours(self.n_nodes, self.config.departure_deg)
 
     def _spread(self) -> None:
         """The nodes without data take the departure of the data nodes near them (kernels.spread_departures)."""

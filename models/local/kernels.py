@@ -154,8 +154,9 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     tilt at a node's scale), and where the node's own data depart, its curvature too (the
     top of a detachment 3.5 mm high bends more than the global model's curvature prior
     allows; loosening the curvature of every node near a departure bends the quadratics
-    between scan lines: the scanned p95 on the staphyloma's spiral beams 303 -> 377 um). The variance is the posterior's, scaled by the weighted
-    mean square residual over the noise's (the Birge ratio, when > 1); the excess is
+    between scan lines: the scanned p95 on the staphyloma's spiral beams 303 -> 377 um).
+    The variance is the posterior's, scaled by the weighted mean square residual over the
+    noise's (the Birge ratio, when > 1); the excess is
     that residual's excess over the noise: a quadratic that does not follow the retina
     within the support says so."""
     d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
