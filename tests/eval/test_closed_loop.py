@@ -64,8 +64,8 @@ def test_the_local_models_sigma_covers_a_detachment_on_the_unsafe_side(params):
     field = model.local.field()
     r = field_report(field, scenario.eye, coverage.view().angle_from_data_rad)
     assert r["sigma3_unsafe_fraction"] == 0.0 and r["sigma3_worst_excess_um"] < 0.0
-    assert r["sigma3_coverage"] >= 0.99  # the coverage, both sides
-    assert r["mae_um"] <= 150.0  # and honest without being vague: the accuracy target
+    assert r["sigma3_coverage"] >= 0.99  # the 3-sigma coverage target, both sides
+    assert r["mae_um"] <= 150.0  # and honest without being vague: the MAE target
 
 
 class State:

@@ -104,8 +104,8 @@ def test_a_detachment_past_the_data_edge_is_covered():
     """A 2 mm detachment (30 deg across) centred 45 deg off the pole, measured on a 50 deg
     cap: half of it lies past the data's edge. On an exact global ellipsoid (whose standard
     deviation is 0.05 mm next to the data) the field must follow the retina within the
-    issue's 50 um (p95) within 1 deg of the data, and its 3 sigma must cover the true
-    error on 99 % of the directions out to 20 deg past the data (the issue's coverage
+    scanned target's 50 um (p95) within 1 deg of the data, and its 3 sigma must cover the
+    true error on 99 % of the directions out to 20 deg past the data (the coverage
     target), where the data show the retina departing from the global quadric by mm."""
     from scipy.spatial import cKDTree
 
@@ -230,7 +230,7 @@ def test_between_and_past_scan_lines_over_a_detachment_the_sd_covers_the_unsafe_
     the pole) scanned on rings 4 deg apart out to 36 deg: its flank rises between the rings
     and past the last one. Where the model's retina lies beyond the true one the barrier
     is unsafe; within 2-10 deg of the data (where the quadratics extrapolate) that side
-    must stay within 3 sigma on 99 % of the directions (the issue's coverage, one-sided),
+    must stay within 3 sigma on 99 % of the directions (the coverage target, one-sided),
     while the global ellipsoid is off there by up to the detachment's height."""
     from scipy.spatial import cKDTree
 
