@@ -104,7 +104,7 @@ def test_robust_fit_decides_every_shape_in_time(shape, pose):
     """`paper --fit robust --seeds 1` (seed 0, every A-scan): with the robust ellipsoid
     (models.fit.robust_fit) the ellipsoid ends up better than the sphere on all six shapes,
     pathologies included, and the predictive criteria switch to it no earlier than the
-    optimal point and within the issue's 10 % of the spiral after it, also with the eye
+    optimal point and within 10 % of the spiral after it (the lag target), also with the eye
     tilted 11 deg and decentred. (The lag is the target itself; on other noise seeds the
     regular eyes' lags are those of the least-squares fit, which for some seeds switch
     up to 15 % early on the emmetropic and myopic eyes: README.)"""
