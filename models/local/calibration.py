@@ -7,7 +7,8 @@ angle from the data so far, as the field blends it). A point that starts a new s
 a few degrees from the last is exactly the prediction the barrier relies on between
 scan lines. Per gap knot (CAL_KNOTS_RAD: 0-15 deg) a histogram of |error| / (k sd)
 gives the factor that makes `quantile` of those errors lie within k calibrated sd; a
-point's count is split linearly between the two knots around its gap. The factors
+point's count is split linearly between the two knots around its gap (knot_at, the
+field's own interpolation). The factors
 never shrink the sd (at least 1) and never fall with the gap (a knot with fewer than
 `min_count` points, or a smaller factor, takes the largest one nearer the data): errors
 grow away from the data, and a knot the scan has not reached yet is not evidence of a
@@ -28,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.local.field_kernels import CAL_KNOTS_RAD, N_CAL
+from models.local.field_kernels import N_CAL, knot_at
 
 
 @njit(cache=True)
@@ -38,19 +39,12 @@ def absorb_errors(pred, k, width, hist, count, memory):
     `width` wide (the last one open), their totals in count (N_CAL,); a knot whose total
     passes `memory` has its counts halved."""
     cells = hist.shape[1]
-    last = CAL_KNOTS_RAD.shape[0] - 1
     for i in range(pred.shape[0]):
         r, rl, sd, gap = pred[i, 0], pred[i, 1], pred[i, 2], pred[i, 3]
         if not (np.isfinite(r) and np.isfinite(rl) and sd > 0.0 and np.isfinite(gap)):
             continue
         c = min(int(abs(rl - r) / (k * sd) / width), cells - 1)
-        if gap >= CAL_KNOTS_RAD[last]:
-            j, t = last - 1, 1.0
-        else:
-            j = 0
-            while gap >= CAL_KNOTS_RAD[j + 1]:
-                j += 1
-            t = (gap - CAL_KNOTS_RAD[j]) / (CAL_KNOTS_RAD[j + 1] - CAL_KNOTS_RAD[j])
+        j, t = knot_at(gap)
         for kn, w in ((j, 1.0 - t), (j + 1, t)):
             if w <= 0.0:
                 continue

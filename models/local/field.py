@@ -76,12 +76,7 @@ class LocalField(KernelQueries):
         """((M,) radius mm, (M,) sd mm) along unit directions U (M, 3) from the centre."""
         dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near = unpack(self.params)
         U = np.ascontiguousarray(np.asarray(U, dtype=float).reshape(-1, 3))
-        R, S = radii_at(dirs, blend, c0, prior, gp, cal, x, cov, excess, has, near, U)
-        if local == 0.0:
-            G = radii_at(dirs, blend, c0, prior, gp, cal, x, cov, excess, np.zeros(len(has)), near, U)[0]
-            S = np.sqrt(S * S + (R - G) ** 2)
-            R = G
-        return R, S
+        return radii_at(dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near, U)
 
     def sample_surface(self, n_theta: int, n_phi: int, z_max=None) -> np.ndarray:
         """(n_theta * n_phi, 3) surface points (mm) along an equal-area grid of directions

@@ -88,16 +88,24 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
 
 
 @njit(cache=True, inline="always")
-def calibrated_sd(sd, gap, cal):
-    """The sd times the calibration's factor at `gap` rad from the data: cal (N_CAL,) the
-    factors at CAL_KNOTS_RAD, linear between them, the last one beyond
-    (models.local.calibration measures them on the model's own predictions)."""
-    if gap >= CAL_KNOTS_RAD[-1]:
-        return sd * cal[-1]
+def knot_at(gap):
+    """(j, t): the gap `gap` rad lies between CAL_KNOTS_RAD[j] and [j + 1], a fraction t
+    of the way (t = 1 at the last knot and beyond)."""
+    last = CAL_KNOTS_RAD.shape[0] - 1
+    if gap >= CAL_KNOTS_RAD[last]:
+        return last - 1, 1.0
     j = 0
     while gap >= CAL_KNOTS_RAD[j + 1]:
         j += 1
-    t = (gap - CAL_KNOTS_RAD[j]) / (CAL_KNOTS_RAD[j + 1] - CAL_KNOTS_RAD[j])
+    return j, (gap - CAL_KNOTS_RAD[j]) / (CAL_KNOTS_RAD[j + 1] - CAL_KNOTS_RAD[j])
+
+
+@njit(cache=True, inline="always")
+def calibrated_sd(sd, gap, cal):
+    """The sd times the calibration's factor at `gap` rad from the data: cal (N_CAL,) the
+    factors at CAL_KNOTS_RAD, linear between them (knot_at), the last one beyond
+    (models.local.calibration measures them on the model's own predictions)."""
+    j, t = knot_at(gap)
     return sd * (cal[j] + t * (cal[j + 1] - cal[j]))
 
 
@@ -231,15 +239,20 @@ def unpack(fp):
 
 
 @njit(cache=True)
-def radii_at(dirs, blend, c0, prior, gp, cal, x, cov, excess, has, near, U):
+def radii_at(dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near, U):
     """(M,) radius (mm) and (M,) calibrated standard deviation (mm) of the blended field
-    along the unit directions U (M, 3) from c0 (_blend_at per row)."""
+    along the unit directions U (M, 3) from c0 (_blend_at per row); with `local` 0 the
+    global surface's, as local_field answers it (_global_form_sd)."""
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
     R, S = np.empty(U.shape[0]), np.empty(U.shape[0])
     for m in range(U.shape[0]):
-        nc = candidates(dirs, U[m, 0], U[m, 1], U[m, 2], blend, cand)
-        R[m], sd, gap = _blend_at(U[m, 0], U[m, 1], U[m, 2], dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        u0, u1, u2 = U[m, 0], U[m, 1], U[m, 2]
+        nc = candidates(dirs, u0, u1, u2, blend, cand)
+        R[m], sd, gap = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
         S[m] = calibrated_sd(sd, gap, cal)
+        if local == 0.0:
+            S[m] = _global_form_sd(S[m], R[m], c0, gp, u0, u1, u2)
+            R[m] = global_radius(c0, gp, u0, u1, u2)
     return R, S
 
 
@@ -278,15 +291,11 @@ def predictions(P, c0, gp, gate, dirs, blend, prior, x, cov, excess, has, near, 
         if not abs(r - rg) <= gate[2]:
             continue
         nc = candidates(dirs, u0, u1, u2, blend, cand)
-        best = -2.0
+        best, nearest = -2.0, np.nan  # the nearest node's angle from the data
         for j in range(nc):
-            best = max(best, u0 * dirs[cand[j], 0] + u1 * dirs[cand[j], 1] + u2 * dirs[cand[j], 2])
-        nearest = np.nan
-        for j in range(nc):
-            k = cand[j]
-            if u0 * dirs[k, 0] + u1 * dirs[k, 1] + u2 * dirs[k, 2] == best:
-                nearest = np.arccos(max(min(near[k], 1.0), -1.0))
-                break
+            c = u0 * dirs[cand[j], 0] + u1 * dirs[cand[j], 1] + u2 * dirs[cand[j], 2]
+            if c > best:
+                best, nearest = c, np.arccos(max(min(near[cand[j]], 1.0), -1.0))
         rl, sd, gap = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
         out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = r, rl, sd, gap, rg, nearest
     return out

@@ -151,7 +151,7 @@ _NO_GLOBAL = np.zeros(GLOBAL_SIZE)
 
 
 @lru_cache(maxsize=4)
-def _neighbours(n: int, reach_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _neighbour_table_of(n: int, reach_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """kernels.neighbour_table of the n-node grid, once per process (read-only: shared)."""
     table = neighbour_table(fibonacci_directions(n), np.radians(reach_deg))
     for a in table:
@@ -292,7 +292,7 @@ class LocalRetinaModel:
     def _neighbours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The grid's neighbour table within departure_deg (shared by every model of the
         process, never copied with one: ~16 MB)."""
-        return _neighbours(self.n_nodes, self.config.departure_deg)
+        return _neighbour_table_of(self.n_nodes, self.config.departure_deg)
 
     def _spread(self) -> None:
         """The nodes without data take the departure of the data nodes near them (kernels.spread_departures)."""
@@ -305,8 +305,8 @@ class LocalRetinaModel:
         if self._gp is None:
             return np.full(len(U), np.nan), np.full(len(U), np.inf)
         self._spread()
-        return radii_at(self._dirs, self._blend, self.center, self._prior, self._gp, self.calibration.factors, self._x,
-                        self._cov, self._extra, self._has, self._near, U)
+        return radii_at(self._dirs, self._blend, 1.0, self.center, self._prior, self._gp, self.calibration.factors,
+                        self._x, self._cov, self._extra, self._has, self._near, U)
 
     def field(self, local: bool = True, kind: str = "local"):
         """The LocalField (models.local.field) of params(local), remade at most every
