@@ -6,13 +6,14 @@ frozen and invalid streams, floaters; "ideal" and "none" for reference) builds t
 spiral through the faulty loop and runs the boundary's adversarial campaign against it.
 Writes faults.json ({"classes": {name: {"parameters", "scenarios", "violations",
 "contacts", "min_true_clearance_mm", "failsafe_stops", "stops_by_reason",
-"infeasible_qp_stops", ...}}, "margin_costs_mm": {name: mm}}) and faults.png (each class's
+"infeasible_qp_stops", "model": the filter's model's figures, ...}}, "margin_costs_mm":
+{name: mm}}) and faults.png (each class's
 smallest true clearance per scenario); with `--shape all` the same per shape under
 "shapes" and one faults_<shape>.png each.
 """
 from __future__ import annotations
 
-from eval.cli.args import SEED, choice, integer, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import CALIBRATION_BOUND
 from eval.cli.progress import progress_bar
@@ -37,6 +38,10 @@ def register(sub) -> None:
                    help=f"comma-separated fault classes, of {', '.join(FAULT_CLASSES)}; all: every one")
     p.add_argument("--calibration-bound", type=CALIBRATION_BOUND, default=None, metavar="MM,DEG",
                    help=f"declared calibration bound the filter keeps, {CALIBRATION_BOUND.range}; default 0.03,0.13")
+    add_eye_param(p)
+    p.add_argument("--local-model", action="store_true",
+                   help="bound the motion by the local-global model (d_safe + 3 sigma) instead of the quadric model "
+                        "with its phase margins")
     p.add_argument("--out", default="out/faults", help="output directory")
     add_worker_flags(p)
     p.set_defaults(func=main)
@@ -58,16 +63,20 @@ def main(args) -> int:
     from eval.cli.loop_flags import loop_config
 
     names = classes_of(args.classes)
+    if args.eye_param and args.shape == "all":
+        raise UsageError("--eye-param needs one --shape (the parameters are a shape's), not --shape all")
+    params = {} if args.shape == "all" else eye_params(args.eye_param, args.shape)
     workers = workers_of(args)
     out = prepare_out_dir(args.out)
     base = loop_config(args)
     shapes = list(EYE_SHAPES) if args.shape == "all" else [args.shape]
     per_shape = {}
     for shape in shapes:
-        per_shape[shape] = _shape_classes(args, shape, names, base, workers)
+        per_shape[shape] = _shape_classes(args, shape, params, names, base, workers)
         save_figure(_figure(per_shape[shape]["classes"], shape),
                     out / ("faults.png" if len(shapes) == 1 else f"faults_{shape}.png"))
     result = {"seed": args.seed, "scenario_s": args.duration_s, "violation_threshold_mm": 0.45,
+              "local_model": base.local_model, "eye_params": params,
               "calibration_bound": [base.filter.calibration_bound_mm, base.filter.calibration_bound_deg]}
     if len(shapes) == 1:
         result = {"shape": shapes[0], **result, **per_shape[shapes[0]]}
@@ -78,8 +87,9 @@ def main(args) -> int:
     return 0
 
 
-def _shape_classes(args, shape: str, names: list, base, workers) -> dict:
-    """{"classes": {name: faults.json entry}, "margin_costs_mm": ...} on one eye shape."""
+def _shape_classes(args, shape: str, params: dict, names: list, base, workers) -> dict:
+    """{"classes": {name: faults.json entry}, "margin_costs_mm": ...} on one eye shape (with
+    make_eye's shape parameters `params`)."""
     from eval.cli.boundary import bar_progress, make_loop
     from eval.experiments.faults import fault_class, margin_costs, run_fault_class
 
@@ -89,7 +99,7 @@ def _shape_classes(args, shape: str, names: list, base, workers) -> dict:
         with progress_bar(args.scenarios, f"{shape} {name}: adversarial scenarios", unit="scenario") as bar:
             try:
                 classes[name] = run_fault_class(fc, shape, args.scenarios, args.seed, args.duration_s, make_loop,
-                                                progress=bar_progress(bar), workers=workers)
+                                                progress=bar_progress(bar), workers=workers, eye_params=params)
             except RuntimeError as exc:  # e.g. the model this loop built leaves too few reachable starts
                 if is_interrupt(exc):
                     raise
@@ -100,7 +110,8 @@ def _shape_classes(args, shape: str, names: list, base, workers) -> dict:
         worst = c.get("detection_ms", {}).get("max")
         detection = "" if "detection_ms" not in c else \
             f"  detection max {'-' if worst is None else f'{worst:.1f}'} ms, undetected {c['detection_ms']['undetected']}"
-        print(f"{shape:10s} {name:14s} violations {c['violations']:3d}  contacts {c['contacts']:3d}"
+        print(f"{shape:10s} {name:14s} model {c['model']['kind']} MAE {c['model']['mae_um']:.0f} um"
+              f"  violations {c['violations']:3d}  contacts {c['contacts']:3d}"
               f"  min {c['min_true_clearance_mm']:.3f} mm  infeasible {c['infeasible_qp_stops']}  held {c.get('recovery_held_steps', 0)}"
               f"  stops {c['failsafe_stops']:3d} {c['stops_by_reason']}{detection}")
     return {"classes": classes, "margin_costs_mm": margin_costs(classes)}

@@ -39,6 +39,7 @@ import dataclasses
 import numpy as np
 
 from eval.experiments.boundary import build_model_by_spiral, reason_class, run_campaign
+from eval.experiments.model_report import model_summary
 from planning import SurgeryScenario
 from planning.iioct.stream import StreamFault
 from safety.actuator import ActuatorModel
@@ -128,13 +129,17 @@ def margin_costs(classes: dict) -> dict:
 
 
 def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: float, make_loop, progress=None,
-                    **campaign_kwargs) -> dict:
-    """The class's campaign on the `shape` eye: its faults.json entry. `make_loop(scenario,
-    config, **kw)` builds a ClosedLoop (eval.cli.boundary.make_loop: with a progress
-    phase); `campaign_kwargs` go to run_campaign (e.g. its `workers`)."""
-    scenario = SurgeryScenario(eye_name=shape, **fc.scenario_kwargs)
+                    eye_params: dict | None = None, **campaign_kwargs) -> dict:
+    """The class's campaign on the `shape` eye (make_eye's shape parameters `eye_params`):
+    its faults.json entry, whose "model" holds the figures of the model the filter used
+    (eval.experiments.model_report.model_summary: kind, mae_um, scanned_p95_um, ...) and the
+    spiral's least-squares ellipsoid's MAE. `make_loop(scenario, config, **kw)` builds a
+    ClosedLoop (eval.cli.boundary.make_loop: with a progress phase); `campaign_kwargs` go to
+    run_campaign (e.g. its `workers`)."""
+    scenario = SurgeryScenario(eye_name=shape, eye_params=dict(eye_params or {}), **fc.scenario_kwargs)
     loop = make_loop(scenario, fc.build, sensor_seed=seed, floater_rate=fc.floater_rate)
     build = build_model_by_spiral(loop, sensor_seed=seed)
+    model = {**model_summary(loop, build), "ef_mae_um": build.ef_mae_um}
     if fc.campaign is not fc.build:
         loop = make_loop(scenario, fc.campaign, sensor_seed=seed, floater_rate=fc.floater_rate)
     campaign = run_campaign(loop, build.model, build.coverage, n, seed, duration_s, progress=progress, **campaign_kwargs)
@@ -143,7 +148,7 @@ def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: f
            **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "failsafe_stops",
                                 "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "max_rcm_error_um", "intervention_fraction", "tracking_rmse_mm_s", "realtime_factor",
                                 "realtime_factor_unlogged")},
-           "model": {"kind": build.kind_final, "ef_mae_um": build.ef_mae_um},
+           "model": model,
            "calibration_margin_mm": fc.campaign.filter.calibration_margin_mm,
            "spiral_min_true_clearance_mm": float(build.run.true_clearance_mm.min())}
     if fc.campaign.stream_fault.kind != "none":

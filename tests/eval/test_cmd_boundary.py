@@ -90,6 +90,9 @@ def test_bad_demo_arguments_exit_2(argv, message, tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, message", [
     (["--classes", "lag,earthquake"], "--classes"), (["--calibration-bound", "nan,0.1"], "--calibration-bound"),
+    (["--shape", "all", "--eye-param", "height_mm=3"], "--eye-param needs one --shape"),
+    (["--shape", "detached", "--eye-param", "height_mm=9"], "height_mm must be in (0, 5] mm"),
+    (["--shape", "pointed", "--eye-param", "depth_mm=2"], "has no parameter 'depth_mm'"),
 ])
 def test_bad_faults_arguments_exit_2_and_write_nothing(argv, message, tmp_path, capsys):
     out = tmp_path / "never"

@@ -2,6 +2,7 @@
 detection is timed."""
 from __future__ import annotations
 
+import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -60,3 +61,23 @@ def test_infeasible_stops_count_runs_of_qp_steps_and_those_right_after_an_accept
     a = SimpleNamespace(ok=np.array([1, 0, 0, 1, 0, 0, 1], dtype=bool), reasons=["ok", qp, qp, "ok", brake, qp, "ok"])
     b = SimpleNamespace(ok=np.array([0, 1], dtype=bool), reasons=[qp, "ok"])
     assert infeasible_stops([a, b]) == {"total": 3, "after_accepted_step": 1}
+
+
+@pytest.mark.slow
+def test_the_fault_matrix_runs_on_the_local_models_boundary(tmp_path):
+    """`faults --local-model --eye-param ...`: the spiral through the lagging loop builds the
+    local-global model of the eye with those parameters, the filter bounds the motion by it
+    (kind "local": d_safe + 3 sigma), and the true retina stays past the violation line."""
+    from eval.cli import main
+
+    out = tmp_path / "faults"
+    argv = ["faults", "--shape", "detached", "--eye-param", "height_mm=2.5", "--local-model", "--classes", "lag",
+            "--scenarios", "3", "--duration-s", "0.2", "--jobs", "1", "--out", str(out)]
+    assert main(argv) == 0
+    result = json.loads((out / "faults.json").read_text())
+    assert result["local_model"] is True and result["eye_params"] == {"height_mm": 2.5}
+    lag = result["classes"]["lag"]
+    assert lag["parameters"]["actuator_lag_ms"] == 20.0 and lag["model"]["kind"] == "local"
+    assert lag["model"]["sigma3_coverage"] >= 0.99  # 3 sigma: 99.7 % of a normal error
+    assert lag["violations"] == 0 and lag["contacts"] == 0
+    assert lag["min_true_clearance_mm"] >= result["violation_threshold_mm"]

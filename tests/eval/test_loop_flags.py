@@ -18,8 +18,9 @@ def test_no_flags_give_the_loops_own_filter(command):
     assert loop_config(args).filter == LoopConfig().filter
 
 
-def test_the_local_model_flag_gives_its_own_filter():
-    local = loop_config(build_parser().parse_args(["boundary", "--local-model"]))
+@pytest.mark.parametrize("command", ["boundary", "faults"])
+def test_the_local_model_flag_gives_its_own_filter(command):
+    local = loop_config(build_parser().parse_args([command, "--local-model"]))
     assert local.local_model and local.filter == LoopConfig(local_model=True).filter
     assert local.filter.sigma_factor == 3.0 and LoopConfig().filter.sigma_factor == 1.0
 
