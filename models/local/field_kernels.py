@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.local.kernels import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, global_sd, node_frame, wendland
+from models.local.geometry import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, node_frame, wendland
+from models.local.kernels import global_sd
 
 MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60)
 CAL_KNOTS_RAD = np.radians(np.array([0.0, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0]))  # the sd calibration's gaps

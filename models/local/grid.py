@@ -77,10 +77,9 @@ from models.adaptive.coverage import fibonacci_directions
 from models.local.field import LocalField
 from models.local.calibration import SigmaCalibration
 from models.local.field_kernels import predictions, radii_at
-from models.local.kernels import (
-    ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV, absorb_points, global_params, neighbour_table, node_departures,
-    solve_nodes, spread_departures,
-)
+from models.local.departures import neighbour_table, node_departures, spread_departures
+from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV
+from models.local.kernels import absorb_points, global_params, solve_nodes
 from models.shapes.validation import as_points, as_vector3
 
 
@@ -152,7 +151,7 @@ _NO_GLOBAL = np.zeros(GLOBAL_SIZE)
 
 @lru_cache(maxsize=4)
 def _neighbour_table_of(n: int, reach_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """kernels.neighbour_table of the n-node grid, once per process (read-only: shared)."""
+    """departures.neighbour_table of the n-node grid, once per process (read-only: shared)."""
     table = neighbour_table(fibonacci_directions(n), np.radians(reach_deg))
     for a in table:
         a.setflags(write=False)
@@ -195,6 +194,7 @@ class LocalRetinaModel:
         self._excess = np.zeros(n)
         self._extra = np.zeros(n)  # the variance the field adds per node: excess and the departures (_spread)
         self._dev = np.zeros(n)  # each node's data's departure from the global quadric at its last solve (mm)
+        self._slope = np.zeros(n)  # and its slope (mm/rad)
         self._has = np.zeros(n)
         self._data_nodes = np.zeros(n, dtype=np.int64)  # nodes with data, in the order they got it
         self._n_data = 0
@@ -261,7 +261,7 @@ class LocalRetinaModel:
         cfg = self.config
         count = min(self._n_dirty, budget)
         args = (self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum, self._near, self._prior,
-                self._reach, *self._neighbours(), self._dev, self._x,
+                self._reach, *self._neighbours(), self._dev, self._slope, self._x,
                 self._cov, self._excess, self._has, self._listed, self._solved_w)
         if count:
             solve_nodes(self._dirty[:count], count, *args)
@@ -285,7 +285,7 @@ class LocalRetinaModel:
         node_departures(nodes, self._dirs, self.center, self._gp, self._b, self._wsum, self._dev)  # all first: order-free
         self._has[nodes] = 1.0
         solve_nodes(nodes, len(nodes), self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum,
-                    self._near, self._prior, self._reach, *self._neighbours(), self._dev, self._x, self._cov,
+                    self._near, self._prior, self._reach, *self._neighbours(), self._dev, self._slope, self._x, self._cov,
                     self._excess, self._has, self._listed, self._solved_w)
         self._n_dirty = 0
 
@@ -295,9 +295,10 @@ class LocalRetinaModel:
         return _neighbour_table_of(self.n_nodes, self.config.departure_deg)
 
     def _spread(self) -> None:
-        """The nodes without data take the departure of the data nodes near them (kernels.spread_departures)."""
-        spread_departures(self._dirs, self._x, self._has, self._excess, self._dev, self._reach, self.config.sd_floor_mm,
-                          self._blend, self._extra)
+        """The nodes without data take the departure of the data nodes near them (departures.spread_departures)."""
+        spread_departures(self._dirs, self._x, self._has, self._excess, self._dev, self._slope, self._near,
+                          np.radians(self.config.spacing_deg), self._reach, self.config.sd_floor_mm, self._blend,
+                          self._extra)
 
     def radius_and_sd(self, U) -> tuple[np.ndarray, np.ndarray]:
         """((M,) radius mm, (M,) sd mm) along the unit directions U (M, 3) from the centre."""

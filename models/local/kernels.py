@@ -1,12 +1,12 @@
-"""Compiled kernels of the local retina model (models.local.grid): the global quadric's
-radius along a direction from the model centre, the grid's nodes on a Fibonacci sphere,
-the per-node weighted least squares that points update, and the node solve with the
-global prior (the blended field: models.local.field_kernels).
+"""Compiled kernels of the local retina model (models.local.grid): the per-node weighted
+least squares that points update and the node solve with the global prior (the
+geometry they share: models.local.geometry; the departures from the global quadric:
+models.local.departures; the blended field: models.local.field_kernels).
 
 Radii are mm from the fixed model centre c0; directions unit vectors; angles rad.
 Node k of an n-node grid has direction dirs[k] = fibonacci_directions(n)[k]
 (models.adaptive.coverage: z falls with k, so a z band is an index range) and a tangent
-frame (e1, e2) made from it alone (node_frame).
+frame (e1, e2) made from it alone (geometry.node_frame).
 """
 from __future__ import annotations
 
@@ -14,67 +14,8 @@ import numpy as np
 from numba import njit
 
 from models.fit.small_linalg import cholesky
-
-N_COV = 21  # the upper triangle of a node's 6 x 6 covariance
-N_BASIS = 6  # per node: r(t1, t2) = x0 + x1 t1 + x2 t2 + x3 t1^2 + x4 t1 t2 + x5 t2^2 (gnomonic t, rad)
-SPHERE, ELLIPSOID = 1.0, 2.0
-GLOBAL_SIZE = 16  # [kind, centre (3), rotation (9, row-major), semi-axes (3)]
-
-
-@njit(cache=True, inline="always")
-def global_radius(c0, gp, u0, u1, u2):
-    """Distance (mm) from c0 along the unit direction u to the global quadric gp
-    (GLOBAL_SIZE,): NaN when c0 is not inside it."""
-    q0, q1, q2 = c0[0] - gp[1], c0[1] - gp[2], c0[2] - gp[3]
-    if gp[0] == SPHERE:
-        r = gp[13]
-        b = u0 * q0 + u1 * q1 + u2 * q2
-        c = q0 * q0 + q1 * q1 + q2 * q2 - r * r
-        a = 1.0
-    else:  # ellipsoid: in its axes, scaled to the unit sphere
-        Q0 = (gp[4] * q0 + gp[7] * q1 + gp[10] * q2) / gp[13]
-        Q1 = (gp[5] * q0 + gp[8] * q1 + gp[11] * q2) / gp[14]
-        Q2 = (gp[6] * q0 + gp[9] * q1 + gp[12] * q2) / gp[15]
-        V0 = (gp[4] * u0 + gp[7] * u1 + gp[10] * u2) / gp[13]
-        V1 = (gp[5] * u0 + gp[8] * u1 + gp[11] * u2) / gp[14]
-        V2 = (gp[6] * u0 + gp[9] * u1 + gp[12] * u2) / gp[15]
-        a = V0 * V0 + V1 * V1 + V2 * V2
-        b = Q0 * V0 + Q1 * V1 + Q2 * V2
-        c = Q0 * Q0 + Q1 * Q1 + Q2 * Q2 - 1.0
-    if not c < 0.0:
-        return np.nan
-    return (-b + np.sqrt(b * b - a * c)) / a
-
-
-@njit(cache=True, inline="always")
-def node_frame(d0, d1, d2):
-    """(e1, e2): an orthonormal tangent frame at the unit direction d (from d alone)."""
-    if abs(d2) < 0.9:  # e1 = normalise(z x d)
-        a0, a1, a2 = -d1, d0, 0.0
-    else:  # e1 = normalise(x x d)
-        a0, a1, a2 = 0.0, -d2, d1
-    s = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-    a0, a1, a2 = a0 / s, a1 / s, a2 / s
-    return a0, a1, a2, d1 * a2 - d2 * a1, d2 * a0 - d0 * a2, d0 * a1 - d1 * a0
-
-
-@njit(cache=True, inline="always")
-def band(n, uz, chord):
-    """[k0, k1): the nodes of an n-node Fibonacci sphere whose z lies within chord of uz
-    (z = 1 - 2 (k + 1/2) / n falls with k), one more on each side for rounding."""
-    k0 = max(int(0.5 * n * (1.0 - (uz + chord)) - 0.5) - 1, 0)
-    k1 = min(int(0.5 * n * (1.0 - (uz - chord)) - 0.5) + 2, n)
-    return k0, k1
-
-
-@njit(cache=True, inline="always")
-def wendland(t):
-    """Wendland's C2 function (1 - t)^4 (4 t + 1) for t in [0, 1), 0 beyond (Wendland 1995)."""
-    if t >= 1.0:
-        return 0.0
-    s = 1.0 - t
-    return s * s * s * s * (4.0 * t + 1.0)
-
+from models.local.departures import SLOPE_UNDERSTATEMENT, gathered_departure, node_departure
+from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, SPHERE, band, global_radius, node_frame, wendland
 
 @njit(cache=True)
 def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, growth):
@@ -136,10 +77,13 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
 
 
 @njit(cache=True)
-def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, x, cov, excess):
+def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, slope, x, cov,
+               excess):
     """Node k's posterior: the local quadratic x[k] (6,) (mm, mm/rad, mm/rad^2), its
-    covariance cov[k] (N_COV,: the upper triangle row by row, mm^2 per basis products)
-    and the misfit variance excess[k] (mm^2). Data: the weighted normal equations
+    covariance cov[k] (N_COV,: the upper triangle row by row, mm^2 per basis products),
+    the misfit variance excess[k] (mm^2) and the slope of its departure from the global
+    quadric, slope[k] (mm/rad: SLOPE_UNDERSTATEMENT x the norm of the fitted slopes less
+    the global's). Data: the weighted normal equations
     (A, b, rr, wsum) with noise prior[0] mm; prior: the global quadric gp's Taylor
     expansion at the node (finite differences of global_radius, step 0.02 rad); the
     correction to it (its first prior[6] terms, the rest 0) has the standard deviations
@@ -203,6 +147,7 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     x[k, :] = m
     cov[k, :] = 0.0
     excess[k] = 0.0
+    slope[k] = 0.0
     L, ok = cholesky(M)
     if not ok or not np.isfinite(m[0]):
         cov[k, 0] = 1.0 / pinv[0]
@@ -229,6 +174,7 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
             Li[a, j] = s / L[a, a]
     for a in range(nf):
         x[k, a] += y[a]
+    slope[k] = SLOPE_UNDERSTATEMENT * np.hypot(x[k, 1] - m[1], x[k, 2] - m[2])
     ss = rr[k]  # weighted residual sum of squares of x over the node's data
     for a in range(N_BASIS):
         ss -= 2.0 * x[k, a] * b[k, a]
@@ -256,125 +202,18 @@ def global_sd(angle, prior):
     return prior[1] + (prior[2] - prior[1]) * t
 
 
-@njit(cache=True, inline="always")
-def node_departure(k, dirs, c0, gp, b, wsum):
-    """The departure (mm) of node k's data from the global quadric gp: their weighted mean
-    radius (b[k, 0] / wsum[k], the data alone) less the global radius at the node."""
-    if not wsum[k] > 0.0:
-        return 0.0
-    return b[k, 0] / wsum[k] - global_radius(c0, gp, dirs[k, 0], dirs[k, 1], dirs[k, 2])
-
-
 @njit(cache=True)
-def node_departures(nodes, dirs, c0, gp, b, wsum, dev):
-    """dev[k] = node_departure(k) for the nodes listed (before a pass that solves them all)."""
-    for k in nodes:
-        dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
-
-
-@njit(cache=True, inline="always")
-def departure_variance(D, a, reach):
-    """D^2 (1 - a / reach) mm^2 (0 beyond `reach` rad): what a departure D mm of the retina
-    from the global quadric, measured at a node, says of the retina `a` rad from it (a
-    pathology goes on past the data as the data next to it depart, fading over about a
-    detachment's or a staphyloma's radius)."""
-    return D * D * (1.0 - a / reach) if a < reach else 0.0
-
-
-@njit(cache=True)
-def gathered_departure(k, has, dev, reach, floor, nb_off, nb_idx, nb_ang):
-    """The largest departure_variance (mm^2) at node k over node k and its neighbours j
-    within `reach` rad (nb_idx[nb_off[k]:nb_off[k + 1]] at the angles nb_ang: neighbour_table)
-    that hold data and whose departure |dev[j]| > floor mm."""
-    best = dev[k] * dev[k] if abs(dev[k]) > floor else 0.0
-    for i in range(nb_off[k], nb_off[k + 1]):
-        j = nb_idx[i]
-        if has[j] != 0.0 and abs(dev[j]) > floor:
-            best = max(best, departure_variance(dev[j], nb_ang[i], reach))
-    return best
-
-
-@njit(cache=True)
-def neighbour_table(dirs, reach):
-    """(off (n + 1,), idx, ang): the nodes within `reach` rad of node k, itself excluded,
-    are idx[off[k]:off[k + 1]], at the angles ang[off[k]:off[k + 1]] rad (compressed rows,
-    built once per grid: a gather then reads the ~200 nodes of a 25 deg disc instead of
-    scanning the ~2,000 of its z band, and no angle)."""
-    n = dirs.shape[0]
-    chord, cos_r = 2.0 * np.sin(0.5 * reach), np.cos(reach)
-    off = np.zeros(n + 1, dtype=np.int64)
-    for sweep in range(2):
-        idx = np.empty(off[n] if sweep else 0, dtype=np.int64)
-        ang = np.empty(off[n] if sweep else 0)
-        for k in range(n):
-            m = off[k]
-            k0, k1 = band(n, dirs[k, 2], chord)
-            for j in range(k0, k1):
-                c = dirs[k, 0] * dirs[j, 0] + dirs[k, 1] * dirs[j, 1] + dirs[k, 2] * dirs[j, 2]
-                if j != k and c > cos_r:
-                    if sweep:
-                        idx[m], ang[m] = j, np.arccos(min(c, 1.0))
-                        m += 1
-                    else:
-                        off[k + 1] += 1
-        if not sweep:
-            for k in range(n):
-                off[k + 1] += off[k]
-    return off, idx, ang
-
-
-@njit(cache=True)
-def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, x, cov,
-                excess, has, listed, solved_w):
+def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, slope, x,
+                cov, excess, has, listed, solved_w):
     """Solve the first `count` nodes listed in `nodes` (solve_node), mark them as holding
     data (has) and no longer listed, their weight then in solved_w."""
     for j in range(count):
         k = nodes[j]
-        solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, x, cov, excess)
+        solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, slope, x, cov,
+                   excess)
         has[k] = 1.0
         listed[k] = False
         solved_w[k] = wsum[k]
-
-
-@njit(cache=True)
-def spread_departures(dirs, x, has, excess, dev, reach, floor, cross, out):
-    """out (n,) mm^2: a node's variance beyond its quadratic's posterior.
-
-    A node with data j: its excess plus the largest squared error of its quadratic at the
-    nodes with data k within `cross` rad, against their own value x[k, 0] (how wrong its
-    extrapolation is where the data show the retina: at the rim of a detachment a node's
-    quadratic from one side misses the other side by as much; on a smooth retina the
-    quadratics agree). A node without data j: the largest departure_variance of the data
-    nodes k within `reach` rad whose departure |dev[k]| > floor mm (dev: the mean radius
-    of a node's data less the global radius there, at its last solve): beyond the edge of
-    the data a pathology may go on as the data next to it depart, and the field reads the
-    global quadric there (the same departures loosen every node's prior: solve_node)."""
-    n = dirs.shape[0]
-    for k in range(n):
-        out[k] = excess[k] if has[k] != 0.0 else 0.0
-    chord_x, chord_r = 2.0 * np.sin(0.5 * cross), 2.0 * np.sin(0.5 * max(reach, cross))
-    cos_x = np.cos(cross)
-    for k in range(n):
-        if has[k] == 0.0:
-            continue
-        d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
-        spread = abs(dev[k]) > floor
-        k0, k1 = band(n, d2, chord_r if spread else chord_x)  # the departure's reach only where there is one
-        for j in range(k0, k1):
-            c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
-            if has[j] != 0.0:
-                if c <= cos_x or j == k:
-                    continue
-                e10, e11, e12, e20, e21, e22 = node_frame(dirs[j, 0], dirs[j, 1], dirs[j, 2])
-                t1 = (d0 * e10 + d1 * e11 + d2 * e12) / c  # node k's direction in node j's gnomonic frame
-                t2 = (d0 * e20 + d1 * e21 + d2 * e22) / c
-                e = (x[j, 0] + x[j, 1] * t1 + x[j, 2] * t2 + x[j, 3] * t1 * t1 + x[j, 4] * t1 * t2 + x[j, 5] * t2 * t2
-                     - x[k, 0])
-                if excess[j] + e * e > out[j]:
-                    out[j] = excess[j] + e * e
-            elif spread:
-                out[j] = max(out[j], departure_variance(dev[k], np.arccos(min(c, 1.0)), reach))
-    return out
 
 
 def global_params(shape) -> np.ndarray:

@@ -247,10 +247,31 @@ def test_between_and_past_scan_lines_over_a_detachment_the_sd_covers_the_unsafe_
     assert np.mean(beyond > 3.0 * S) <= 0.01
 
 
+@pytest.mark.parametrize("edge, height_mm", [(0.6, 2.0), (0.6, 3.5), (0.75, 2.0), (0.85, 3.5)])
+def test_a_detachment_top_the_scan_did_not_reach_is_within_3_sigma(edge, height_mm):
+    """A detachment (25 deg base half-angle, centred 40 deg off the pole) measured densely
+    everywhere on a 70 deg cap except its top: no data within `edge` x 25 deg of its centre,
+    where the scan stopped on its flank (edge 0.85: the data there depart from the global
+    quadric by only 0.077 x its height). Over that unscanned top, which rises past the data
+    by up to the detachment's height, the model's retina may lie beyond the true one (the
+    unsafe side) by more than 3 sigma on at most 1 % of the directions."""
+    radius_of = detachment(40.0, 25.0, height_mm)
+    axis = np.array([np.sin(np.radians(40.0)), 0.0, -np.cos(np.radians(40.0))])
+    u, P = cap_points(radius_of, n=12000, cap_deg=70.0)
+    m = model_on_the_globe(P[np.degrees(np.arccos(np.clip(u @ axis, -1, 1))) > edge * 25.0])
+    _, Q = cap_points(radius_of, n=40000, cap_deg=75.0, seed=7, noise=0.0)
+    U = Q / np.linalg.norm(Q, axis=1, keepdims=True)
+    top = np.degrees(np.arccos(np.clip(U @ axis, -1, 1))) <= edge * 25.0
+    R, S = m.radius_and_sd(U[top])
+    beyond = R - radius_of(U[top])
+    assert top.sum() > 500 and np.max(beyond) > 0.5 * height_mm  # the global quadric misses the top
+    assert np.mean(beyond > 3.0 * S) <= 0.01
+
+
 @pytest.mark.parametrize("n, reach_deg", [(500, 15.0), (4584, 15.0), (4584, 40.0)])
 def test_the_neighbour_table_is_every_node_within_reach(n, reach_deg):
     from models.adaptive.coverage import fibonacci_directions
-    from models.local.kernels import neighbour_table
+    from models.local.departures import neighbour_table
 
     dirs = fibonacci_directions(n)
     off, idx, ang = neighbour_table(dirs, np.radians(reach_deg))

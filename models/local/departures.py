@@ -1,0 +1,155 @@
+"""The departures of the retina from the global quadric in the local model (compiled):
+each node's measured departure, how far it says the retina may depart where the data do
+not reach (the prior of the nodes' offset and tilt: departure_variance; the standard
+deviation past the data's edge: unseen_departure_variance), and the neighbour table the
+gathers read. Units: mm, rad; grids and arrays as in models.local.kernels.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from models.local.geometry import band, global_radius, node_frame
+
+@njit(cache=True, inline="always")
+def node_departure(k, dirs, c0, gp, b, wsum):
+    """The departure (mm) of node k's data from the global quadric gp: their weighted mean
+    radius (b[k, 0] / wsum[k], the data alone) less the global radius at the node."""
+    if not wsum[k] > 0.0:
+        return 0.0
+    return b[k, 0] / wsum[k] - global_radius(c0, gp, dirs[k, 0], dirs[k, 1], dirs[k, 2])
+
+
+@njit(cache=True)
+def node_departures(nodes, dirs, c0, gp, b, wsum, dev):
+    """dev[k] = node_departure(k) for the nodes listed (before a pass that solves them all)."""
+    for k in nodes:
+        dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
+
+
+@njit(cache=True, inline="always")
+def departure_variance(D, a, reach):
+    """D^2 (1 - a / reach) mm^2 (0 beyond `reach` rad): what a departure D mm of the retina
+    from the global quadric, measured at a node, says of the retina `a` rad from it (a
+    pathology goes on past the data as the data next to it depart, fading over about a
+    detachment's or a staphyloma's radius)."""
+    return D * D * (1.0 - a / reach) if a < reach else 0.0
+
+
+# The departure's slope a node's quadratic fits is its mean over the support: at the edge
+# of data that stop on a detachment's flank, about half the true slope there (the default
+# profile, 2 mm over 25 deg, with the data stopping 15 deg from its centre: 6.6 mm/rad
+# fitted against 14.1): slope[k] holds this many times the fitted one.
+SLOPE_UNDERSTATEMENT = 2.0
+
+
+@njit(cache=True, inline="always")
+def unseen_departure_variance(D, g, a, reach):
+    """(|D| + |g| a)^2 mm^2 (0 beyond `reach` rad): what a departure D mm of the retina from
+    the global quadric, rising at g mm/rad at a node with data, says of the retina `a` rad
+    from it where there is none. Past the data's edge a pathology may go on rising at the
+    rate the data show: the top of a detachment the scan did not reach lies further from
+    the global quadric than its flank. With the departure_variance of the prior, which
+    fades with the angle, instead: in the closed loop with the OCT stream 2.6 ms late
+    (`vitreoguard faults --local-model`, class time_offset) the boundary held the spiral
+    off the detached eye's top, the data stopped on its flank 15 deg from its centre, and
+    0.66 % of the reference samples (that top) lay beyond 3 sigma on the unsafe side, up
+    to 225 um; with data stopping at 0.75-0.85 of a detachment's radius, 30-48 % of its
+    top did, up to 2.6 mm (tests/models/local)."""
+    return (abs(D) + abs(g) * a) ** 2 if a < reach else 0.0
+
+
+@njit(cache=True)
+def gathered_departure(k, has, dev, reach, floor, nb_off, nb_idx, nb_ang):
+    """The largest departure_variance (mm^2) at node k over node k and its neighbours j
+    within `reach` rad (nb_idx[nb_off[k]:nb_off[k + 1]] at the angles nb_ang: neighbour_table)
+    that hold data and whose departure |dev[j]| > floor mm."""
+    best = dev[k] * dev[k] if abs(dev[k]) > floor else 0.0
+    for i in range(nb_off[k], nb_off[k + 1]):
+        j = nb_idx[i]
+        if has[j] != 0.0 and abs(dev[j]) > floor:
+            best = max(best, departure_variance(dev[j], nb_ang[i], reach))
+    return best
+
+
+@njit(cache=True)
+def neighbour_table(dirs, reach):
+    """(off (n + 1,), idx, ang): the nodes within `reach` rad of node k, itself excluded,
+    are idx[off[k]:off[k + 1]], at the angles ang[off[k]:off[k + 1]] rad (compressed rows,
+    built once per grid: a gather then reads the ~200 nodes of a 25 deg disc instead of
+    scanning the ~2,000 of its z band, and no angle)."""
+    n = dirs.shape[0]
+    chord, cos_r = 2.0 * np.sin(0.5 * reach), np.cos(reach)
+    off = np.zeros(n + 1, dtype=np.int64)
+    for sweep in range(2):
+        idx = np.empty(off[n] if sweep else 0, dtype=np.int64)
+        ang = np.empty(off[n] if sweep else 0)
+        for k in range(n):
+            m = off[k]
+            k0, k1 = band(n, dirs[k, 2], chord)
+            for j in range(k0, k1):
+                c = dirs[k, 0] * dirs[j, 0] + dirs[k, 1] * dirs[j, 1] + dirs[k, 2] * dirs[j, 2]
+                if j != k and c > cos_r:
+                    if sweep:
+                        idx[m], ang[m] = j, np.arccos(min(c, 1.0))
+                        m += 1
+                    else:
+                        off[k + 1] += 1
+        if not sweep:
+            for k in range(n):
+                off[k + 1] += off[k]
+    return off, idx, ang
+
+
+@njit(cache=True)
+def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor, cross, out):
+    """out (n,) mm^2: a node's variance beyond its quadratic's posterior.
+
+    A node with data j: its excess plus the largest squared error of its quadratic at the
+    nodes with data k within `cross` rad, against their own value x[k, 0] (how wrong its
+    extrapolation is where the data show the retina: at the rim of a detachment a node's
+    quadratic from one side misses the other side by as much; on a smooth retina the
+    quadratics agree), or, where its nearest datum lies further than `edge` rad (near[j],
+    a cosine: one grid spacing; a node at the edge of the data, fitted from their side)
+    and such a node k departs, (slope[k] a_j)^2 at the angle a_j to that datum, if
+    larger: its quadratic misses a departure rising past the data at that rate by about as
+    much (the edge of a detachment's unscanned top; nearer the data the quadratics follow
+    the rise, and the pointed eye's cap, which departs from its sphere everywhere, keeps
+    its sigma between the scan lines: 36 um median within 2 deg of the data, 58 um with
+    every data node's distance counted). A node without data j: the largest unseen_departure_variance of the
+    data nodes k within `reach` rad whose departure |dev[k]| > floor mm (dev: the mean
+    radius of a node's data less the global radius there, slope its rate, at its last
+    solve): beyond the edge of the data a pathology may go on rising as the data next to
+    it rise, and the field reads the global quadric there (the same departures loosen
+    every node's prior: solve_node)."""
+    n = dirs.shape[0]
+    for k in range(n):
+        out[k] = excess[k] if has[k] != 0.0 else 0.0
+    chord_x, chord_r = 2.0 * np.sin(0.5 * cross), 2.0 * np.sin(0.5 * max(reach, cross))
+    cos_x, cos_e = np.cos(cross), np.cos(edge)
+    for k in range(n):
+        if has[k] == 0.0:
+            continue
+        d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        spread = abs(dev[k]) > floor
+        k0, k1 = band(n, d2, chord_r if spread else chord_x)  # the departure's reach only where there is one
+        for j in range(k0, k1):
+            c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
+            if has[j] != 0.0:
+                if c <= cos_x and j != k:
+                    continue
+                e2 = 0.0
+                if spread and near[j] < cos_e:
+                    e2 = (slope[k] * np.arccos(max(near[j], -1.0))) ** 2
+                if j != k:
+                    e10, e11, e12, e20, e21, e22 = node_frame(dirs[j, 0], dirs[j, 1], dirs[j, 2])
+                    t1 = (d0 * e10 + d1 * e11 + d2 * e12) / c  # node k's direction in node j's gnomonic frame
+                    t2 = (d0 * e20 + d1 * e21 + d2 * e22) / c
+                    e = (x[j, 0] + x[j, 1] * t1 + x[j, 2] * t2 + x[j, 3] * t1 * t1 + x[j, 4] * t1 * t2
+                         + x[j, 5] * t2 * t2 - x[k, 0])
+                    e2 = max(e2, e * e)
+                if excess[j] + e2 > out[j]:
+                    out[j] = excess[j] + e2
+            elif spread:
+                out[j] = max(out[j], unseen_departure_variance(dev[k], slope[k], np.arccos(min(c, 1.0)), reach))
+    return out

@@ -1,0 +1,69 @@
+"""The local retina model's geometry, shared by its compiled kernels (models.local.kernels,
+departures, field_kernels): the global quadric's radius along a direction from the model
+centre, a node's tangent frame, the z band of a Fibonacci grid's nodes near a direction,
+and Wendland's weight. Radii mm, directions unit vectors, angles rad.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+N_COV = 21  # the upper triangle of a node's 6 x 6 covariance
+N_BASIS = 6  # per node: r(t1, t2) = x0 + x1 t1 + x2 t2 + x3 t1^2 + x4 t1 t2 + x5 t2^2 (gnomonic t, rad)
+SPHERE, ELLIPSOID = 1.0, 2.0
+GLOBAL_SIZE = 16  # [kind, centre (3), rotation (9, row-major), semi-axes (3)]
+
+
+@njit(cache=True, inline="always")
+def global_radius(c0, gp, u0, u1, u2):
+    """Distance (mm) from c0 along the unit direction u to the global quadric gp
+    (GLOBAL_SIZE,): NaN when c0 is not inside it."""
+    q0, q1, q2 = c0[0] - gp[1], c0[1] - gp[2], c0[2] - gp[3]
+    if gp[0] == SPHERE:
+        r = gp[13]
+        b = u0 * q0 + u1 * q1 + u2 * q2
+        c = q0 * q0 + q1 * q1 + q2 * q2 - r * r
+        a = 1.0
+    else:  # ellipsoid: in its axes, scaled to the unit sphere
+        Q0 = (gp[4] * q0 + gp[7] * q1 + gp[10] * q2) / gp[13]
+        Q1 = (gp[5] * q0 + gp[8] * q1 + gp[11] * q2) / gp[14]
+        Q2 = (gp[6] * q0 + gp[9] * q1 + gp[12] * q2) / gp[15]
+        V0 = (gp[4] * u0 + gp[7] * u1 + gp[10] * u2) / gp[13]
+        V1 = (gp[5] * u0 + gp[8] * u1 + gp[11] * u2) / gp[14]
+        V2 = (gp[6] * u0 + gp[9] * u1 + gp[12] * u2) / gp[15]
+        a = V0 * V0 + V1 * V1 + V2 * V2
+        b = Q0 * V0 + Q1 * V1 + Q2 * V2
+        c = Q0 * Q0 + Q1 * Q1 + Q2 * Q2 - 1.0
+    if not c < 0.0:
+        return np.nan
+    return (-b + np.sqrt(b * b - a * c)) / a
+
+
+@njit(cache=True, inline="always")
+def node_frame(d0, d1, d2):
+    """(e1, e2): an orthonormal tangent frame at the unit direction d (from d alone)."""
+    if abs(d2) < 0.9:  # e1 = normalise(z x d)
+        a0, a1, a2 = -d1, d0, 0.0
+    else:  # e1 = normalise(x x d)
+        a0, a1, a2 = 0.0, -d2, d1
+    s = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    a0, a1, a2 = a0 / s, a1 / s, a2 / s
+    return a0, a1, a2, d1 * a2 - d2 * a1, d2 * a0 - d0 * a2, d0 * a1 - d1 * a0
+
+
+@njit(cache=True, inline="always")
+def band(n, uz, chord):
+    """[k0, k1): the nodes of an n-node Fibonacci sphere whose z lies within chord of uz
+    (z = 1 - 2 (k + 1/2) / n falls with k), one more on each side for rounding."""
+    k0 = max(int(0.5 * n * (1.0 - (uz + chord)) - 0.5) - 1, 0)
+    k1 = min(int(0.5 * n * (1.0 - (uz - chord)) - 0.5) + 2, n)
+    return k0, k1
+
+
+@njit(cache=True, inline="always")
+def wendland(t):
+    """Wendland's C2 function (1 - t)^4 (4 t + 1) for t in [0, 1), 0 beyond (Wendland 1995)."""
+    if t >= 1.0:
+        return 0.0
+    s = 1.0 - t
+    return s * s * s * s * (4.0 * t + 1.0)
