@@ -44,19 +44,23 @@ SLOPE_UNDERSTATEMENT = 2.0
 
 
 @njit(cache=True, inline="always")
-def unseen_departure_variance(D, g, a, reach):
-    """(|D| + |g| a)^2 mm^2 (0 beyond `reach` rad): what a departure D mm of the retina from
-    the global quadric, rising at g mm/rad at a node with data, says of the retina `a` rad
-    from it where there is none. Past the data's edge a pathology may go on rising at the
-    rate the data show: the top of a detachment the scan did not reach lies further from
-    the global quadric than its flank. With the departure_variance of the prior, which
-    fades with the angle, instead: in the closed loop with the OCT stream 2.6 ms late
-    (`vitreoguard faults --local-model`, class time_offset) the boundary held the spiral
-    off the detached eye's top, the data stopped on its flank 15 deg from its centre, and
-    0.66 % of the reference samples (that top) lay beyond 3 sigma on the unsafe side, up
-    to 225 um; with data stopping at 0.75-0.85 of a detachment's radius, 30-48 % of its
-    top did, up to 2.6 mm (tests/models/local)."""
-    return (abs(D) + abs(g) * a) ** 2 if a < reach else 0.0
+def unseen_departure_variance(D, rise, a, reach):
+    """mm^2 (0 beyond `reach` rad): what a departure D mm of the retina from the global
+    quadric at a node with data says of the retina `a` rad from it where there is none,
+    `rise` mm the departure's linear extrapolation to there from the node's slope: uphill
+    (|D + rise| > |D|: towards where the departure grows) (D + rise)^2, a pathology may go
+    on rising at the rate the data show, the top of a detachment the scan did not reach
+    lying further from the global quadric than its flank; downhill, departure_variance (it
+    fades towards the healthy retina). With departure_variance alone: in the closed loop
+    with the OCT stream 2.6 ms late (`vitreoguard faults --local-model`, class time_offset)
+    the boundary held the spiral off the detached eye's top, the data stopped on its flank
+    15 deg from its centre, and 0.66 % of the reference samples (that top) lay beyond 3
+    sigma on the unsafe side, up to 225 um; with data stopping at 0.75-0.85 of a
+    detachment's radius, 30-48 % of its top did, up to 2.6 mm (tests/models/local)."""
+    if a >= reach:
+        return 0.0
+    up = D + rise
+    return up * up if abs(up) > abs(D) else departure_variance(D, a, reach)
 
 
 @njit(cache=True)
@@ -131,16 +135,21 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
         if has[k] == 0.0:
             continue
         d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+        f10, f11, f12, f20, f21, f22 = node_frame(d0, d1, d2)
         spread = abs(dev[k]) > floor
         k0, k1 = band(n, d2, chord_r if spread else chord_x)  # the departure's reach only where there is one
         for j in range(k0, k1):
             c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
+            rise = 0.0  # the departure's linear extrapolation from node k to node j (gnomonic, k's frame)
+            if spread and c > 0.0:
+                rise = (slope[k, 0] * (dirs[j, 0] * f10 + dirs[j, 1] * f11 + dirs[j, 2] * f12)
+                        + slope[k, 1] * (dirs[j, 0] * f20 + dirs[j, 1] * f21 + dirs[j, 2] * f22)) / c
             if has[j] != 0.0:
                 if c <= cos_x and j != k:
                     continue
                 e2 = 0.0
-                if spread and near[j] < cos_e:
-                    e2 = (slope[k] * np.arccos(max(near[j], -1.0))) ** 2
+                if spread and near[j] < cos_e and rise * dev[k] > 0.0:  # uphill of k, an edge node
+                    e2 = (np.hypot(slope[k, 0], slope[k, 1]) * np.arccos(max(near[j], -1.0))) ** 2
                 if j != k:
                     e10, e11, e12, e20, e21, e22 = node_frame(dirs[j, 0], dirs[j, 1], dirs[j, 2])
                     t1 = (d0 * e10 + d1 * e11 + d2 * e12) / c  # node k's direction in node j's gnomonic frame
@@ -151,5 +160,5 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
                 if excess[j] + e2 > out[j]:
                     out[j] = excess[j] + e2
             elif spread:
-                out[j] = max(out[j], unseen_departure_variance(dev[k], slope[k], np.arccos(min(c, 1.0)), reach))
+                out[j] = max(out[j], unseen_departure_variance(dev[k], rise, np.arccos(min(c, 1.0)), reach))
     return out

@@ -194,7 +194,7 @@ class LocalRetinaModel:
         self._excess = np.zeros(n)
         self._extra = np.zeros(n)  # the variance the field adds per node: excess and the departures (_spread)
         self._dev = np.zeros(n)  # each node's data's departure from the global quadric at its last solve (mm)
-        self._slope = np.zeros(n)  # and its slope (mm/rad)
+        self._slope = np.zeros((n, 2))  # and its slope (mm/rad, in the node's frame)
         self._has = np.zeros(n)
         self._data_nodes = np.zeros(n, dtype=np.int64)  # nodes with data, in the order they got it
         self._n_data = 0

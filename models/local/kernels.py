@@ -82,8 +82,8 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     """Node k's posterior: the local quadratic x[k] (6,) (mm, mm/rad, mm/rad^2), its
     covariance cov[k] (N_COV,: the upper triangle row by row, mm^2 per basis products),
     the misfit variance excess[k] (mm^2) and the slope of its departure from the global
-    quadric, slope[k] (mm/rad: SLOPE_UNDERSTATEMENT x the norm of the fitted slopes less
-    the global's). Data: the weighted normal equations
+    quadric, slope[k] (2,) (mm/rad along the node's e1, e2: SLOPE_UNDERSTATEMENT x the
+    fitted slopes less the global's). Data: the weighted normal equations
     (A, b, rr, wsum) with noise prior[0] mm; prior: the global quadric gp's Taylor
     expansion at the node (finite differences of global_radius, step 0.02 rad); the
     correction to it (its first prior[6] terms, the rest 0) has the standard deviations
@@ -147,7 +147,7 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     x[k, :] = m
     cov[k, :] = 0.0
     excess[k] = 0.0
-    slope[k] = 0.0
+    slope[k, 0] = slope[k, 1] = 0.0
     L, ok = cholesky(M)
     if not ok or not np.isfinite(m[0]):
         cov[k, 0] = 1.0 / pinv[0]
@@ -174,7 +174,8 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
             Li[a, j] = s / L[a, a]
     for a in range(nf):
         x[k, a] += y[a]
-    slope[k] = SLOPE_UNDERSTATEMENT * np.hypot(x[k, 1] - m[1], x[k, 2] - m[2])
+    slope[k, 0] = SLOPE_UNDERSTATEMENT * (x[k, 1] - m[1])
+    slope[k, 1] = SLOPE_UNDERSTATEMENT * (x[k, 2] - m[2])
     ss = rr[k]  # weighted residual sum of squares of x over the node's data
     for a in range(N_BASIS):
         ss -= 2.0 * x[k, a] * b[k, a]
