@@ -115,17 +115,18 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
     quadratic from one side misses the other side by as much; on a smooth retina the
     quadratics agree), or, where its nearest datum lies further than `edge` rad (near[j],
     a cosine: one grid spacing; a node at the edge of the data, fitted from their side)
-    and such a node k departs, (slope[k] a_j)^2 at the angle a_j to that datum, if
-    larger: its quadratic misses a departure rising past the data at that rate by about as
-    much (the edge of a detachment's unscanned top; nearer the data the quadratics follow
-    the rise, and the pointed eye's cap, which departs from its sphere everywhere, keeps
-    its sigma between the scan lines: 36 um median within 2 deg of the data, 58 um with
-    every data node's distance counted). A node without data j: the largest unseen_departure_variance of the
-    data nodes k within `reach` rad whose departure |dev[k]| > floor mm (dev: the mean
-    radius of a node's data less the global radius there, slope its rate, at its last
-    solve): beyond the edge of the data a pathology may go on rising as the data next to
-    it rise, and the field reads the global quadric there (the same departures loosen
-    every node's prior: solve_node)."""
+    and it lies uphill of such a node k that departs, (|slope[k]| a_j)^2 at the angle a_j
+    to that datum, if larger: its quadratic misses a departure rising past the data at
+    that rate by about as much (the edge of a detachment's unscanned top; nearer the data
+    the quadratics follow the rise, and the pointed eye's cap, which departs from its
+    sphere everywhere, keeps its sigma between the scan lines: 36 um median within 2 deg of
+    the data, 58 um with every data node's distance counted). A node without data j: the
+    largest unseen_departure_variance of the data nodes k within `reach` rad whose
+    departure |dev[k]| > floor mm (dev: the mean radius of a node's data less the global
+    radius there; slope (n, 2) its rate along the node's frame, both at its last solve),
+    with the departure's linear extrapolation from k to j: beyond the edge of the data a
+    pathology may go on rising where the data show it rising, and the field reads the
+    global quadric there (the same departures loosen every node's prior: solve_node)."""
     n = dirs.shape[0]
     for k in range(n):
         out[k] = excess[k] if has[k] != 0.0 else 0.0
