@@ -25,6 +25,7 @@ from models.shapes.validation import check_count, check_positive
 # Validity reasons (stable strings; "" when valid).
 REASONS = ("not_numeric", "wrong_length", "nan_samples", "negative_samples", "all_zero", "saturated",
            "no_tip_reflection", "no_peak", "low_confidence", "shape_mismatch")
+_NCC_TIE = 1e-12  # NCCs closer than this are the same match computed twice (rounding differs by ~1e-16)
 _FINE = 8  # sub-sample bank: shifts of 1/8 sample over [-1, 1] sample
 _RAYLEIGH_MEDIAN = np.sqrt(np.log(2.0))  # median |noise| for E|noise|^2 = 1
 _SUPPORT_SIGMAS = 4.0  # a template extends this many axial sigmas beyond the layers
@@ -223,7 +224,13 @@ class DistanceExtractor:
         clusters = self._clusters(x, tip, threshold)
         if not clusters:
             return _invalid("no_peak")
-        ncc, ilm, t, first, last = max(m + c for m, c in zip(self._match(x, tip, clusters), clusters))
+        # the best match; one found from two clusters' ranges alike (the same ILM and
+        # template, its NCC equal but for rounding) belongs to the cluster it lies in (else
+        # the earliest): left to the rounding, the tie made the decision machine-dependent
+        candidates = [m + c for m, c in zip(self._match(x, tip, clusters), clusters)]
+        best = max(c[0] for c in candidates)
+        ncc, ilm, t, first, last = min((c for c in candidates if c[0] >= best - _NCC_TIE),
+                                       key=lambda c: (not c[3] <= c[1] <= c[4], c[3]))
         if t < 0:
             return _invalid("no_peak")
         ilm_sub, ncc = self._refine(x, ilm, t)
