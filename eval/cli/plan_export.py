@@ -44,8 +44,9 @@ def plan_pieces(plan) -> list[tuple[str, str, object, float, float]]:
 
 
 def _sampled(traj, t0: float, t1: float, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(times from t0 (K,), q (K, 6), qdot (K, 6)) on [t0, t1] every dt, t1 included."""
-    ts = np.append(np.arange(t0, t1, dt), t1)
+    """(times from t0 (K,), q (K, 6), qdot (K, 6)) on [t0, t1] every dt, t1 included (a
+    sample of the grid closer than dt / 2 to t1 left out: it would print as t1 itself)."""
+    ts = np.append(np.arange(t0, t1 - 0.5 * dt, dt), t1) if t1 - t0 > 0.5 * dt else np.array([t0, t1])
     Q = traj.vector_values(ts).T
     dQ = traj.derivative(1).vector_values(ts).T
     return ts - t0, Q, dQ
