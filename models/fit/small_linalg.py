@@ -43,22 +43,30 @@ def cholesky(A):
     """(L, ok): the lower Cholesky factor of the symmetric A (n, n); not ok when A is not
     positive definite (an answer, not an exception: a singular matrix is degenerate data).
     np.linalg.cholesky takes 2-2.5 x as long at 4x4-6x6 and raises instead."""
+    L = np.zeros(A.shape)
+    return L, cholesky_into(A, L)
+
+
+@njit(cache=True)
+def cholesky_into(A, L):
+    """cholesky(A) written into L (n, n) (its upper triangle zeroed); returns ok: for callers
+    that factor many small matrices in a loop and reuse one buffer."""
     n = A.shape[0]
-    L = np.zeros((n, n))
+    L[:, :] = 0.0
     for j in range(n):
         acc = 0.0  # the sums run in index order, from 0: no temporary arrays
         for k in range(j):
             acc += L[j, k] * L[j, k]
         s = A[j, j] - acc
         if not s > 1e-300:
-            return L, False
+            return False
         L[j, j] = np.sqrt(s)
         for i in range(j + 1, n):
             acc = 0.0
             for k in range(j):
                 acc += L[i, k] * L[j, k]
             L[i, j] = (A[i, j] - acc) / L[j, j]
-    return L, True
+    return True
 
 
 @njit(cache=True)

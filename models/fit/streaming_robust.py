@@ -38,8 +38,9 @@ from models.fit.robust_fit import RobustFitConfig, biweight_one, tukey_rho
 def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
     """Weigh the scaled points X[i0:i1] by the biweight (biweight_one) of their Sampson
     distance from the quadric v (scaled units; cut-off `cutoff` scaled; weight 1 without a
-    fit), write the weights to w[i0:i1] and add their weighted design rows to S (10, 10) in
-    place; returns how many got a weight > 0."""
+    fit), write the weights to w[i0:i1] and add their weighted design rows to S (10, 10)'s
+    upper triangle in place (the lower is its mirror: lower_from_upper at the pass's end,
+    half the work per point); returns how many got a weight > 0."""
     m = np.empty(10)
     inliers = 0
     for n in range(i0, i1):
@@ -55,9 +56,15 @@ def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
             a = wn * m[i]
             for j in range(i, 10):
                 S[i, j] += a * m[j]
-                if j != i:
-                    S[j, i] += a * m[j]
     return inliers
+
+
+@njit(cache=True)
+def lower_from_upper(S):
+    """S (n, n) made symmetric in place from its upper triangle."""
+    for i in range(S.shape[0]):
+        for j in range(i):
+            S[i, j] = S[j, i]
 
 
 @njit(cache=True)
@@ -78,6 +85,25 @@ def sphere_loss(X, i0, i1, c, r, cutoff):
         d0, d1, d2 = X[n, 0] - c[0], X[n, 1] - c[1], X[n, 2] - c[2]
         s += tukey_rho(np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - r, cutoff)
     return s
+
+
+@njit(cache=True)
+def step_rows(S, X, w, i0, n, cursor, end, chunk, v, weighing, cutoff, scored, rival, c, r):
+    """One step's compiled work (StreamingRobustFit.step): the pending points X[i0:n]'
+    biweight losses under the fit v (when `scored`) and the sphere (c, r) (when `rival`),
+    their weights, then the running pass's points X[cursor:min(cursor + chunk, end)]'
+    (weigh_rows into S). Returns (loss, rival loss, points given a weight > 0, new cursor)."""
+    loss = biweight_loss(X, i0, n, v, cutoff) if scored and n > i0 else 0.0
+    rival_loss = sphere_loss(X, i0, n, c, r, cutoff) if scored and rival and n > i0 else 0.0
+    inliers = weigh_rows(S, X, w, i0, n, v, weighing, cutoff) if n > i0 else 0
+    if cursor < end:
+        i1 = min(cursor + chunk, end)
+        inliers += weigh_rows(S, X, w, cursor, i1, v, weighing, cutoff)
+        cursor = i1
+    return loss, rival_loss, inliers, cursor
+
+
+_NO_CENTER = np.zeros(3)
 
 
 class StreamingRobustFit:
@@ -155,24 +181,25 @@ class StreamingRobustFit:
         None when no pass ended or the fit failed)."""
         i0, n = self._taken, self._n
         k = n - i0
+        scored, has_rival = self.last_ok is not None, rival is not None
+        c, r = _NO_CENTER, 0.0
+        if scored and has_rival and k:
+            c, r = (np.asarray(rival.center, dtype=float) - self.p0) / LENGTH_SCALE_MM, float(rival.radius) / LENGTH_SCALE_MM
+        cursor = self._cursor
+        loss, rival_loss, inliers, self._cursor = step_rows(
+            self._next, self._X, self._w, i0, n, cursor, self._end, max(self.min_chunk, self.chunk_per_point * k), self._v,
+            self._weighing(), self._cut, scored, has_rival, c, r)
         if k:
-            if self.last_ok is not None:
-                self.loss_mm2 = self._score(biweight_loss(self._X, i0, n, self._v, self._cut), self.loss_mm2, k)
-                if rival is not None:
-                    c = (np.asarray(rival.center, dtype=float) - self.p0) / LENGTH_SCALE_MM
-                    loss = sphere_loss(self._X, i0, n, c, float(rival.radius) / LENGTH_SCALE_MM, self._cut)
-                    self.rival_loss_mm2 = self._score(loss, self.rival_loss_mm2, k)
-            self._inliers += weigh_rows(self._next, self._X, self._w, i0, n, self._v, self._weighing(), self._cut)
+            if scored:
+                self.loss_mm2 = self._score(loss, self.loss_mm2, k)
+                if has_rival:
+                    self.rival_loss_mm2 = self._score(rival_loss, self.rival_loss_mm2, k)
             self._taken = n
-        self.last_step_weighed = 0
-        if self._cursor < self._end:
-            i1 = min(self._cursor + max(self.min_chunk, self.chunk_per_point * k), self._end)
-            self._inliers += weigh_rows(self._next, self._X, self._w, self._cursor, i1, self._v, self._weighing(),
-                                        self._cut)
-            self.last_step_weighed = i1 - self._cursor
-            self._cursor = i1
+        self._inliers += inliers
+        self.last_step_weighed = self._cursor - cursor
         if self._cursor < self._end or n == 0:
             return None
+        lower_from_upper(self._next)
         fit = fit_scatter(self._next, self.p0)
         self.passes += 1
         restart = not self._plain and self._settling == 0 and self._inliers < self.config.min_inlier_fraction * n

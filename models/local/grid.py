@@ -76,10 +76,11 @@ import numpy as np
 from models.adaptive.coverage import fibonacci_directions
 from models.local.field import LocalField
 from models.local.calibration import SigmaCalibration
-from models.local.field_kernels import predictions, radii_at
+from models.local.field_kernels import radii_at
 from models.local.departures import neighbour_table, node_departures, spread_departures
 from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV
-from models.local.kernels import absorb_points, global_params, solve_nodes
+from models.local.kernels import global_params, solve_nodes
+from models.local.online import holds, local_step
 from models.shapes.validation import as_points, as_vector3
 
 
@@ -158,13 +159,6 @@ def _neighbour_table_of(n: int, reach_deg: float) -> tuple[np.ndarray, np.ndarra
     return table
 
 
-def _contains(shape, p) -> bool:
-    """Whether the point p (3,) mm lies at least 1 mm inside the Sphere or Ellipsoid `shape`
-    (radii about the centre are defined only then; an early fit through a few points of a
-    small patch need not hold the eye centre: the last one that did is kept)."""
-    return bool(shape.signed_distance(np.asarray(p, dtype=float).reshape(1, 3))[0] >= 1.0)
-
-
 class LocalRetinaModel:
     """The online local model about the fixed centre `center` (3,) mm (the nominal eye
     centre; every direction is seen from it). `update(P, shape)` absorbs points P (N, 3)
@@ -202,7 +196,9 @@ class LocalRetinaModel:
         self._in_data = np.zeros(n, dtype=np.bool_)
         self._sweep_at = 0
         self._gp = None
-        self._prior = cfg.prior_for(False)
+        self._priors = (cfg.prior_for(False), cfg.prior_for(True))
+        self._prior = self._priors[0]
+        self._shape_seen, self._shape_gp = None, None
         self._support, self._track, self._blend = (np.radians(cfg.support_deg), np.radians(cfg.track_deg),
                                                    np.radians(cfg.blend_deg))
         self._reach = np.radians(cfg.departure_deg)
@@ -226,55 +222,40 @@ class LocalRetinaModel:
     def update(self, P, shape=None) -> None:
         """Absorb the points P (N, 3) mm; re-solve the nodes they touched (up to
         solves_per_point x N, the rest at the next updates: consecutive A-scans touch mostly
-        the same nodes) and `sweep` more nodes with data in turn (the
-        global prior moves with every update of the global fit)."""
+        the same nodes) and `sweep` more nodes with data in turn (the global prior moves
+        with every update of the global fit). Each point is first predicted by the model as
+        it stood (last_predictions) and the sd's calibration takes the errors. One compiled
+        call (models.local.online.local_step)."""
         if not (type(P) is np.ndarray and P.dtype == np.float64 and P.ndim == 2 and P.flags.c_contiguous):
             P = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True).reshape(-1, 3))
-        before = self._n_dirty
         self._updates += 1
-        if self._gp is not None:  # each point predicted before it is absorbed: the sd's calibration
-            self.last_predictions = predictions(P, self.center, self._gp, self._gate, self._dirs, self._blend, self._prior,
-                                                self._x, self._cov, self._extra, self._has, self._near,
-                                                np.empty((len(P), 6)))
-            self.calibration.absorb(self.last_predictions)
-        else:
-            self.last_predictions = np.full((len(P), 6), np.nan)
-        gp = self._gp if shape is None or not _contains(shape, self.center) else global_params(shape)
-        self._n_dirty, taken = absorb_points(
-            P, self.center, _NO_GLOBAL if gp is None else gp, self._gate, self._dirs, self._support, self._track,
-            self._A, self._b, self._rr, self._wsum, self._near, self._listed, self._dirty, self._n_dirty, self._solved_w,
-            self.config.relist_growth)
+        gp = self._global_of(shape)
+        old = _NO_GLOBAL if self._gp is None else self._gp
+        prior = self._prior if gp is None else self._priors[int(gp[0] == ELLIPSOID)]
+        cfg, cal = self.config, self.calibration
+        pred = np.empty((len(P), 6))
+        self._n_dirty, taken, self._n_data, self._sweep_at = local_step(
+            P, self.center, old, self._prior, _NO_GLOBAL if gp is None else gp, prior, self._gate, self._dirs,
+            self._support, self._track, self._blend, cfg.relist_growth, max(len(P), 1) * cfg.solves_per_point,
+            cfg.sweep, self._reach, *self._neighbours(), self._A, self._b, self._rr, self._wsum, self._near,
+            self._listed, self._dirty, self._n_dirty, self._solved_w, self._data_nodes, self._n_data, self._in_data,
+            self._sweep_at, self._x, self._cov, self._excess, self._extra, self._has, self._dev, self._slope, cal.k,
+            cal.width, cal.hist, cal.count, cal.memory, pred)
         self.n_points += taken
-        new = self._dirty[before:self._n_dirty]
-        new = new[~self._in_data[new]]
-        if len(new):
-            self._in_data[new] = True
-            self._data_nodes[self._n_data:self._n_data + len(new)] = new
-            self._n_data += len(new)
-        if gp is None:
-            return
-        self._gp = gp
-        self._prior = self.config.prior_for(gp[0] == ELLIPSOID)
-        self._solve(max(len(P), 1) * self.config.solves_per_point)
+        self.last_predictions = pred
+        if gp is not None:
+            self._gp, self._prior = gp, prior
 
-    def _solve(self, budget: int) -> None:
-        cfg = self.config
-        count = min(self._n_dirty, budget)
-        args = (self._dirs, self.center, self._gp, self._A, self._b, self._rr, self._wsum, self._near, self._prior,
-                self._reach, *self._neighbours(), self._dev, self._slope, self._x,
-                self._cov, self._excess, self._has, self._listed, self._solved_w)
-        if count:
-            solve_nodes(self._dirty[:count], count, *args)
-            rest = self._n_dirty - count
-            self._dirty[:rest] = self._dirty[count:self._n_dirty]
-            self._n_dirty = rest
-        if self._n_data:
-            k = np.arange(self._sweep_at, self._sweep_at + cfg.sweep) % self._n_data
-            self._sweep_at = int((self._sweep_at + cfg.sweep) % self._n_data)
-            nodes = self._data_nodes[k]
-            keep = self._listed[nodes].copy()  # a node waiting in dirty stays listed
-            solve_nodes(nodes, len(nodes), *args)
-            self._listed[nodes] = keep
+    def _global_of(self, shape) -> np.ndarray | None:
+        """The kernels' packing of the Sphere or Ellipsoid `shape`, or, when it is None or
+        does not hold the centre at least 1 mm deep, the last one that did (None before
+        one; the same shape object is packed once)."""
+        if shape is None:
+            return self._gp
+        if shape is not self._shape_seen:
+            g = global_params(shape)
+            self._shape_seen, self._shape_gp = shape, g if holds(g, self.center, 1.0) else None
+        return self._gp if self._shape_gp is None else self._shape_gp
 
     def solve_all(self) -> None:
         """Solve every node with data at once (a snapshot for evaluation; the online path

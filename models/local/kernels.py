@@ -13,9 +13,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.fit.small_linalg import cholesky
+from models.fit.small_linalg import cholesky_into
 from models.local.departures import SLOPE_UNDERSTATEMENT, gathered_departure, node_departure
 from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, SPHERE, band, global_radius, node_frame, wendland
+
+WORKSPACE = 153  # solve_node's small arrays: R 9, m, pinv, A m 6 each, rhs, y, z 6 each, M, L, L^-1 36 each
 
 @njit(cache=True)
 def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, growth):
@@ -78,7 +80,7 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
 
 @njit(cache=True)
 def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, slope, x, cov,
-               excess):
+               excess, ws):
     """Node k's posterior: the local quadratic x[k] (6,) (mm, mm/rad, mm/rad^2), its
     covariance cov[k] (N_COV,: the upper triangle row by row, mm^2 per basis products),
     the misfit variance excess[k] (mm^2) and the slope of its departure from the global
@@ -102,18 +104,24 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     The variance is the posterior's, scaled by the weighted mean square residual over the
     noise's (the Birge ratio, when > 1); the excess is
     that residual's excess over the noise: a quadratic that does not follow the retina
-    within the support says so."""
+    within the support says so. ws: a workspace (WORKSPACE,) the solve's small arrays live in
+    (one allocation per solve_nodes call, not ten per node: a third of a node's solve time)."""
+    nf = int(prior[6])  # the correction's fitted terms: 1 (a height), 3 (and its slopes) or 6 (and curvatures)
+    R = ws[0:9].reshape((3, 3))
+    m, pinv, Am = ws[9:15], ws[15:21], ws[21:27]
+    rhs, y, z = ws[27:27 + nf], ws[33:33 + nf], ws[39:39 + nf]
+    M = ws[45:45 + nf * nf].reshape((nf, nf))
+    L = ws[81:81 + nf * nf].reshape((nf, nf))
+    Li = ws[117:117 + nf * nf].reshape((nf, nf))
     d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
     e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
     h = 0.02
-    R = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
             s1, s2 = (i - 1) * h, (j - 1) * h
             w0, w1, w2 = d0 + s1 * e10 + s2 * e20, d1 + s1 * e11 + s2 * e21, d2 + s1 * e12 + s2 * e22
             s = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             R[i, j] = global_radius(c0, gp, w0 / s, w1 / s, w2 / s)
-    m = np.empty(N_BASIS)
     m[0] = R[1, 1]
     m[1] = (R[2, 1] - R[0, 1]) / (2.0 * h)
     m[2] = (R[1, 2] - R[1, 0]) / (2.0 * h)
@@ -121,24 +129,20 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     m[4] = (R[2, 2] - R[2, 0] - R[0, 2] + R[0, 0]) / (4.0 * h * h)
     m[5] = (R[1, 2] - 2.0 * R[1, 1] + R[1, 0]) / (2.0 * h * h)
     noise2 = prior[0] * prior[0]
-    nf = int(prior[6])  # the correction's fitted terms: 1 (a height), 3 (and its slopes) or 6 (and curvatures)
     dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
     dep = gathered_departure(k, has, dev, reach, prior[5], nb_off, nb_idx, nb_ang)
     sg = global_sd(np.arccos(min(near[k], 1.0)), prior)
-    pinv = np.empty(N_BASIS)
     pinv[0] = 1.0 / (sg * sg + dep)
     ell2 = prior[4] * prior[4]  # the correction's length scale: slopes s / l, curvatures sqrt(3) s_c / l^2
     pinv[1] = pinv[2] = ell2 * pinv[0]
     own = dev[k] * dev[k] if abs(dev[k]) > prior[5] else 0.0
     pinv[3] = pinv[4] = pinv[5] = ell2 * ell2 / (sg * sg + own) / 3.0
-    Am = np.zeros(N_BASIS)  # A m: the global's Taylor expansion's share of the normal equations
+    # Am = A m: the global's Taylor expansion's share of the normal equations
     for a in range(N_BASIS):
         s = 0.0
         for c in range(N_BASIS):
             s += (A[k, a, c] if a <= c else A[k, c, a]) * m[c]
         Am[a] = s
-    M = np.zeros((nf, nf))
-    rhs = np.empty(nf)
     for a in range(nf):
         rhs[a] = (b[k, a] - Am[a]) / noise2
         for c in range(a, nf):
@@ -148,13 +152,11 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     cov[k, :] = 0.0
     excess[k] = 0.0
     slope[k, 0] = slope[k, 1] = 0.0
-    L, ok = cholesky(M)
+    ok = cholesky_into(M, L)
     if not ok or not np.isfinite(m[0]):
         cov[k, 0] = 1.0 / pinv[0]
         return
-    y = np.empty(nf)  # L z = rhs, L^T y = z
-    z = np.empty(nf)
-    for a in range(nf):
+    for a in range(nf):  # L z = rhs, L^T y = z
         s = rhs[a]
         for c in range(a):
             s -= L[a, c] * z[c]
@@ -164,7 +166,7 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
         for c in range(a + 1, nf):
             s -= L[c, a] * y[c]
         y[a] = s / L[a, a]
-    Li = np.zeros((nf, nf))  # L^-1 (lower); M^-1 = L^-T L^-1
+    Li[:, :] = 0.0  # L^-1 (lower); M^-1 = L^-T L^-1
     for j in range(nf):
         Li[j, j] = 1.0 / L[j, j]
         for a in range(j + 1, nf):
@@ -208,10 +210,11 @@ def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, 
                 cov, excess, has, listed, solved_w):
     """Solve the first `count` nodes listed in `nodes` (solve_node), mark them as holding
     data (has) and no longer listed, their weight then in solved_w."""
+    ws = np.empty(WORKSPACE)
     for j in range(count):
         k = nodes[j]
         solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, slope, x, cov,
-                   excess)
+                   excess, ws)
         has[k] = 1.0
         listed[k] = False
         solved_w[k] = wsum[k]
