@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import daqp
@@ -31,7 +32,8 @@ NONFINITE, CROSSED, OPTIMAL, NEEDS_SOLVER = 0, 1, 2, 3
 
 class DenseQP(NamedTuple):
     """The QP over x (n,): H (n, n), c (n,), lb/ub (n,) (+-inf: none), G (m, n), h (m,),
-    A (p, n), b (p,); `row_names` (m,) label G's rows for reporting."""
+    A (p, n), b (p,); `row_names` (m,) label G's rows for reporting (a tuple, or a sequence
+    that names a row when indexed: safety.stack.RowNames)."""
 
     H: np.ndarray
     c: np.ndarray
@@ -41,7 +43,7 @@ class DenseQP(NamedTuple):
     h: np.ndarray
     A: np.ndarray
     b: np.ndarray
-    row_names: tuple
+    row_names: Sequence[str]
 
 
 class QPResult(NamedTuple):
