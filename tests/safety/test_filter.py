@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from models import Sphere
 from safety import FilterConfig, FilterInputs, PointKinematics, SafetyFilter
+from safety.stack import RowNames
 
 EYE = Sphere(np.zeros(3), 12.0)
 DT = 1e-3
@@ -208,3 +209,21 @@ def test_a_state_no_hold_fixes_stops():
     x = inputs([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], rcm_A=np.array([[1.0, 0.0, 0.0]]), rcm_b=np.array([0.0]))
     out = f(dataclasses.replace(x, q_min=np.array([1.0, -50.0, -50.0])))  # x 1 rad below its limit
     assert not out.ok and out.reason.startswith("QP: infeasible") and not out.qdot.any()
+
+
+def test_a_step_the_solver_finishes_names_its_rows_as_the_full_list_does():
+    """RowNames names a row when asked: each name, a slice and the whole sequence equal the
+    eager list's (ConstraintStack.row_names), and the active rows of a solved step are named."""
+    f = SafetyFilter(NO_CALIBRATION)
+    tip = PointKinematics("tip", np.array([0.0, 0.0, -11.4]), np.eye(3))  # 0.1 mm past the margin
+    shaft = PointKinematics("shaft1", np.array([0.0, 1.0, -11.0]), np.eye(3))
+    x = inputs([0.0, 0.0, -11.4], [0.0, 0.0, -5.0])
+    x = FilterInputs(**{**x.__dict__, "boundary_points": [tip, shaft]})
+    out, stack, r, ranges = f._run(x)
+    assert out.ok and "boundary:tip" in out.active
+    m = int(r[4])
+    ids = stack.ws[6][:m].copy()
+    eager = stack.row_names(ids, ranges)
+    lazy = RowNames(stack, ids, ranges)
+    assert len(lazy) == len(eager) == m > 2
+    assert tuple(lazy) == eager and lazy[1:3] == eager[1:3] and lazy[-1] == eager[-1]
