@@ -249,7 +249,9 @@ class LocalRetinaModel:
     def _global_of(self, shape) -> np.ndarray | None:
         """The kernels' packing of the Sphere or Ellipsoid `shape`, or, when it is None or
         does not hold the centre at least 1 mm deep, the last one that did (None before
-        one; the same shape object is packed once)."""
+        one; the same shape object is packed once). Radii about the centre are defined only
+        for a quadric that holds it: an early fit through a few points of a small patch
+        need not."""
         if shape is None:
             return self._gp
         if shape is not self._shape_seen:
