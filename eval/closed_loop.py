@@ -135,7 +135,8 @@ class ClosedLoop:
         self.model = builder.AddSystem(AdaptiveModelSystem(1.0 / packet_s,
                                                            sensor_sys.packet_offset_s + 0.25 / config.sensor_rate_hz,
                                                            config.model_min_points, config.model_min_scan_range_mm,
-                                                           config.model_radius_range_mm))
+                                                           config.model_radius_range_mm,
+                                                           field_bound=(config.filter.sigma_factor, self.prior)))
         q = self.integrator.get_output_port()
         for port in (self.filter.GetInputPort("q"), sensor_sys.GetInputPort("q")):
             builder.Connect(q, port)

@@ -32,7 +32,7 @@ from eval.systems.model import ModelSnapshot
 from models.adaptive.coverage import band_chord
 from models.adaptive.model_field import ModelField, coverage_trust, model_field_kernel
 from models.local.field import FieldValues, LocalField
-from models.local.field_kernels import local_field
+from models.local.field_kernels import local_field, local_model_field
 from planning.chain import frame_position
 from planning.diffik import DrakeDiffIK
 from planning.robot import RCM_GAIN_PER_S, Robot
@@ -109,9 +109,9 @@ class FilterSystem(LeafSystem):
         self.step_inputs = StepInputs(robot, config.points, config.filter, prior)
         self.robot_scene = RobotScene(robot)
         self.local = config.local_model
-        eye_kernel = local_field if self.local else model_field_kernel
+        eye_kernel, shaft_kernel = (local_field, local_model_field) if self.local else (model_field_kernel,) * 2
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
-                                     {"eye": eye_kernel, "eye_shaft": eye_kernel,
+                                     {"eye": eye_kernel, "eye_shaft": shaft_kernel,
                                       "lens": lens.kernel}, config.filter, kinematics=step_kinematics,
                                      point_names=point_names, port=("tip_port", 1))
         self._rcm = next(c for c in self.constraints if isinstance(c, RcmEquality))
@@ -198,7 +198,9 @@ class FilterSystem(LeafSystem):
         model with the prior as a second bound) and what the watched shaft points keep to
         (the model alone); before the model has a shape, the prior and no bound. The quadric's
         is a models.adaptive.model_field.ModelField with the phase's margin; the local model's
-        its models.local.field.LocalField (d_safe + sigma_factor x sigma)."""
+        its models.local.field.LocalField (d_safe + sigma_factor x sigma), both forms on the
+        same params when the snapshot's field holds the barrier's bound (the loop's model
+        system writes it: AdaptiveModelSystem's field_bound)."""
         if self.local:
             if snap.field is None:
                 return self._prior_fields

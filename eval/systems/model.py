@@ -75,7 +75,7 @@ def semi_axes_mm(shape) -> np.ndarray:
 
 
 def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float, min_points: int = 0,
-                min_scan_range_mm: float = 0.0, radius_range_mm: tuple = (0.0, np.inf)) -> ModelSnapshot:
+                min_scan_range_mm: float = 0.0, radius_range_mm: tuple = (0.0, np.inf), bound=None) -> ModelSnapshot:
     """The snapshot of `model` at t_s: its current shape once it rests on at least
     `min_points` points over `min_scan_range_mm` with semi-axes within `radius_range_mm`;
     an ellipsoid outside that range (a fit to a pathological eye, like the pointed eye's
@@ -84,10 +84,12 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     per update (AdaptiveEyeModel.shape), and only once the trust limits on points and
     scan range are met; the coverage view is rebuilt only as DirectionCoverage.view says.
     With a local model (model.local) the trusted snapshot also holds its LocalField, and
-    its kind is "local" while the model uses its local correction (model.level)."""
+    its kind is "local" while the model uses its local correction (model.level), its
+    params holding the barrier's `bound` (sigma_factor, fallback Sphere) if given
+    (LocalRetinaModel.field)."""
     n = model.n_points
     if model.local is not None:
-        return _local_snapshot(model, coverage, t_s, min_points, min_scan_range_mm, radius_range_mm)
+        return _local_snapshot(model, coverage, t_s, min_points, min_scan_range_mm, radius_range_mm, bound)
     shape = None if n < min_points or model.scan_range_mm < min_scan_range_mm else model.shape
     if shape is not None:
         last, (lo, hi) = model.history[-1], radius_range_mm
@@ -101,7 +103,7 @@ def snapshot_of(model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float
     return ModelSnapshot("prior", None, t_s, float("nan"), n, coverage.view())
 
 
-def _local_snapshot(model, coverage, t_s, min_points, min_scan_range_mm, radius_range_mm) -> ModelSnapshot:
+def _local_snapshot(model, coverage, t_s, min_points, min_scan_range_mm, radius_range_mm, bound) -> ModelSnapshot:
     """snapshot_of for a model with a local part: the trust limits on points, scan range
     and the global quadric's semi-axes as for the quadric, then the LocalField."""
     n = model.n_points
@@ -114,7 +116,8 @@ def _local_snapshot(model, coverage, t_s, min_points, min_scan_range_mm, radius_
     kind = level if level == "local" else type(shape).__name__.lower()
     last = model.history[-1]
     residual = float(last.ef_residual_mm if kind == "ellipsoid" else last.sf_residual_mm)
-    return ModelSnapshot(kind, shape, t_s, residual, n, coverage.view(), model.local.field(level == "local", kind))
+    return ModelSnapshot(kind, shape, t_s, residual, n, coverage.view(),
+                         model.local.field(level == "local", kind, bound))
 
 
 class AdaptiveModelSystem(LeafSystem):
@@ -123,12 +126,15 @@ class AdaptiveModelSystem(LeafSystem):
     AdaptiveEyeModel: one update per packet with the valid points of its samples not
     seen before; state and output "snapshot" (ModelSnapshot). Runs at the packet rate,
     just after each packet is complete. Logs the distances and model updates when a
-    logger is set."""
+    logger is set. `field_bound` (sigma_factor, fallback Sphere) or None: the filter's
+    barrier bound, written into a local model's field (LocalRetinaModel.field) so that
+    the filter's barrier form of it shares its params."""
 
     def __init__(self, packet_rate_hz: float, offset_s: float, min_points: int, min_scan_range_mm: float,
-                 radius_range_mm: tuple):
+                 radius_range_mm: tuple, field_bound=None):
         super().__init__()
         self._trust = (min_points, min_scan_range_mm, radius_range_mm)
+        self._bound = field_bound
         self._packet = self.DeclareAbstractInputPort("packet", AbstractValue.Make(NO_SAMPLE_YET))
         self._snap = self.DeclareAbstractState(AbstractValue.Make(_PRIOR_AT_0))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
@@ -209,7 +215,7 @@ class AdaptiveModelSystem(LeafSystem):
 
     def snapshot_for(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, t_s: float) -> ModelSnapshot:
         """What the filter would read of `model` at t_s under this loop's trust rules."""
-        return snapshot_of(model, coverage, t_s, *self._trust)
+        return snapshot_of(model, coverage, t_s, *self._trust, bound=self._bound)
 
     def initial_snapshot(self) -> ModelSnapshot:
         """The snapshot the run starts from (ClosedLoop.run puts it in the context's state)."""
@@ -272,7 +278,8 @@ class AdaptiveModelSystem(LeafSystem):
         # the state is what this system last wrote (or the initial snapshot): kept at hand
         health = self.health
         if entry is not None or self._written.shape is None:
-            self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust)._replace(
+            self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust,
+                                        bound=self._bound)._replace(
                 healthy_t_s=health.healthy_t_s, stream=health.why)
         else:
             self._written = self._written._replace(t_s=self._last_t)

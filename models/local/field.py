@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.local.field_kernels import BOUND, CAL, CAL_KNOTS_RAD, HEAD, N_CAL, local_field, radii_at, unpack
+from models.local.field_kernels import (BOUND, CAL, CAL_KNOTS_RAD, HEAD, N_CAL, local_field, local_model_field,
+                                        radii_at, unpack)
 from models.local.kernels import global_params
 from models.shapes.field import FieldKernel, KernelQueries
 from models.shapes.sampling import unit_sphere_grid
@@ -23,11 +24,17 @@ from models.shapes.validation import as_points
 class LocalField(KernelQueries):
     """A snapshot of a LocalRetinaModel (`model.params(local)`) as a distance field, and as
     a surface (`ray_cast`-free: `radius_and_sd`, `sample_surface`). `kind` "local" when the
-    local correction is used, else the global model's kind ("sphere" | "ellipsoid")."""
+    local correction is used, else the global model's kind ("sphere" | "ellipsoid").
+    `barrier`: whether its answers are the barrier's form (with_fallback; params hold the
+    bound) or the model alone (params may hold a bound all the same, which it ignores:
+    local_model_field)."""
 
-    def __init__(self, params: np.ndarray, kind: str = "local"):
+    def __init__(self, params: np.ndarray, kind: str = "local", barrier: bool = False):
         self.params = np.ascontiguousarray(params, dtype=float)
         self.kind = kind
+        self.barrier = bool(barrier)
+        if self.barrier and not self.params[BOUND + 4] > 0.0:
+            raise ValueError("LocalField: barrier=True needs params that hold a bound (fallback radius > 0)")
         self.center = np.array(self.params[3:6])
 
     @classmethod
@@ -47,12 +54,17 @@ class LocalField(KernelQueries):
         return cls(head, "none")
 
     def with_fallback(self, sigma_factor: float, fallback) -> LocalField:
-        """The barrier's form: a copy whose points answer the `fallback` Sphere (inside every
-        retina) wherever it allows more than the model's h - sigma_factor x sigma, and
-        whose gradient elsewhere is that of h - sigma_factor x sigma (local_field)."""
+        """The barrier's form: points answer the `fallback` Sphere (inside every retina)
+        wherever it allows more than the model's h - sigma_factor x sigma, and their gradient
+        elsewhere is that of h - sigma_factor x sigma (local_field). It shares this field's
+        params when they already hold that bound (bound_params; the loop's model system
+        writes it, so the filter's step copies nothing), else it is a copy (~1 MB)."""
+        bound = bound_params(sigma_factor, fallback)
+        if np.array_equal(self.params[BOUND:HEAD], bound):
+            return LocalField(self.params, self.kind, barrier=True)
         params = self.params.copy()
-        params[BOUND:HEAD] = [sigma_factor, *np.asarray(fallback.center, dtype=float), float(fallback.radius)]
-        return LocalField(params, self.kind)
+        params[BOUND:HEAD] = bound
+        return LocalField(params, self.kind, barrier=True)
 
     def __deepcopy__(self, memo) -> LocalField:
         return self  # immutable by convention: its params are never written
@@ -65,12 +77,12 @@ class LocalField(KernelQueries):
                 "factor": [float(f) for f in self.params[CAL:CAL + N_CAL]]}
 
     def field_kernel(self) -> FieldKernel:
-        """FieldKernel(local_field, params)."""
-        return FieldKernel(local_field, self.params)
+        """FieldKernel(local_field | local_model_field, params), as `barrier` says."""
+        return FieldKernel(local_field if self.barrier else local_model_field, self.params)
 
     def signed_distance_gradient_uncertainty(self, P) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         Q = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True).reshape(-1, 3))
-        return local_field(self.params, Q)
+        return (local_field if self.barrier else local_model_field)(self.params, Q)
 
     def radius_and_sd(self, U) -> tuple[np.ndarray, np.ndarray]:
         """((M,) radius mm, (M,) sd mm) along unit directions U (M, 3) from the centre."""
@@ -84,6 +96,15 @@ class LocalField(KernelQueries):
         U = unit_sphere_grid(n_theta, n_phi, 1.0)
         R, _ = self.radius_and_sd(U)
         return self.center + R[:, None] * U
+
+
+def bound_params(sigma_factor: float, fallback) -> np.ndarray:
+    """The params' bound block (BOUND:HEAD) of the barrier's form: [k, fallback centre (3,)
+    mm, fallback radius mm] for the barrier's `sigma_factor` k >= 0 and a `fallback` Sphere."""
+    k, radius = float(sigma_factor), float(fallback.radius)
+    if not (np.isfinite(k) and k >= 0.0 and np.isfinite(radius) and radius > 0.0):
+        raise ValueError(f"the barrier's bound needs sigma_factor >= 0 and a fallback radius > 0 mm, got {k}, {radius}")
+    return np.array([k, *np.asarray(fallback.center, dtype=float), radius])
 
 
 class FieldValues:

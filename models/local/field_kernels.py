@@ -112,26 +112,40 @@ def calibrated_sd(sd, gap, cal):
 
 @njit(cache=True)
 def local_field(fp, P):
-    """The FieldKernel kernel of a LocalField (models.local.field): (h (M,) mm, g (M, 3), u
-    (M,) mm) at the points P (M, 3) mm. The surface is r = R(u) about the centre; h is
-    the first-order signed distance F / |grad F| of F = R(u) - |p - c0| (the tangential
-    gradient of R by central differences of 1e-4 rad), g = grad F / |grad F|, u the
-    blended standard deviation. With a fallback sphere (a conservative prior inside every
-    retina) and the barrier's k (the barrier's form, LocalField.with_fallback), a point
-    answers the sphere's distance and no uncertainty wherever that allows more than
-    h - k u (each is a bound on the true clearance; the larger holds), and elsewhere g is
-    the gradient of the bound h - k u itself, g - k grad u (not a unit vector): the
-    barrier's rate row then holds the bound's own rate, so a point moving along the
-    surface towards directions the model knows less of (u growing) is held back as much
-    as one moving towards the surface. NaN and +inf for a non-finite point; +inf, 0, 0
-    everywhere for the field without a boundary (local flag -1)."""
+    """The barrier's FieldKernel kernel of a LocalField (models.local.field): the field's
+    answers (field_at) in the barrier's form when fp carries a bound (fallback radius >
+    0), else the model alone."""
+    return field_at(fp, P, fp[BOUND + 4] > 0.0)
+
+
+@njit(cache=True)
+def local_model_field(fp, P):
+    """The model alone (field_at without its bound), whatever bound fp carries: what the
+    shaft keeps to, and what a LocalField answers, from the same params as the barrier."""
+    return field_at(fp, P, False)
+
+
+@njit(cache=True)
+def field_at(fp, P, barrier):
+    """(h (M,) mm, g (M, 3), u (M,) mm) of a LocalField's params fp at the points P (M, 3)
+    mm. The surface is r = R(u) about the centre; h is the first-order signed distance
+    F / |grad F| of F = R(u) - |p - c0| (the tangential gradient of R by central
+    differences of 1e-4 rad), g = grad F / |grad F|, u the blended standard deviation.
+    With `barrier` set (fp then holds the barrier's k and a fallback sphere, a
+    conservative prior inside every retina: LocalField.with_fallback), a point answers
+    the sphere's distance and no uncertainty wherever that allows more than h - k u (each
+    is a bound on the true clearance; the larger holds), and elsewhere g is the gradient
+    of the bound h - k u itself, g - k grad u (not a unit vector): the barrier's rate row
+    then holds the bound's own rate, so a point moving along the surface towards
+    directions the model knows less of (u growing) is held back as much as one moving
+    towards the surface. NaN and +inf for a non-finite point; +inf, 0, 0 everywhere for
+    the field without a boundary (local flag -1)."""
     M = P.shape[0]
     if fp[2] < 0.0:  # no boundary
         return np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M)
     dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near = unpack(fp)
     h, g, u = np.empty(M), np.empty((M, 3)), np.empty(M)
     eps = 1e-4
-    barrier = fp[BOUND + 4] > 0.0  # the barrier's form: it needs the sd's gradient too
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
     for m in range(M):
         v0, v1, v2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
@@ -180,7 +194,7 @@ def local_field(fp, P):
         g[m, 0], g[m, 1], g[m, 2] = grad0 / gn, grad1 / gn, grad2 / gn
         u[m] = sd
         rp = fp[BOUND + 4]
-        if rp > 0.0:  # the barrier's form: the gradient of h - k u, or the fallback sphere's bound
+        if barrier:  # the barrier's form: the gradient of h - k u, or the fallback sphere's bound
             k = fp[BOUND]
             w0, w1, w2 = fp[BOUND + 1] - P[m, 0], fp[BOUND + 2] - P[m, 1], fp[BOUND + 3] - P[m, 2]
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)

@@ -74,7 +74,7 @@ from functools import lru_cache
 import numpy as np
 
 from models.adaptive.coverage import fibonacci_directions
-from models.local.field import LocalField
+from models.local.field import LocalField, bound_params
 from models.local.calibration import SigmaCalibration
 from models.local.field_kernels import radii_at
 from models.local.departures import neighbour_table, node_departures, spread_departures
@@ -292,23 +292,26 @@ class LocalRetinaModel:
         return radii_at(self._dirs, self._blend, 1.0, self.center, self._prior, self._gp, self.calibration.factors,
                         self._x, self._cov, self._extra, self._has, self._near, U)
 
-    def field(self, local: bool = True, kind: str = "local"):
-        """The LocalField (models.local.field) of params(local), remade at most every
+    def field(self, local: bool = True, kind: str = "local", bound=None):
+        """The LocalField (models.local.field) of params(local, bound), remade at most every
         `refresh` updates (a copy of the nodes, ~1 MB): a snapshot up to that many sensor
-        packets old, unless `local` or the kind changed."""
-        key = (local, kind)
+        packets old, unless `local`, the kind or the bound changed. It answers the model
+        alone; `bound` (sigma_factor, fallback Sphere) writes the barrier's bound into its
+        params, so that its with_fallback of that bound shares them."""
+        key = (local, kind, None if bound is None else tuple(bound_params(*bound)))
         if self._field is None or self._field_key != key or self._updates - self._field_at >= self.config.refresh:
-            self._field = LocalField(self.params(local), kind)
+            self._field = LocalField(self.params(local, bound), kind)
             self._field_key, self._field_at = key, self._updates
         return self._field
 
-    def params(self, local: bool = True) -> np.ndarray:
+    def params(self, local: bool = True, bound=None) -> np.ndarray:
         """The LocalField params: the current nodes on the current global model; `local`
-        False: the global surface with the local estimate's disagreement in its sd."""
+        False: the global surface with the local estimate's disagreement in its sd; `bound`
+        (sigma_factor, fallback Sphere) or None: the barrier's bound block (bound_params)."""
         if self._gp is None:
             raise ValueError("LocalRetinaModel.params: no global model yet (update with a shape first)")
         self._spread()
         head = np.concatenate([[self.n_nodes, self._blend, 1.0 if local else 0.0], self.center, self._prior, self._gp,
-                               self.calibration.factors, np.zeros(5)])
+                               self.calibration.factors, np.zeros(5) if bound is None else bound_params(*bound)])
         return np.ascontiguousarray(np.concatenate([head, self._dirs.ravel(), self._x.ravel(), self._cov.ravel(), self._extra,
                                                     self._has, self._near]))

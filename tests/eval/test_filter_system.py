@@ -131,6 +131,15 @@ def test_the_local_model_step_equals_the_api_on_its_inputs(local_setup, start, k
     assert_same(out, api(loop, 0.001, q, command, snaps[kind], 0.0))
 
 
+def test_the_local_barrier_shares_the_snapshots_params(local_setup):
+    """The loop's model system writes the filter's bound into its field, so the filter's
+    barrier (slot "eye") and the model alone (slot "eye_shaft") read the snapshot's own
+    params: no ~1 MB copy in the filter's step when the model refreshes its field."""
+    loop, _, snaps = local_setup
+    eye, shaft, _ = loop.filter.fields(snaps["local"])
+    assert eye is shaft is snaps["local"].field.params
+
+
 @pytest.fixture(scope="module")
 def actuated_setup(setup):
     """The loop told a delayed, lagging, acceleration-limited actuator (the fault classes' values)."""

@@ -213,6 +213,37 @@ def test_the_barrier_form_holds_the_rate_of_the_sd_too(bumped, seed, local):
     assert np.linalg.norm(g0[0]) == pytest.approx(1.0)  # the field alone: the distance's unit gradient
 
 
+def test_a_field_that_holds_the_bound_shares_it_with_its_barrier(bumped):
+    """A field made with the barrier's bound (params(local, bound): what the loop's model
+    system makes) answers the model alone, and its barrier form (with_fallback of the same
+    bound) shares its params, answering exactly what a copy with that bound answers; any
+    other bound is a copy. Points from 5 to 12 mm off the centre, so that the fallback
+    sphere (9 mm, inside the 11 mm retina) is the larger bound at some and not at others."""
+    m, _ = bumped
+    k, prior = 3.0, Sphere(np.array([0.0, 0.0, 0.3]), 9.0)
+    plain = LocalField(m.params(True), "local")
+    held = LocalField(m.params(True, (k, prior)), "local")
+    barrier = held.with_fallback(k, prior)
+    assert barrier.params is held.params and barrier.barrier and not held.barrier
+    copied = plain.with_fallback(k, prior)
+    assert copied.params is not plain.params and copied.barrier
+    rng = np.random.default_rng(4)
+    u = rng.normal(size=(400, 3))
+    u[:, 2] = -np.abs(u[:, 2]) - 0.3
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    P = rng.uniform(5.0, 12.0, (400, 1)) * u
+    fallback = barrier.uncertainty(P) == 0.0
+    assert 0 < fallback.sum() < len(P)  # both of the barrier's branches are exercised
+    for a, b in ((held, plain), (barrier, copied)):
+        for x, y in zip(a.signed_distance_gradient_uncertainty(P), b.signed_distance_gradient_uncertainty(P)):
+            np.testing.assert_array_equal(x, y)
+    assert held.with_fallback(2.0, prior).params is not held.params
+    with pytest.raises(ValueError, match="barrier=True needs params that hold a bound"):
+        LocalField(plain.params, barrier=True)
+    with pytest.raises(ValueError, match="sigma_factor >= 0"):
+        plain.with_fallback(-1.0, prior)
+
+
 def ring_points(radius_of, rings_deg, per_ring=400, seed=0, noise=NOISE_MM):
     """Points r(u) u on rings of directions at the angles `rings_deg` from the posterior pole
     (-z), like the loop's model-building spiral, with radial noise."""
