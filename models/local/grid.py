@@ -205,6 +205,7 @@ class LocalRetinaModel:
         self.n_points = 0
         self._updates = 0
         self._field, self._field_key, self._field_at = None, None, 0
+        self._bound, self._bound_key = None, None  # field's last bound and its block (field)
         self._gate = np.array([cfg.min_radius_mm, cfg.max_radius_mm, cfg.gate_mm])
         self.calibration = SigmaCalibration()
         self.last_predictions = np.empty((0, 6))
@@ -298,7 +299,9 @@ class LocalRetinaModel:
         packets old, unless `local`, the kind or the bound changed. It answers the model
         alone; `bound` (sigma_factor, fallback Sphere) writes the barrier's bound into its
         params, so that its with_fallback of that bound shares them."""
-        key = (local, kind, None if bound is None else tuple(bound_params(*bound)))
+        if bound is not self._bound:  # the bound's block, made once per bound object (the loop's never changes)
+            self._bound, self._bound_key = bound, None if bound is None else tuple(bound_params(*bound))
+        key = (local, kind, self._bound_key)
         if self._field is None or self._field_key != key or self._updates - self._field_at >= self.config.refresh:
             self._field = LocalField(self.params(local, bound), kind)
             self._field_key, self._field_at = key, self._updates
