@@ -57,6 +57,14 @@ def add_design_rows(S, P, p0, scale):
     add_weighted_design_rows(S, P, p0, scale, np.ones(P.shape[0]))
 
 
+@njit(cache=True, inline="always")
+def design_row(x, y, z, m):
+    """The quadric's design row of the scaled point (x, y, z) written to m (10,):
+    [x^2, y^2, z^2, 2yz, 2xz, 2xy, 2x, 2y, 2z, 1] (the order of the fits' coefficients v)."""
+    m[0], m[1], m[2], m[3], m[4] = x * x, y * y, z * z, 2 * y * z, 2 * x * z
+    m[5], m[6], m[7], m[8], m[9] = 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0
+
+
 @njit(cache=True)
 def add_weighted_design_rows(S, P, p0, scale, w):
     """S (10, 10) += sum w_n m_n m_n^T (add_design_rows with a weight w (N,) per point; a
@@ -64,9 +72,7 @@ def add_weighted_design_rows(S, P, p0, scale, w):
     m = np.empty(10)
     U = np.zeros((10, 10))  # the upper triangle of the sum, mirrored once at the end
     for n in range(P.shape[0]):
-        x, y, z = (P[n, 0] - p0[0]) / scale, (P[n, 1] - p0[1]) / scale, (P[n, 2] - p0[2]) / scale
-        m[0], m[1], m[2], m[3], m[4] = x * x, y * y, z * z, 2 * y * z, 2 * x * z
-        m[5], m[6], m[7], m[8], m[9] = 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0
+        design_row((P[n, 0] - p0[0]) / scale, (P[n, 1] - p0[1]) / scale, (P[n, 2] - p0[2]) / scale, m)
         wn = w[n]
         for i in range(10):
             a = wn * m[i]

@@ -30,6 +30,7 @@ import numpy as np
 from numba import njit
 
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_scatter
+from models.fit.quadric_kernels import design_row
 from models.fit.quadric_residuals import sampson_one
 from models.fit.robust_fit import RobustFitConfig, biweight_one, tukey_rho
 
@@ -50,8 +51,7 @@ def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
         if wn <= 0.0:
             continue
         inliers += 1
-        m[0], m[1], m[2], m[3], m[4] = x * x, y * y, z * z, 2 * y * z, 2 * x * z
-        m[5], m[6], m[7], m[8], m[9] = 2 * x * y, 2 * x, 2 * y, 2 * z, 1.0
+        design_row(x, y, z, m)
         for i in range(10):
             a = wn * m[i]
             for j in range(i, 10):
