@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from models import AdaptiveEyeModel
+from models import AdaptiveEyeModel, Ellipsoid
 from models.adaptive.outlier_gate import OutlierGate
 from models.adaptive.transition import CRITERIA, PaperCriteria
 from models.eyes import EyePose, make_eye
@@ -49,6 +49,8 @@ class ShapeRun:
     lc_mae_curve: np.ndarray | None = None  # the local model's (models.local), the first criterion's model
     lc: PaperMetrics | None = None
     local_at: float | None = None  # fraction of the spiral at which the local correction was last taken up
+    globe_mae_curve: np.ndarray | None = None  # the robust globe's (models.fit.streaming_robust), NaN before its fit
+    global_ellipsoid_at: float | None = None  # from here on the local part's global quadric is an ellipsoid (None: ends a sphere)
     transitions: dict = field(default_factory=dict)  # criterion name -> fraction or None
     criteria_met_at: dict = field(default_factory=dict)  # criterion name -> {name: fraction or None}
     history: list | None = None  # ModelUpdate per A-scan (run_shape(keep_history=True))
@@ -86,6 +88,10 @@ def run_shape(
 
     `n_curve` MAE points along the spiral (each on a 60 x 60 ground-truth sampling);
     `grid` x `grid` sampling for the final Table 2 metrics (the paper: 500).
+    The first criterion's model carries the local part; its global quadric
+    (AdaptiveEyeModel.global_for_local: the least-squares ellipsoid or the robust globe,
+    else the sphere) is followed along the curve (`global_ellipsoid_at`), with the robust
+    globe's MAE (`globe_mae_curve`).
     `keep_history` keeps the model history (of the first criterion) in the result;
     `robust`: None for the paper's least-squares ellipsoid, else the robust fit's
     settings (models.fit.robust_fit); `eye_params`: make_eye's shape parameters.
@@ -101,15 +107,23 @@ def run_shape(
     first = next(iter(models.values()))
     scans_c = np.unique(np.linspace(1, n, n_curve).round().astype(int))
     curve_truth = eye.reference_samples(60, 60)
-    lc_curve, local_at, was_local = {}, None, False
+    lc_curve, globe_curve, local_at, was_local = {}, {}, None, False
+    global_ellipsoid_at, was_ellipsoid = None, False
     for i, p in enumerate(points):
         for m in models.values():
             m.update(p)
         if first.level == "local" and not was_local:
             local_at = (i + 1) / n
         was_local = first.level == "local"
-        if i + 1 in scans_c and first.local.global_params is not None:
-            lc_curve[i + 1] = mae_exact(LocalField(first.local.params(was_local)), curve_truth).mean
+        if i + 1 in scans_c:
+            if first.local.global_params is not None:
+                lc_curve[i + 1] = mae_exact(LocalField(first.local.params(was_local)), curve_truth).mean
+            globe = first.globe.last_ok
+            globe_curve[i + 1] = np.nan if globe is None else mae_exact(globe.ellipsoid, curve_truth).mean
+            is_ellipsoid = isinstance(first.global_for_local(), Ellipsoid)
+            if is_ellipsoid and not was_ellipsoid:
+                global_ellipsoid_at = (i + 1) / n
+            was_ellipsoid = is_ellipsoid
     history = next(iter(models.values())).history  # fits do not depend on the criterion
     received = np.array([u.n_received for u in history])
     scans = np.unique(np.linspace(1, n, n_curve).round().astype(int))  # A-scans received
@@ -134,6 +148,8 @@ def run_shape(
         history=history if keep_history else None,
         lc_mae_curve=np.array([lc_curve.get(int(k), np.nan) for k in scans]),
         local_at=local_at if first.level == "local" else None,
+        globe_mae_curve=np.array([globe_curve.get(int(k), np.nan) for k in scans]),
+        global_ellipsoid_at=global_ellipsoid_at if was_ellipsoid else None,
     )
     first.local.solve_all()
     lc_field = LocalField(first.local.params(first.level == "local"), first.level)
@@ -146,6 +162,12 @@ def run_shape(
 
 
 MAX_LAG = 0.10  # target: switch within 10 % of the spiral after the optimal point
+
+
+def best_ellipsoid_curve(ef_mae: np.ndarray, globe_mae: np.ndarray) -> np.ndarray:
+    """The MAE of the better of the least-squares ellipsoid and the robust globe at each
+    point of the curves (either alone where the other has no fit yet)."""
+    return np.fmin(ef_mae, globe_mae)
 
 
 def decision(transition_at: float | None, optimal_at: float | None) -> dict:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from eval.cli import main as cli_main
-from eval.experiments.paper import MAX_LAG, decision, optimal_transition, run_shape
+from eval.experiments.paper import MAX_LAG, best_ellipsoid_curve, decision, optimal_transition, run_shape
 from models.eyes import EyePose
 from models.fit.robust_fit import RobustFitConfig
 
@@ -58,6 +58,13 @@ def test_optimal_transition_definition():
     assert optimal_transition(f, sf, np.array([0.5, 0.5, 0.5, 0.5, 2.0])) is None
 
 
+def test_best_ellipsoid_curve_takes_either_fit_where_the_other_has_none():
+    ef = np.array([np.nan, 2.0, 0.5, 0.7])
+    globe = np.array([np.nan, np.nan, 0.9, 0.4])
+    best = best_ellipsoid_curve(ef, globe)
+    assert np.isnan(best[0]) and best[1:].tolist() == [2.0, 0.5, 0.4]
+
+
 def test_cli_writes_the_contract(tmp_path):
     out = tmp_path / "paper"
     rc = cli_main(["paper", "--out", str(out), "--shapes", "myopic", "--stride", "20", "--grid", "60", "--jobs", "1"])
@@ -71,6 +78,11 @@ def test_cli_writes_the_contract(tmp_path):
     for key in ("transition_at", "optimal_transition_at"):
         assert entry[key] is None or 0.0 <= entry[key] <= 1.0
     assert entry["paper"]["ef_mae"] == [0.038, 0.016]
+    g = entry["global_quadric"]
+    for key in ("transition_at", "optimal_transition_at", "lag"):
+        assert g[key] is None or -1.0 <= g[key] <= 1.0
+    assert isinstance(g["decision_right"], bool) and isinstance(g["timely"], bool) and len(g["per_seed"]) == 1
+    assert 0.0 <= g["globe_mae"] < 1.0  # mm: the robust globe of a regular eye, fitted to every 20th A-scan
     assert (out / "table2.md").read_text().startswith("# Table 2")
     assert (out / "fig5_myopic.png").stat().st_size > 10_000
 
