@@ -101,7 +101,8 @@ def run_shape(
     n = len(points)
     # consecutive points of a thinned scan lie `stride` times further apart
     gate = OutlierGate(max_jump_mm=OutlierGate().max_jump_mm * stride)
-    # the local model rides on the first criterion's model (the global fits do not depend on the criterion)
+    # the local model rides on the first criterion's model (the global fits do not depend on the criterion; the
+    # quadric under the local part does: AdaptiveEyeModel.global_for_local)
     models = {name: AdaptiveEyeModel(CRITERIA[name](), gate, robust, LocalRetinaModel(eye.pose.p_WE) if i == 0 else None)
               for i, name in enumerate(criteria)}
     first = next(iter(models.values()))
