@@ -125,3 +125,17 @@ def test_robust_fit_decides_every_shape_in_time(shape, pose):
     d = decision(run.transitions["predictive"], run.optimal_transition_at)
     assert run.optimal_transition_at is not None
     assert d["decision_right"] and 0.0 <= d["lag"] <= MAX_LAG
+
+
+@pytest.mark.parametrize("criterion", ["paper", "predictive"])
+def test_the_local_part_rides_on_the_driving_criterions_model(monkeypatch, criterion):
+    """run_shape puts the local model on its first criterion's model, whose kind decides
+    the quadric under the local part: the CLI lists the driving criterion first."""
+    import eval.cli.paper as paper_cli
+
+    seen = {}
+    monkeypatch.setattr(paper_cli, "run_shape", lambda *a, **k: seen.update(k))
+    args = {"pose": "nominal", "fit": "least-squares", "noise_um": 20.0, "stride": 1, "grid": 60,
+            "eye_params": {"myopic": {}}, "criterion": criterion}
+    paper_cli._task(("myopic", 0, args))
+    assert seen["criteria"][0] == criterion and set(seen["criteria"]) == {"paper", "predictive"}
