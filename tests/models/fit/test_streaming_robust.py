@@ -17,7 +17,8 @@ from models import AdaptiveEyeModel
 from models.adaptive.model import EYE_RADII_MM
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
-from models.fit.robust_fit import RobustFitConfig, biweight, tukey_rho
+from models.fit.ellipsoid_fit import LENGTH_SCALE_MM
+from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig, biweight, tukey_rho
 from models.fit.streaming_robust import StreamingRobustFit
 from models.local.grid import LocalRetinaModel
 from models.metrics import mae_exact
@@ -101,7 +102,51 @@ def test_adaptive_model_puts_the_local_model_on_the_globe():
     assert model.globe.loss_mm2 < model.globe.rival_loss_mm2
 
 
+def test_storage_is_a_regular_subsample_of_at_most_max_stored_points():
+    """Whatever the packet sizes, the stored points are exactly the points added whose count
+    (from 0) is a multiple of the stride, never more than max_stored of them, and the
+    pending count is the points added since the last step, stored or not."""
+    rng = np.random.default_rng(4)
+    P = rng.normal(size=(5000, 3))
+    fit = StreamingRobustFit(max_stored=300)
+    i = 0
+    while i < len(P):
+        k = int(rng.integers(0, 45))
+        fit.add(P[i:i + k])
+        assert fit.pending == min(k, len(P) - i)
+        assert fit.n_points <= 300
+        i += k
+        fit.step()
+        assert fit.pending == 0
+    assert fit.n_received == len(P) and fit.stride == 32  # 5000 points: 300 < 5000 / 16 and 5000 / 32 <= 300
+    np.testing.assert_allclose(fit._X[:fit.n_points] * LENGTH_SCALE_MM + fit.p0, P[::fit.stride], atol=1e-12)
+
+
+def test_bounded_storage_lets_the_globe_escape_a_staphyloma():
+    """The streamed globe of the paper's staphyloma (seed 0) comes within 10 um of the batch
+    robust fit's accuracy on the same spiral (109 um: models.fit.robust_fit) by its end, and
+    no step reweighs more than the per-step bound."""
+    eye = make_eye("staphyloma")
+    P = paper_scan(eye, seed=0).points
+    fit = StreamingRobustFit()
+    chunk = max(fit.min_chunk, fit.chunk_per_point * PACKET)
+    for k in range(0, len(P), PACKET):
+        fit.add(P[k:k + PACKET])
+        fit.step()
+        assert fit.last_step_weighed <= chunk
+    batch = RobustEllipsoidFit()
+    batch.add(P)
+    T = eye.reference_samples(120, 120)
+    assert mae_exact(fit.last_ok.ellipsoid, T).mean <= mae_exact(batch.fit().ellipsoid, T).mean + EF_MAE_TARGET_MM
+
+
 @pytest.mark.parametrize("kwargs", [{"noise_sd_mm": 0.0}, {"tukey_factor": -1.0}])
 def test_bad_config_raises(kwargs):
     with pytest.raises(ValueError):
         StreamingRobustFit(RobustFitConfig(**kwargs))
+
+
+@pytest.mark.parametrize("max_stored", [99, 2.5, -1])
+def test_bad_max_stored_raises(max_stored):
+    with pytest.raises(ValueError, match="max_stored"):
+        StreamingRobustFit(max_stored=max_stored)
