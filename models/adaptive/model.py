@@ -209,7 +209,7 @@ class AdaptiveEyeModel:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
         if self.local is not None:
             self.globe.add(self.last_accepted)
-            if self.globe.pending >= GLOBE_BATCH:
+            if self._globe_steps(len(P), n + k):
                 self.globe.step(self._sf.sphere)
             self.local_choice.absorb(self.local, self.last_accepted, self.global_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
@@ -232,6 +232,20 @@ class AdaptiveEyeModel:
         if sf_ok:
             return self._evaluate(fit, v_sf, (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res, axis_change)
         return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
+
+    def _globe_steps(self, received: int, n_points: int) -> bool:
+        """Whether the robust globe steps in an update of `received` points that brings the
+        model to n_points: once it holds GLOBE_BATCH pending points, except that an update of
+        fewer points (one A-scan's budget, not a packet's) that is also the criteria's
+        checkpoint leaves it to the next update, unless it has waited that long already:
+        the two heaviest pieces of work fall on different A-scans."""
+        pending = self.globe.pending
+        if pending < GLOBE_BATCH:
+            return False
+        if received >= GLOBE_BATCH or pending >= 2 * GLOBE_BATCH:
+            return True
+        due = getattr(self.criteria, "checkpoint_due", None)
+        return due is None or not due(n_points, self._memory)
 
     def _evaluate(self, fit, v_sf, sf, sf_res: float, ef_res: float, axis_change: float) -> ModelUpdate:
         """The criteria, the transition and the history entry of an update whose fits are

@@ -209,10 +209,14 @@ class PredictiveCriteria:
             gain, better = e_sf - e_ef, e_ef < e_sf
         mem.last["prediction"] = (gain, better)
 
+    def checkpoint_due(self, n_points: int, mem: _PredictiveMemory) -> bool:
+        """Whether an update that brings the model to n_points is a checkpoint."""
+        return n_points >= (mem.n[-1] if mem.n else 0) + self.check_every
+
     def evaluate(self, snap: FitSnapshot, mem: _PredictiveMemory):
         """({criterion: (value, met)}, memory) for this update."""
         range_ok = snap.scan_range_mm > self.min_scan_range_mm
-        if snap.n_points >= (mem.n[-1] if mem.n else 0) + self.check_every:
+        if self.checkpoint_due(snap.n_points, mem):
             self._checkpoint(snap, mem)
             last = mem.last
             all_ok = range_ok and all(met for _, met in last.values())

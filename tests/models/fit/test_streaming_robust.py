@@ -150,3 +150,26 @@ def test_bad_config_raises(kwargs):
 def test_bad_max_stored_raises(max_stored):
     with pytest.raises(ValueError, match="max_stored"):
         StreamingRobustFit(max_stored=max_stored)
+
+
+def test_globe_step_and_criteria_checkpoint_fall_on_different_a_scans():
+    """One A-scan per update: no update is both the criteria's checkpoint and a globe step,
+    the globe still steps once GLOBE_BATCH points wait (one update later at most); packets
+    of GLOBE_BATCH A-scans (the loop's) step at every packet as before."""
+    from models.adaptive.model import GLOBE_BATCH
+
+    P = paper_scan(make_eye("emmetropic"), seed=0).points[:2000]
+    model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+    deferred = 0
+    for p in P:
+        checkpoints, pending = len(model._memory.n), model.globe.pending
+        model.update(p[None])
+        checkpoint, stepped = len(model._memory.n) > checkpoints, model.globe.pending <= pending
+        assert not (checkpoint and stepped)
+        assert model.globe.pending <= GLOBE_BATCH
+        deferred += checkpoint and pending + 1 >= GLOBE_BATCH
+    assert deferred > 0  # the case arose
+    packets = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+    for k in range(0, len(P), GLOBE_BATCH):
+        packets.update(P[k:k + GLOBE_BATCH])
+        assert packets.globe.pending == 0
