@@ -70,6 +70,16 @@ def _mean_or_none(values):
     return None if any(v is None for v in values) else float(np.mean(values))
 
 
+def _majority_mean(per_seed):
+    """The mean of the seeds' transition fractions when most seeds switched, else None."""
+    done = [t for t in per_seed if t is not None]
+    return float(np.mean(done)) if len(done) * 2 > len(per_seed) else None
+
+
+def _yes(ok) -> str:
+    return "yes" if ok else "NO"
+
+
 def aggregate(runs, criterion: str, ellipsoid_fit: str) -> dict:
     """table2.json entry for one shape from its runs (one per seed) with `ellipsoid_fit`
     (one of FITS)."""
@@ -87,9 +97,7 @@ def aggregate(runs, criterion: str, ellipsoid_fit: str) -> dict:
     per_criterion = {}
     for name in runs[0].transitions:
         per_seed = [r.transitions[name] for r in runs]
-        done = [t for t in per_seed if t is not None]
-        at = float(np.mean(done)) if len(done) * 2 > len(per_seed) else None  # majority of seeds
-        d = decision(at, optimal)
+        d = decision(_majority_mean(per_seed), optimal)
         d["per_seed"] = per_seed
         d["criteria_met_at"] = {c: _mean_or_none([r.criteria_met_at[name][c] for r in runs]) for c in runs[0].criteria_met_at[name]}
         per_criterion[name] = d
@@ -97,8 +105,7 @@ def aggregate(runs, criterion: str, ellipsoid_fit: str) -> dict:
     globe_curve = np.mean([r.globe_mae_curve for r in runs], axis=0)
     optimal_global = optimal_transition(fractions, sf_curve, best_ellipsoid_curve(ef_curve, globe_curve))
     per_seed = [r.global_ellipsoid_at for r in runs]
-    done = [t for t in per_seed if t is not None]
-    global_quadric = decision(float(np.mean(done)) if len(done) * 2 > len(per_seed) else None, optimal_global)
+    global_quadric = decision(_majority_mean(per_seed), optimal_global)
     global_quadric.update(optimal_transition_at=optimal_global, per_seed=per_seed,
                           globe_mae=float(globe_curve[-1]))
     out.update(
@@ -160,8 +167,7 @@ def table_markdown(results: dict, args) -> str:
         cells = []
         for name in ("paper", "predictive"):
             d = r["criteria"].get(name)
-            yes = lambda ok: "yes" if ok else "NO"  # noqa: E731
-            cells.append("n/a" if d is None else f"{_pct(d['transition_at'])} / {_pct(d['lag'])} / {yes(d['decision_right'])} / {yes(d['timely'])}")
+            cells.append("n/a" if d is None else f"{_pct(d['transition_at'])} / {_pct(d['lag'])} / {_yes(d['decision_right'])} / {_yes(d['timely'])}")
         lines.append(f"| {shape} | {_pct(r['optimal_transition_at'])} | {cells[0]} | {cells[1]} |")
     lines += [
         "\n## The local part's global quadric: sphere -> ellipsoid\n",
@@ -176,9 +182,8 @@ def table_markdown(results: dict, args) -> str:
     ]
     for shape, r in results.items():
         d = r["global_quadric"]
-        yes = lambda ok: "yes" if ok else "NO"  # noqa: E731
         lines.append(f"| {shape} | {_pct(d['optimal_transition_at'])} | {_pct(d['transition_at'])} / {_pct(d['lag'])} / "
-                     f"{yes(d['decision_right'])} / {yes(d['timely'])} | {d['globe_mae']:.3f} |")
+                     f"{_yes(d['decision_right'])} / {_yes(d['timely'])} | {d['globe_mae']:.3f} |")
     lines.append("\n## Accuracy against the paper's 0.5 mm requirement\n")
     for shape, r in results.items():
         ok = r["meets_required_accuracy"]
