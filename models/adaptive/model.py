@@ -108,6 +108,7 @@ class AdaptiveEyeModel:
         self.local = local
         self.local_choice = LocalChoice() if local is not None else None
         self.globe = StreamingRobustFit() if local is not None else None
+        self.globe_taken = False  # the robust globe is the quadric under the local model (_globe_taken)
 
     def __deepcopy__(self, memo) -> AdaptiveEyeModel:
         """An independent copy (it updates without touching this model) that shares the
@@ -142,22 +143,35 @@ class AdaptiveEyeModel:
     def global_for_local(self) -> Sphere | Ellipsoid | None:
         """The global quadric under the local model: the ellipsoid while the model is one
         and its semi-axes are an eye's (EYE_RADII_MM); else the robust globe
-        (models.fit.streaming_robust) once its semi-axes are an eye's, the scan range is
-        at least GLOBE_MIN_SCAN_RANGE_MM and it predicts the new points better than the
-        sphere (a lower biweight loss: a pathology counts as much against either); else
-        the sphere fit."""
-        lo, hi = EYE_RADII_MM
+        (models.fit.streaming_robust) while it is taken up (_globe_taken); else the sphere fit."""
         shape = self.shape
         if self.kind == "ellipsoid" and shape is not None:
+            lo, hi = EYE_RADII_MM
             r0, r1, r2 = shape.radii  # not np.min / np.max: their dispatch was a third of this call's time per A-scan
             if lo <= min(r0, r1, r2) and max(r0, r1, r2) <= hi:
                 return shape
+        return self.globe.last_ok.ellipsoid if self.globe_taken else self.sphere
+
+    def _globe_taken(self) -> bool:
+        """Whether the robust globe is the quadric under the local model (after its step):
+        its semi-axes are an eye's and the scan range at least GLOBE_MIN_SCAN_RANGE_MM, and
+        it predicts the new points better than the sphere (a lower biweight loss: a
+        pathology counts as much against either) over the last ~`memory` points, or, once
+        taken, over the last ~`hold_memory` (models.fit.streaming_robust). Without the
+        longer hold, the local plans of the detached eye and the staphyloma (seed 0) swapped
+        globe and sphere 7-10 times, each for 200-600 A-scans as the tool entered through a
+        port (the retina by the ora serrata, which the sphere fits better), moving the
+        boundary up to 0.46 mm each time."""
         globe = self.globe
-        if globe is not None and globe.last_ok is not None and self._range.diameter_mm >= GLOBE_MIN_SCAN_RANGE_MM:
-            radii = globe.last_ok.radii
-            if lo <= radii[-1] and radii[0] <= hi and globe.loss_mm2 < globe.rival_loss_mm2:
-                return globe.last_ok.ellipsoid
-        return self.sphere
+        fit = globe.last_ok
+        if fit is None or self._range.diameter_mm < GLOBE_MIN_SCAN_RANGE_MM:
+            return False
+        lo, hi = EYE_RADII_MM
+        radii = fit.radii
+        if not (lo <= radii[-1] and radii[0] <= hi):
+            return False
+        return globe.loss_mm2 < globe.rival_loss_mm2 or (
+            self.globe_taken and globe.held_loss_mm2 < globe.held_rival_loss_mm2)
 
     @property
     def level(self) -> str:
@@ -211,6 +225,7 @@ class AdaptiveEyeModel:
             self.globe.add(self.last_accepted)
             if self._globe_steps(len(P), n + k):
                 self.globe.step(self._sf.sphere)
+                self.globe_taken = self._globe_taken()
             self.local_choice.absorb(self.local, self.last_accepted, self.global_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)

@@ -34,7 +34,11 @@ their biweight loss (Tukey's rho, (c^2 / 6) (1 - (1 - (d / c)^2)^3), c^2 / 6 bey
 under the current fit is averaged exponentially over about `memory` points
 (`loss_mm2`), and the same of a rival sphere the caller names (`rival_loss_mm2`: the
 model to beat, models.adaptive.model.AdaptiveEyeModel.global_for_local); a pathology's
-points cost either model at most c^2 / 6 each.
+points cost either model at most c^2 / 6 each. Both are also averaged over about
+`hold_memory` points (`held_loss_mm2`, `held_rival_loss_mm2`): the caller that has taken
+the globe up keeps it while it predicts better over that longer run, so that a patch the
+sphere happens to fit (the retina by the ora serrata, seen as the tool goes in through a
+port) does not swap the quadric for ~0.3 s.
 """
 from __future__ import annotations
 
@@ -127,15 +131,19 @@ class StreamingRobustFit:
     newest good EllipsoidFit (None before one); `loss_mm2` the exponential average (over
     about `memory` points) of the new points' biweight loss under the fit before they
     joined (mm^2; NaN before a fit), `rival_loss_mm2` the same of the Sphere `rival` the
-    caller passes (the model to beat; NaN without one); `passes` completed passes;
+    caller passes (the model to beat; NaN without one); `held_loss_mm2` and
+    `held_rival_loss_mm2` the same over about `hold_memory` points; `passes` completed passes;
     `pending` points added since the last step; `last_step_weighed` the stored points the
     last step reweighed. At most `max_stored` points are kept (module doc: every
     `stride`-th point added); `n_points` the stored ones, `n_received` all added."""
 
     def __init__(self, config: RobustFitConfig | None = None, chunk_per_point: int = 10, min_chunk: int = 50,
-                 memory: float = 400.0, max_stored: int = 500):
+                 memory: float = 400.0, max_stored: int = 500, hold_memory: float = 4000.0):
         self.config = RobustFitConfig() if config is None else config
         self.chunk_per_point, self.min_chunk, self.memory = int(chunk_per_point), int(min_chunk), float(memory)
+        self.hold_memory = float(hold_memory)
+        if not (np.isfinite(self.hold_memory) and self.hold_memory >= self.memory > 0):
+            raise ValueError(f"hold_memory must be finite and >= memory = {self.memory:g} > 0, got {hold_memory}")
         if not (isinstance(max_stored, (int, np.integer)) and max_stored >= 2 * self.min_chunk):
             raise ValueError(f"max_stored must be an integer >= 2 min_chunk = {2 * self.min_chunk}, got {max_stored}")
         self.max_stored = int(max_stored)
@@ -145,7 +153,7 @@ class StreamingRobustFit:
         self.p0: np.ndarray | None = None
         self.last_ok: EllipsoidFit | None = None
         self.passes = 0
-        self.loss_mm2 = self.rival_loss_mm2 = np.nan
+        self.loss_mm2 = self.rival_loss_mm2 = self.held_loss_mm2 = self.held_rival_loss_mm2 = np.nan
         self._cut = self.config.cutoff_mm / LENGTH_SCALE_MM
         self._X = np.empty((1024, 3))
         self._w = np.empty(1024)
@@ -216,10 +224,14 @@ class StreamingRobustFit:
         self._next = np.zeros((10, 10))
         self._cursor, self._end, self._inliers = 0, self._taken, 0
 
-    def _score(self, loss: float, current: float, k: int) -> float:
-        """The average over about `memory` added points, of which k stored ones scored `loss`."""
+    def _score(self, loss: float, k: int, current: float, held: float) -> tuple[float, float]:
+        """The averages over about `memory` and `hold_memory` added points, of which k stored
+        ones scored `loss` (scaled units^2, a sum)."""
         loss *= LENGTH_SCALE_MM ** 2 / k
-        return loss if np.isnan(current) else current + min(k * self.stride / self.memory, 1.0) * (loss - current)
+        if np.isnan(current):
+            return loss, loss
+        n = k * self.stride
+        return (current + min(n / self.memory, 1.0) * (loss - current), held + min(n / self.hold_memory, 1.0) * (loss - held))
 
     def step(self, rival=None) -> EllipsoidFit | None:
         """Score and weigh the pending points (against the fit and the Sphere `rival`), go on
@@ -238,9 +250,10 @@ class StreamingRobustFit:
             self._weighing(), self._cut, scored, has_rival, c, r)
         if k:
             if scored:
-                self.loss_mm2 = self._score(loss, self.loss_mm2, k)
+                self.loss_mm2, self.held_loss_mm2 = self._score(loss, k, self.loss_mm2, self.held_loss_mm2)
                 if has_rival:
-                    self.rival_loss_mm2 = self._score(rival_loss, self.rival_loss_mm2, k)
+                    self.rival_loss_mm2, self.held_rival_loss_mm2 = self._score(
+                        rival_loss, k, self.rival_loss_mm2, self.held_rival_loss_mm2)
             self._taken = n
         self._inliers += inliers
         self.last_step_weighed = self._cursor - cursor

@@ -152,6 +152,13 @@ def test_bad_max_stored_raises(max_stored):
         StreamingRobustFit(max_stored=max_stored)
 
 
+@pytest.mark.parametrize("hold_memory", [399.0, np.nan, np.inf])
+def test_bad_hold_memory_raises(hold_memory):
+    """The hold is the longer memory: at least `memory` (400) points, and finite."""
+    with pytest.raises(ValueError, match="hold_memory"):
+        StreamingRobustFit(hold_memory=hold_memory)
+
+
 def test_globe_step_and_criteria_checkpoint_fall_on_different_a_scans():
     """One A-scan per update: no update is both the criteria's checkpoint and a globe step,
     the globe still steps once GLOBE_BATCH points wait (one update later at most); packets
@@ -173,3 +180,43 @@ def test_globe_step_and_criteria_checkpoint_fall_on_different_a_scans():
     for k in range(0, len(P), GLOBE_BATCH):
         packets.update(P[k:k + GLOBE_BATCH])
         assert packets.globe.pending == 0
+
+
+def test_taken_globe_outlasts_a_patch_the_sphere_fits_and_yields_to_a_long_run():
+    """Once the robust globe is under the local model (the detached eye, paper spiral), a
+    burst of A-scans that the sphere fits and the globe does not (points on the sphere fit
+    where it lies over 0.15 mm off the globe in the reference region, beyond the biweight's
+    cut-off of 0.094 mm, so each costs the globe the most a point can) leaves it there while the burst is shorter than the hold memory,
+    although over the short memory the globe then predicts worse; a run of such A-scans
+    longer than the hold memory gives it up (the choice is reversible), and the globe is
+    taken up again once the A-scans follow the retina again."""
+    eye = make_eye("detached")
+    P = paper_scan(eye, seed=3).points
+    model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+    for k in range(0, len(P), PACKET):
+        model.update(P[k:k + PACKET])
+    globe, sphere = model.globe, model.sphere
+    assert model.globe_taken and model.kind == "sphere"
+    rng = np.random.default_rng(7)
+    U = eye.reference_samples(60, 60) - sphere.center
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    on_sphere = sphere.center + sphere.radius * U
+    patch = on_sphere[np.abs(globe.last_ok.ellipsoid.signed_distance(on_sphere)) > 0.15]
+    assert len(patch) >= 100
+    burst = int(0.1 * globe.hold_memory)  # 400 A-scans: 0.2 s at 2 kHz, as long as the short memory
+    fed = 0
+    while fed < burst:
+        model.update(patch[rng.integers(0, len(patch), PACKET)] + rng.normal(0.0, 0.02, (PACKET, 3)))
+        fed += PACKET
+    assert globe.loss_mm2 > globe.rival_loss_mm2  # the short memory alone would swap the quadric
+    assert model.globe_taken and model.global_for_local() is globe.last_ok.ellipsoid
+    while fed < 2 * globe.hold_memory and model.globe_taken:
+        model.update(patch[rng.integers(0, len(patch), PACKET)] + rng.normal(0.0, 0.02, (PACKET, 3)))
+        fed += PACKET
+    assert not model.globe_taken and model.global_for_local() is model.sphere
+    assert fed > burst
+    for k in range(0, len(P), PACKET):  # the spiral again: the retina, detachment included
+        model.update(P[k:k + PACKET])
+        if model.globe_taken:
+            break
+    assert model.globe_taken
