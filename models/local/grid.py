@@ -26,7 +26,8 @@ cost about 30 x 27 multiply-adds per point and a few 6 x 6 Cholesky solves per u
 The global quadric under it (models.adaptive.model.AdaptiveEyeModel.global_for_local): the
 ellipsoid once the transition criteria accept it, else the robust ellipsoid
 (models.fit.streaming_robust: Tukey's biweight leaves a detachment or a staphyloma out of
-the fit) once it is an eye's and predicts the new points better than the sphere. Measured
+the fit) while it is an eye's and predicts the new points better than the sphere (once
+taken, over a longer run of them: AdaptiveEyeModel._globe_taken). Measured
 on the closed loop's spiral (sensor seed 11): on the detached eye the sphere under the
 local model left 881 um of mean error more than 10 deg from the data and the robust
 ellipsoid 59 um; on the staphyloma 445 and 82 um (the figures in the README's results).
