@@ -42,7 +42,7 @@ class LocalField(KernelQueries):
         """The global `shape` (Sphere or Ellipsoid) alone, exact (sd 0), seen from `center`
         (3,) mm (inside it): the conservative prior in the same field form."""
         head = np.concatenate([[0.0, np.radians(5.0), 1.0], np.asarray(center, dtype=float),
-                               [0.02, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0], global_params(shape), np.ones(N_CAL),
+                               [0.02, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0, 0.0], global_params(shape), np.ones(N_CAL),
                                np.zeros(5)])
         return cls(head, "prior")
 

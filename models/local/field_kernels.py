@@ -231,14 +231,14 @@ def _global_gradient(c0, gp, u0, u1, u2, r, e10, e11, e12, e20, e21, e22, eps):
     return grad0, grad1, grad2
 
 
-HEAD = 6 + 7 + GLOBAL_SIZE + N_CAL + 5  # n, blend, local, c0 (3), prior (7), global (16), sd calibration, k and the fallback sphere (4)
-CAL = 13 + GLOBAL_SIZE  # where the sd calibration's factors begin
+HEAD = 6 + 8 + GLOBAL_SIZE + N_CAL + 5  # n, blend, local, c0 (3), prior (8), global (16), sd calibration, k and the fallback sphere (4)
+CAL = 14 + GLOBAL_SIZE  # where the sd calibration's factors begin
 BOUND = HEAD - 5  # where [k, fallback centre (3), fallback radius] begin (radius 0: none)
 
 
 @njit(cache=True)
 def unpack(fp):
-    """(dirs (n, 3), blend rad, local flag, c0 (3,), prior (7,), global (16,), sd calibration
+    """(dirs (n, 3), blend rad, local flag, c0 (3,), prior (8,), global (16,), sd calibration
     (N_CAL,), x (n, 6), cov (n, 21), excess (n,), has (n,), near (n,): the cosine of each
     node's nearest data angle) of a LocalField's params."""
     n = int(fp[0])
@@ -249,7 +249,7 @@ def unpack(fp):
     o += N_BASIS * n
     cov = fp[o:o + N_COV * n].reshape((n, N_COV))
     o += N_COV * n
-    return (dirs, fp[1], fp[2], fp[3:6], fp[6:13], fp[13:CAL], fp[CAL:BOUND], x, cov, fp[o:o + n], fp[o + n:o + 2 * n],
+    return (dirs, fp[1], fp[2], fp[3:6], fp[6:14], fp[14:CAL], fp[CAL:BOUND], x, cov, fp[o:o + n], fp[o + n:o + 2 * n],
             fp[o + 2 * n:o + 3 * n])
 
 

@@ -95,7 +95,7 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     from it), s^2 = s_g^2 + the departure variance of node k and of its neighbours within
     `reach` rad that hold data (gathered_departure over neighbour_table's rows;
     dev[k], node k's own departure, set first) and s_c^2 = s_g^2 + node k's own departure^2
-    (when over the floor prior[5]): where the data nearby depart from the global quadric
+    (when over the departure floor prior[7]): where the data nearby depart from the global quadric
     by D, the correction's offset and tilt are that uncertain (a detachment's flank is a
     tilt at a node's scale), and where the node's own data depart, its curvature too (the
     top of a detachment 3.5 mm high bends more than the global model's curvature prior
@@ -130,12 +130,12 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     m[5] = (R[1, 2] - 2.0 * R[1, 1] + R[1, 0]) / (2.0 * h * h)
     noise2 = prior[0] * prior[0]
     dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
-    dep = gathered_departure(k, has, dev, reach, prior[5], nb_off, nb_idx, nb_ang)
+    dep = gathered_departure(k, has, dev, reach, prior[7], nb_off, nb_idx, nb_ang)
     sg = global_sd(np.arccos(min(near[k], 1.0)), prior)
     pinv[0] = 1.0 / (sg * sg + dep)
     ell2 = prior[4] * prior[4]  # the correction's length scale: slopes s / l, curvatures sqrt(3) s_c / l^2
     pinv[1] = pinv[2] = ell2 * pinv[0]
-    own = dev[k] * dev[k] if abs(dev[k]) > prior[5] else 0.0
+    own = dev[k] * dev[k] if abs(dev[k]) > prior[7] else 0.0
     pinv[3] = pinv[4] = pinv[5] = ell2 * ell2 / (sg * sg + own) / 3.0
     # Am = A m: the global's Taylor expansion's share of the normal equations
     for a in range(N_BASIS):
