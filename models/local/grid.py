@@ -104,7 +104,7 @@ class LocalConfig:
     0.02 mm the local plans of the detached eye and the staphyloma, seed 0, had the
     filter step in on 0.98 % and 0.97 % of the steps; at 0.03 mm on 0.36 % and 0.31 %).
     Measured on the loop's
-    spiral (seeds 0-1 of the six shapes and the four variants of the issue's targets: 3 mm
+    spiral (seed 0, the six shapes and the four variants of the issue's targets: 3 mm
     staphyloma, detachments 3.5 mm at 25 deg and 1 mm at 60 deg, pointed apex 4 mm): the
     exact error within 1 deg of the data is at most 1.7 sd, 3 sd covers every reference
     sample, and where the model's retina lies beyond the true one it does so by at least
