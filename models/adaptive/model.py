@@ -157,11 +157,11 @@ class AdaptiveEyeModel:
         its semi-axes are an eye's and the scan range at least GLOBE_MIN_SCAN_RANGE_MM, and
         it predicts the new points better than the sphere (a lower biweight loss: a
         pathology counts as much against either) over the last ~`memory` points, or, once
-        taken, over the last ~`hold_memory` (models.fit.streaming_robust). Without the
-        longer hold, the local plans of the detached eye and the staphyloma (seed 0) swapped
-        globe and sphere 7-10 times, each for 200-600 A-scans as the tool entered through a
-        port (the retina by the ora serrata, which the sphere fits better), moving the
-        boundary up to 0.46 mm each time."""
+        taken, over the last ~`hold_memory` (models.fit.streaming_robust). Judged over the
+        short memory alone, the quadric swaps between globe and sphere 7-10 times in each
+        local plan of the detached eye and the staphyloma (seed 0), each time for 200-600
+        A-scans as the tool enters through a port (the retina by the ora serrata, which the
+        sphere fits better), and moves the boundary by up to 0.46 mm."""
         globe = self.globe
         fit = globe.last_ok
         if fit is None or self._range.diameter_mm < GLOBE_MIN_SCAN_RANGE_MM:

@@ -108,8 +108,8 @@ class LocalConfig:
     staphyloma, detachments 3.5 mm at 25 deg and 1 mm at 60 deg, pointed apex 4 mm): the
     exact error within 1 deg of the data is at most 1.7 sd, 3 sd covers every reference
     sample, and where the model's retina lies beyond the true one it does so by at least
-    32 um less than 3 sd. The boundary next to the data is then d_safe + 0.06 mm (0.03 mm:
-    0.09 mm, which held the pointed eye's cutter 0.652-0.655 mm from its retina).
+    32 um less than 3 sd. The boundary next to the data is then d_safe + 0.06 mm (a 0.03 mm
+    floor makes it 0.09 mm and keeps the pointed eye's cutter 0.652-0.655 mm from its retina).
     `departure_deg` 25: how far past the data a departure from the global quadric counts
     (about a detachment's or a staphyloma's radius: the default detachment, 10 mm across,
     spans 25 deg from its centre; with 15 deg the variant 3.5 mm high at 25 deg kept
