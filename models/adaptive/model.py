@@ -23,6 +23,14 @@ from models.local.selection import LocalChoice
 from models.shapes.validation import as_points
 
 EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5 mm)
+
+
+def eyes_radii(r0: float, r1: float, r2: float) -> bool:
+    """Whether semi-axes r0, r1, r2 (mm) are an eye's: each within EYE_RADII_MM (NaN is not).
+    Three floats, not an array: np.min / np.max's dispatch was a third of global_for_local's
+    time per A-scan."""
+    lo, hi = EYE_RADII_MM
+    return lo <= r0 <= hi and lo <= r1 <= hi and lo <= r2 <= hi
 GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
 GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
 
@@ -145,11 +153,8 @@ class AdaptiveEyeModel:
         and its semi-axes are an eye's (EYE_RADII_MM); else the robust globe
         (models.fit.streaming_robust) while it is taken up (_globe_taken); else the sphere fit."""
         shape = self.shape
-        if self.kind == "ellipsoid" and shape is not None:
-            lo, hi = EYE_RADII_MM
-            r0, r1, r2 = shape.radii  # not np.min / np.max: their dispatch was a third of this call's time per A-scan
-            if lo <= min(r0, r1, r2) and max(r0, r1, r2) <= hi:
-                return shape
+        if self.kind == "ellipsoid" and shape is not None and eyes_radii(*shape.radii):
+            return shape
         return self.globe.last_ok.ellipsoid if self.globe_taken else self.sphere
 
     def _globe_taken(self) -> bool:
@@ -164,11 +169,7 @@ class AdaptiveEyeModel:
         sphere fits better), and moves the boundary by up to 0.46 mm."""
         globe = self.globe
         fit = globe.last_ok
-        if fit is None or self._range.diameter_mm < GLOBE_MIN_SCAN_RANGE_MM:
-            return False
-        lo, hi = EYE_RADII_MM
-        radii = fit.radii
-        if not (lo <= radii[-1] and radii[0] <= hi):
+        if fit is None or self._range.diameter_mm < GLOBE_MIN_SCAN_RANGE_MM or not eyes_radii(*fit.radii):
             return False
         return globe.loss_mm2 < globe.rival_loss_mm2 or (
             self.globe_taken and globe.held_loss_mm2 < globe.held_rival_loss_mm2)
