@@ -11,7 +11,12 @@ gives zero velocity and the reason from the same call.
 
 The shaft points count only against a fitted model: the prior lies inside every retina,
 and the shaft crosses the eye wall at the trocar, so the shaft behind the tip lies
-outside the prior by construction. Units: mm, s, rad; frame W.
+outside the prior by construction. The quadric's field puts the prior in place of the
+model where the model has no data: the shaft keeps to the model alone. The local model's
+barrier takes the larger of two bounds on the true clearance, the model's h - k sigma and
+the prior's: the shaft keeps to it as the tip does (near the trocar the prior's bound is
+negative and never the larger; near the eye's centre, where the model's first-order
+distance falls far below the true one, it is). Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
@@ -32,7 +37,7 @@ from eval.systems.model import ModelSnapshot
 from models.adaptive.coverage import band_chord
 from models.adaptive.model_field import ModelField, coverage_trust, model_field_kernel
 from models.local.field import FieldValues, LocalField
-from models.local.field_kernels import local_field, local_model_field
+from models.local.field_kernels import local_field
 from planning.chain import frame_position
 from planning.diffik import DrakeDiffIK
 from planning.robot import RCM_GAIN_PER_S, Robot
@@ -109,7 +114,7 @@ class FilterSystem(LeafSystem):
         self.step_inputs = StepInputs(robot, config.points, config.filter, prior)
         self.robot_scene = RobotScene(robot)
         self.local = config.local_model
-        eye_kernel, shaft_kernel = (local_field, local_model_field) if self.local else (model_field_kernel,) * 2
+        eye_kernel, shaft_kernel = (local_field,) * 2 if self.local else (model_field_kernel,) * 2
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
                                      {"eye": eye_kernel, "eye_shaft": shaft_kernel,
                                       "lens": lens.kernel}, config.filter, kinematics=step_kinematics,
@@ -196,15 +201,17 @@ class FilterSystem(LeafSystem):
     def field_objects(self, snap: ModelSnapshot) -> tuple:
         """(eye, shaft) distance fields for a snapshot: what the tip and the port keep to (the
         model with the prior as a second bound) and what the watched shaft points keep to
-        (the model alone); before the model has a shape, the prior and no bound. The quadric's
-        is a models.adaptive.model_field.ModelField with the phase's margin; the local model's
-        its models.local.field.LocalField (d_safe + sigma_factor x sigma), both forms on the
-        same params when the snapshot's field holds the barrier's bound (the loop's model
-        system writes it: AdaptiveModelSystem's field_bound)."""
+        (the quadric's model alone; the local model's barrier, as the tip: module docstring);
+        before the model has a shape, the prior and no bound. The quadric's is a
+        models.adaptive.model_field.ModelField with the phase's margin; the local model's its
+        models.local.field.LocalField (d_safe + sigma_factor x sigma), on the snapshot's own
+        params when they hold the barrier's bound (the loop's model system writes it:
+        AdaptiveModelSystem's field_bound)."""
         if self.local:
             if snap.field is None:
                 return self._prior_fields
-            return snap.field.with_fallback(self.config.filter.sigma_factor, self.prior), snap.field
+            barrier = snap.field.with_fallback(self.config.filter.sigma_factor, self.prior)
+            return barrier, barrier
         if snap.shape is None:
             return self._prior_fields
         field = ModelField(snap.shape, float(snap.margin_mm(self.config.margins)), snap.coverage, self.prior,
@@ -272,9 +279,7 @@ class FilterSystem(LeafSystem):
             return None, None, 0.0, np.ones(2, dtype=bool), np.zeros(2)
         self.fields(snap)
         P = ip.P_W[:StepInputs.boundary_count(snap.kind, ip)]
-        h, g, sigma = self._bounded.signed_distance_gradient_uncertainty(P)
-        # the shaft's points: the model alone (the prior lies inside the wall they cross)
-        h[2:], g[2:], sigma[2:] = snap.field.signed_distance_gradient_uncertainty(P[2:])
+        h, g, sigma = self._bounded.signed_distance_gradient_uncertainty(P)  # the shaft's points too
         return FieldValues(P, h, g), snap.kind, 0.0, np.ones(len(P), dtype=bool), sigma
 
     def _trust(self, snap: ModelSnapshot, P_W: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,7 +4,10 @@ gradient and standard deviation of the retina surface r = R(u) about a fixed cen
 The distance is first order: F / |grad F| of F = R(u) - |p - c0|, exact on a sphere
 about c0 and, elsewhere, off by about d^2 kappa / 2 at distance d from a surface of
 curvature kappa (under 1 um at the model's errors of tens of um near the retina; 0.05 mm
-at 1 mm on the pointed eye's crease). The uncertainty is the model's standard
+at 1 mm on the pointed eye's crease). Within a few mm of c0 the tangential slope of R,
+divided by |p - c0|, dominates grad F and the distance falls far below the true one (a
+model of the spiral's first rings, 1.5 mm from c0: down to a fifth of it, on the safe
+side); the barrier's form (with_fallback) takes the fallback sphere's bound there. The uncertainty is the model's standard
 deviation at the point's direction (models.local.grid), a one-sided bound once the
 barrier multiplies it (safety.constraints.point_barrier: d_safe + k sigma).
 Units: mm; points in the frame of the measured points (W in the loop).

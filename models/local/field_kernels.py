@@ -120,8 +120,8 @@ def local_field(fp, P):
 
 @njit(cache=True)
 def local_model_field(fp, P):
-    """The model alone (field_at without its bound), whatever bound fp carries: what the
-    shaft keeps to, and what a LocalField answers, from the same params as the barrier."""
+    """The model alone (field_at without its bound), whatever bound fp carries: what a
+    LocalField that is not the barrier answers, from the same params as the barrier."""
     return field_at(fp, P, False)
 
 

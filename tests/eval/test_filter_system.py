@@ -10,7 +10,12 @@ from hypothesis import strategies as st
 
 from eval.experiments.boundary import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
+from models import AdaptiveEyeModel
+from models.adaptive.coverage import DirectionCoverage
+from models.adaptive.transition import PredictiveCriteria
+from models.local.grid import LocalRetinaModel
 from planning import SurgeryScenario
+from planning.scan import start_posture
 from safety import FilterConfig, SafetyFilter
 from test_closed_loop import model_from_spiral_beams
 
@@ -138,6 +143,48 @@ def test_the_local_barrier_shares_the_snapshots_params(local_setup):
     loop, _, snaps = local_setup
     eye, shaft, _ = loop.filter.fields(snaps["local"])
     assert eye is shaft is snaps["local"].field.params
+
+
+def test_the_local_models_shaft_keeps_to_the_larger_of_its_bounds():
+    """With the local model the watched shaft points keep to the barrier's bound, as the tip
+    does: the larger of the model's h - k sigma and the prior sphere's (inside every
+    retina), each a bound on the true clearance. A model of the dense spiral's first rings
+    (pitch 0.5 mm, 3 revolutions: a sphere under the local part) knows nothing of the wall
+    the shaft points near the trocar face (sigma 2 mm) and, near its centre, its first-order
+    distance falls far below the true one: on the model alone the tip at the eye's centre
+    has shaft points inside their margin, which no velocity through the trocar moves out
+    (the recovery the loop then holds for good); on the larger bound none."""
+    scenario = SurgeryScenario()
+    P_W = scenario.eye_pose.to_W(scenario.spiral_E(pitch_mm=0.5, revolutions=3.0, spacing_mm=0.05))
+    U = P_W - scenario.p_WC
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    d = scenario.eye.ray_cast(P_W, U)
+    X = P_W + (d + np.random.default_rng(0).normal(0.0, 0.02, len(d)))[:, None] * U
+    model = AdaptiveEyeModel(criteria=PredictiveCriteria(), local=LocalRetinaModel(scenario.eye_pose.p_WE))
+    coverage = DirectionCoverage(scenario.eye_pose.p_WE)
+    for k in range(0, len(X), 10):
+        model.update(X[k:k + 10])
+    coverage.add(X)
+    loop = ClosedLoop(scenario, LoopConfig(local_model=True))
+    snap = loop.model.snapshot_for(model, coverage, 0.0)
+    k, prior, cfg = loop.config.filter.sigma_factor, loop.filter.prior, loop.config.filter
+    margin = cfg.d_safe_mm + cfg.calibration_margin_mm
+    alone_inside = 0
+    for depth_mm in (0.0, 1.0, 2.0):  # the tip at and behind the eye's centre, along E's -z
+        q = start_posture(loop.robot, scenario.eye_pose.to_W(np.array([[0.0, 0.0, -depth_mm]]))[0], loop.robot.p_WC)
+        x, _ = loop.filter.inputs(0.001, q, np.zeros(4), snap, 0.0)
+        shaft = [bp for bp in x.boundary_points if bp.name.startswith("shaft")]
+        assert len(shaft) >= 3
+        for bp in shaft:
+            p = bp.p_W[None]
+            bound = float(x.model.signed_distance(p)[0]) - k * bp.margin_mm
+            alone = float(snap.field.signed_distance(p)[0]) - k * float(snap.field.uncertainty(p)[0])
+            prior_bound = prior.radius - float(np.linalg.norm(bp.p_W - prior.center))
+            assert bound == pytest.approx(max(alone, prior_bound), abs=1e-9)
+            assert bound <= float(scenario.eye.signed_distance(p)[0])  # a bound on the true clearance
+            assert bound > margin
+            alone_inside += alone < margin
+    assert alone_inside >= 2
 
 
 @pytest.fixture(scope="module")
