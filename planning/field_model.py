@@ -33,20 +33,25 @@ class _Retina:
 class FieldModel:
     """`field` (models.shapes.field.DistanceField: signed_distance_gradient_uncertainty) with
     the barrier's `sigma_factor` k >= 0, as the shape the planner checks against; `kind`
-    the model's ("sphere", "ellipsoid", "local", ...)."""
+    the model's ("sphere", "ellipsoid", "local", ...). `bound`: the field whose h - k u the
+    filter's barrier keeps to, when it is not `field` itself (the local model's barrier,
+    models.local.field.LocalField.with_fallback, answers the prior's bound where that is the
+    larger: no retina, so the surface, its normals and u stay `field`'s)."""
 
-    def __init__(self, field, sigma_factor: float, kind: str = ""):
+    def __init__(self, field, sigma_factor: float, kind: str = "", bound=None):
         if not (np.isfinite(sigma_factor) and sigma_factor >= 0):
             raise ValueError(f"FieldModel.sigma_factor must be finite and >= 0, got {sigma_factor}")
         self.field, self.sigma_factor, self.kind = field, float(sigma_factor), kind
+        self.bound = field if bound is None else bound
         self.retina = _Retina(field)
 
-    def _hgu(self, P):
-        return self.field.signed_distance_gradient_uncertainty(np.ascontiguousarray(np.asarray(P, dtype=float).reshape(-1, 3)))
+    def _hgu(self, P, field=None):
+        return (self.field if field is None else field).signed_distance_gradient_uncertainty(
+            np.ascontiguousarray(np.asarray(P, dtype=float).reshape(-1, 3)))
 
     def signed_distance(self, P) -> np.ndarray:
-        """(M,) h - k u (mm) at P (M, 3): the clearance the filter's barrier grants there."""
-        h, _, u = self._hgu(P)
+        """(M,) h - k u (mm) of the bound at P (M, 3): the clearance the filter's barrier grants there."""
+        h, _, u = self._hgu(P, self.bound)
         return np.asarray(h, dtype=float) - self.sigma_factor * np.asarray(u, dtype=float)
 
     def uncertainty(self, P) -> np.ndarray:

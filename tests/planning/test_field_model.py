@@ -46,6 +46,21 @@ def test_the_ray_cast_of_an_exact_local_field_is_the_ellipsoid_s():
     assert np.all(np.isnan(model.ray_cast(O + 30.0 * U, U)))  # starting outside: no hit
 
 
+def test_a_bound_grants_its_clearance_while_the_surface_stays_the_field_s():
+    """FieldModel(field, k, bound=b): the clearance is b's h - k u (the filter's barrier),
+    the retina, its normals and u are the field's. A model sphere of 11 mm with u = 1 mm
+    under a bound that is the same sphere with u = 0.25 mm: the clearance gains 0.75 k mm,
+    the ray from the centre still meets the model at 11 mm."""
+    sphere = Sphere(np.array([1.0, -2.0, 3.0]), 11.0)
+    model = FieldModel(ModelField(sphere, 1.0), 2.0, "sphere", bound=ModelField(sphere, 0.25))
+    P = sphere.center + np.outer([0.0, 5.0, 10.5], _unit([0.3, -1.0, 0.2]))
+    np.testing.assert_allclose(model.signed_distance(P), sphere.signed_distance(P) - 0.5, atol=1e-9)
+    np.testing.assert_allclose(model.uncertainty(P), 1.0, atol=1e-12)
+    np.testing.assert_allclose(retina_of(model).signed_distance(P), sphere.signed_distance(P), atol=1e-9)
+    np.testing.assert_allclose(model.gradient(P[1:]), sphere.gradient(P[1:]), atol=1e-9)
+    assert model.ray_cast(sphere.center[None], _unit([0.3, -1.0, 0.2])[None])[0] == pytest.approx(11.0, abs=1e-9)
+
+
 def test_cells_whose_target_the_uncertainty_reaches_are_uncertain(setup):
     """The surgery eye's ellipsoid as a ModelField with margin m, k = 1: a target 1 mm inside
     it is granted 1 - m mm; against 0.564 mm + 0.2 mm it is "uncertain" exactly when m > 0.236 mm."""
