@@ -23,6 +23,8 @@ from models.local.selection import LocalChoice
 from models.shapes.validation import as_points
 
 EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5 mm)
+GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
+GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
 
 
 def eyes_radii(r0: float, r1: float, r2: float) -> bool:
@@ -31,8 +33,6 @@ def eyes_radii(r0: float, r1: float, r2: float) -> bool:
     time per A-scan."""
     lo, hi = EYE_RADII_MM
     return lo <= r0 <= hi and lo <= r1 <= hi and lo <= r2 <= hi
-GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
-GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
 
 
 class ModelUpdate(NamedTuple):

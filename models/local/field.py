@@ -7,9 +7,10 @@ curvature kappa (under 1 um at the model's errors of tens of um near the retina;
 at 1 mm on the pointed eye's crease). Within a few mm of c0 the tangential slope of R,
 divided by |p - c0|, dominates grad F and the distance falls far below the true one (a
 model of the spiral's first rings, 1.5 mm from c0: down to a fifth of it, on the safe
-side); the barrier's form (with_fallback) takes the fallback sphere's bound there. The uncertainty is the model's standard
-deviation at the point's direction (models.local.grid), a one-sided bound once the
-barrier multiplies it (safety.constraints.point_barrier: d_safe + k sigma).
+side); the barrier's form (with_fallback) takes the fallback sphere's bound there. The
+uncertainty is the model's standard deviation at the point's direction
+(models.local.grid), a one-sided bound once the barrier multiplies it
+(safety.constraints.point_barrier: d_safe + k sigma).
 Units: mm; points in the frame of the measured points (W in the loop).
 """
 from __future__ import annotations
