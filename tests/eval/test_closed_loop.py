@@ -23,11 +23,13 @@ from safety import FilterConfig
 RCM_TOL_MM = 0.020  # RCM drift of 1 kHz Euler steps of the joint velocities, up to 20 mm/s
 
 
-def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0, local: bool = False):
+def model_from_spiral_beams(scenario: SurgeryScenario, seed: int = 0, local: bool = False,
+                            pitch_mm: float = 1.5, revolutions: float = 6.0):
     """(AdaptiveEyeModel, DirectionCoverage) from the retina points the fiber would see
-    along the spiral (beams from the trocar through the spiral points, 20 um noise),
-    without the robot; with `local`, the model has its local part (models.local)."""
-    P_E = scenario.spiral_E(pitch_mm=1.5, revolutions=6.0, spacing_mm=0.05)
+    along the spiral (`pitch_mm`, `revolutions`; beams from the trocar through the spiral
+    points, 20 um noise), without the robot; with `local`, the model has its local part
+    (models.local)."""
+    P_E = scenario.spiral_E(pitch_mm=pitch_mm, revolutions=revolutions, spacing_mm=0.05)
     P = scenario.eye_pose.to_W(P_E)
     U = P - scenario.p_WC
     U /= np.linalg.norm(U, axis=1, keepdims=True)

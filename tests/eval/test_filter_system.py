@@ -10,10 +10,6 @@ from hypothesis import strategies as st
 
 from eval.experiments.boundary import adversarial_starts
 from eval.closed_loop import ClosedLoop, LoopConfig, ModelSnapshot
-from models import AdaptiveEyeModel
-from models.adaptive.coverage import DirectionCoverage
-from models.adaptive.transition import PredictiveCriteria
-from models.local.grid import LocalRetinaModel
 from planning import SurgeryScenario
 from planning.scan import start_posture
 from safety import FilterConfig, SafetyFilter
@@ -155,16 +151,7 @@ def test_the_local_models_shaft_keeps_to_the_larger_of_its_bounds():
     has shaft points inside their margin, which no velocity through the trocar moves out
     (the recovery the loop then holds for good); on the larger bound none."""
     scenario = SurgeryScenario()
-    P_W = scenario.eye_pose.to_W(scenario.spiral_E(pitch_mm=0.5, revolutions=3.0, spacing_mm=0.05))
-    U = P_W - scenario.p_WC
-    U /= np.linalg.norm(U, axis=1, keepdims=True)
-    d = scenario.eye.ray_cast(P_W, U)
-    X = P_W + (d + np.random.default_rng(0).normal(0.0, 0.02, len(d)))[:, None] * U
-    model = AdaptiveEyeModel(criteria=PredictiveCriteria(), local=LocalRetinaModel(scenario.eye_pose.p_WE))
-    coverage = DirectionCoverage(scenario.eye_pose.p_WE)
-    for k in range(0, len(X), 10):
-        model.update(X[k:k + 10])
-    coverage.add(X)
+    model, coverage = model_from_spiral_beams(scenario, local=True, pitch_mm=0.5, revolutions=3.0)
     loop = ClosedLoop(scenario, LoopConfig(local_model=True))
     snap = loop.model.snapshot_for(model, coverage, 0.0)
     k, prior, cfg = loop.config.filter.sigma_factor, loop.filter.prior, loop.config.filter
