@@ -98,16 +98,16 @@ def screen(H, c, lb, ub, G, h, A, b, tol):
             return NONFINITE, x
         if lb[i] > ub[i]:
             return CROSSED, x
-    solved, x = _kkt_solution(H, c, A, b, np.zeros((0, n)), np.zeros(0), tol)
+    solved, z = _kkt_solution(H, c, A, b, np.zeros((0, n)), np.zeros(0))
+    x = z[:n].copy()
     return (OPTIMAL if solved and _feasible(G, h, lb, ub, x, tol) else NEEDS_SOLVER), x
 
 
 @njit(cache=True)
-def _kkt_solution(H, c, A, b, C, d, tol):
-    """(solved, x): the minimiser of 1/2 x^T H x + c^T x subject to A x = b and C x = d,
-    from its KKT system (Gaussian elimination with partial pivoting; a singular system
-    fails the residual check), solved False also when a multiplier of C's rows is
-    negative (below -1e-9 of the largest): then C's rows are not all binding."""
+def _kkt_solution(H, c, A, b, C, d):
+    """(solved, z): z = [x, multipliers of A's rows, of C's rows], x the minimiser of
+    1/2 x^T H x + c^T x subject to A x = b and C x = d, from its KKT system (Gaussian
+    elimination with partial pivoting; a singular system fails the residual check)."""
     n, p, a = c.shape[0], b.shape[0], d.shape[0]
     N = n + p + a
     K = np.zeros((N, N))
@@ -120,61 +120,98 @@ def _kkt_solution(H, c, A, b, C, d, tol):
             K[n + i, j] = K[j, n + i] = row[j]
         rhs[n + i] = b[i] if i < p else d[i - p]
     z = pivoted_solve(K.copy(), rhs, 1e-300)
-    x = z[:n].copy()
-    if not (_finite(z) and _solves(K, z, rhs)):
-        return False, x
-    scale = 1.0
-    for i in range(p + a):
-        scale = max(scale, abs(z[n + i]))
-    for i in range(a):  # dual feasibility of the held inequalities
-        if z[n + p + i] < -1e-9 * scale:
-            return False, x
-    return True, x
+    return _finite(z) and _solves(K, z, rhs), z
 
 
 @njit(cache=True)
 def _feasible(G, h, lb, ub, x, tol) -> bool:
     """G x <= h and lb <= x <= ub, each to tol relative to its bound."""
-    n = x.shape[0]
-    for i in range(h.shape[0]):
-        r = 0.0
-        for j in range(n):
-            r += G[i, j] * x[j]
-        if r > h[i] + tol * (1.0 + abs(h[i])):
-            return False
-    for i in range(n):
-        if x[i] < lb[i] - tol * (1.0 + abs(lb[i])) or x[i] > ub[i] + tol * (1.0 + abs(ub[i])):
-            return False
-    return True
+    return _most_violated(G, h, lb, ub, x, tol) < 0
 
 
 @njit(cache=True)
-def warm_solution(H, c, lb, ub, G, h, A, b, held_rows, held_lower, held_upper, tol):
-    """(certified, x): the QP's solution if the guessed active set is its own: the rows
-    of G marked in held_rows (m,) and the bounds in held_lower / held_upper (n,) bool,
-    held as equalities with A x = b, give an x that satisfies every constraint (relative
-    tol) with non-negative multipliers on the held ones. That is the KKT certificate of
-    the convex QP (H positive definite: the solution is unique, every solver's to its
-    rounding); another active set, or dependent rows, is not certified."""
-    n, p = c.shape[0], b.shape[0]
-    C = np.zeros((G.shape[0] + 2 * n, n))
-    d = np.zeros(G.shape[0] + 2 * n)
-    a = 0
-    for i in range(G.shape[0]):
-        if held_rows[i]:
-            C[a], d[a] = G[i], h[i]
-            a += 1
+def _most_violated(G, h, lb, ub, x, tol) -> int:
+    """The constraint x violates most, by its excess over the bound divided by 1 + |bound|,
+    if that is above tol: row i of G (i), the lower bound of x_j (m + j), its upper bound
+    (m + n + j); -1 for none."""
+    m, n = h.shape[0], x.shape[0]
+    worst, k = 0.0, -1
+    for i in range(m):
+        r = -h[i]
+        for j in range(n):
+            r += G[i, j] * x[j]
+        excess = r / (1.0 + abs(h[i])) - tol
+        if excess > worst:
+            worst, k = excess, i
     for j in range(n):
-        if held_lower[j]:  # -x_j <= -lb_j
-            C[a, j], d[a] = -1.0, -lb[j]
-            a += 1
-        if held_upper[j]:
-            C[a, j], d[a] = 1.0, ub[j]
-            a += 1
-    if a == 0 or a + p > n:
-        return False, np.zeros(n)
-    solved, x = _kkt_solution(H, c, A, b, C[:a], d[:a], tol)
-    return solved and _feasible(G, h, lb, ub, x, tol), x
+        low = (lb[j] - x[j]) / (1.0 + abs(lb[j])) - tol
+        high = (x[j] - ub[j]) / (1.0 + abs(ub[j])) - tol
+        if low > worst:
+            worst, k = low, m + j
+        if high > worst:
+            worst, k = high, m + n + j
+    return k
+
+
+@njit(cache=True)
+def warm_solution(H, c, lb, ub, G, h, A, b, held_rows, held_lower, held_upper, tol, max_changes=0):
+    """(certified, x): the QP's solution if an active set reached from the guessed one is
+    its own. The guess: the rows of G marked in held_rows (m,) and the bounds in
+    held_lower / held_upper (n,) bool. The held constraints, as equalities with A x = b,
+    give x and their multipliers; the set is certified when x satisfies every constraint
+    (relative tol) with non-negative multipliers on the held ones: the KKT certificate of
+    the convex QP (H positive definite: the solution is unique, every solver's to its
+    rounding). Otherwise up to `max_changes` single changes follow, each releasing the
+    held constraint with the most negative multiplier or, with none negative, holding the
+    one x violates most (a step's active set mostly differs from the previous step's by
+    one constraint). Dependent held rows, or more held constraints than the equalities
+    leave free, end the search uncertified, as does its last change."""
+    n, p, m = c.shape[0], b.shape[0], h.shape[0]
+    rows, lower, upper = held_rows.copy(), held_lower.copy(), held_upper.copy()
+    C = np.zeros((m + 2 * n, n))
+    d = np.zeros(m + 2 * n)
+    source = np.zeros(m + 2 * n, dtype=np.int64)  # C's row k holds constraint source[k] (_most_violated's index)
+    x = np.zeros(n)
+    for change in range(max_changes + 1):
+        a = 0
+        for i in range(m):
+            if rows[i]:
+                C[a], d[a], source[a] = G[i], h[i], i
+                a += 1
+        for j in range(n):
+            if lower[j]:  # -x_j <= -lb_j
+                C[a] = 0.0
+                C[a, j], d[a], source[a] = -1.0, -lb[j], m + j
+                a += 1
+            if upper[j]:
+                C[a] = 0.0
+                C[a, j], d[a], source[a] = 1.0, ub[j], m + n + j
+                a += 1
+        if a + p > n or (a == 0 and max_changes == 0):  # none held and no change: the screen's set
+            return False, x
+        solved, z = _kkt_solution(H, c, A, b, C[:a], d[:a])
+        x = z[:n].copy()
+        if not solved:
+            return False, x
+        scale, release = 1.0, -1
+        for i in range(p + a):
+            scale = max(scale, abs(z[n + i]))
+        for i in range(a):
+            if z[n + p + i] < -1e-9 * scale and (release < 0 or z[n + p + i] < z[n + p + release]):
+                release = i
+        k = source[release] if release >= 0 else _most_violated(G, h, lb, ub, x, tol)
+        if k < 0:
+            return True, x
+        if change == max_changes:
+            return False, x
+        held = release < 0  # hold the violated constraint k, or release the held one
+        if k < m:
+            rows[k] = held
+        elif k < m + n:
+            lower[k - m] = held
+        else:
+            upper[k - m - n] = held
+    return False, x
 
 
 @njit(cache=True)

@@ -4,8 +4,10 @@ tracking cost, the QP's screen and warm start, the active-set memory.
 The assembled step (safety.assembly) runs them around the constraints' fillers:
 
     faults -> tracking cost -> constraints' rows -> screen (the optimum under the
-    equalities, if it satisfies every inequality) -> the previous step's active set,
-    certified by its KKT conditions -> (else) DAQP, called from Python.
+    equalities, if it satisfies every inequality) -> the previous step's active set and
+    up to WARM_CHANGES single changes from it, each certified by its KKT conditions ->
+    (else) DAQP, called from Python (its call from a step costs 40-110 us: 5 us warm, the
+    rest its code and data fetched back after the simulation's work between calls).
 
 Units: mm, s, rad; frame W.
 """
@@ -22,6 +24,7 @@ CONSTRAINT_FAULT = 100
 # the step's result codes
 STEP_OPTIMAL, STEP_NEEDS_SOLVER, STEP_FAULT, STEP_QP_FAILED = 0, 1, 2, 3
 ACTIVE_TOL = 1e-6  # a row within this (relative) of its bound is active (safety.qp.solve's default)
+WARM_CHANGES = 4  # changes to the previous step's active set tried before DAQP (safety.qp.warm_solution)
 # cfg: the filter-level numbers the step reads
 CFG_DAMPING, CFG_MAX_COMMAND_SPEED, CFG_MAX_MODEL_AGE, CFG_MAX_SENSOR_AGE = range(4)
 
@@ -108,8 +111,9 @@ def remember_active(active, ids, G, h, lb, ub, x, tol, at_bound_out):
 @njit(cache=True)
 def finish(H, c, lb, ub, G, h, A, b, ids, active, warm, at_bound_out):
     """(code, x, rows at bound): the QP's solution when the screen or (with `warm`) the
-    previous step's active set, certified, gives it (STEP_OPTIMAL), else STEP_NEEDS_SOLVER
-    or STEP_QP_FAILED (non-finite data, crossed bounds: the Python side says which)."""
+    previous step's active set or one up to WARM_CHANGES changes from it, certified, gives
+    it (STEP_OPTIMAL), else STEP_NEEDS_SOLVER or STEP_QP_FAILED (non-finite data, crossed
+    bounds: the Python side says which)."""
     n = c.shape[0]
     code, x = screen(H, c, lb, ub, G, h, A, b, ACTIVE_TOL)
     if code == OPTIMAL:
@@ -124,7 +128,7 @@ def finish(H, c, lb, ub, G, h, A, b, ids, active, warm, at_bound_out):
             held[i] = active[ids[i]]
         base = active.shape[0] - 2 * n
         certified, x_w = warm_solution(H, c, lb, ub, G, h, A, b, held, active[base:base + n].copy(),
-                                       active[base + n:].copy(), ACTIVE_TOL)
+                                       active[base + n:].copy(), ACTIVE_TOL, WARM_CHANGES)
         if certified:
             return STEP_OPTIMAL, x_w, remember_active(active, ids, G, h, lb, ub, x_w, ACTIVE_TOL, at_bound_out)
     return STEP_NEEDS_SOLVER, x, 0
