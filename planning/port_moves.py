@@ -27,6 +27,7 @@ LINE_STEP_MM = 1.0  # spacing of the insertion line's IK waypoints
 MOVE_SPEED_MM_S = 20.0  # the tip's speed on the move outside the eye
 MOVE_CLEARANCE_MM = 5.0  # the tip's arc between ports lies this much further out than its ends
 MOVE_MIN_OUTSIDE_MM = EYE_WALL_MM  # the move's tip stays outside the eye wall (retina, choroid, sclera)
+LIMIT_CHECK_DT_S = 0.005  # a move's joint ranges checked this often along its spline
 
 
 @dataclass(frozen=True)
@@ -81,8 +82,10 @@ def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float, model=None) -> P
     a via posture: the tip `clearance_mm` beyond the further end on the mean of the ends'
     directions from the eye centre, the shaft pointing at the centre, each leg an arc (or
     a direct joint-space move where the arm cannot follow it); a direct joint-space move
-    last. With `model` (the retina, W), the first of these whose tip keeps
-    MOVE_MIN_OUTSIDE_MM outside it, else the one keeping furthest out."""
+    last (at rest at both ends, it stays between them). A candidate whose spline leaves a
+    joint's range between its waypoints is skipped. With `model` (the retina, W), the
+    first of these whose tip keeps MOVE_MIN_OUTSIDE_MM outside it, else the one keeping
+    furthest out."""
     q0, q1 = np.asarray(q0, dtype=float), np.asarray(q1, dtype=float)
     candidates = []
     arc = _arc(robot, q0, q1, p_WE, clearance_mm)
@@ -95,8 +98,10 @@ def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float, model=None) -> P
         candidates.append(np.vstack([legs[0], legs[1][1:]]))
     candidates.append(np.array([q0, q1]))
     best, best_out = None, -np.inf
-    for Q in candidates:
+    for k, Q in enumerate(candidates):
         traj = joint_trajectory(robot, Q, np.array([robot.pose("T", q)[1] for q in Q]), MOVE_SPEED_MM_S)
+        if k < len(candidates) - 1 and _leaves_limits(robot, traj):
+            continue
         if model is None:
             return traj
         out = move_min_outside_mm(robot, traj, model)
@@ -105,6 +110,14 @@ def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float, model=None) -> P
         if out > best_out:
             best, best_out = traj, out
     return best
+
+
+def _leaves_limits(robot: Robot, move: PiecewisePolynomial) -> bool:
+    """Whether the spline `move` leaves a joint's range between its waypoints (a C2 cubic
+    through waypoints that keep their limits can swing past them), sampled every
+    LIMIT_CHECK_DT_S."""
+    ts = np.append(np.arange(move.start_time(), move.end_time(), LIMIT_CHECK_DT_S), move.end_time())
+    return bool(np.min(robot.joint_margin_rad(move.vector_values(ts).T)) < 0.0)
 
 
 def move_min_outside_mm(robot: Robot, move: PiecewisePolynomial, model, samples: int = 50) -> float:

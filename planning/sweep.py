@@ -77,13 +77,14 @@ def _watched_clearances_mm(robot: Robot, Q, p_WC, model, shaft_only: bool, tips:
 
 
 def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: np.ndarray, p_WC, model,
-                               limit_mm: float, lens_W=None) -> dict:
+                               limit_mm: float, margin_rad: float, lens_W=None) -> dict:
     """{index into P_cells (K, 3): reason} for the cells on whose way (from the previous
     waypoint of the timed joint trajectory, sampled every SHAFT_CHECK_DT_S) or at whose
     posture a watched shaft point comes within `limit_mm` of the model ("shaft"), or else
-    the shaft within LENS_CLEARANCE_MM of the lens keep-out `lens_W` (when given; "lens").
-    P_used (M, 3): the targets of the trajectory's knots, P_cells in order among them
-    (plan_ik_scan adds midpoints)."""
+    a joint within `margin_rad` of its limit ("reach": the spline between cells that keep
+    the margin can swing past it), or else the shaft within LENS_CLEARANCE_MM of the lens
+    keep-out `lens_W` (when given; "lens"). P_used (M, 3): the targets of the trajectory's
+    knots, P_cells in order among them (plan_ik_scan adds midpoints)."""
     knots = np.asarray(traj.get_segment_times())
     cell_knot = np.empty(len(P_cells), dtype=int)
     j = 0
@@ -92,13 +93,15 @@ def _cells_too_near_on_the_way(robot: Robot, traj, P_used: np.ndarray, P_cells: 
             j += 1
         cell_knot[k] = j
     ts = np.union1d(np.arange(knots[0], knots[-1], SHAFT_CHECK_DT_S), knots)
-    tips = []
-    near = _watched_clearances_mm(robot, traj.vector_values(ts).T, p_WC, model, True, tips) < limit_mm
+    tips, Q = [], traj.vector_values(ts).T
+    near = _watched_clearances_mm(robot, Q, p_WC, model, True, tips) < limit_mm
     lens = (lens_clearances_mm(lens_W, p_WC, np.array(tips)) < LENS_CLEARANCE_MM if lens_W is not None
             else np.zeros_like(near))
+    limits = np.min(robot.joint_margin_rad(Q), axis=1) < margin_rad
     # a sample belongs to the first cell reached at or after it; the shaft's reason first
     owner = np.searchsorted(knots[cell_knot], ts - 1e-12, side="left")
     out = {int(k): "lens" for k in np.unique(owner[lens])}
+    out.update({int(k): "reach" for k in np.unique(owner[limits])})
     out.update({int(k): "shaft" for k in np.unique(owner[near])})
     return out
 
@@ -172,7 +175,8 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None,
     """The timed sweep through the trocar p_WC (3,) mm W over the cells `order` ((ring,
     azimuth index), in path order) of `band` (planning.peripheral.Band; `spec` its
     BandSpec): RCM IK with the port's roll seeded along the
-    path, cells beyond the joint margins or only on another IK branch dropped as "reach",
+    path, cells at or on whose way (the timed spline) a joint comes within the margins, or
+    only on another IK branch, dropped as "reach",
     cells at or on whose way the watched shaft nears the boundary, or the shaft the lens
     keep-out `lens_W` (W, when given; the cells' own rule, LENS_CLEARANCE_MM), dropped as
     "shaft" or "lens". IKFailure when no cell is left."""
@@ -215,7 +219,8 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None,
             return Sweep(kept, P, roll, np.array(Q), PiecewisePolynomial.FirstOrderHold([0.0, dwell], np.array([Q[0], Q[0]]).T),
                          P[[0, 0]], dropped)
         traj, P_used, _ = plan_ik_scan(robot, P, p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q)
-        bad = _cells_too_near_on_the_way(robot, traj, P_used, P, p_WC, model, limit, lens_W)
+        bad = _cells_too_near_on_the_way(robot, traj, P_used, P, p_WC, model, limit,
+                                         np.radians(spec.min_margin_deg), lens_W)
         if not bad:
             return Sweep(kept, P, roll, np.array(Q), traj, P_used, dropped)
         for k, why in bad.items():

@@ -171,3 +171,22 @@ def test_cells_too_few_for_a_pass_are_reported_declined_not_as_geometry(layout, 
     assert left.sum() > 0  # one pass per port cannot sweep the anterior band (test above: re-entries and doors)
     assert np.all(plan.band.reason[left] == "declined")
     assert set(np.unique(plan.band.reason)) <= {"ok", *multiport.UNREACHABLE}
+
+
+def test_a_move_whose_spline_swings_past_a_joint_limit_is_not_taken(setup):
+    """A C2 cubic through waypoints that keep their limits can swing past one between them
+    (here J6 through 150, 179 and 179.9 deg, back to 150: past 180 deg); such a candidate
+    move is skipped, and the direct move between two postures in range stays in range."""
+    from pydrake.trajectories import PiecewisePolynomial
+
+    from planning.port_moves import _leaves_limits
+
+    _, robot, q = setup
+    Q = np.repeat(q[None], 4, axis=0)
+    Q[:, 5] = np.radians([150.0, 179.0, 179.9, 150.0])
+    swing = PiecewisePolynomial.CubicWithContinuousSecondDerivatives([0.0, 0.3, 0.6, 1.5], Q.T, np.zeros(6), np.zeros(6))
+    ts = np.linspace(0.0, 1.5, 3001)
+    assert np.degrees(swing.vector_values(ts)[5].max()) > 180.0  # the premise: the spline leaves the range
+    assert _leaves_limits(robot, swing)
+    direct = PiecewisePolynomial.CubicWithContinuousSecondDerivatives([0.0, 1.0], Q[[1, 2]].T, np.zeros(6), np.zeros(6))
+    assert not _leaves_limits(robot, direct)

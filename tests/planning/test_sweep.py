@@ -114,3 +114,27 @@ def test_a_midpoint_straight_below_the_trocar_is_solved_without_a_roll(setup):
     for q in traj.vector_values(ts).T:
         assert robot.rcm_error_mm(q, scenario.p_WC) < 0.01  # 0.5 um at the checks, the spline between them
     np.testing.assert_allclose(robot.pose("T", traj.value(traj.end_time()).ravel())[1], P[-1], atol=1e-6)
+
+
+def test_a_cell_whose_way_swings_a_joint_into_its_margin_is_dropped_as_reach(setup):
+    """The timed path between cells is a spline, which can swing a joint past the margin its
+    cells keep: a way through a posture with J6 1 deg from its limit (a roll: the tip and
+    the shaft stay where they are) drops the cell it leads to as "reach", not the one it
+    leaves; the same way with J6 10 deg inside the margin drops none."""
+    from pydrake.trajectories import PiecewisePolynomial
+
+    from models import Ellipsoid
+    from planning.sweep import _cells_too_near_on_the_way
+
+    scenario, robot, q = setup
+    eye = scenario.eye
+    model = Ellipsoid(eye.pose.p_WE, eye.radii, eye.pose.R_WE)
+    tip = robot.pose("T", q)[1]
+    margin = np.radians(5.0)
+    for j6_margin_deg, expected in ((1.0, {1: "reach"}), (15.0, {})):
+        q_way = q.copy()
+        q_way[5] = robot.q_upper[5] - np.radians(j6_margin_deg)
+        traj = PiecewisePolynomial.FirstOrderHold([0.0, 0.5, 1.0], np.array([q, q_way, q]).T)
+        P_used = np.array([tip, tip + 1e-3, tip + 2e-3])  # the cells and a midpoint between them
+        out = _cells_too_near_on_the_way(robot, traj, P_used, P_used[[0, 2]], scenario.p_WC, model, 0.7, margin)
+        assert out == expected
