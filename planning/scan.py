@@ -104,7 +104,8 @@ def joint_trajectory(robot: Robot, Q, P_WT, tip_speed_mm_s: float) -> PiecewiseP
 
 
 def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
-                 tol_um: float = 0.5, roll_rad=None, Q_waypoints=None) -> tuple[PiecewisePolynomial, np.ndarray, float]:
+                 tol_um: float = 0.5, roll_rad=None, Q_waypoints=None,
+                 midpoints: dict | None = None) -> tuple[PiecewisePolynomial, np.ndarray, float]:
     """(q(t), the tip targets used (K, 3) mm, mean IK time per waypoint in ms) for the
     targets P_WT (N, 3) mm (optional rolls `roll_rad` (N,)): IK waypoints, then wherever
     the spline between two waypoints leaves the RCM or the straight tip segment by more
@@ -112,14 +113,17 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
     most 6 rounds: fast joint swings, as next to the trocar, need denser waypoints; a
     midpoint keeps its neighbours' mean roll; a midpoint out of reach, on a chord across
     a gap of the workspace, is left out and its segment kept as the spline makes it). `Q_waypoints`
-    (N, 6): the waypoints' IK already solved by the caller (then not solved again)."""
+    (N, 6): the waypoints' IK already solved by the caller (then not solved again).
+    `midpoints`: a dict the caller keeps across calls on overlapping targets (a sweep
+    re-timed after dropping cells), holding each midpoint's IK by its target, roll and
+    seed (None: out of reach); the same inputs, the same answer, solved once."""
     P = np.asarray(P_WT, dtype=float)
     roll = None if roll_rad is None else np.asarray(roll_rad, dtype=float)
     if Q_waypoints is None:
         Q, solve_ms = ik_waypoints(robot, P, p_WC, q_start, roll)
     else:
         Q, solve_ms = np.array(Q_waypoints, dtype=float), float("nan")
-    out_of_reach = set()  # midpoints already found out of reach: not tried again
+    solved = {} if midpoints is None else midpoints  # (target, roll, seed) -> posture, None out of reach
     for _ in range(6):
         traj = joint_trajectory(robot, Q, P, tip_speed_mm_s)
         t = np.asarray(traj.get_segment_times())
@@ -138,14 +142,17 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         roll_mid = None if roll is None else np.angle(np.exp(1j * roll[bad]) + np.exp(1j * roll[bad + 1]))
         added = []
         for k, (m, i) in enumerate(zip(mids, bad)):
-            if m.tobytes() in out_of_reach:
-                continue
-            try:
-                # a midpoint whose shaft is vertical has no roll: IK from the neighbours' mean posture
-                mid_roll = roll_mid[k] if roll is not None and has_roll(m, p_WC) else None
-                added.append((i, m, rcm_ik(robot, m, p_WC, 0.5 * (Q[i] + Q[i + 1]), roll_rad=mid_roll), k))
-            except IKFailure:  # the midpoint itself is out of reach (a chord over a gap): keep the segment
-                out_of_reach.add(m.tobytes())
+            # a midpoint whose shaft is vertical has no roll: IK from the neighbours' mean posture
+            mid_roll = roll_mid[k] if roll is not None and has_roll(m, p_WC) else None
+            seed = 0.5 * (Q[i] + Q[i + 1])
+            key = (m.tobytes(), None if mid_roll is None else float(mid_roll), seed.tobytes())
+            if key not in solved:
+                try:
+                    solved[key] = rcm_ik(robot, m, p_WC, seed, roll_rad=mid_roll)
+                except IKFailure:  # the midpoint itself is out of reach (a chord over a gap): keep the segment
+                    solved[key] = None
+            if solved[key] is not None:
+                added.append((i, m, solved[key], k))
         if not added:
             break
         at = np.array([a[0] for a in added]) + 1

@@ -209,6 +209,7 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None,
             continue
         kept.append((r, i))
         Q.append(q)
+    midpoints = {}  # the timing's midpoint IK, kept across the re-timings below (planning.scan.plan_ik_scan)
     while True:  # the timed trajectory, densely: drop the cells whose way in still nears the boundary
         if not kept:
             raise IKFailure("no cell of the band is reachable from this trocar")
@@ -218,7 +219,8 @@ def plan_sweep(robot: Robot, band, p_WC, model, spec, order: list, q_start=None,
             dwell = spec.spacing_mm / spec.tip_speed_mm_s
             return Sweep(kept, P, roll, np.array(Q), PiecewisePolynomial.FirstOrderHold([0.0, dwell], np.array([Q[0], Q[0]]).T),
                          P[[0, 0]], dropped)
-        traj, P_used, _ = plan_ik_scan(robot, P, p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q)
+        traj, P_used, _ = plan_ik_scan(robot, P, p_WC, spec.tip_speed_mm_s, roll_rad=roll, Q_waypoints=Q,
+                                       midpoints=midpoints)
         bad = _cells_too_near_on_the_way(robot, traj, P_used, P, p_WC, model, limit,
                                          np.radians(spec.min_margin_deg), lens_W)
         if not bad:

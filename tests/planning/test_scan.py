@@ -9,7 +9,7 @@ import pytest
 from eval.cli import main
 from planning.ik import IKFailure, rcm_ik
 from planning.robot import Robot
-from planning.scan import plan_ik_scan, run_diffik, sample_ik_run, start_posture
+from planning.scan import ik_waypoints, plan_ik_scan, run_diffik, sample_ik_run, start_posture
 from planning.scenario import SurgeryScenario
 
 SPEED = 5.0  # mm/s
@@ -82,3 +82,24 @@ def test_cli_refuses_bad_input_before_writing(tmp_path):
     assert main(["scan", "--out", str(out), "--tip-speed-mm-s", "nan"]) == 2
     assert main(["scan", "--out", str(out), "--revolutions", "40"]) == 2
     assert not out.exists()
+
+
+def test_midpoints_kept_across_calls_are_solved_once(setup, monkeypatch):
+    # a sweep re-timed after dropping cells asks for the same midpoints again: with the
+    # caller's dict the second timing solves none of them and gives the same trajectory
+    import planning.scan as scan
+
+    scenario, robot, P, _ = setup
+    targets = P[::25][:40]  # waypoints 2.5 mm apart: the spline between them needs midpoints
+    calls = []
+    solve = scan.rcm_ik
+    monkeypatch.setattr(scan, "rcm_ik", lambda *a, **k: calls.append(1) or solve(*a, **k))
+    Q, _ = ik_waypoints(robot, targets, scenario.p_WC, None, None)
+    midpoints = {}
+    first, P1, _ = plan_ik_scan(robot, targets, scenario.p_WC, SPEED, Q_waypoints=Q, midpoints=midpoints)
+    n_first = len(calls)
+    second, P2, _ = plan_ik_scan(robot, targets, scenario.p_WC, SPEED, Q_waypoints=Q, midpoints=midpoints)
+    assert n_first > 0 and len(calls) == n_first and len(P1) > len(targets)
+    np.testing.assert_array_equal(P1, P2)
+    ts = np.linspace(first.start_time(), first.end_time(), 200)
+    np.testing.assert_array_equal(first.vector_values(ts), second.vector_values(ts))
