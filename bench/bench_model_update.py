@@ -3,12 +3,13 @@ np.linalg, batch fits, signed-distance throughput, and Drake's
 ComputeSignedDistanceToPoint on the same ellipsoid."""
 from __future__ import annotations
 
+import gc
 import time
 
 import numpy as np
 from numba import njit
 
-from bench.timing import summary_us, time_calls_us
+from bench.timing import machine_stalls, summary_us, time_calls_us
 from models import AdaptiveEyeModel, Ellipsoid, fit_ellipsoid, fit_sphere
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
@@ -16,15 +17,46 @@ from models.fit.robust_fit import RobustFitConfig
 from models.fit.small_linalg import cholesky, eigh_sym, lower_inverse, pivoted_solve
 from models.local.field import LocalField
 from models.local.grid import LocalRetinaModel
+from models.realtime import collector_paused
 from models.scan.paper_scan import paper_scan
 
 RADII = np.array([11.455, 11.365, 10.148])
 
 
-def _update_times(points, criteria, batch: int, robust: RobustFitConfig | None = None, local: bool = False) -> np.ndarray:
+def _update_times(points, criteria, batch: int, robust: RobustFitConfig | None = None, local: bool = False,
+                  repeat: int = 1) -> np.ndarray:
+    """Per-A-scan time (us) of each update of a new model fed `points` in packets of `batch`
+    (`repeat` times over), as a real-time stream runs it: with the cyclic garbage collector
+    paused (models.realtime)."""
     m = AdaptiveEyeModel(criteria, robust=robust, local=LocalRetinaModel(np.zeros(3)) if local else None)
-    chunks = [points[i:i + batch] for i in range(0, len(points), batch)]
-    return time_calls_us(lambda i: m.update(chunks[i]), len(chunks)) / batch
+    chunks = [points[i:i + batch] for i in range(0, len(points), batch)] * repeat
+    with collector_paused():
+        return time_calls_us(lambda i: m.update(chunks[i]), len(chunks)) / batch
+
+
+def collector_figures(points: np.ndarray, repeat: int = 8) -> None:
+    """The update with the local part over `repeat` spirals into one model, with Python's
+    cyclic garbage collector on and paused, and the collector's own passes while it is on."""
+    pauses, start = {0: [], 1: [], 2: []}, [0.0]
+
+    def watch(phase, info):
+        if phase == "start":
+            start[0] = time.perf_counter()
+        else:
+            pauses[info["generation"]].append(1e6 * (time.perf_counter() - start[0]))
+
+    m = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+    chunks = [points[i:i + 1] for i in range(len(points))] * repeat
+    gc.collect()
+    gc.callbacks.append(watch)
+    try:
+        t_on = time_calls_us(lambda i: m.update(chunks[i]), len(chunks))
+    finally:
+        gc.callbacks.remove(watch)
+    t_off = _update_times(points, PredictiveCriteria(), 1, local=True, repeat=repeat)
+    print(f"  predictive + local, {len(chunks):,} A-scans ({repeat} spirals), collector on:     {summary_us(t_on)}")
+    print(f"    its passes: " + ", ".join(f"generation {g} {len(p)} x, max {max(p, default=0.0):,.0f} us" for g, p in pauses.items()))
+    print(f"  the same, collector paused (models.realtime.collector_paused):  {summary_us(t_off)}")
 
 
 @njit
@@ -130,22 +162,27 @@ def local_field_figures(points: np.ndarray) -> None:
 def run() -> None:
     eye = make_eye("emmetropic")
     points = paper_scan(eye, seed=0).points
-    _update_times(points[:500], None, 1)  # warm-up: loads the compiled kernels once
-    _update_times(points[:500], PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.fit.robust_fit
-    _update_times(points[:500], PredictiveCriteria(), 1, local=True)  # and those of models.local
+    _update_times(points, None, 1)  # warm-up: loads the compiled kernels once (a whole spiral: every one it calls)
+    _update_times(points, PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.fit.robust_fit
+    _update_times(points, PredictiveCriteria(), 1, local=True)  # and those of models.local
+    # what a p99 measured here includes: a ~50 us update meets a stall about (rate x 50 us) of the time
+    print(f"  this machine, a busy loop: {machine_stalls()}")
     variants = (("paper criteria", None, None, False), ("predictive criteria", PredictiveCriteria(), None, False),
                 ("predictive, robust EF", PredictiveCriteria(), RobustFitConfig(), False),
                 ("predictive + local", PredictiveCriteria(), None, True))
     for name, criteria, robust, local in variants:
         passes = np.array([_update_times(points, criteria, 1, robust, local) for _ in range(3)])
-        for t in passes:
+        for t in passes:  # as a real-time stream runs it: the cyclic garbage collector paused
             print(f"  AdaptiveEyeModel.update, one A-scan per call, {name:21s}: {summary_us(t)}   mean {t.mean():6.1f} us")
         # the same update in each pass does the same work: its fastest pass is that work
         # without the machine's interruptions (a shared VM's p99 is ~2.7 x its median)
         print(f"    the same, per update the fastest of the 3 passes (work alone):    {summary_us(passes.min(axis=0))}")
     detached = paper_scan(make_eye("detached"), seed=0).points  # the local model on the robust globe
     passes = np.array([_update_times(detached, PredictiveCriteria(), 1, None, True) for _ in range(3)])
+    for t in passes:
+        print(f"  the same, predictive + local, detached eye:                          {summary_us(t)}")
     print(f"  the same, predictive + local, detached eye, fastest of 3 passes:     {summary_us(passes.min(axis=0))}")
+    collector_figures(points)
     t = _update_times(points, None, 10)
     print(f"  AdaptiveEyeModel.update, 10 A-scans per call (200 Hz), per A-scan:       {summary_us(t)}")
     t = _update_times(points, PredictiveCriteria(), 20, local=True)

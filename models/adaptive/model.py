@@ -6,6 +6,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from models.adaptive.history import History
 from models.adaptive.outlier_gate import GateState, OutlierGate
 from models.adaptive.scan_range import ScanRange
 from models.adaptive.transition import FitSnapshot, PaperCriteria
@@ -111,7 +112,7 @@ class AdaptiveEyeModel:
         self.kind = "sphere"
         self.transition_index: int | None = None
         self.n_rejected_nonfinite = 0
-        self.history: list[ModelUpdate] = []
+        self.history: History = History()  # of ModelUpdate; appended without copying the old entries
         self.last_accepted = np.zeros((0, 3))
         self.local = local
         self.local_choice = LocalChoice() if local is not None else None
@@ -126,7 +127,7 @@ class AdaptiveEyeModel:
         new = object.__new__(type(self))
         memo[id(self)] = new
         for name, value in vars(self).items():
-            setattr(new, name, list(value) if name == "history" else copy.deepcopy(value, memo))
+            setattr(new, name, value.copy() if name == "history" else copy.deepcopy(value, memo))
         return new
 
     @property

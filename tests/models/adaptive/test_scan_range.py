@@ -49,3 +49,32 @@ def test_spiral_like_growth_matches_every_prefix():
         sr.add(P[k : k + 1])
         if k % 60 == 59:
             np.testing.assert_allclose(sr.diameter_mm, pdist(P[: k + 1]).max(), rtol=0, atol=TOL_MM)
+
+
+def test_one_point_at_a_time_the_buffers_grow_without_a_copy_of_every_point(monkeypatch):
+    """Single points from capacity 64 to 5,000 points (each doubling begun at half full): no reserve copies more
+    than max(MIN_MOVE, MOVE_PER_POINT) rows, the whole buffer is never concatenated, and
+    the diameter stays exact through every takeover."""
+    moves = []
+    move = ScanRange._move
+
+    def watched(self, upto):
+        moves.append(upto - self._moved)
+        move(self, upto)
+
+    def no_concatenate(*args, **kwargs):
+        raise AssertionError("the buffers were copied at once")
+
+    monkeypatch.setattr(ScanRange, "_move", watched)
+    monkeypatch.setattr("models.adaptive.scan_range.np.concatenate", no_concatenate)
+    t = np.linspace(0, 40 * np.pi, 5000)
+    P = np.column_stack([0.1 * t * np.cos(t), 0.1 * t * np.sin(t), -10.0 + 0.01 * t])
+    sr = ScanRange(capacity=64)
+    capacities = {len(sr.X)}
+    for k in range(len(P)):
+        sr.add(P[k:k + 1])
+        capacities.add(len(sr.X))
+        if k + 1 in (64, 65, 128, 129, 1000, 4096, 4097, 5000):
+            np.testing.assert_allclose(sr.diameter_mm, pdist(P[:k + 1]).max(), rtol=0, atol=TOL_MM)
+    assert sorted(capacities) == [64 * 2**i for i in range(len(capacities))] and max(capacities) >= len(P)
+    assert max(moves) <= max(ScanRange.MIN_MOVE, ScanRange.MOVE_PER_POINT)
