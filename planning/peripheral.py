@@ -16,7 +16,7 @@ rings `spacing_mm` apart (the cutter's sweep width); each cell's shaving target 
   boundary across it); the tip and port are placed by the standoff.
 The path visits the reachable cells ring by ring, alternating direction (a serpentine),
 each waypoint by RCM inverse kinematics seeded from the previous one with the roll that
-turns the port to the retina; a C2 joint spline within the speed limits times it
+turns the port to the retina; a shape-preserving joint cubic within the speed limits times it
 (planning.scan). Units: mm, s, rad (deg where named); frame W unless `_E`.
 """
 from __future__ import annotations

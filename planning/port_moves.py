@@ -113,9 +113,9 @@ def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float, model=None) -> P
 
 
 def _leaves_limits(robot: Robot, move: PiecewisePolynomial) -> bool:
-    """Whether the spline `move` leaves a joint's range between its waypoints (a C2 cubic
-    through waypoints that keep their limits can swing past them), sampled every
-    LIMIT_CHECK_DT_S."""
+    """Whether the trajectory `move` leaves a joint's range, sampled every LIMIT_CHECK_DT_S
+    (planning.scan.joint_trajectory keeps each joint within its waypoints' range; a
+    trajectory from elsewhere need not)."""
     ts = np.append(np.arange(move.start_time(), move.end_time(), LIMIT_CHECK_DT_S), move.end_time())
     return bool(np.min(robot.joint_margin_rad(move.vector_values(ts).T)) < 0.0)
 

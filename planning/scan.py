@@ -88,13 +88,42 @@ def waypoint_times(robot: Robot, Q, P_WT, tip_speed_mm_s: float) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.maximum(dt_tip, dt_joint))])
 
 
+def waypoint_velocities(t, Q) -> np.ndarray:
+    """(N, 6) rad/s: the joints' velocity at each waypoint of Q (N, 6) rad at times t (N,) s,
+    at rest at both ends. Inside, the mean of the two adjacent secants, each weighted by
+    the other segment's duration (Bessel's three-point derivative), scaled down, all joints
+    by one factor, until no joint's exceeds three times the smaller of its two secants
+    where they agree in sign (Fritsch & Carlson, SIAM J. Numer. Anal. 17, 1980: the bound
+    under which a cubic Hermite segment stays monotone between monotone data). Linear in
+    the secants and scaled as one vector, each is a velocity of the RCM-constrained motion
+    to first order, as the waypoints' secants are; per-joint limiting (Fritsch & Carlson's
+    own slopes, Drake's CubicShapePreserving) is not: on the peripheral plan's sweep it left
+    the RCM 20 um off where the tip path turns a corner."""
+    t, Q = np.asarray(t, dtype=float), np.asarray(Q, dtype=float)
+    h = np.diff(t)[:, None]
+    s = np.diff(Q, axis=0) / h
+    V = np.zeros_like(Q)
+    if len(Q) > 2:
+        m = (h[1:] * s[:-1] + h[:-1] * s[1:]) / (h[:-1] + h[1:])
+        bound = 3.0 * np.minimum(np.abs(s[:-1]), np.abs(s[1:]))
+        limited = (s[:-1] * s[1:] > 0.0) & (np.abs(m) > bound)
+        scale = np.where(limited, bound / np.where(limited, np.abs(m), 1.0), 1.0).min(axis=1, keepdims=True)
+        V[1:-1] = scale * m
+    return V
+
+
 def joint_trajectory(robot: Robot, Q, P_WT, tip_speed_mm_s: float) -> PiecewisePolynomial:
-    """q(t) rad: a C2 cubic spline through the waypoints Q (N, 6), starting and ending at
-    rest, timed by `waypoint_times`; globally slowed until the spline's own joint speeds
-    (sampled at the waypoints and mid-segments) stay below SPEED_HEADROOM of the limits."""
+    """q(t) rad: the cubic Hermite curve through the waypoints Q (N, 6) with the velocities
+    of `waypoint_velocities` (local: a segment depends on its two neighbours only), starting
+    and ending at rest, timed by `waypoint_times`; globally slowed until its joint speeds
+    (sampled at the waypoints and mid-segments) stay below SPEED_HEADROOM of the limits.
+    The C2 cubic spline through the same waypoints couples every segment and swings joints
+    past the waypoints' range: on the detached eye's local plan at 2.0 mm (seed 0) the
+    filter then stepped in on 0.68 % of the steps (the sweeps' 0.70 %, mostly at joint
+    bounds) and shaved 84.4 % of the band."""
     t = waypoint_times(robot, Q, P_WT, tip_speed_mm_s)
     for _ in range(20):
-        traj = PiecewisePolynomial.CubicWithContinuousSecondDerivatives(t, Q.T, np.zeros(6), np.zeros(6))
+        traj = PiecewisePolynomial.CubicHermite(t, Q.T, waypoint_velocities(t, Q).T)
         ts = np.sort(np.concatenate([t, 0.5 * (t[1:] + t[:-1])]))
         peak = (np.abs(traj.derivative(1).vector_values(ts)).T / robot.qdot_max).max()
         if peak <= SPEED_HEADROOM:

@@ -1,7 +1,7 @@
 """`vitreoguard scan`: the paper's spiral executed by the Meca500 through the trocar in the
 `surgery` scenario; writes scan.json and scan.png (RCM error and joint margins over time).
 
-Top-level figures are the IK executor's (waypoint IK + C2 joint spline, sampled at
+Top-level figures are the IK executor's (waypoint IK + shape-preserving joint cubic, sampled at
 1 kHz); "diffik" holds the same figures for RCM differential kinematics at 1 kHz.
 """
 from __future__ import annotations
