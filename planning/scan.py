@@ -140,7 +140,9 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
     the spline between two waypoints leaves the RCM or the straight tip segment by more
     than `tol_um` (checked at quarter points) the midpoint target is added by IK too (at
     most 6 rounds: fast joint swings, as next to the trocar, need denser waypoints; a
-    midpoint keeps its neighbours' mean roll; a midpoint out of reach, on a chord across
+    midpoint keeps its neighbours' mean roll, or, where that is out of the wrist's range,
+    the roll nearest their mean posture (the port faces the retina at the cells; left out,
+    such a midpoint left a plan's curve 1.0 mm off the RCM); a midpoint out of reach, on a chord across
     a gap of the workspace, is left out and its segment kept as the spline makes it). `Q_waypoints`
     (N, 6): the waypoints' IK already solved by the caller (then not solved again).
     `midpoints`: a dict the caller keeps across calls on overlapping targets (a sweep
@@ -178,8 +180,11 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
             if key not in solved:
                 try:
                     solved[key] = rcm_ik(robot, m, p_WC, seed, roll_rad=mid_roll)
-                except IKFailure:  # the midpoint itself is out of reach (a chord over a gap): keep the segment
-                    solved[key] = None
+                except IKFailure:
+                    try:  # the roll nearest the neighbours' mean posture (the port faces the retina at the cells)
+                        solved[key] = None if mid_roll is None else rcm_ik(robot, m, p_WC, seed)
+                    except IKFailure:  # the midpoint itself is out of reach (a chord over a gap): keep the segment
+                        solved[key] = None
             if solved[key] is not None:
                 added.append((i, m, solved[key], k))
         if not added:

@@ -103,3 +103,27 @@ def test_midpoints_kept_across_calls_are_solved_once(setup, monkeypatch):
     np.testing.assert_array_equal(P1, P2)
     ts = np.linspace(first.start_time(), first.end_time(), 200)
     np.testing.assert_array_equal(first.vector_values(ts), second.vector_values(ts))
+
+
+def test_a_midpoint_out_of_reach_at_the_mean_roll_takes_the_nearest_roll(setup, monkeypatch):
+    # between cells whose rolls differ much the mean roll can be out of the wrist's range;
+    # the midpoint is then solved at the roll nearest its neighbours' mean posture, not left
+    # out (the curve alone over such a segment left the RCM by up to 1 mm on a plan)
+    import planning.scan as scan
+
+    scenario, robot, P, _ = setup
+    targets = P[::25][:40]  # 2.5 mm apart: the curve between them needs midpoints
+    rolls = np.full(len(targets), 0.3)
+    Q, _ = ik_waypoints(robot, targets, scenario.p_WC, None, rolls)
+    solve = scan.rcm_ik
+
+    def no_rolled_midpoint(robot_, p, c, seed, roll_rad=None, **k):
+        if roll_rad is not None:
+            raise IKFailure("the mean roll is out of the wrist's range")
+        return solve(robot_, p, c, seed, **k)
+
+    monkeypatch.setattr(scan, "rcm_ik", no_rolled_midpoint)
+    traj, P_used, _ = plan_ik_scan(robot, targets, scenario.p_WC, SPEED, roll_rad=rolls, Q_waypoints=Q)
+    assert len(P_used) > len(targets)
+    ts = np.linspace(traj.start_time(), traj.end_time(), 2000)
+    assert max(robot.rcm_error_mm(q, scenario.p_WC) for q in traj.vector_values(ts).T) * 1e3 <= 1.0
