@@ -141,8 +141,9 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
     than `tol_um` (checked at quarter points) the midpoint target is added by IK too (at
     most 6 rounds: fast joint swings, as next to the trocar, need denser waypoints; a
     midpoint keeps its neighbours' mean roll, or, where that is out of the wrist's range,
-    the roll nearest their mean posture (the port faces the retina at the cells; left out,
-    such a midpoint left a plan's curve 1.0 mm off the RCM); a midpoint out of reach, on a chord across
+    the roll nearest their mean posture (the port faces the retina at the cells; without
+    such a midpoint the curve across the segment leaves the RCM: 1.0 mm on the detached
+    eye's plan at 2.3 mm); a midpoint out of reach, on a chord across
     a gap of the workspace, is left out and its segment kept as the spline makes it). `Q_waypoints`
     (N, 6): the waypoints' IK already solved by the caller (then not solved again).
     `midpoints`: a dict the caller keeps across calls on overlapping targets (a sweep
