@@ -179,13 +179,7 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
             seed = 0.5 * (Q[i] + Q[i + 1])
             key = (m.tobytes(), None if mid_roll is None else float(mid_roll), seed.tobytes())
             if key not in solved:
-                try:
-                    solved[key] = rcm_ik(robot, m, p_WC, seed, roll_rad=mid_roll)
-                except IKFailure:
-                    try:  # the roll nearest the neighbours' mean posture (the port faces the retina at the cells)
-                        solved[key] = None if mid_roll is None else rcm_ik(robot, m, p_WC, seed)
-                    except IKFailure:  # the midpoint itself is out of reach (a chord over a gap): keep the segment
-                        solved[key] = None
+                solved[key] = _midpoint_posture(robot, m, p_WC, seed, mid_roll)
             if solved[key] is not None:
                 added.append((i, m, solved[key], k))
         if not added:
@@ -196,6 +190,19 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         if roll is not None:
             roll = np.insert(roll, at, roll_mid[[a[3] for a in added]])
     return joint_trajectory(robot, Q, P, tip_speed_mm_s), P, solve_ms
+
+
+def _midpoint_posture(robot: Robot, p_WT, p_WC, seed, roll_rad):
+    """A midpoint's posture: at `roll_rad`, else (out of the wrist's range there) at the
+    roll nearest `seed`, the neighbours' mean posture (the port faces the retina at the
+    cells, not between them); None when the midpoint itself is out of reach (a chord over
+    a gap of the workspace: the caller keeps the segment)."""
+    for roll in dict.fromkeys((roll_rad, None)):
+        try:
+            return rcm_ik(robot, p_WT, p_WC, seed, roll_rad=roll)
+        except IKFailure:
+            pass
+    return None
 
 
 def sample_ik_run(robot: Robot, traj: PiecewisePolynomial, P_WT, p_WC, tip_speed_mm_s: float,
