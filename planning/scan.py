@@ -171,7 +171,7 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         if not bad.size:
             break
         mids = 0.5 * (P[bad] + P[bad + 1])
-        roll_mid = None if roll is None else np.angle(np.exp(1j * roll[bad]) + np.exp(1j * roll[bad + 1]))
+        roll_mid = None if roll is None else midpoint_rolls(roll[bad], roll[bad + 1], Q[bad + 1, 5] - Q[bad, 5])
         added = []
         for k, (m, i) in enumerate(zip(mids, bad)):
             # a midpoint whose shaft is vertical has no roll: IK from the neighbours' mean posture
@@ -190,6 +190,20 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         if roll is not None:
             roll = np.insert(roll, at, roll_mid[[a[3] for a in added]])
     return joint_trajectory(robot, Q, P, tip_speed_mm_s), P, solve_ms
+
+
+def midpoint_rolls(roll_a, roll_b, dq6) -> np.ndarray:
+    """(K,) rad: the roll about the shaft halfway between two waypoints' rolls roll_a,
+    roll_b (K,) rad, turning the way J6 turns between them (dq6 (K,) rad). J6 turns the
+    instrument about its own axis, so the roll changes as J6 does up to the slow change
+    of the roll's reference with the shaft's direction: where J6 unwinds (a full turn
+    back between two cells, planning.sweep) the roll goes the long way round with it. The
+    shorter way would put the midpoint on the other side of J6's range from both
+    neighbours, and the curve through it past the range's end."""
+    roll_a, roll_b = np.asarray(roll_a, dtype=float), np.asarray(roll_b, dtype=float)
+    d = roll_b - roll_a
+    d = d + 2.0 * np.pi * np.round((np.asarray(dq6, dtype=float) - d) / (2.0 * np.pi))
+    return roll_a + 0.5 * d
 
 
 def _midpoint_posture(robot: Robot, p_WT, p_WC, seed, roll_rad):

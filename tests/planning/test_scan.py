@@ -5,11 +5,13 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from eval.cli import main
 from planning.ik import IKFailure, rcm_ik
 from planning.robot import Robot
-from planning.scan import ik_waypoints, plan_ik_scan, run_diffik, sample_ik_run, start_posture
+from planning.scan import ik_waypoints, midpoint_rolls, plan_ik_scan, run_diffik, sample_ik_run, start_posture
 from planning.scenario import SurgeryScenario
 
 SPEED = 5.0  # mm/s
@@ -127,3 +129,38 @@ def test_a_midpoint_out_of_reach_at_the_mean_roll_takes_the_nearest_roll(setup, 
     assert len(P_used) > len(targets)
     ts = np.linspace(traj.start_time(), traj.end_time(), 2000)
     assert max(robot.rcm_error_mm(q, scenario.p_WC) for q in traj.vector_values(ts).T) * 1e3 <= 1.0
+
+
+def test_a_midpoint_turns_the_roll_the_way_j6_unwinds(setup):
+    # J6 may unwind a full turn between two cells (planning.sweep: the port turns about the
+    # shaft all the way round a ring); the midpoint's roll follows J6 the long way round.
+    # The short way round puts it at the far end of J6's range from both neighbours, and the
+    # curve through it within 0.4 deg of J6's limit (a sweep of the pointed eye's survey plan
+    # dropped 82 cells one after another for it)
+    scenario, robot, P, _ = setup
+    a, b = P[0], P[30]  # 3 mm apart: the curve between them needs midpoints
+    q = rcm_ik(robot, a, scenario.p_WC, start_posture(robot, a, scenario.p_WC), roll_rad=0.0)
+    roll_a = np.radians(-170.0) - q[5]  # the roll moves with J6 one to one: J6 at -170 deg
+    q_a = rcm_ik(robot, a, scenario.p_WC, q, roll_rad=roll_a)
+    roll_b = roll_a - np.radians(40.0)  # 40 deg further down: J6 past -180, so +150 (unwound)
+    q_b = rcm_ik(robot, b, scenario.p_WC, q_a + [0, 0, 0, 0, 0, np.radians(320.0)], roll_rad=roll_b)
+    assert np.degrees(q_a[5]) == pytest.approx(-170.0, abs=1.0) and 130.0 < np.degrees(q_b[5]) < 170.0
+    traj, P_used, _ = plan_ik_scan(robot, np.array([a, b]), scenario.p_WC, SPEED, roll_rad=[roll_a, roll_b],
+                                   Q_waypoints=[q_a, q_b])
+    assert len(P_used) > 2
+    ts = np.linspace(traj.start_time(), traj.end_time(), 2000)
+    Q = traj.vector_values(ts).T
+    # J6 runs monotone from one end to the other, well inside its range (the midpoint roll is
+    # the cells' rolls' mean up to the shaft's small change of direction over 3 mm)
+    assert np.all(np.diff(Q[:, 5]) >= -1e-9)
+    assert Q[:, 5].min() >= q_a[5] - 1e-9 and Q[:, 5].max() <= q_b[5] + 1e-9
+    assert max(robot.rcm_error_mm(qi, scenario.p_WC) for qi in Q) * 1e3 <= 1.0
+
+
+@given(st.floats(-np.pi, np.pi), st.floats(-np.pi, np.pi), st.floats(-3 * np.pi, 3 * np.pi))
+def test_midpoint_rolls_lie_halfway_along_j6s_turn(roll_a, roll_b, dq6):
+    mid = midpoint_rolls([roll_a], [roll_b], [dq6])[0]
+    # the same roll as the ends' at both ends, within half a turn of J6's own half-way mark
+    half = mid - roll_a
+    assert np.cos(2.0 * half - (roll_b - roll_a)) == pytest.approx(1.0, abs=1e-9)
+    assert abs(2.0 * half - dq6) <= np.pi + 1e-9
