@@ -1,11 +1,13 @@
 """The instrument's way out of the eye, between the trocars and back in (planning.multiport).
 
 A pass enters and leaves along the shaft line of its first and last cell (line_trajectory:
-the tip from EXIT_MM outside the trocar, or as far as the arm reaches but at least
-MIN_EXIT_MM, at INSERT_SPEED_MM_S). Between passes the instrument moves outside the eye
+the tip from EXIT_MM outside the trocar, or as far as the arm reaches with every joint
+JOINT_MARGIN_RAD inside its range but at least MIN_EXIT_MM, at INSERT_SPEED_MM_S). Between passes the instrument moves outside the eye
 (joint_move: the tip on an arc about the eye centre at MOVE_SPEED_MM_S, through a via
 posture where a joint would leave its range on the arc); every piece timed within the
-joints' speed limits (planning.scan.joint_trajectory). Units: mm, s, rad; frame W.
+joints' speed limits (planning.scan.joint_trajectory) and JOINT_MARGIN_RAD inside their
+ranges: the margin the safety filter keeps in the loop (safety.inputs.FilterConfig), here
+where no filter runs. Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from planning.ik import IKFailure, rcm_ik
 from planning.robot import Robot
 from planning.scan import joint_trajectory
 from planning.scenario import EYE_WALL_MM
+from safety.inputs import FilterConfig
 
 EXIT_MM = 10.0  # the tip's distance outside the trocar while the instrument moves between ports
 MIN_EXIT_MM = 2.0  # the least the tip must clear the trocar by before the instrument moves
@@ -28,6 +31,7 @@ MOVE_SPEED_MM_S = 20.0  # the tip's speed on the move outside the eye
 MOVE_CLEARANCE_MM = 5.0  # the tip's arc between ports lies this much further out than its ends
 MOVE_MIN_OUTSIDE_MM = EYE_WALL_MM  # the move's tip stays outside the eye wall (retina, choroid, sclera)
 LIMIT_CHECK_DT_S = 0.005  # a move's joint ranges checked this often along its spline
+JOINT_MARGIN_RAD = FilterConfig().joint_margin_rad  # every joint this far inside its range outside the eye
 
 
 @dataclass(frozen=True)
@@ -52,8 +56,9 @@ def line_trajectory(robot: Robot, q_end, p_WT, p_WC, roll_rad: float, length_mm:
     """(joint trajectory rad, its length mm) of the tip moving along the shaft line trocar
     p_WC -> p_WT to p_WT from up to `length_mm` behind it (outside the eye when longer
     than |p_WT - p_WC|), ending at q_end; timed at `speed_mm_s` (planning.scan.joint_trajectory)
-    with the roll held. The line starts where the arm still reaches it (IK every
-    LINE_STEP_MM); IKFailure when that is less than `min_length_mm`."""
+    with the roll held. The line starts where the arm still reaches it with every joint
+    JOINT_MARGIN_RAD inside its range (IK every LINE_STEP_MM, the curve between checked
+    every LIMIT_CHECK_DT_S); IKFailure when that is less than `min_length_mm`."""
     p_T, p_C = np.asarray(p_WT, dtype=float), np.asarray(p_WC, dtype=float)
     u = (p_T - p_C) / np.linalg.norm(p_T - p_C)
     pivot = p_T - (length_mm + 20.0) * u  # the same line, its pivot behind every point of the move
@@ -61,15 +66,22 @@ def line_trajectory(robot: Robot, q_end, p_WT, p_WC, roll_rad: float, length_mm:
     Q = [np.asarray(q_end, dtype=float)]
     for d in s[1:]:
         try:
-            Q.append(rcm_ik(robot, p_T - d * u, pivot, Q[-1], roll_rad=roll_rad))
+            q = rcm_ik(robot, p_T - d * u, pivot, Q[-1], roll_rad=roll_rad)
         except IKFailure:
             break
-    reached = s[len(Q) - 1]
-    if reached < min_length_mm:
-        raise IKFailure(f"the instrument cannot leave the trocar along its shaft from p_WT_mm = {np.round(p_T, 3)}: "
-                        f"the arm reaches {reached:.1f} mm of the {min_length_mm:.1f} mm needed")
-    Q = np.array(Q[::-1])
-    return joint_trajectory(robot, Q, p_T - s[:len(Q)][::-1, None] * u, speed_mm_s), float(reached)
+        if np.min(robot.joint_margin_rad(q)) < JOINT_MARGIN_RAD:
+            break
+        Q.append(q)
+    while True:  # the curve between waypoints kept within the margin too, shortened where not
+        reached = s[len(Q) - 1]
+        if reached < min_length_mm:
+            raise IKFailure(f"the instrument cannot leave the trocar along its shaft from p_WT_mm = {np.round(p_T, 3)}: "
+                            f"the arm reaches {reached:.1f} mm of the {min_length_mm:.1f} mm needed "
+                            f"with every joint {np.degrees(JOINT_MARGIN_RAD):.1f} deg inside its range")
+        traj = joint_trajectory(robot, np.array(Q[::-1]), p_T - s[:len(Q)][::-1, None] * u, speed_mm_s)
+        if not _leaves_limits(robot, traj):
+            return traj, float(reached)
+        Q = Q[:-1]
 
 
 def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float, model=None) -> PiecewisePolynomial:
@@ -82,8 +94,9 @@ def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float, model=None) -> P
     a via posture: the tip `clearance_mm` beyond the further end on the mean of the ends'
     directions from the eye centre, the shaft pointing at the centre, each leg an arc (or
     a direct joint-space move where the arm cannot follow it); a direct joint-space move
-    last (at rest at both ends, it stays between them). A candidate whose spline leaves a
-    joint's range between its waypoints is skipped. With `model` (the retina, W), the
+    last (at rest at both ends, it stays between them). Every posture keeps JOINT_MARGIN_RAD
+    inside the joints' ranges; a candidate whose curve comes nearer between its waypoints
+    is skipped. With `model` (the retina, W), the
     first of these whose tip keeps MOVE_MIN_OUTSIDE_MM outside it, else the one keeping
     furthest out."""
     q0, q1 = np.asarray(q0, dtype=float), np.asarray(q1, dtype=float)
@@ -113,11 +126,11 @@ def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float, model=None) -> P
 
 
 def _leaves_limits(robot: Robot, move: PiecewisePolynomial) -> bool:
-    """Whether the trajectory `move` leaves a joint's range, sampled every LIMIT_CHECK_DT_S
-    (planning.scan.joint_trajectory keeps each joint within its waypoints' range; a
-    trajectory from elsewhere need not)."""
+    """Whether a joint comes within JOINT_MARGIN_RAD of its range's ends on the trajectory
+    `move`, sampled every LIMIT_CHECK_DT_S (planning.scan.joint_trajectory keeps a joint
+    within its waypoints' range where they run monotone, not elsewhere)."""
     ts = np.append(np.arange(move.start_time(), move.end_time(), LIMIT_CHECK_DT_S), move.end_time())
-    return bool(np.min(robot.joint_margin_rad(move.vector_values(ts).T)) < 0.0)
+    return bool(np.min(robot.joint_margin_rad(move.vector_values(ts).T)) < JOINT_MARGIN_RAD - 1e-12)
 
 
 def move_min_outside_mm(robot: Robot, move: PiecewisePolynomial, model, samples: int = 50) -> float:
@@ -129,7 +142,7 @@ def move_min_outside_mm(robot: Robot, move: PiecewisePolynomial, model, samples:
 
 def _arc(robot: Robot, q0, q1, p_WE, clearance_mm: float) -> np.ndarray | None:
     """joint_move's arc as joint waypoints (13, 6) rad, ends included; None where a sample
-    has no closed-form posture within the joint limits."""
+    has no closed-form posture JOINT_MARGIN_RAD inside the joint limits."""
     R0, t0 = robot.pose("I", q0)[0], robot.pose("T", q0)[1]
     R1, t1 = robot.pose("I", q1)[0], robot.pose("T", q1)[1]
     d0, d1 = t0 - p_WE, t1 - p_WE
@@ -140,7 +153,7 @@ def _arc(robot: Robot, q0, q1, p_WE, clearance_mm: float) -> np.ndarray | None:
         u = (1 - s) * R0[:, 0] + s * R1[:, 0]
         r = (1 - s) * r0 + s * r1 + clearance_mm * np.sin(np.pi * s)
         cands = shaft_ik(robot.arm, p_WE + r * d / np.linalg.norm(d), u / np.linalg.norm(u), q0[5] + s * (q1[5] - q0[5]))
-        ok = [c for c in cands if np.all(robot.joint_margin_rad(c) >= 0)]
+        ok = [c for c in cands if np.all(robot.joint_margin_rad(c) >= JOINT_MARGIN_RAD)]
         if not ok:
             return None
         Q.append(min(ok, key=lambda c: np.abs(c - Q[-1]).max()))
@@ -149,12 +162,13 @@ def _arc(robot: Robot, q0, q1, p_WE, clearance_mm: float) -> np.ndarray | None:
 
 def _via_posture(robot: Robot, q0, q1, p_WE, clearance_mm: float) -> np.ndarray | None:
     """joint_move's via posture (6,) rad (the closed-form branch with the largest joint
-    margin), or None when the arm has none within its limits."""
+    margin), or None when the arm has none JOINT_MARGIN_RAD inside its limits."""
     t0, t1 = robot.pose("T", q0)[1] - p_WE, robot.pose("T", q1)[1] - p_WE
     d = t0 / np.linalg.norm(t0) + t1 / np.linalg.norm(t1)
     d /= np.linalg.norm(d)
     r = max(np.linalg.norm(t0), np.linalg.norm(t1)) + clearance_mm
-    cands = [c for c in shaft_ik(robot.arm, p_WE + r * d, -d, 0.5 * (q0[5] + q1[5])) if np.all(robot.joint_margin_rad(c) >= 0)]
+    cands = [c for c in shaft_ik(robot.arm, p_WE + r * d, -d, 0.5 * (q0[5] + q1[5]))
+             if np.all(robot.joint_margin_rad(c) >= JOINT_MARGIN_RAD)]
     return max(cands, key=lambda c: np.min(robot.joint_margin_rad(c))) if cands else None
 
 

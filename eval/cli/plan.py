@@ -175,6 +175,16 @@ def ports_of(args, eye_name: str, eye_params: dict):
     return layout, visit, port_p_EC(eye_name, visit[0], default_trocar_E(eye_name, eye_params), eye_params)
 
 
+def outside_loop_margin_deg(robot, plan) -> float | None:
+    """The smallest distance (deg) of any joint from its limit on the planned `enter`, `exit`
+    and `move` pieces (not run in the loop), sampled every 5 ms; None with no such piece."""
+    trajs = [(traj, a, b) for seg in plan.segments for n, traj, a, b in seg.pieces() if n in ("enter", "exit")]
+    trajs += [(move, move.start_time(), move.end_time()) for move in plan.moves]
+    margins = [robot.joint_margin_rad(traj.vector_values(np.append(np.arange(a, b, 0.005), b)).T).min()
+               for traj, a, b in trajs if b > a]
+    return float(np.degrees(min(margins))) if margins else None
+
+
 def main(args) -> int:
     spec = spec_of(args)
     args.eye_params = eye_params(args.eye_param, args.shape)
@@ -262,6 +272,7 @@ def main(args) -> int:
         "max_planned_rcm_error_um": float(1e3 * max(max(robot.rcm_error_mm(q, p.p_WC) for q in p.Q) for p in passes)),
         "outside_loop_s": {name: float(sum(b - a for seg in plan.segments for n, _, a, b in seg.pieces() if n == name))
                            for name in ("enter", "exit")} | {"move": float(switch_s)},
+        "min_joint_margin_deg_outside_loop": outside_loop_margin_deg(robot, plan),
         "model": model_summary(loop, build),
         "survey": survey,
     }

@@ -13,7 +13,7 @@ from eval.cli import main
 KEYS = {"band_coverage", "band_coverage_planned", "planned_cells", "planned_cells_swept", "cells", "ports",
         "port_switches", "reentries", "switches", "unreachable", "min_model_clearance_mm", "min_true_clearance_mm",
         "violations", "duration_s", "path_length_mm", "min_joint_margin_deg", "filter_intervention_fraction",
-        "plan_time_s"}
+        "plan_time_s", "outside_loop_s", "min_joint_margin_deg_outside_loop"}
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +37,7 @@ def test_plan_writes_the_contract(planned):
     assert all(s["move_min_outside_mm"] > 0 and s["duration_s"] > 0 for s in r["switches"])
     assert r["min_model_clearance_mm"] >= 0.95  # 1 mm standoff, spline within 50 um of the targets
     assert r["min_joint_margin_deg"] >= 4.5  # 5 deg at the waypoints; the spline between them within 0.5
+    assert r["min_joint_margin_deg_outside_loop"] >= 2.0 - 1e-6  # the filter's joint margin, on the way in, out and between
     assert r["min_true_clearance_mm"] is None and r["filter_intervention_fraction"] is None  # not executed
     assert (out / "coverage.png").stat().st_size > 10_000
 

@@ -10,6 +10,7 @@ from planning import SurgeryScenario
 from planning.multiport import DEPRESSION_MM, combined_reason, plan_ports, regions
 from planning.peripheral import cell_reach
 from planning.peripheral import SHAFT_SLACK_MM, BandSpec, cell_reasons, lens_clearances_mm, shaft_clearances_mm
+from planning.port_moves import JOINT_MARGIN_RAD
 from planning.ports import standard_ports
 from planning.robot import Robot
 from planning.scenario import EYE_WALL_MM, LENS_CLEARANCE_MM, PORTS_EYE_POSE
@@ -86,6 +87,9 @@ def test_insertion_and_withdrawal_run_along_the_shaft_and_join_the_sweep(planned
             # the withdrawal's end, the insertion's start: the tip outside the eye
         for q in (seg.insert.value(0.0)[:, 0], seg.withdraw.value(seg.withdraw.end_time())[:, 0]):
             assert model.signed_distance(robot.pose("T", q)[1][None])[0] < 0
+        for traj in (seg.insert, seg.withdraw):  # every joint the filter's margin inside its range, every 5 ms
+            ts = np.append(np.arange(0.0, traj.end_time(), 0.005), traj.end_time())
+            assert np.degrees(robot.joint_margin_rad(traj.vector_values(ts).T).min()) >= np.degrees(JOINT_MARGIN_RAD) - 1e-6
 
 
 def test_every_cell_a_port_reaches_is_swept(planned):
@@ -128,7 +132,8 @@ def test_switches_visit_each_port_once_and_move_outside_the_eye(planned):
         ts = np.linspace(0.0, move.end_time(), 100)
         tips = np.array([robot.pose("T", q)[1] for q in move.vector_values(ts).T])
         assert np.max(model.signed_distance(tips)) < -0.9 * EYE_WALL_MM  # the tip stays outside the eye wall
-        assert min(robot.joint_margin_rad(q).min() for q in move.vector_values(ts).T) >= -1e-6
+        ts = np.append(np.arange(0.0, move.end_time(), 0.005), move.end_time())
+        assert robot.joint_margin_rad(move.vector_values(ts).T).min() >= JOINT_MARGIN_RAD - 1e-9
 
 
 def test_depression_cells_are_reached_with_the_wall_indented(planned):
@@ -176,7 +181,7 @@ def test_cells_too_few_for_a_pass_are_reported_declined_not_as_geometry(layout, 
 def test_a_move_whose_spline_swings_past_a_joint_limit_is_not_taken(setup):
     """A C2 cubic through waypoints that keep their limits can swing past one between them
     (here J6 through 150, 179 and 179.9 deg, back to 150: past 180 deg); such a candidate
-    move is skipped, and the direct move between two postures in range stays in range."""
+    move is skipped, and the direct move between two postures with the margin keeps it."""
     from pydrake.trajectories import PiecewisePolynomial
 
     from planning.port_moves import _leaves_limits
@@ -188,5 +193,8 @@ def test_a_move_whose_spline_swings_past_a_joint_limit_is_not_taken(setup):
     ts = np.linspace(0.0, 1.5, 3001)
     assert np.degrees(swing.vector_values(ts)[5].max()) > 180.0  # the premise: the spline leaves the range
     assert _leaves_limits(robot, swing)
-    direct = PiecewisePolynomial.CubicWithContinuousSecondDerivatives([0.0, 1.0], Q[[1, 2]].T, np.zeros(6), np.zeros(6))
+    direct = PiecewisePolynomial.CubicWithContinuousSecondDerivatives([0.0, 1.0], Q[[0, 1]].T, np.zeros(6), np.zeros(6))
+    assert _leaves_limits(robot, direct)  # 179 deg: within the 2 deg margin of J6's end
+    Q[1, 5] = np.pi - 1.01 * JOINT_MARGIN_RAD
+    direct = PiecewisePolynomial.CubicWithContinuousSecondDerivatives([0.0, 1.0], Q[[0, 1]].T, np.zeros(6), np.zeros(6))
     assert not _leaves_limits(robot, direct)
