@@ -249,10 +249,11 @@ def inside_from_s(robot: Robot, line: PiecewisePolynomial, p_WC, model, limit_mm
 
 
 def _reversed(traj: PiecewisePolynomial) -> PiecewisePolynomial:
-    """The trajectory run backwards, from time 0."""
+    """The cubic trajectory `traj` run backwards, from time 0: the same curve (a cubic
+    segment is its ends' values and velocities), the velocities negated."""
     t = np.asarray(traj.get_segment_times())
-    Q = np.array([traj.value(x)[:, 0] for x in t])
-    return PiecewisePolynomial.CubicShapePreserving(t[-1] - t[::-1], Q[::-1].T, zero_end_point_derivatives=True)
+    Q, V = traj.vector_values(t), traj.derivative(1).vector_values(t)
+    return PiecewisePolynomial.CubicHermite(t[-1] - t[::-1], Q[:, ::-1], -V[:, ::-1])
 
 
 def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec(), surface=None) -> MultiPortPlan:

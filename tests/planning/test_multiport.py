@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from models import Ellipsoid
 from planning import SurgeryScenario
@@ -198,3 +200,21 @@ def test_a_move_whose_spline_swings_past_a_joint_limit_is_not_taken(setup):
     Q[1, 5] = np.pi - 1.01 * JOINT_MARGIN_RAD
     direct = PiecewisePolynomial.CubicWithContinuousSecondDerivatives([0.0, 1.0], Q[[0, 1]].T, np.zeros(6), np.zeros(6))
     assert not _leaves_limits(robot, direct)
+
+
+@given(st.lists(st.floats(0.05, 2.0), min_size=1, max_size=6), st.integers(0, 2**31 - 1))
+@settings(max_examples=30, deadline=None)
+def test_the_withdrawal_is_its_planned_line_run_backwards_exactly(durations, seed):
+    """The withdrawal is planned as an insertion and run backwards: the same curve (a cubic
+    segment is its ends' values and velocities), not a new curve through its knots."""
+    from pydrake.trajectories import PiecewisePolynomial
+
+    from planning.multiport import _reversed
+
+    rng = np.random.default_rng(seed)
+    t = np.concatenate([[0.0], np.cumsum(durations)])
+    line = PiecewisePolynomial.CubicHermite(t, rng.normal(size=(6, len(t))), rng.normal(size=(6, len(t))))
+    back = _reversed(line)
+    ts = np.linspace(0.0, t[-1], 97)
+    assert back.start_time() == 0.0 and back.end_time() == pytest.approx(t[-1], abs=1e-12)
+    assert np.allclose(back.vector_values(ts), line.vector_values(t[-1] - ts), atol=1e-9)
