@@ -1,5 +1,5 @@
-"""The adaptive model as a Drake system: each sensor packet updates the model, and the
-filter reads a snapshot (the model's shape in W, its phase, its coverage, and through
+"""The adaptive model as a Drake system: each sensor packet updates the model (with its
+valid samples, but those whose beam grazes the filter's model), and the filter reads a snapshot (the model's shape in W, its phase, its coverage, and through
 its time the sensor's freshness: sensor -> model -> filter).
 
 Before the model has a shape the conservative prior eye (safety.margins) bounds the
@@ -19,6 +19,7 @@ from models import AdaptiveEyeModel
 from models.adaptive.coverage import DirectionCoverage
 from models.adaptive.transition import PredictiveCriteria
 from models.local.grid import LocalRetinaModel
+from models.shapes.rays import beam_incidences_rad
 from planning.iioct import NO_SAMPLE_YET
 from planning.iioct.stream import WHY, StreamHealth
 from safety.margins import UncertaintyMargins
@@ -128,13 +129,22 @@ class AdaptiveModelSystem(LeafSystem):
     just after each packet is complete. Logs the distances and model updates when a
     logger is set. `field_bound` (sigma_factor, fallback Sphere) or None: the filter's
     barrier bound, written into a local model's field (LocalRetinaModel.field) so that
-    the filter's barrier form of it shares its params."""
+    the filter's barrier form of it shares its params.
+
+    `max_incidence_rad` (or None: every valid sample): once the filter has a model (the
+    snapshot's quadric), a valid sample whose beam meets it more obliquely is not taken
+    into the model or its coverage (`n_oblique` counts them): beyond the iiOCT sensor's
+    own limit (planning.iioct.sensor, 55 deg) the extractor's distances are wrong but
+    confident (models.iioct.error_model, the retina 3-6 mm ahead: bias 0.10-0.36 mm and
+    SD 0.12-0.47 mm along the beam at 60-66 deg, against at most 0.021 and 0.014 mm at
+    40-55 deg). The stream's health still counts the sample: the sensor sees retina."""
 
     def __init__(self, packet_rate_hz: float, offset_s: float, min_points: int, min_scan_range_mm: float,
-                 radius_range_mm: tuple, field_bound=None):
+                 radius_range_mm: tuple, field_bound=None, max_incidence_rad: float | None = None):
         super().__init__()
         self._trust = (min_points, min_scan_range_mm, radius_range_mm)
         self._bound = field_bound
+        self._max_incidence_rad = max_incidence_rad
         self._packet = self.DeclareAbstractInputPort("packet", AbstractValue.Make(NO_SAMPLE_YET))
         self._snap = self.DeclareAbstractState(AbstractValue.Make(_PRIOR_AT_0))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
@@ -172,11 +182,20 @@ class AdaptiveModelSystem(LeafSystem):
         self._distances: list[tuple] = []  # per packet: its extracted and true distances, and which are valid
         self.n_samples = 0
         self.n_invalid = 0
+        self.n_oblique = 0  # valid samples not taken for their incidence on the model (max_incidence_rad)
         self.epochs: list[ModelSnapshot] = []  # the snapshot whenever the filter's model changed kind
         self.health = StreamHealth()
         self.health.healthy_t_s = 0.0  # the run's start: the sensor has the filter's age limit to deliver
         self._seen = None  # the last packet read
         self._throttle = LogThrottle()
+
+    def _oblique(self, packet, valid: np.ndarray) -> np.ndarray:
+        """(M,) bool: the `valid` samples of `packet` whose reported beams meet the
+        snapshot's shape more obliquely than max_incidence_rad."""
+        out = np.zeros(len(valid), dtype=bool)
+        out[valid] = beam_incidences_rad(self._written.shape, packet.beam_origin_W[valid],
+                                         packet.beam_dir_W[valid]) > self._max_incidence_rad
+        return out
 
     def _log_model(self, entry) -> None:
         """Gather the points the model took in and its newest update; log them (/oct/points,
@@ -266,6 +285,11 @@ class AdaptiveModelSystem(LeafSystem):
                     if ascans[k] is not None and (first + k) % ASCAN_LOG_EVERY == 0:
                         self.logger.log_ascan(t, ascans[k], ok, packet.reasons[k])
         entry = None
+        if n_valid and self._max_incidence_rad is not None and self._written.shape is not None:
+            valid = valid & ~self._oblique(packet, valid)
+            n_taken = valid.tolist().count(True)
+            self.n_oblique += n_valid - n_taken
+            n_valid = n_taken
         if n_valid:
             t0 = time.perf_counter()
             entry = self.model.update(packet.p_W if n_valid == len(T) else packet.p_W[valid])

@@ -59,3 +59,17 @@ def incidences_rad(N, U):
         out[m] = incidence_rad(N[m, 0] * U[m, 0] + N[m, 1] * U[m, 1] + N[m, 2] * U[m, 2],
                                np.sqrt(N[m, 0] * N[m, 0] + N[m, 1] * N[m, 1] + N[m, 2] * N[m, 2]))
     return out
+
+
+def beam_incidences_rad(shape, O_W, U_W) -> np.ndarray:
+    """(M,) incidence (rad) of the beams (origins O_W, unit directions U_W (M, 3) in W, mm)
+    on `shape` (anything with ray_cast and gradient in W: Sphere, Ellipsoid, Eye) where
+    each first meets it; 0 where a beam misses it."""
+    O, U = np.ascontiguousarray(O_W, dtype=float), np.ascontiguousarray(U_W, dtype=float)
+    d = np.asarray(shape.ray_cast(O, U), dtype=float)
+    out = np.zeros(len(d))
+    hit = np.isfinite(d)
+    if hit.any():
+        G = np.asarray(shape.gradient(O[hit] + d[hit, None] * U[hit]), dtype=float)
+        out[hit] = incidences_rad(np.ascontiguousarray(G), U[hit])
+    return out

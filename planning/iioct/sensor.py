@@ -25,7 +25,7 @@ import numpy as np
 
 from models.iioct import DistanceExtractor, Floater, OctEngine, synthesize_ascan
 from models.iioct.error_model import extractor_error_model
-from models.shapes.rays import incidences_rad
+from models.shapes.rays import beam_incidences_rad
 from planning.iioct.kernels import (DISTANCE_REASONS, NO_RETINA, all_finite, beam_points, distance_packet,
                                     packet_geometry, sensor_beams)
 from planning.iioct.packet import BAD_JOINT_STATE, PER_SAMPLE_ARRAYS, SensorPacket, SensorSample, scattered
@@ -43,7 +43,8 @@ class IioctSensor:
     nominal one, and the true one differs by the scenario's calibration error);
     `encoder_noise_rad`: SD of the noise on the reported joint angles; `max_incidence_rad`:
     samples whose beam meets the CURRENT MODEL (if `sample` gets one) more obliquely are
-    rejected ("incidence": the extractor gives wrong-but-confident distances there);
+    rejected ("incidence": the extractor gives wrong-but-confident distances there; the
+    closed loop's model system keeps the same limit, eval.systems.model);
     `engine`/`extractor`: models.iioct objects; `floater_rate`: fraction of samples with
     a vitreous floater on the beam (in "ascan" mode a Floater of 35-55 dB (the retina:
     45 dB) at a random depth, which the extractor mostly rejects; in "distance" mode the
@@ -212,7 +213,7 @@ class IioctSensor:
         or None: none) more obliquely than max_incidence_rad."""
         if model is None or not live.any():
             return np.empty(0, dtype=int)
-        return np.flatnonzero(live)[_model_incidences(model, O[live], U[live]) > self.max_incidence_rad]
+        return np.flatnonzero(live)[beam_incidences_rad(model, O[live], U[live]) > self.max_incidence_rad]
 
     def _ascan_one(self, d_true: float, incidence: float):
         """(A-scan, models.iioct extraction) of one sample with a retina at d_true mm and
@@ -248,15 +249,3 @@ def _distance_reasons(codes: bytes) -> tuple:
     """The reasons (DISTANCE_REASONS) of a packet's `distance_packet` codes (one byte per
     sample), one tuple per pattern of codes (a packet's in a dict lookup)."""
     return tuple(DISTANCE_REASONS[c] for c in codes)
-
-
-def _model_incidences(model, O: np.ndarray, U: np.ndarray) -> np.ndarray:
-    """(M,) incidence (rad) of the beams (origins O, unit directions U (M, 3) in W) on
-    `model` (anything with ray_cast and gradient in W); 0 where a beam misses it."""
-    d = np.asarray(model.ray_cast(O, U), dtype=float)
-    out = np.zeros(len(d))
-    hit = np.isfinite(d)
-    if hit.any():
-        G = np.asarray(model.gradient(O[hit] + d[hit, None] * U[hit]), dtype=float)
-        out[hit] = incidences_rad(np.ascontiguousarray(G), U[hit])
-    return out
