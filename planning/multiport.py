@@ -166,7 +166,8 @@ def _segment(robot: Robot, band: Band, port, p_WC, model, spec: BandSpec, mask: 
     (leaves) at its first (last) cell, or, where the arm cannot take the instrument EXIT_MM
     out of the trocar along that cell's shaft line (the wrist at its limit at a far, deep
     cell), at the nearest of its cells where it can (a door cell, visited twice); with no
-    such door, at the end cell when the arm takes the tip at least MIN_EXIT_MM out."""
+    such door, at the end cell when the arm takes the tip at least MIN_EXIT_MM out, else at
+    the nearest door where it does."""
     best = None
     for flip in (False, True):  # the serpentine's two pairs of end cells
         try:
@@ -179,8 +180,10 @@ def _segment(robot: Robot, band: Band, port, p_WC, model, spec: BandSpec, mask: 
         if None not in lines:
             best = sweep, lines
             break
-        if best is None:  # the ends themselves, when the arm takes the tip out at least MIN_EXIT_MM
+        if best is None:  # the ends themselves, or doors, where the arm takes the tip out at least MIN_EXIT_MM
             short = _end_lines(robot, band, sweep, p_WC, MIN_EXIT_MM)
+            if None in short:
+                sweep, short = _through_doors(robot, band, sweep, short, p_WC, model, spec, lens_W, MIN_EXIT_MM)
             best = (sweep, short) if None not in short else None
     if best is None:
         return None
@@ -211,10 +214,11 @@ def _end_lines(robot: Robot, band: Band, sweep: Sweep, p_WC, out_mm: float) -> t
     return tuple(_end_line(robot, band, sweep.cells[k], sweep.Q[k], p_WC, out_mm) for k in (0, -1))
 
 
-def _through_doors(robot: Robot, band: Band, sweep: Sweep, lines: tuple, p_WC, model, spec: BandSpec, lens_W) -> tuple:
+def _through_doors(robot: Robot, band: Band, sweep: Sweep, lines: tuple, p_WC, model, spec: BandSpec, lens_W,
+                   out_mm: float = EXIT_MM) -> tuple:
     """(sweep, its end lines) with each end whose line fails moved to a door cell: of the
     sweep's cells (the nearest to that end first, at most MAX_DOOR_TRIES), the first whose
-    shaft line the arm can take EXIT_MM out; the sweep re-planned with the door before its
+    shaft line the arm can take `out_mm` out; the sweep re-planned with the door before its
     first cell or after its last one (its way there checked as any other). The given sweep
     and lines when no door works."""
     doors = []
@@ -223,7 +227,7 @@ def _through_doors(robot: Robot, band: Band, sweep: Sweep, lines: tuple, p_WC, m
             doors.append([])
             continue
         near = np.argsort(np.linalg.norm(sweep.targets_W - sweep.targets_W[k], axis=1))[1:MAX_DOOR_TRIES + 1]
-        door = next((j for j in near if _end_line(robot, band, sweep.cells[j], sweep.Q[j], p_WC, EXIT_MM) is not None), None)
+        door = next((j for j in near if _end_line(robot, band, sweep.cells[j], sweep.Q[j], p_WC, out_mm) is not None), None)
         if door is None:
             return sweep, lines
         doors.append([sweep.cells[door]])
@@ -235,7 +239,7 @@ def _through_doors(robot: Robot, band: Band, sweep: Sweep, lines: tuple, p_WC, m
     if again.cells[0] != order[0] or again.cells[-1] != order[-1]:  # a door's way in was refused
         return sweep, lines
     again = dataclasses.replace(again, dropped={**sweep.dropped, **again.dropped})
-    return again, _end_lines(robot, band, again, p_WC, EXIT_MM)
+    return again, _end_lines(robot, band, again, p_WC, out_mm)
 
 
 def inside_from_s(robot: Robot, line: PiecewisePolynomial, p_WC, model, limit_mm: float) -> float:

@@ -218,3 +218,27 @@ def test_the_withdrawal_is_its_planned_line_run_backwards_exactly(durations, see
     ts = np.linspace(0.0, t[-1], 97)
     assert back.start_time() == 0.0 and back.end_time() == pytest.approx(t[-1], abs=1e-12)
     assert np.allclose(back.vector_values(ts), line.vector_values(t[-1] - ts), atol=1e-9)
+
+
+def test_a_pass_whose_ends_cannot_leave_far_enough_leaves_through_a_door_that_can(layout, monkeypatch):
+    """Where no cell's shaft line takes the tip EXIT_MM out (the wrist's margin on the way)
+    and the end cells' lines not even MIN_EXIT_MM, a pass enters and leaves through the
+    nearest cell whose line takes it MIN_EXIT_MM out: here the middle ring's."""
+    import planning.multiport as multiport
+
+    scenario, robot, model, ports = layout
+    real = multiport._end_line
+
+    def line(robot_, band, cell, q, p_WC, out_mm):
+        if out_mm > multiport.MIN_EXIT_MM or cell[0] != 1:  # only the middle ring, only MIN_EXIT_MM out
+            return None
+        return real(robot_, band, cell, q, p_WC, out_mm)
+
+    monkeypatch.setattr(multiport, "_end_line", line)
+    plan = plan_ports(robot, scenario, model, ports[:2], SPEC)
+    assert len(plan.segments) >= 2 and (plan.port_of >= 0).sum() > 0.5 * plan.port_of.size
+    for seg in plan.segments:
+        assert seg.sweep.cells[0][0] == 1 and seg.sweep.cells[-1][0] == 1  # doors in the middle ring
+        for q in (seg.insert.value(0.0)[:, 0], seg.withdraw.value(seg.withdraw.end_time())[:, 0]):
+            p_T = robot.pose("T", q)[1]
+            assert model.signed_distance(p_T[None])[0] < 0  # the tip outside the eye
