@@ -14,11 +14,12 @@ from pydrake.trajectories import PiecewisePolynomial
 from models.shapes.validation import as_positive
 from planning.closed_form import shaft_ik
 from planning.diffik import rcm_joint_velocity
-from planning.ik import IKFailure, has_roll, rcm_ik
+from planning.ik import IKFailure, has_roll, rcm_ik, roll_direction_W, signed_angle
 from planning.robot import RCM_GAIN_PER_S, Robot
 
 SPEED_HEADROOM = 0.9  # time parameterisation keeps every joint below this fraction of its limit
 TRACKING_GAIN_PER_S = 20.0  # tip position feedback of the differential-kinematics executor
+MIDPOINT_ROUNDS = 8  # plan_ik_scan halves a segment that leaves the RCM at most this often (1/256 of it)
 
 
 @dataclass(frozen=True)
@@ -139,11 +140,13 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
     targets P_WT (N, 3) mm (optional rolls `roll_rad` (N,)): IK waypoints, then wherever
     the spline between two waypoints leaves the RCM or the straight tip segment by more
     than `tol_um` (checked at quarter points) the midpoint target is added by IK too (at
-    most 6 rounds: fast joint swings, as next to the trocar, need denser waypoints; a
-    midpoint keeps its neighbours' mean roll, or, where that is out of the wrist's range,
-    the roll nearest their mean posture (the port faces the retina at the cells; without
-    such a midpoint the curve across the segment leaves the RCM: 1.0 mm on the detached
-    eye's plan at 2.3 mm); a midpoint out of reach, on a chord across
+    most MIDPOINT_ROUNDS rounds: fast joint swings, as next to the trocar, need denser waypoints; with
+    rolls given, a midpoint takes the roll of its neighbours' mean posture (posture_roll_rad:
+    J6 turns on evenly between them, where the rolls' mean can lie half a turn off it
+    between cells far apart), or, where that is out of the wrist's range, the roll nearest
+    that posture (the port faces the retina at the cells; without such a midpoint the
+    curve across the segment leaves the RCM: 1.0 mm on the detached eye's plan at 2.3 mm);
+    a midpoint out of reach, on a chord across
     a gap of the workspace, is left out and its segment kept as the spline makes it). `Q_waypoints`
     (N, 6): the waypoints' IK already solved by the caller (then not solved again).
     `midpoints`: a dict the caller keeps across calls on overlapping targets (a sweep
@@ -156,7 +159,7 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
     else:
         Q, solve_ms = np.array(Q_waypoints, dtype=float), float("nan")
     solved = {} if midpoints is None else midpoints  # (target, roll, seed) -> posture, None out of reach
-    for _ in range(6):
+    for _ in range(MIDPOINT_ROUNDS):
         traj = joint_trajectory(robot, Q, P, tip_speed_mm_s)
         t = np.asarray(traj.get_segment_times())
         ts = (t[:-1, None] + np.array([0.25, 0.5, 0.75]) * np.diff(t)[:, None]).ravel()
@@ -171,12 +174,11 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         if not bad.size:
             break
         mids = 0.5 * (P[bad] + P[bad + 1])
-        roll_mid = None if roll is None else midpoint_rolls(roll[bad], roll[bad + 1], Q[bad + 1, 5] - Q[bad, 5])
         added = []
         for k, (m, i) in enumerate(zip(mids, bad)):
-            # a midpoint whose shaft is vertical has no roll: IK from the neighbours' mean posture
-            mid_roll = roll_mid[k] if roll is not None and has_roll(m, p_WC) else None
             seed = 0.5 * (Q[i] + Q[i + 1])
+            # a midpoint whose shaft is vertical has no roll: IK from the neighbours' mean posture
+            mid_roll = posture_roll_rad(robot, seed, m, p_WC) if roll is not None and has_roll(m, p_WC) else None
             key = (m.tobytes(), None if mid_roll is None else float(mid_roll), seed.tobytes())
             if key not in solved:
                 solved[key] = _midpoint_posture(robot, m, p_WC, seed, mid_roll)
@@ -187,23 +189,18 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
         at = np.array([a[0] for a in added]) + 1
         P = np.insert(P, at, np.array([a[1] for a in added]), axis=0)
         Q = np.insert(Q, at, np.array([a[2] for a in added]), axis=0)
-        if roll is not None:
-            roll = np.insert(roll, at, roll_mid[[a[3] for a in added]])
     return joint_trajectory(robot, Q, P, tip_speed_mm_s), P, solve_ms
 
 
-def midpoint_rolls(roll_a, roll_b, dq6) -> np.ndarray:
-    """(K,) rad: the roll about the shaft halfway between two waypoints' rolls roll_a,
-    roll_b (K,) rad, turning the way J6 turns between them (dq6 (K,) rad). J6 turns the
-    instrument about its own axis, so the roll changes as J6 does up to the slow change
-    of the roll's reference with the shaft's direction: where J6 unwinds (a full turn
-    back between two cells, planning.sweep) the roll goes the long way round with it. The
-    shorter way would put the midpoint on the other side of J6's range from both
-    neighbours, and the curve through it past the range's end."""
-    roll_a, roll_b = np.asarray(roll_a, dtype=float), np.asarray(roll_b, dtype=float)
-    d = roll_b - roll_a
-    d = d + 2.0 * np.pi * np.round((np.asarray(dq6, dtype=float) - d) / (2.0 * np.pi))
-    return roll_a + 0.5 * d
+def posture_roll_rad(robot: Robot, q, p_WT, p_WC) -> float:
+    """The roll (rad, planning.ik.roll_direction_W) about the shaft from the trocar p_WC to
+    the tip target p_WT (mm, W) nearest the instrument's at the posture q (6,) rad: its y
+    axis turned about the shaft onto the plane normal to it. J6 turns the instrument about
+    that axis, so at the mean of two postures' joints it lies where J6 is their mean."""
+    p_WT, p_WC = np.asarray(p_WT, dtype=float), np.asarray(p_WC, dtype=float)
+    u = (p_WT - p_WC) / np.linalg.norm(p_WT - p_WC)
+    y = robot.pose("I", q)[0][:, 1]
+    return signed_angle(roll_direction_W(p_WT, p_WC, 0.0), y - (y @ u) * u, u)
 
 
 def _midpoint_posture(robot: Robot, p_WT, p_WC, seed, roll_rad):
