@@ -2,9 +2,10 @@
 
 A pass enters and leaves along the shaft line of its first and last cell (line_trajectory:
 the tip from EXIT_MM outside the trocar, or as far as the arm reaches with every joint
-JOINT_MARGIN_RAD inside its range but at least MIN_EXIT_MM, at INSERT_SPEED_MM_S). Between passes the instrument moves outside the eye
-(joint_move: the tip on an arc about the eye centre at MOVE_SPEED_MM_S, through a via
-posture where a joint would leave its range on the arc); every piece timed within the
+JOINT_MARGIN_RAD inside its range but at least MIN_EXIT_MM, at INSERT_SPEED_MM_S).
+Between passes the instrument moves outside the eye (joint_move: the tip on an arc about
+the eye centre at MOVE_SPEED_MM_S, through a via posture where a joint would leave its
+range on the arc); every piece timed within the
 joints' speed limits (planning.scan.joint_trajectory) and JOINT_MARGIN_RAD inside their
 ranges: the margin the safety filter keeps in the loop (safety.inputs.FilterConfig), here
 where no filter runs. Units: mm, s, rad; frame W.
@@ -96,9 +97,8 @@ def joint_move(robot: Robot, q0, q1, p_WE, clearance_mm: float, model=None) -> P
     a direct joint-space move where the arm cannot follow it); a direct joint-space move
     last (at rest at both ends, it stays between them). Every posture keeps JOINT_MARGIN_RAD
     inside the joints' ranges; a candidate whose curve comes nearer between its waypoints
-    is skipped. With `model` (the retina, W), the
-    first of these whose tip keeps MOVE_MIN_OUTSIDE_MM outside it, else the one keeping
-    furthest out."""
+    is skipped. With `model` (the retina, W), the first of these whose tip keeps
+    MOVE_MIN_OUTSIDE_MM outside it, else the one keeping furthest out."""
     q0, q1 = np.asarray(q0, dtype=float), np.asarray(q1, dtype=float)
     candidates = []
     arc = _arc(robot, q0, q1, p_WE, clearance_mm)

@@ -140,15 +140,15 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
     targets P_WT (N, 3) mm (optional rolls `roll_rad` (N,)): IK waypoints, then wherever
     the spline between two waypoints leaves the RCM or the straight tip segment by more
     than `tol_um` (checked at quarter points) the midpoint target is added by IK too (at
-    most MIDPOINT_ROUNDS rounds: fast joint swings, as next to the trocar, need denser waypoints; with
-    rolls given, a midpoint takes the roll of its neighbours' mean posture (posture_roll_rad:
-    J6 turns on evenly between them, where the rolls' mean can lie half a turn off it
-    between cells far apart), or, where that is out of the wrist's range, the roll nearest
-    that posture (the port faces the retina at the cells; without such a midpoint the
-    curve across the segment leaves the RCM: 1.0 mm on the detached eye's plan at 2.3 mm);
-    a midpoint out of reach, on a chord across
-    a gap of the workspace, is left out and its segment kept as the spline makes it). `Q_waypoints`
-    (N, 6): the waypoints' IK already solved by the caller (then not solved again).
+    most MIDPOINT_ROUNDS rounds: fast joint swings, as next to the trocar, need denser
+    waypoints; with rolls given, a midpoint takes the roll of its neighbours' mean posture
+    (posture_roll_rad: J6 turns on evenly between them, where the rolls' mean can lie half
+    a turn off it between cells far apart), or, where that is out of the wrist's range,
+    the roll nearest that posture (the port faces the retina at the cells; without such a
+    midpoint the curve across the segment leaves the RCM: 1.0 mm on the detached eye's
+    plan at 2.3 mm); a midpoint out of reach, on a chord across a gap of the workspace, is
+    left out and its segment kept as the spline makes it). `Q_waypoints` (N, 6): the
+    waypoints' IK already solved by the caller (then not solved again).
     `midpoints`: a dict the caller keeps across calls on overlapping targets (a sweep
     re-timed after dropping cells), holding each midpoint's IK by its target, roll and
     seed (None: out of reach); the same inputs, the same answer, solved once."""
@@ -175,7 +175,7 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
             break
         mids = 0.5 * (P[bad] + P[bad + 1])
         added = []
-        for k, (m, i) in enumerate(zip(mids, bad)):
+        for m, i in zip(mids, bad):
             seed = 0.5 * (Q[i] + Q[i + 1])
             # a midpoint whose shaft is vertical has no roll: IK from the neighbours' mean posture
             mid_roll = posture_roll_rad(robot, seed, m, p_WC) if roll is not None and has_roll(m, p_WC) else None
@@ -183,7 +183,7 @@ def plan_ik_scan(robot: Robot, P_WT, p_WC, tip_speed_mm_s: float, q_start=None,
             if key not in solved:
                 solved[key] = _midpoint_posture(robot, m, p_WC, seed, mid_roll)
             if solved[key] is not None:
-                added.append((i, m, solved[key], k))
+                added.append((i, m, solved[key]))
         if not added:
             break
         at = np.array([a[0] for a in added]) + 1

@@ -177,10 +177,13 @@ def ports_of(args, eye_name: str, eye_params: dict):
 
 def outside_loop_margin_deg(robot, plan) -> float | None:
     """The smallest distance (deg) of any joint from its limit on the planned `enter`, `exit`
-    and `move` pieces (not run in the loop), sampled every 5 ms; None with no such piece."""
+    and `move` pieces (not run in the loop), sampled as the planner checks them
+    (planning.port_moves.LIMIT_CHECK_DT_S); None with no such piece."""
+    from planning.port_moves import LIMIT_CHECK_DT_S
+
     trajs = [(traj, a, b) for seg in plan.segments for n, traj, a, b in seg.pieces() if n in ("enter", "exit")]
     trajs += [(move, move.start_time(), move.end_time()) for move in plan.moves]
-    margins = [robot.joint_margin_rad(traj.vector_values(np.append(np.arange(a, b, 0.005), b)).T).min()
+    margins = [robot.joint_margin_rad(traj.vector_values(np.append(np.arange(a, b, LIMIT_CHECK_DT_S), b)).T).min()
                for traj, a, b in trajs if b > a]
     return float(np.degrees(min(margins))) if margins else None
 

@@ -1,6 +1,7 @@
 """The adaptive model as a Drake system: each sensor packet updates the model (with its
-valid samples, but those whose beam grazes the filter's model), and the filter reads a snapshot (the model's shape in W, its phase, its coverage, and through
-its time the sensor's freshness: sensor -> model -> filter).
+valid samples, but those whose beam grazes the filter's model), and the filter reads a
+snapshot (the model's shape in W, its phase, its coverage, and through its time the
+sensor's freshness: sensor -> model -> filter).
 
 Before the model has a shape the conservative prior eye (safety.margins) bounds the
 motion. Units: mm, s; frame W.
