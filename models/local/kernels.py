@@ -20,7 +20,8 @@ from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, SPHERE, band,
 WORKSPACE = 153  # solve_node's small arrays: R 9, m, pinv, A m 6 each, rhs, y, z 6 each, M, L, L^-1 36 each
 
 @njit(cache=True)
-def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, growth):
+def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, growth,
+                  last, sample_mm):
     """Add the finite points P (M, 3) mm to the nodes of an n-node grid within `support`
     rad of their direction from c0: per node the weighted normal equations of the local
     quadratic in gnomonic coordinates (A (n, 6, 6) upper triangle, b (n, 6), rr (n,) sum
@@ -28,7 +29,11 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
     nearest data angle (near (n,)) of the nodes within `track` rad. A node whose data changed is
     appended to dirty once (listed (n,) bool marks it until it is solved) when its weight
     exceeds (1 + growth) x its weight at its last solve (solved_w; a node solved on 100
-    points barely moves with the 101st: consecutive A-scans touch the same nodes). A point whose
+    points barely moves with the 101st: consecutive A-scans touch the same nodes). Each
+    point's weights are scaled by its share of a sample: its lateral distance on the retina
+    (radius x the chord between its direction and the previous taken point's, last (4,):
+    that direction and 1 once there is one, updated in place) over sample_mm, at most 1 (a
+    still beam adds nothing; LocalConfig.sample_length_mm). A point whose
     radius lies outside [gate[0], gate[1]] mm, or further than gate[2] mm from the global
     quadric gp along its direction (when gp[0] != 0), is skipped: no retina of the
     population lies there. Returns (new n_dirty, points taken)."""
@@ -47,6 +52,12 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
         if gp[0] != 0.0 and not abs(r - global_radius(c0, gp, u0, u1, u2)) <= gate[2]:
             continue
         taken += 1
+        if last[3] != 0.0:
+            g0, g1, g2 = u0 - last[0], u1 - last[1], u2 - last[2]
+            share = min(r * np.sqrt(g0 * g0 + g1 * g1 + g2 * g2) / sample_mm, 1.0)
+        else:
+            share = 1.0
+        last[0], last[1], last[2], last[3] = u0, u1, u2, 1.0
         k0, k1 = band(dirs.shape[0], u2, chord_t)
         for k in range(k0, k1):
             d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
@@ -57,7 +68,7 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
                 near[k] = c
             if c < cos_s:
                 continue
-            w = wendland(np.arccos(min(c, 1.0)) / support)
+            w = share * wendland(np.arccos(min(c, 1.0)) / support)
             if w <= 0.0:
                 continue
             e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)

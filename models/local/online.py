@@ -40,7 +40,7 @@ def holds(gp, p, margin):
 @njit(cache=True)
 def local_step(P, c0, gp_old, prior_old, gp, prior, gate, dirs, support, track, blend, growth, budget, sweep, reach,
                nb_off, nb_idx, nb_ang, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, data_nodes, n_data, in_data,
-               sweep_at, x, cov, excess, extra, has, dev, slope, cal_k, cal_width, hist, count, memory, pred):
+               sweep_at, x, cov, excess, extra, has, dev, slope, cal_k, cal_width, hist, count, memory, pred, last, sample_mm):
     """One update of the local model by the points P (M, 3) mm. gp_old, prior_old: the
     global quadric and prior the nodes were last solved on (gp_old[0] == 0: none yet; then
     pred is all NaN), which predict P into pred (M, 6) and the calibration's histograms
@@ -48,7 +48,8 @@ def local_step(P, c0, gp_old, prior_old, gp, prior, gate, dirs, support, track, 
     prior: this update's (gp[0] == 0: none, the points are absorbed and nothing solved).
     Then up to `budget` of the dirty nodes are solved, the rest moved to the list's front,
     and `sweep` nodes with data from data_nodes[sweep_at] on (their place in the dirty
-    list kept). Returns (n_dirty, points taken, n_data, sweep_at)."""
+    list kept). last, sample_mm: the points' shares of a sample (kernels.absorb_points).
+    Returns (n_dirty, points taken, n_data, sweep_at)."""
     if gp_old[0] != 0.0:
         predictions(P, c0, gp_old, gate, dirs, blend, prior_old, x, cov, extra, has, near, pred)
         absorb_errors(pred, cal_k, cal_width, hist, count, memory)
@@ -56,7 +57,7 @@ def local_step(P, c0, gp_old, prior_old, gp, prior, gate, dirs, support, track, 
         pred[:, :] = np.nan
     before = n_dirty
     n_dirty, taken = absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty,
-                                   solved_w, growth)
+                                   solved_w, growth, last, sample_mm)
     for i in range(before, n_dirty):
         k = dirty[i]
         if not in_data[k]:
