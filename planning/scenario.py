@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from models import Ellipsoid
 from models.eyes import EyePose, make_eye
-from models.scan.spiral import archimedean_spiral
+from models.scan.spiral import PAPER_PITCH_MM, PAPER_REVOLUTIONS, PAPER_SPACING_MM, archimedean_spiral
 from models.shapes.validation import as_vector3
 from planning.ports import port_p_EC
 
@@ -205,7 +205,8 @@ class SurgeryScenario(TrueSensorPose):
         seg = self.p_EC + s * (P_E[:, None, :] - self.p_EC)
         return -self._lens_E.signed_distance(seg.reshape(-1, 3)).reshape(len(P_E), samples).max(axis=1)
 
-    def spiral_E(self, pitch_mm: float = 0.5, revolutions: float = 18.0, spacing_mm: float = 0.1) -> np.ndarray:
+    def spiral_E(self, pitch_mm: float = PAPER_PITCH_MM, revolutions: float = PAPER_REVOLUTIONS,
+                 spacing_mm: float = PAPER_SPACING_MM) -> np.ndarray:
         """(N, 3) the paper's Archimedean spiral in E, centred on the visual axis in the
         coronal plane z_E = SPIRAL_DEPTH_Z_E_MM (mm)."""
         xy = archimedean_spiral(pitch_mm, revolutions, spacing_mm)

@@ -20,6 +20,7 @@ from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import add_loop_flags, loop_config, loop_record, scenario
 from eval.cli.progress import phase, progress_bar
 from eval.cli.workers import add_worker_flags, workers_of
+from eval.experiments.boundary import SPHERE_PHASE_TURNS, SPIRAL_RADIUS_MM, SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S
 from eval.experiments.campaign import LOCAL_RAY
 from eval.experiments.model_report import error_sigma_figure, model_summary
 from models.eyes import EYE_SHAPES
@@ -29,7 +30,7 @@ SCENARIOS = integer(1, 100_000)
 SPHERE_SCENARIOS = integer(0, 100_000)
 DURATION_S = number(0.05, 10.0, "s")
 SPIRAL_SPEED = number(1.0, 17.0, "mm/s")
-SPIRAL_REVOLUTIONS = number(1.0, 18.0, "revolutions")
+REVOLUTIONS = number(1.0, 18.0, "revolutions")
 SEARCH_BUDGET = integer(1, 1_000_000)
 
 
@@ -42,14 +43,14 @@ def register(sub) -> None:
     p.add_argument("--scenarios", type=SCENARIOS, default=100,
                    help=f"adversarial scenarios once the model is built, {SCENARIOS.range}")
     p.add_argument("--sphere-scenarios", type=SPHERE_SCENARIOS, default=None,
-                   help=f"scenarios in the sphere phase (model from 1.5 spiral turns), {SPHERE_SCENARIOS.range}; "
-                        "default min(--scenarios, 50)")
+                   help=f"scenarios in the sphere phase (model from the spiral's first quarter of turns), "
+                        f"{SPHERE_SCENARIOS.range}; default min(--scenarios, 50)")
     p.add_argument("--seed", type=SEED, default=0, help=f"seed of starts, adversaries and sensor noise, {SEED.range}")
     p.add_argument("--duration-s", type=DURATION_S, default=0.5, help=f"length of one scenario, {DURATION_S.range}")
-    p.add_argument("--spiral-speed-mm-s", type=SPIRAL_SPEED, default=15.0,
+    p.add_argument("--spiral-speed-mm-s", type=SPIRAL_SPEED, default=SPIRAL_SPEED_MM_S,
                    help=f"tip speed of the model-building spiral, {SPIRAL_SPEED.range}")
-    p.add_argument("--spiral-revolutions", type=SPIRAL_REVOLUTIONS, default=6.0,
-                   help=f"revolutions of the model-building spiral over its 9 mm radius, {SPIRAL_REVOLUTIONS.range}")
+    p.add_argument("--spiral-revolutions", type=REVOLUTIONS, default=SPIRAL_REVOLUTIONS,
+                   help=f"revolutions of the model-building spiral over its {SPIRAL_RADIUS_MM:g} mm radius, {REVOLUTIONS.range}")
     p.add_argument("--sensor-mode", choices=("distance", "ascan"), default="distance",
                    help="iiOCT in the loop: extractor error model (fast) or full A-scans")
     p.add_argument("--adversary", choices=("random", "search"), default="random",
@@ -107,7 +108,7 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
     config = loop_config(args, sensor_mode=args.sensor_mode)
     loop = make_loop(scenario(args, eye_params=args.eye_params), config, sensor_seed=args.seed)
     meta = {"shape": args.shape, "eye_params": args.eye_params, "seed": args.seed}
-    pitch_mm = 9.0 / args.spiral_revolutions
+    pitch_mm = SPIRAL_RADIUS_MM / args.spiral_revolutions
     with RunLogger(out / "spiral.mcap", config.filter, metadata={**meta, "run": "spiral"}) as log:
         build = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=args.spiral_revolutions,
                                       logger=log, progress=f"spiral scan ({args.shape} eye)", sensor_seed=args.seed)
@@ -117,8 +118,9 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
                                 progress=bar_progress(bar), workers=workers)
     sphere = None
     if args.sphere_scenarios:
-        partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=1.5,
-                                        progress="sphere phase: spiral of 1.5 turns", sensor_seed=[args.seed, 1])
+        turns = SPHERE_PHASE_TURNS * args.spiral_revolutions
+        partial = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=turns,
+                                        progress=f"sphere phase: spiral of {turns:g} turns", sensor_seed=[args.seed, 1])
         with progress_bar(args.sphere_scenarios, "sphere-phase scenarios", unit="scenario") as bar:
             sphere_campaign = run_campaign(loop, partial.model, partial.coverage, args.sphere_scenarios, args.seed + 1,
                                            args.duration_s, progress=bar_progress(bar), workers=workers)

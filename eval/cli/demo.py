@@ -55,9 +55,10 @@ def _history_rows(build, rows: int) -> list[dict]:
 def main(args) -> int:
     out = prepare_out_dir(args.out)
     from eval.cli.boundary import run_boundary
+    from eval.experiments.boundary import SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S
 
     boundary_args = argparse.Namespace(shape=args.shape, scenarios=args.scenarios, sphere_scenarios=0, seed=args.seed,
-                                       duration_s=0.5, spiral_speed_mm_s=15.0, spiral_revolutions=6.0,
+                                       duration_s=0.5, spiral_speed_mm_s=SPIRAL_SPEED_MM_S, spiral_revolutions=SPIRAL_REVOLUTIONS,
                                        sensor_mode="distance", eye_params={})
     print(f"VitreoGuard demo: closed loop on the {args.shape} eye (Meca500 through the trocar, iiOCT at 2 kHz, "
           "filter at 1 kHz)")

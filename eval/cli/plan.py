@@ -307,7 +307,8 @@ def main(args) -> int:
         result["phases"], result["passes"] = figs["phases"], figs["passes"]
         result["execution"] = {"failsafe_stops": run.failsafe_stops, "max_rcm_error_um": float(1e3 * np.nanmax(run.rcm_error_mm)),
                                "realtime_factor": run.realtime_factor, "steps": int(len(run.t)),
-                               "simulated_s": run.duration_s, "wall_s": execution_wall_s}
+                               "simulated_s": run.duration_s, "wall_s": execution_wall_s,
+                               "samples": loop.model.n_samples, "oblique_samples": loop.model.n_oblique}
     start_ns = time.time_ns()
     write_trajectory_csv(plan, out / "plan_trajectory.csv")
     write_ros2_trajectories(plan, out / "plan_trajectory", start_ns)

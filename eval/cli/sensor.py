@@ -14,6 +14,7 @@ import numpy as np
 
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
 from eval.cli.io import prepare_out_dir, save_figure, write_json
+from eval.experiments.boundary import SPIRAL_RADIUS_MM, SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S
 from models.eyes import EYE_SHAPES
 
 OUTLIERS = number(0.0, 0.5, "(fraction)")
@@ -32,9 +33,9 @@ def register(sub) -> None:
                    help="full A-scans or the extractor's error model")
     p.add_argument("--outliers", type=OUTLIERS, default=0.0,
                    help=f"fraction of samples with a floater on the beam, {OUTLIERS.range}")
-    p.add_argument("--speed-mm-s", type=SPEED, default=15.0, help=f"tip speed along the spiral, {SPEED.range}")
-    p.add_argument("--revolutions", type=REVOLUTIONS, default=6.0,
-                   help=f"spiral revolutions over its 9 mm radius, {REVOLUTIONS.range}")
+    p.add_argument("--speed-mm-s", type=SPEED, default=SPIRAL_SPEED_MM_S, help=f"tip speed along the spiral, {SPEED.range}")
+    p.add_argument("--revolutions", type=REVOLUTIONS, default=SPIRAL_REVOLUTIONS,
+                   help=f"spiral revolutions over its {SPIRAL_RADIUS_MM:g} mm radius, {REVOLUTIONS.range}")
     p.set_defaults(func=main)
 
 
@@ -48,7 +49,7 @@ def run_sensor(args) -> dict:
 
     scenario = SurgeryScenario(eye_name=args.shape, eye_params=args.eye_params)
     loop = make_loop(scenario, LoopConfig(sensor_mode=args.mode), sensor_seed=args.seed, floater_rate=args.outliers)
-    build = build_model_by_spiral(loop, args.speed_mm_s, pitch_mm=9.0 / args.revolutions, revolutions=args.revolutions,
+    build = build_model_by_spiral(loop, args.speed_mm_s, pitch_mm=SPIRAL_RADIUS_MM / args.revolutions, revolutions=args.revolutions,
                                   progress=f"spiral scan ({args.shape} eye, {args.mode} mode)")
     ms = loop.model
     err = np.array(ms.errors_mm)

@@ -17,10 +17,19 @@ from eval.experiments.campaign import Workers, run_tasks, scenario_seed
 from eval.experiments.command_sources import AdversarialCommand, TipPathCommand
 from eval.cli.progress import progress_bar
 from models.metrics import mae_exact
+from models.scan.spiral import PAPER_PITCH_MM, PAPER_REVOLUTIONS
 from planning import IKFailure, SurgeryScenario, start_posture
 from safety.stack import RECOVERY_HELD
 
 VIOLATION_MM = 0.45  # true clearance below this is a violation (0.5 mm boundary, 50 um tolerance)
+# The model-building spiral: the paper's (models.scan.spiral: pitch 0.5 mm, 18 revolutions, 9 mm in radius in the
+# coronal plane), at 15 mm/s through the loop (34 s). With 6 revolutions (pitch 1.5 mm, 11 s) its rings lay
+# 10-25 deg apart on the retina, and between them the local model missed a detachment's flank or a staphyloma's
+# rim by up to 0.5 mm (scanned p95 235-364 um, seed 0); at the paper's pitch they lie a few degrees apart.
+SPIRAL_REVOLUTIONS = PAPER_REVOLUTIONS
+SPIRAL_RADIUS_MM = PAPER_PITCH_MM * PAPER_REVOLUTIONS
+SPIRAL_SPEED_MM_S = 15.0
+SPHERE_PHASE_TURNS = 0.25  # the sphere phase's model: the spiral's first quarter of its turns (2.25 mm of its radius)
 SCENARIO_S = 0.5
 START_DEPTH_MM = (1.5, 4.0)  # adversarial start: tip this far inside the model
 
@@ -36,6 +45,8 @@ class SpiralBuild:
     transition_at: float | None  # fraction of the spiral's duration, or None
     ef_mae_um: float
     sf_mae_um: float
+    samples: int = 0  # the sensor's samples during the scan
+    oblique_samples: int = 0  # valid samples not taken in: their beam met the filter's model beyond the sensor's limit
 
 
 def spiral_path_W(scenario: SurgeryScenario, pitch_mm: float, revolutions: float, spacing_mm: float = 0.1) -> np.ndarray:
@@ -66,8 +77,9 @@ def run_with_progress(loop: ClosedLoop, source, q0, duration_s: float, desc: str
         return loop.run(_SimTimeProgress(source, bar), q0, duration_s, **run_kwargs)
 
 
-def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: float = 1.5,
-                          revolutions: float = 6.0, logger=None, truth_grid: int = 100,
+def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = SPIRAL_SPEED_MM_S,
+                          pitch_mm: float = SPIRAL_RADIUS_MM / SPIRAL_REVOLUTIONS,
+                          revolutions: float = SPIRAL_REVOLUTIONS, logger=None, truth_grid: int = 100,
                           progress: str | None = None, sensor_seed=None) -> SpiralBuild:
     """Scan the spiral (pitch, revolutions) at `speed_mm_s` through `loop` from the IK
     posture at its start, building a fresh AdaptiveEyeModel from the sensor's points;
@@ -90,7 +102,7 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = 15.0, pitch_mm: 
     trans = _transition_fraction(run, times[-1])
     return SpiralBuild(model, coverage, run, model.kind,
                        trans, 1e3 * mae_exact(model.ellipsoid, truth).mean if model.ellipsoid is not None else float("nan"),
-                       1e3 * mae_exact(model.sphere, truth).mean)
+                       1e3 * mae_exact(model.sphere, truth).mean, loop.model.n_samples, loop.model.n_oblique)
 
 
 def _transition_fraction(run: LoopRun, duration_s: float) -> float | None:

@@ -37,10 +37,12 @@ def filter_model(loop, build):
 
 def model_summary(loop, build, n_grid: int = 100) -> dict:
     """boundary.json's, sensor.json's and plan.json's `model` figures of the filter's
-    model: kind, mae_um, scanned_p95_um, sigma3_coverage (field_report), and the local
-    model's sigma calibration (LocalField.sigma_calibration; None for the quadric)."""
+    model: kind, mae_um, scanned_p95_um, sigma3_coverage (field_report), the local
+    model's sigma calibration (LocalField.sigma_calibration; None for the quadric), and
+    the scan's sensor samples and the valid ones the model did not take for their
+    incidence on the filter's model (eval.systems.model.AdaptiveModelSystem)."""
     kind, field = filter_model(loop, build)
-    out = {"kind": kind}
+    out = {"kind": kind, "samples": build.samples, "oblique_samples": build.oblique_samples}
     if field is not None:
         out.update(field_report(field, loop.scenario.eye, build.coverage.view().angle_from_data_rad, n_grid))
     out["sigma_calibration"] = getattr(field, "sigma_calibration", None)

@@ -12,8 +12,13 @@ def _arc_length(theta: np.ndarray, b: float) -> np.ndarray:
     return 0.5 * a * (theta * np.sqrt(1.0 + theta**2) + np.arcsinh(theta))
 
 
+PAPER_PITCH_MM = 0.5  # the paper's spiral: pitch, revolutions (9 mm outer radius), spacing along it
+PAPER_REVOLUTIONS = 18.0
+PAPER_SPACING_MM = 0.1
+
+
 def archimedean_spiral(
-    pitch_mm: float = 0.5, revolutions: float = 18.0, spacing_mm: float = 0.1
+    pitch_mm: float = PAPER_PITCH_MM, revolutions: float = PAPER_REVOLUTIONS, spacing_mm: float = PAPER_SPACING_MM
 ) -> np.ndarray:
     """Return (N, 2) points (mm) of r = pitch * theta / (2 pi), theta in [0, 2 pi revolutions].
 

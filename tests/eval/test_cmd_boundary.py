@@ -8,6 +8,7 @@ import pytest
 
 from eval.cli import main
 from eval.log.replay import replay
+from eval.loop_config import LoopConfig
 
 KEYS = {"scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
         "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "solve_us", "drake_diffik_us",
@@ -40,6 +41,10 @@ def test_boundary_writes_the_contract(boundary_run):
     # the first scenario goes to the MCAP log step by step, the others not: reported apart
     assert r["realtime_factor_unlogged"] > 0
     assert r["sphere_phase"]["scenarios"] == 2 and r["sphere_phase"]["violations"] == 0
+    # the spiral's samples: the iiOCT's rate over the scan (one packet either way)
+    config = LoopConfig()
+    assert r["model"]["samples"] == pytest.approx(config.sensor_rate_hz * r["spiral"]["duration_s"], abs=config.sensor_packet)
+    assert 0 <= r["model"]["oblique_samples"] <= r["model"]["samples"]
     for name in ("boundary_clearance.png", "boundary_activity.png", "spiral.mcap", "boundary.mcap"):
         assert (out / name).stat().st_size > 1000
 
