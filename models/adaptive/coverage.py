@@ -140,12 +140,16 @@ class DirectionCoverage:
         """The current CoverageView; with a model `shape` (Sphere or Ellipsoid) it also
         holds each covered bin's misfit: how deep inside `shape` the innermost measured
         point of the bin lies (an upper bound, mm). Rebuilt when the covered set grew by
-        `rebuild_growth` or the shape's kind changed (the misfit is of the shape then)."""
+        `rebuild_growth` or the shape is another object (the model makes one per update:
+        the misfit is of the shape the filter uses). Rebuilt on the kind only, a sphere
+        refitted over a detachment kept the misfits of its predecessor: the detached eye's
+        sphere-phase sphere shrank by 0.6 mm within 0.3 s of an adversarial scenario, the
+        misfit next to the tip stayed 0.07 mm where the fresh one is 0.51 mm, and the tip
+        came within 0.393 mm of the retina (seed 0, sphere-phase scenario 47)."""
         n = self._n_covered
-        kind = None if shape is None else type(shape).__name__
-        if n > self._view.n_covered * (1.0 + self._growth) or kind != self._view_shape:
+        if n > self._view.n_covered * (1.0 + self._growth) or shape is not self._view_shape:
             dirs, inner = covered_rows(self._covered, self._dirs, self._inner, n)
             misfit = None if shape is None else inside_depth_upper_mm(shape, inner)
             self._view = CoverageView.of_sorted(self.center_W, dirs, misfit)
-            self._view_shape = kind
+            self._view_shape = shape
         return self._view

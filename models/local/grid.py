@@ -10,7 +10,8 @@ in gnomonic coordinates about its direction, the weights Wendland's C2 function 
 angle over `support_deg` (moving least squares: Lancaster & Salkauskas 1981; Wendland,
 Adv. Comput. Math. 4, 1995, for the compactly supported weight). A point touches only
 the nodes within the support (a few dozen): O(1) per A-scan, exact information-form
-accumulation. Each node's solution adds the global quadric's Taylor expansion there as
+accumulation, each A-scan weighted by its share of a sample (`sample_length_mm`: dense
+A-scans along one scan line are not independent evidence). Each node's solution adds the global quadric's Taylor expansion there as
 a Gaussian prior (its value uncertain by the global model's standard deviation, which
 grows with the angle from the measured directions), so a node with little data falls
 back to the global model and one with much data follows the retina. The field at a

@@ -191,3 +191,17 @@ def test_model_field_trust_is_the_two_queries():
         trusted, misfit = field.trust(Q)
         np.testing.assert_array_equal(trusted, view.angle_from_data_rad(Q) <= trust)
         np.testing.assert_allclose(misfit, view.local_misfit_mm(Q, misfit_angle), rtol=0, atol=1e-12)
+
+
+def test_the_misfit_is_of_the_shape_asked_for_not_of_an_earlier_one():
+    """A sphere refitted between two views (same kind, no new bins) gets its own misfits:
+    a point measured 0.5 mm inside the retina of an 11 mm sphere lies 0.5 mm inside it,
+    and 0.5 - 0.6 < 0 (none) inside the sphere refitted 0.6 mm smaller."""
+    c = np.array([1.0, -2.0, 3.0])
+    cov = DirectionCoverage(c)
+    cov.add(c + 10.5 * np.array([[0.0, 0.0, -1.0]]))
+    assert cov.view(Sphere(c, 11.0)).local_misfit_mm(c + np.array([[0.0, 0.0, -10.0]]), np.radians(5.0))[0] == \
+        pytest.approx(0.5, abs=1e-9)
+    assert cov.view(Sphere(c, 10.4)).local_misfit_mm(c + np.array([[0.0, 0.0, -10.0]]), np.radians(5.0))[0] == 0.0
+    assert cov.view(Sphere(c, 11.5)).local_misfit_mm(c + np.array([[0.0, 0.0, -10.0]]), np.radians(5.0))[0] == \
+        pytest.approx(1.0, abs=1e-9)
