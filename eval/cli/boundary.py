@@ -20,7 +20,8 @@ from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import add_loop_flags, loop_config, loop_record, scenario
 from eval.cli.progress import phase, progress_bar
 from eval.cli.workers import add_worker_flags, workers_of
-from eval.experiments.boundary import SPHERE_PHASE_TURNS, SPIRAL_RADIUS_MM, SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S
+from eval.experiments.boundary import (SPHERE_PHASE_TURNS, SPIRAL_RADIUS_MM, SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S,
+                                      spiral_pitch_mm)
 from eval.experiments.campaign import LOCAL_RAY
 from eval.experiments.model_report import error_sigma_figure, model_summary
 from models.eyes import EYE_SHAPES
@@ -108,7 +109,7 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
     config = loop_config(args, sensor_mode=args.sensor_mode)
     loop = make_loop(scenario(args, eye_params=args.eye_params), config, sensor_seed=args.seed)
     meta = {"shape": args.shape, "eye_params": args.eye_params, "seed": args.seed}
-    pitch_mm = SPIRAL_RADIUS_MM / args.spiral_revolutions
+    pitch_mm = spiral_pitch_mm(args.spiral_revolutions)
     with RunLogger(out / "spiral.mcap", config.filter, metadata={**meta, "run": "spiral"}) as log:
         build = build_model_by_spiral(loop, args.spiral_speed_mm_s, pitch_mm=pitch_mm, revolutions=args.spiral_revolutions,
                                       logger=log, progress=f"spiral scan ({args.shape} eye)", sensor_seed=args.seed)

@@ -14,7 +14,7 @@ import numpy as np
 
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
 from eval.cli.io import prepare_out_dir, save_figure, write_json
-from eval.experiments.boundary import SPIRAL_RADIUS_MM, SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S
+from eval.experiments.boundary import SPIRAL_RADIUS_MM, SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S, spiral_pitch_mm
 from models.eyes import EYE_SHAPES
 
 OUTLIERS = number(0.0, 0.5, "(fraction)")
@@ -49,7 +49,7 @@ def run_sensor(args) -> dict:
 
     scenario = SurgeryScenario(eye_name=args.shape, eye_params=args.eye_params)
     loop = make_loop(scenario, LoopConfig(sensor_mode=args.mode), sensor_seed=args.seed, floater_rate=args.outliers)
-    build = build_model_by_spiral(loop, args.speed_mm_s, pitch_mm=SPIRAL_RADIUS_MM / args.revolutions, revolutions=args.revolutions,
+    build = build_model_by_spiral(loop, args.speed_mm_s, pitch_mm=spiral_pitch_mm(args.revolutions), revolutions=args.revolutions,
                                   progress=f"spiral scan ({args.shape} eye, {args.mode} mode)")
     ms = loop.model
     err = np.array(ms.errors_mm)

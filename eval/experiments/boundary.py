@@ -30,6 +30,12 @@ SPIRAL_REVOLUTIONS = PAPER_REVOLUTIONS
 SPIRAL_RADIUS_MM = PAPER_PITCH_MM * PAPER_REVOLUTIONS
 SPIRAL_SPEED_MM_S = 15.0
 SPHERE_PHASE_TURNS = 0.25  # the sphere phase's model: the spiral's first quarter of its turns (2.25 mm of its radius)
+
+
+def spiral_pitch_mm(revolutions: float) -> float:
+    """The pitch (mm) of the model-building spiral of `revolutions` over its SPIRAL_RADIUS_MM."""
+    return SPIRAL_RADIUS_MM / revolutions
+
 SCENARIO_S = 0.5
 START_DEPTH_MM = (1.5, 4.0)  # adversarial start: tip this far inside the model
 
@@ -78,7 +84,7 @@ def run_with_progress(loop: ClosedLoop, source, q0, duration_s: float, desc: str
 
 
 def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = SPIRAL_SPEED_MM_S,
-                          pitch_mm: float = SPIRAL_RADIUS_MM / SPIRAL_REVOLUTIONS,
+                          pitch_mm: float = spiral_pitch_mm(SPIRAL_REVOLUTIONS),
                           revolutions: float = SPIRAL_REVOLUTIONS, logger=None, truth_grid: int = 100,
                           progress: str | None = None, sensor_seed=None) -> SpiralBuild:
     """Scan the spiral (pitch, revolutions) at `speed_mm_s` through `loop` from the IK
