@@ -128,7 +128,7 @@ class AdaptiveModelSystem(LeafSystem):
     AdaptiveEyeModel: one update per packet with the valid points of its samples not
     seen before; state and output "snapshot" (ModelSnapshot). Runs at the packet rate,
     just after each packet is complete. Logs the distances and model updates when a
-    logger is set. `field_bound` (sigma_factor, fallback Sphere) or None: the filter's
+    logger is set. `field_bound` (sigma_factor, fallback Sphere, keep_mm) or None: the filter's
     barrier bound, written into a local model's field (LocalRetinaModel.field) so that
     the filter's barrier form of it shares its params.
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.local.field_kernels import (BOUND, CAL, CAL_KNOTS_RAD, HEAD, N_CAL, local_field, local_model_field,
+from models.local.field_kernels import (BOUND, BOUND_SIZE, CAL, CAL_KNOTS_RAD, HEAD, N_CAL, local_field, local_model_field,
                                         radii_at, unpack)
 from models.local.kernels import global_params
 from models.shapes.field import FieldKernel, KernelQueries
@@ -47,7 +47,7 @@ class LocalField(KernelQueries):
         (3,) mm (inside it): the conservative prior in the same field form."""
         head = np.concatenate([[0.0, np.radians(5.0), 1.0], np.asarray(center, dtype=float),
                                [0.02, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0, 0.0], global_params(shape), np.ones(N_CAL),
-                               np.zeros(5)])
+                               np.zeros(BOUND_SIZE)])
         return cls(head, "prior")
 
     @classmethod
@@ -57,13 +57,15 @@ class LocalField(KernelQueries):
         head[2] = -1.0
         return cls(head, "none")
 
-    def with_fallback(self, sigma_factor: float, fallback) -> LocalField:
+    def with_fallback(self, sigma_factor: float, fallback, keep_mm: float) -> LocalField:
         """The barrier's form: points answer the `fallback` Sphere (inside every retina)
         wherever it allows more than the model's h - sigma_factor x sigma, and their gradient
-        elsewhere is that of h - sigma_factor x sigma (local_field). It shares this field's
-        params when they already hold that bound (bound_params; the loop's model system
-        writes it, so the filter's step copies nothing), else it is a copy (~1 MB)."""
-        bound = bound_params(sigma_factor, fallback)
+        elsewhere is that of h - sigma_factor x sigma, or, where that lies below `keep_mm`
+        (the distance the filter keeps: d_safe and the calibration margin), of h (local_field).
+        It shares this field's params when they already hold that bound (bound_params; the
+        loop's model system writes it, so the filter's step copies nothing), else it is a
+        copy (~1 MB)."""
+        bound = bound_params(sigma_factor, fallback, keep_mm)
         if np.array_equal(self.params[BOUND:HEAD], bound):
             return LocalField(self.params, self.kind, barrier=True)
         params = self.params.copy()
@@ -102,13 +104,15 @@ class LocalField(KernelQueries):
         return self.center + R[:, None] * U
 
 
-def bound_params(sigma_factor: float, fallback) -> np.ndarray:
+def bound_params(sigma_factor: float, fallback, keep_mm: float) -> np.ndarray:
     """The params' bound block (BOUND:HEAD) of the barrier's form: [k, fallback centre (3,)
-    mm, fallback radius mm] for the barrier's `sigma_factor` k >= 0 and a `fallback` Sphere."""
-    k, radius = float(sigma_factor), float(fallback.radius)
-    if not (np.isfinite(k) and k >= 0.0 and np.isfinite(radius) and radius > 0.0):
-        raise ValueError(f"the barrier's bound needs sigma_factor >= 0 and a fallback radius > 0 mm, got {k}, {radius}")
-    return np.array([k, *np.asarray(fallback.center, dtype=float), radius])
+    mm, fallback radius mm, keep_mm] for the barrier's `sigma_factor` k >= 0, a `fallback`
+    Sphere and the distance `keep_mm` >= 0 the filter keeps besides k sigma."""
+    k, radius, keep = float(sigma_factor), float(fallback.radius), float(keep_mm)
+    if not (np.isfinite(k) and k >= 0.0 and np.isfinite(radius) and radius > 0.0 and np.isfinite(keep) and keep >= 0.0):
+        raise ValueError(f"the barrier's bound needs sigma_factor >= 0, a fallback radius > 0 mm and keep_mm >= 0, "
+                         f"got {k}, {radius}, {keep}")
+    return np.array([k, *np.asarray(fallback.center, dtype=float), radius, keep])
 
 
 class FieldValues:

@@ -138,7 +138,12 @@ def field_at(fp, P, barrier):
     of the bound h - k u itself, g - k grad u (not a unit vector): the barrier's rate row
     then holds the bound's own rate, so a point moving along the surface towards
     directions the model knows less of (u growing) is held back as much as one moving
-    towards the surface. NaN and +inf for a non-finite point; +inf, 0, 0 everywhere for
+    towards the surface. Below its bound (h - k u under the distance the filter keeps,
+    fp[BOUND + 5]: d_safe and the calibration margin) g stays the distance's: the point
+    recovers by moving away from the model's retina. Recovering along g - k grad u, a tip
+    the model's update had left 0.66 mm of sigma slid 1.5 mm towards the retina, to 0.21
+    mm of it, while the bound rose as sigma fell (`vitreoguard faults --shape detached
+    --local-model`, class floaters, seed 0, scenario 42). NaN and +inf for a non-finite point; +inf, 0, 0 everywhere for
     the field without a boundary (local flag -1)."""
     M = P.shape[0]
     if fp[2] < 0.0:  # no boundary
@@ -201,8 +206,9 @@ def field_at(fp, P, barrier):
             if rp - q > h[m] - k * sd and q > 0.0:  # the sphere, inside every retina: no uncertainty
                 h[m], u[m] = rp - q, 0.0
                 g[m, 0], g[m, 1], g[m, 2] = w0 / q, w1 / q, w2 / q
-            else:
+            elif h[m] - k * sd >= fp[BOUND + 5]:
                 g[m, 0], g[m, 1], g[m, 2] = g[m, 0] - k * gs0, g[m, 1] - k * gs1, g[m, 2] - k * gs2
+            # else: below its bound the point recovers along the distance's own gradient
     return h, g, u
 
 
@@ -231,9 +237,10 @@ def _global_gradient(c0, gp, u0, u1, u2, r, e10, e11, e12, e20, e21, e22, eps):
     return grad0, grad1, grad2
 
 
-HEAD = 6 + 8 + GLOBAL_SIZE + N_CAL + 5  # n, blend, local, c0 (3), prior (8), global (16), sd calibration, k and the fallback sphere (4)
+BOUND_SIZE = 6  # [k, fallback centre (3), fallback radius, the distance kept below which a point recovers]
+HEAD = 6 + 8 + GLOBAL_SIZE + N_CAL + BOUND_SIZE  # n, blend, local, c0 (3), prior (8), global (16), sd calibration, bound
 CAL = 14 + GLOBAL_SIZE  # where the sd calibration's factors begin
-BOUND = HEAD - 5  # where [k, fallback centre (3), fallback radius] begin (radius 0: none)
+BOUND = HEAD - BOUND_SIZE  # where the bound block begins (fallback radius 0: none)
 
 
 @njit(cache=True)

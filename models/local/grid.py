@@ -77,8 +77,9 @@ import numpy as np
 
 from models.adaptive.coverage import fibonacci_directions
 from models.local.field import LocalField, bound_params
+
 from models.local.calibration import SigmaCalibration
-from models.local.field_kernels import radii_at
+from models.local.field_kernels import BOUND_SIZE, radii_at
 from models.local.departures import neighbour_table, node_departures, spread_departures
 from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV
 from models.local.kernels import global_params, solve_nodes
@@ -329,7 +330,7 @@ class LocalRetinaModel:
         """The LocalField (models.local.field) of params(local, bound), remade at most every
         `refresh` updates (a copy of the nodes, ~1 MB): a snapshot up to that many sensor
         packets old, unless `local`, the kind or the bound changed. It answers the model
-        alone; `bound` (sigma_factor, fallback Sphere) writes the barrier's bound into its
+        alone; `bound` (sigma_factor, fallback Sphere, keep_mm) writes the barrier's bound into its
         params, so that its with_fallback of that bound shares them."""
         if bound is not self._bound:  # the bound's block, made once per bound object (the loop's never changes)
             self._bound, self._bound_key = bound, None if bound is None else tuple(bound_params(*bound))
@@ -342,11 +343,11 @@ class LocalRetinaModel:
     def params(self, local: bool = True, bound=None) -> np.ndarray:
         """The LocalField params: the current nodes on the current global model; `local`
         False: the global surface with the local estimate's disagreement in its sd; `bound`
-        (sigma_factor, fallback Sphere) or None: the barrier's bound block (bound_params)."""
+        (sigma_factor, fallback Sphere, keep_mm) or None: the barrier's bound block (bound_params)."""
         if self._gp is None:
             raise ValueError("LocalRetinaModel.params: no global model yet (update with a shape first)")
         self._spread()
         head = np.concatenate([[self.n_nodes, self._blend, 1.0 if local else 0.0], self.center, self._prior, self._gp,
-                               self.calibration.factors, np.zeros(5) if bound is None else bound_params(*bound)])
+                               self.calibration.factors, np.zeros(BOUND_SIZE) if bound is None else bound_params(*bound)])
         return np.ascontiguousarray(np.concatenate([head, self._dirs.ravel(), self._x.ravel(), self._cov.ravel(), self._extra,
                                                     self._has, self._near]))

@@ -193,11 +193,13 @@ def test_the_barrier_form_holds_the_rate_of_the_sd_too(bumped, seed, local):
     (here within 40 deg of the bump, across the data's edge, with the local correction
     used or not). Checked against central differences of u over 1 um (u depends on the
     direction alone, smoothly between nodes: their error ~1e-12 mm / 1e-3 mm); the
-    kernel's own differences of 1e-4 rad (1 um at 10 mm) agree to 1e-4."""
+    kernel's own differences of 1e-4 rad (1 um at 10 mm) agree to 1e-4. Below the
+    distance the filter keeps (with_fallback's keep_mm) the gradient is the distance's:
+    the point recovers by moving away from the model's retina, not towards less sigma."""
     m, _ = bumped
     k = 3.0
     plain = m.field(local=local)
-    field = plain.with_fallback(k, Sphere(np.zeros(3), 1.0))  # a prior that never binds here
+    field = plain.with_fallback(k, Sphere(np.zeros(3), 1.0), 0.0)  # a prior that never binds here
     rng = np.random.default_rng(seed)
     u = rng.normal(size=3)
     u[2] = -abs(u[2]) - 0.3
@@ -208,8 +210,16 @@ def test_the_barrier_form_holds_the_rate_of_the_sd_too(bumped, seed, local):
     step = 1e-3
     grad_u = np.array([(plain.uncertainty((P + e)[None])[0] - plain.uncertainty((P - e)[None])[0]) / (2.0 * step)
                        for e in np.eye(3) * step])
-    np.testing.assert_allclose(g[0], g0[0] - k * grad_u, atol=1e-4)
     assert h[0] == h0[0] and s[0] == s0[0]  # the bound's values themselves unchanged
+    if h[0] - k * s[0] >= 0.0:  # at or above the distance kept (0 here)
+        np.testing.assert_allclose(g[0], g0[0] - k * grad_u, atol=1e-4)
+    else:  # below it: the distance's own gradient (the recovery's)
+        np.testing.assert_array_equal(g[0], g0[0])
+    # the filter keeping more than the point's bound: it recovers along the distance's gradient
+    keep = max(h[0] - k * s[0], 0.0) + 0.1
+    hr, gr, sr = plain.with_fallback(k, Sphere(np.zeros(3), 1.0), keep).signed_distance_gradient_uncertainty(P[None])
+    np.testing.assert_array_equal(gr[0], g0[0])
+    assert hr[0] == h0[0] and sr[0] == s0[0]
     assert np.linalg.norm(g0[0]) == pytest.approx(1.0)  # the field alone: the distance's unit gradient
 
 
@@ -222,10 +232,10 @@ def test_a_field_that_holds_the_bound_shares_it_with_its_barrier(bumped):
     m, _ = bumped
     k, prior = 3.0, Sphere(np.array([0.0, 0.0, 0.3]), 9.0)
     plain = LocalField(m.params(True), "local")
-    held = LocalField(m.params(True, (k, prior)), "local")
-    barrier = held.with_fallback(k, prior)
+    held = LocalField(m.params(True, (k, prior, 0.5)), "local")
+    barrier = held.with_fallback(k, prior, 0.5)
     assert barrier.params is held.params and barrier.barrier and not held.barrier
-    copied = plain.with_fallback(k, prior)
+    copied = plain.with_fallback(k, prior, 0.5)
     assert copied.params is not plain.params and copied.barrier
     rng = np.random.default_rng(4)
     u = rng.normal(size=(400, 3))
@@ -237,11 +247,14 @@ def test_a_field_that_holds_the_bound_shares_it_with_its_barrier(bumped):
     for a, b in ((held, plain), (barrier, copied)):
         for x, y in zip(a.signed_distance_gradient_uncertainty(P), b.signed_distance_gradient_uncertainty(P)):
             np.testing.assert_array_equal(x, y)
-    assert held.with_fallback(2.0, prior).params is not held.params
+    assert held.with_fallback(2.0, prior, 0.5).params is not held.params
+    assert held.with_fallback(k, prior, 0.6).params is not held.params
     with pytest.raises(ValueError, match="barrier=True needs params that hold a bound"):
         LocalField(plain.params, barrier=True)
     with pytest.raises(ValueError, match="sigma_factor >= 0"):
-        plain.with_fallback(-1.0, prior)
+        plain.with_fallback(-1.0, prior, 0.5)
+    with pytest.raises(ValueError, match="keep_mm >= 0"):
+        plain.with_fallback(k, prior, -0.1)
 
 
 def ring_points(radius_of, rings_deg, per_ring=400, seed=0, noise=NOISE_MM):
