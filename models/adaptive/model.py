@@ -158,6 +158,16 @@ class AdaptiveEyeModel:
             return shape
         return self.globe.last_ok.ellipsoid if self.globe_taken else self.sphere
 
+    def quadrics_for_local(self) -> tuple[Sphere | Ellipsoid | None, Ellipsoid | None]:
+        """(global, trend): the global quadric under the local model (global_for_local) and
+        the ellipsoid the transition criteria chose when that is not it (its semi-axes are
+        no eye's, like the pointed eye's 177 x 31 x 31 mm fit to its posterior paraboloid),
+        else None: the local model reads it next to the data and the global quadric far
+        from them (models.local.grid.LocalConfig.trend_deg)."""
+        shape = self.global_for_local()
+        trend = self.shape if self.kind == "ellipsoid" and self.shape is not shape else None
+        return shape, trend
+
     def _globe_taken(self) -> bool:
         """Whether the robust globe is the quadric under the local model (after its step):
         its semi-axes are an eye's and the scan range at least GLOBE_MIN_SCAN_RANGE_MM, and
@@ -228,7 +238,7 @@ class AdaptiveEyeModel:
             if self._globe_steps(len(P), n + k):
                 self.globe.step(self._sf.sphere)
                 self.globe_taken = self._globe_taken()
-            self.local_choice.absorb(self.local, self.last_accepted, self.global_for_local())
+            self.local_choice.absorb(self.local, self.last_accepted, *self.quadrics_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)
         v_sf = out[OUT_V_SF:OUT_V_EF]

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.local.geometry import band, global_radius, node_frame
+from models.local.geometry import band, global_radius, node_frame, quadric_taylor
 
 @njit(cache=True, inline="always")
 def node_departure(k, dirs, c0, gp, b, wsum):
@@ -163,3 +163,22 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
             elif spread:
                 out[j] = max(out[j], unseen_departure_variance(dev[k], rise, np.arccos(min(c, 1.0)), reach))
     return out
+
+
+@njit(cache=True)
+def fill_trend(dirs, has, near, c0, tp, cos_trend, x):
+    """The rows x[k] (6,) of the nodes without data: the trend quadric tp's quadratic at
+    the node (quadric_taylor) where the node's nearest data lie within the angle whose
+    cosine is `cos_trend` (near[k] > cos_trend) and tp holds c0 (tp[0] != 0), else zeros:
+    the field reads a row with x[k, 0] > 0 as the trend there and a zero row as the
+    global quadric (models.local.field_kernels)."""
+    R = np.empty((3, 3))
+    m = np.empty(6)
+    for k in range(dirs.shape[0]):
+        if has[k] != 0.0:
+            continue
+        x[k, :] = 0.0
+        if tp[0] != 0.0 and near[k] > cos_trend:
+            quadric_taylor(c0, tp, dirs[k, 0], dirs[k, 1], dirs[k, 2], R, m)
+            if np.isfinite(m).all() and m[0] > 0.0:
+                x[k, :] = m

@@ -34,7 +34,8 @@ def candidates(dirs, u0, u1, u2, angle, cand):
 @njit(cache=True, inline="always")
 def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc):
     """(radius mm, sd mm, gap rad) of the field at the unit direction u: the nodes within `blend`
-    rad (their quadratics, or the global radius at nodes without data) averaged with
+    rad (their quadratics; at nodes without data the trend quadric's quadratic where
+    departures.fill_trend put one, else the global radius) averaged with
     Wendland's weight over each one's variance there (a node extrapolating across its
     data counts little); the sd their standard deviations with the same weights and the
     spread of their radii about that mean in Wendland's weights alone (the variance of a
@@ -66,9 +67,15 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
                  + C[15] * p3 * p3 + 2.0 * (C[16] * p3 * p4 + C[17] * p3 * p5)
                  + C[18] * p4 * p4 + 2.0 * C[19] * p4 * p5 + C[20] * p5 * p5) + excess[k]
         else:
-            if rg != rg:
-                rg = global_radius(c0, gp, u0, u1, u2)
-            r = rg
+            if x[k, 0] > 0.0:  # the trend quadric's quadratic at the node (departures.fill_trend)
+                e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
+                t1 = (u0 * e10 + u1 * e11 + u2 * e12) / c
+                t2 = (u0 * e20 + u1 * e21 + u2 * e22) / c
+                r = x[k, 0] + x[k, 1] * t1 + x[k, 2] * t2 + x[k, 3] * t1 * t1 + x[k, 4] * t1 * t2 + x[k, 5] * t2 * t2
+            else:
+                if rg != rg:
+                    rg = global_radius(c0, gp, u0, u1, u2)
+                r = rg
             sd = global_sd(np.arccos(min(near[k], 1.0)), prior)
             v = sd * sd + excess[k]  # and the departure of the data nodes nearby (spread_departures)
         v += prior[5] * prior[5]  # the floor: what the quadratics' spread near data leaves unexplained

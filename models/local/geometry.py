@@ -40,6 +40,28 @@ def global_radius(c0, gp, u0, u1, u2):
 
 
 @njit(cache=True, inline="always")
+def quadric_taylor(c0, gp, d0, d1, d2, R, m):
+    """m (6,) := the quadric gp's radius about c0 near the unit direction d as node d's
+    quadratic (models.local.kernels: value mm, slopes mm/rad, curvatures mm/rad^2 in the
+    gnomonic coordinates of node_frame(d)), by central differences of 0.02 rad; R a (3, 3)
+    workspace."""
+    e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
+    h = 0.02
+    for i in range(3):
+        for j in range(3):
+            s1, s2 = (i - 1) * h, (j - 1) * h
+            w0, w1, w2 = d0 + s1 * e10 + s2 * e20, d1 + s1 * e11 + s2 * e21, d2 + s1 * e12 + s2 * e22
+            s = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            R[i, j] = global_radius(c0, gp, w0 / s, w1 / s, w2 / s)
+    m[0] = R[1, 1]
+    m[1] = (R[2, 1] - R[0, 1]) / (2.0 * h)
+    m[2] = (R[1, 2] - R[1, 0]) / (2.0 * h)
+    m[3] = (R[2, 1] - 2.0 * R[1, 1] + R[0, 1]) / (2.0 * h * h)
+    m[4] = (R[2, 2] - R[2, 0] - R[0, 2] + R[0, 0]) / (4.0 * h * h)
+    m[5] = (R[1, 2] - 2.0 * R[1, 1] + R[1, 0]) / (2.0 * h * h)
+
+
+@njit(cache=True, inline="always")
 def node_frame(d0, d1, d2):
     """(e1, e2): an orthonormal tangent frame at the unit direction d (from d alone)."""
     if abs(d2) < 0.9:  # e1 = normalise(z x d)

@@ -15,9 +15,11 @@ from numba import njit
 
 from models.fit.small_linalg import cholesky_into
 from models.local.departures import SLOPE_UNDERSTATEMENT, gathered_departure, node_departure
-from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, SPHERE, band, global_radius, node_frame, wendland
+from models.local.geometry import (ELLIPSOID, GLOBAL_SIZE, N_BASIS, SPHERE, band, global_radius, node_frame,
+                                   quadric_taylor, wendland)
 
-WORKSPACE = 153  # solve_node's small arrays: R 9, m, pinv, A m 6 each, rhs, y, z 6 each, M, L, L^-1 36 each
+WORKSPACE = 159  # solve_node's small arrays: R 9, m, pinv, A m 6 each, rhs, y, z 6 each, M, L, L^-1 36 each, the
+# global's quadratic 6
 
 @njit(cache=True)
 def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, growth,
@@ -90,15 +92,16 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
 
 
 @njit(cache=True)
-def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, slope, x, cov,
+def solve_node(k, dirs, c0, gp, tp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, slope, x, cov,
                excess, ws):
     """Node k's posterior: the local quadratic x[k] (6,) (mm, mm/rad, mm/rad^2), its
     covariance cov[k] (N_COV,: the upper triangle row by row, mm^2 per basis products),
     the misfit variance excess[k] (mm^2) and the slope of its departure from the global
     quadric, slope[k] (2,) (mm/rad along the node's e1, e2: SLOPE_UNDERSTATEMENT x the
     fitted slopes less the global's). Data: the weighted normal equations
-    (A, b, rr, wsum) with noise prior[0] mm; prior: the global quadric gp's Taylor
-    expansion at the node (finite differences of global_radius, step 0.02 rad); the
+    (A, b, rr, wsum) with noise prior[0] mm; prior: the Taylor expansion at the node of
+    the trend quadric tp, or of the global quadric gp without one (tp[0] == 0;
+    geometry.quadric_taylor); the
     correction to it (its first prior[6] terms, the rest 0) has the standard deviations
     of a smooth random field's value, slopes and curvatures, s, s / l and sqrt(3) s_c / l^2
     (Rasmussen & Williams 2006, 9.4; length scale l = prior[4] rad), with s_g =
@@ -124,21 +127,12 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
     M = ws[45:45 + nf * nf].reshape((nf, nf))
     L = ws[81:81 + nf * nf].reshape((nf, nf))
     Li = ws[117:117 + nf * nf].reshape((nf, nf))
-    d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
-    e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
-    h = 0.02
-    for i in range(3):
-        for j in range(3):
-            s1, s2 = (i - 1) * h, (j - 1) * h
-            w0, w1, w2 = d0 + s1 * e10 + s2 * e20, d1 + s1 * e11 + s2 * e21, d2 + s1 * e12 + s2 * e22
-            s = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-            R[i, j] = global_radius(c0, gp, w0 / s, w1 / s, w2 / s)
-    m[0] = R[1, 1]
-    m[1] = (R[2, 1] - R[0, 1]) / (2.0 * h)
-    m[2] = (R[1, 2] - R[1, 0]) / (2.0 * h)
-    m[3] = (R[2, 1] - 2.0 * R[1, 1] + R[0, 1]) / (2.0 * h * h)
-    m[4] = (R[2, 2] - R[2, 0] - R[0, 2] + R[0, 0]) / (4.0 * h * h)
-    m[5] = (R[1, 2] - 2.0 * R[1, 1] + R[1, 0]) / (2.0 * h * h)
+    mg = ws[153:159]  # the global quadric's quadratic (the departure's slope is from it)
+    quadric_taylor(c0, gp, dirs[k, 0], dirs[k, 1], dirs[k, 2], R, mg)
+    if tp[0] != 0.0:  # centred on the trend quadric
+        quadric_taylor(c0, tp, dirs[k, 0], dirs[k, 1], dirs[k, 2], R, m)
+    else:
+        m[:] = mg
     noise2 = prior[0] * prior[0]
     dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
     dep = gathered_departure(k, has, dev, reach, prior[7], nb_off, nb_idx, nb_ang)
@@ -187,8 +181,8 @@ def solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_i
             Li[a, j] = s / L[a, a]
     for a in range(nf):
         x[k, a] += y[a]
-    slope[k, 0] = SLOPE_UNDERSTATEMENT * (x[k, 1] - m[1])
-    slope[k, 1] = SLOPE_UNDERSTATEMENT * (x[k, 2] - m[2])
+    slope[k, 0] = SLOPE_UNDERSTATEMENT * (x[k, 1] - mg[1])
+    slope[k, 1] = SLOPE_UNDERSTATEMENT * (x[k, 2] - mg[2])
     ss = rr[k]  # weighted residual sum of squares of x over the node's data
     for a in range(N_BASIS):
         ss -= 2.0 * x[k, a] * b[k, a]
@@ -217,14 +211,14 @@ def global_sd(angle, prior):
 
 
 @njit(cache=True)
-def solve_nodes(nodes, count, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, slope, x,
+def solve_nodes(nodes, count, dirs, c0, gp, tp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, slope, x,
                 cov, excess, has, listed, solved_w):
     """Solve the first `count` nodes listed in `nodes` (solve_node), mark them as holding
     data (has) and no longer listed, their weight then in solved_w."""
     ws = np.empty(WORKSPACE)
     for j in range(count):
         k = nodes[j]
-        solve_node(k, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, slope, x, cov,
+        solve_node(k, dirs, c0, gp, tp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, has, dev, slope, x, cov,
                    excess, ws)
         has[k] = 1.0
         listed[k] = False

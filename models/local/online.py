@@ -38,14 +38,15 @@ def holds(gp, p, margin):
 
 
 @njit(cache=True)
-def local_step(P, c0, gp_old, prior_old, gp, prior, gate, dirs, support, track, blend, growth, budget, sweep, reach,
+def local_step(P, c0, gp_old, prior_old, gp, prior, tp, gate, dirs, support, track, blend, growth, budget, sweep, reach,
                nb_off, nb_idx, nb_ang, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, data_nodes, n_data, in_data,
                sweep_at, x, cov, excess, extra, has, dev, slope, cal_k, cal_width, hist, count, memory, pred, last, sample_mm):
     """One update of the local model by the points P (M, 3) mm. gp_old, prior_old: the
     global quadric and prior the nodes were last solved on (gp_old[0] == 0: none yet; then
     pred is all NaN), which predict P into pred (M, 6) and the calibration's histograms
     (hist, count: |error| / (cal_k sd) in cells cal_width wide, halved past `memory`); gp,
-    prior: this update's (gp[0] == 0: none, the points are absorbed and nothing solved).
+    prior: this update's (gp[0] == 0: none, the points are absorbed and nothing solved);
+    tp: the trend quadric the nodes' quadratics are centred on (tp[0] == 0: none, gp's).
     Then up to `budget` of the dirty nodes are solved, the rest moved to the list's front,
     and `sweep` nodes with data from data_nodes[sweep_at] on (their place in the dirty
     list kept). last, sample_mm: the points' shares of a sample (kernels.absorb_points).
@@ -68,7 +69,7 @@ def local_step(P, c0, gp_old, prior_old, gp, prior, gate, dirs, support, track, 
         return n_dirty, taken, n_data, sweep_at
     count_ = min(n_dirty, budget)
     if count_:
-        solve_nodes(dirty, count_, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, slope,
+        solve_nodes(dirty, count_, dirs, c0, gp, tp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, slope,
                     x, cov, excess, has, listed, solved_w)
         rest = n_dirty - count_
         for i in range(rest):
@@ -81,7 +82,7 @@ def local_step(P, c0, gp_old, prior_old, gp, prior, gate, dirs, support, track, 
             nodes[s] = data_nodes[(sweep_at + s) % n_data]
             keep[s] = listed[nodes[s]]  # a node waiting in dirty stays listed
         sweep_at = (sweep_at + sweep) % n_data
-        solve_nodes(nodes, sweep, dirs, c0, gp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, slope,
+        solve_nodes(nodes, sweep, dirs, c0, gp, tp, A, b, rr, wsum, near, prior, reach, nb_off, nb_idx, nb_ang, dev, slope,
                     x, cov, excess, has, listed, solved_w)
         for s in range(sweep):
             listed[nodes[s]] = keep[s]
