@@ -140,18 +140,7 @@ class LocalConfig:
     inside it), so it stops at 15 deg and the sd (the global quadric's, unchanged) covers
     it to there. Replayed loop points (seed 0, the paper's spiral pitch at 10 mm/s):
     scanned p95 631 um without the trend, 55 / 33 / 30 / 30 um with 10 / 12 / 15 / 20 deg,
-    3-sigma coverage 1.000 and no unsafe-side miss in each. `far_error_factor` 4: far
-    from the data the global quadric's sd is at least this many times the RMS error of
-    its predictions of the A-scans that start a new scan line (models.local.selection:
-    2-5 deg from the data, as the model stood before it took them): a quadric that
-    mispredicts the next scan line cannot be trusted to 0.3 mm at the equator. The robust
-    globe of a staphyloma scanned where an acceleration-limited robot let the spiral go
-    (`vitreoguard faults --shape staphyloma --local-model`, class accel_limit, seed 0: 22 %
-    of the reference region), 13.6 x 11.4 x 9.6 mm, an eye's semi-axes, mispredicted those
-    A-scans by 0.47 mm RMS (a good one's: 15-20 um) and lay up to 3.99 mm beyond the retina
-    45-60 deg from the data: with sd 0.3 there 14.7 % of the reference samples lay beyond 3
-    sigma on the unsafe side; with 2 / 3 / 4 / 5 x that RMS, 4.2 / 0 / 0 / 0 %, 3-sigma
-    coverage 0.869 / 0.991 / 1.000 / 1.000."""
+    3-sigma coverage 1.000 and no unsafe-side miss in each."""
 
     spacing_deg: float = 3.0
     support_deg: float = 9.0
@@ -177,13 +166,11 @@ class LocalConfig:
     departure_floor_mm: float = 0.03
     sample_length_mm: float = 0.2
     trend_deg: float = 15.0
-    far_error_factor: float = 4.0
 
     def __post_init__(self):
         for name in ("spacing_deg", "support_deg", "blend_deg", "track_deg", "noise_mm", "sd_near_mm", "sd_far_mm",
                      "far_deg", "length_deg", "sd_floor_mm", "ellipsoid_sd_near_mm", "ellipsoid_sd_far_mm", "departure_deg",
-                     "departure_floor_mm", "sample_length_mm", "trend_deg",
-                     "far_error_factor"):
+                     "departure_floor_mm", "sample_length_mm", "trend_deg"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"LocalConfig.{name} must be finite and > 0, got {v}")
@@ -277,17 +264,15 @@ class LocalRetinaModel:
         """(n, 3) the nodes' directions (read, don't change)."""
         return self._dirs
 
-    def update(self, P, shape=None, trend=None, global_rms_mm: float = float("nan")) -> None:
+    def update(self, P, shape=None, trend=None) -> None:
         """Absorb the points P (N, 3) mm; re-solve the nodes they touched (up to
         solves_per_point x N, the rest at the next updates: consecutive A-scans touch mostly
         the same nodes) and `sweep` more nodes with data in turn (the global prior moves
         with every update of the global fit). Each point is first predicted by the model as
         it stood (last_predictions) and the sd's calibration takes the errors. `trend`: None
         or the Ellipsoid the nodes read past the data and are centred on (LocalConfig.trend_deg;
-        one that does not hold the centre 1 mm deep: none). `global_rms_mm`: the RMS error
-        of the global quadric's predictions across gaps so far (NaN: none yet), which sets
-        the least sd it has far from the data (LocalConfig.far_error_factor). One compiled
-        call (models.local.online.local_step)."""
+        one that does not hold the centre 1 mm deep: none). One compiled call
+        (models.local.online.local_step)."""
         if not (type(P) is np.ndarray and P.dtype == np.float64 and P.ndim == 2 and P.flags.c_contiguous):
             P = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True).reshape(-1, 3))
         self._updates += 1
@@ -296,11 +281,8 @@ class LocalRetinaModel:
             tp = _NO_GLOBAL if trend is None else global_params(trend)
             self._trend_seen, self._tp = trend, tp if trend is not None and holds(tp, self.center, 1.0) else _NO_GLOBAL
         old = _NO_GLOBAL if self._gp is None else self._gp
-        cfg, cal = self.config, self.calibration
         prior = self._prior if gp is None else self._priors[int(gp[0] == ELLIPSOID)]
-        if cfg.far_error_factor * global_rms_mm > prior[2]:  # False for NaN
-            prior = prior.copy()
-            prior[2] = cfg.far_error_factor * global_rms_mm
+        cfg, cal = self.config, self.calibration
         pred = np.empty((len(P), 6))
         self._n_dirty, taken, self._n_data, self._sweep_at = local_step(
             P, self.center, old, self._prior, _NO_GLOBAL if gp is None else gp, prior, self._tp, self._gate, self._dirs,

@@ -53,7 +53,7 @@ class LocalChoice:
         and score its predictions of them, made before it absorbed them, against the global
         quadric's (models.local.field_kernels.predictions)."""
         scored = shape is not None and local.global_params is not None
-        local.update(P, shape, trend, float(np.sqrt(self.mse_global)))  # the global quadric's error so far: its far sd
+        local.update(P, shape, trend)
         if scored:
             el, eg, m = gap_errors(local.last_predictions, self.min_gap_rad, self.outlier_mm)  # predicted before they were absorbed
             if m:
