@@ -54,12 +54,13 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
         w = wendland(np.arccos(min(c, 1.0)) / blend)
         if w <= 0.0:
             continue
-        if has[k] != 0.0:
+        if has[k] != 0.0 or x[k, 0] > 0.0:  # its quadratic: fitted, or the trend's (departures.fill_trend)
             e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
             t1 = (u0 * e10 + u1 * e11 + u2 * e12) / c
             t2 = (u0 * e20 + u1 * e21 + u2 * e22) / c
             p1, p2, p3, p4, p5 = t1, t2, t1 * t1, t1 * t2, t2 * t2
             r = x[k, 0] + x[k, 1] * p1 + x[k, 2] * p2 + x[k, 3] * p3 + x[k, 4] * p4 + x[k, 5] * p5
+        if has[k] != 0.0:
             C = cov[k]
             v = (C[0] + 2.0 * (C[1] * p1 + C[2] * p2 + C[3] * p3 + C[4] * p4 + C[5] * p5)
                  + C[6] * p1 * p1 + 2.0 * (C[7] * p1 * p2 + C[8] * p1 * p3 + C[9] * p1 * p4 + C[10] * p1 * p5)
@@ -67,12 +68,7 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
                  + C[15] * p3 * p3 + 2.0 * (C[16] * p3 * p4 + C[17] * p3 * p5)
                  + C[18] * p4 * p4 + 2.0 * C[19] * p4 * p5 + C[20] * p5 * p5) + excess[k]
         else:
-            if x[k, 0] > 0.0:  # the trend quadric's quadratic at the node (departures.fill_trend)
-                e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
-                t1 = (u0 * e10 + u1 * e11 + u2 * e12) / c
-                t2 = (u0 * e20 + u1 * e21 + u2 * e22) / c
-                r = x[k, 0] + x[k, 1] * t1 + x[k, 2] * t2 + x[k, 3] * t1 * t1 + x[k, 4] * t1 * t2 + x[k, 5] * t2 * t2
-            else:
+            if not x[k, 0] > 0.0:
                 if rg != rg:
                     rg = global_radius(c0, gp, u0, u1, u2)
                 r = rg

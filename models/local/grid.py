@@ -328,7 +328,10 @@ class LocalRetinaModel:
         return _neighbour_table_of(self.n_nodes, self.config.departure_deg)
 
     def _spread(self) -> None:
-        """The nodes without data take the departure of the data nodes near them (departures.spread_departures)."""
+        """The nodes without data take the departure of the data nodes near them
+        (departures.spread_departures) and, within trend_deg of the data, the trend's
+        quadratic (departures.fill_trend): with each field (params, radius_and_sd); the
+        predictions of the updates between read the last ones."""
         spread_departures(self._dirs, self._x, self._has, self._excess, self._dev, self._slope, self._near,
                           np.radians(self.config.spacing_deg), self._reach, self.config.departure_floor_mm, self._blend,
                           self._extra)
