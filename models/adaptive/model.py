@@ -153,20 +153,19 @@ class AdaptiveEyeModel:
         """The global quadric under the local model: the ellipsoid while the model is one
         and its semi-axes are an eye's (EYE_RADII_MM); else the robust globe
         (models.fit.streaming_robust) while it is taken up (_globe_taken); else the sphere fit."""
-        shape = self.shape
-        if self.kind == "ellipsoid" and shape is not None and eyes_radii(*shape.radii):
-            return shape
-        return self.globe.last_ok.ellipsoid if self.globe_taken else self.sphere
+        return self.quadrics_for_local()[0]
 
     def quadrics_for_local(self) -> tuple[Sphere | Ellipsoid | None, Ellipsoid | None]:
         """(global, trend): the global quadric under the local model (global_for_local) and
         the ellipsoid the transition criteria chose when that is not it (its semi-axes are
         no eye's, like the pointed eye's 177 x 31 x 31 mm fit to its posterior paraboloid),
         else None: the local model reads it next to the data and the global quadric far
-        from them (models.local.grid.LocalConfig.trend_deg)."""
-        shape = self.global_for_local()
-        trend = self.shape if self.kind == "ellipsoid" and self.shape is not shape else None
-        return shape, trend
+        from them (models.local.grid.LocalConfig.trend_deg). One look at the model's shape:
+        this runs once per update."""
+        ellipsoid = self.ellipsoid if self.kind == "ellipsoid" else None
+        if ellipsoid is not None and eyes_radii(*ellipsoid.radii):
+            return ellipsoid, None
+        return (self.globe.last_ok.ellipsoid if self.globe_taken else self.sphere), ellipsoid
 
     def _globe_taken(self) -> bool:
         """Whether the robust globe is the quadric under the local model (after its step):
