@@ -136,8 +136,7 @@ class ClosedLoop:
                                                            sensor_sys.packet_offset_s + 0.25 / config.sensor_rate_hz,
                                                            config.model_min_points, config.model_min_scan_range_mm,
                                                            config.model_radius_range_mm,
-                                                           field_bound=(config.filter.sigma_factor, self.prior,
-                                                                        config.filter.boundary_mm()),
+                                                           field_bound=config.filter.field_bound(self.prior),
                                                            max_incidence_rad=self.sensor.max_incidence_rad))
         q = self.integrator.get_output_port()
         for port in (self.filter.GetInputPort("q"), sensor_sys.GetInputPort("q")):

@@ -57,6 +57,12 @@ class FilterConfig:
         `model_margin_mm` (its uncertainty term): d_safe + that margin + the calibration margin."""
         return self.d_safe_mm + float(model_margin_mm) + self.calibration_margin_mm
 
+    def field_bound(self, fallback) -> tuple:
+        """(sigma_factor, fallback Sphere, kept distance mm): the barrier's bound on a local
+        model's field (models.local.field.LocalField.with_fallback, its params' bound block),
+        one definition for the model system that writes it and the filter that reads it."""
+        return self.sigma_factor, fallback, self.boundary_mm()
+
     @property
     def calibration_margin_mm(self) -> float:
         """The declared calibration bound as a clearance (mm): bound mm + lever tan(bound deg)."""

@@ -210,7 +210,7 @@ class FilterSystem(LeafSystem):
         if self.local:
             if snap.field is None:
                 return self._prior_fields
-            barrier = snap.field.with_fallback(self.config.filter.sigma_factor, self.prior, self.config.filter.boundary_mm())
+            barrier = snap.field.with_fallback(*self.config.filter.field_bound(self.prior))
             return barrier, barrier
         if snap.shape is None:
             return self._prior_fields
