@@ -24,16 +24,25 @@ from models.local.selection import LocalChoice
 from models.shapes.validation import as_points
 
 EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5 mm)
+# The longest semi-axis of a plausible retina over its shortest: the catalog's per-dioptre
+# growth (Atchison 2005, models.eyes.catalog.radii_for_refraction) gives 1.03 at -12 D,
+# 1.13 emmetropic, 1.17 at +4 D and 1.225 at +8 D; every refraction from +9.6 D to the most
+# myopic stays within 1.25. A globe fitted to a partial scan that a staphyloma fills is
+# not: in the faults campaign (staphyloma, accel_limit, seed 0) one of 13.6 x 11.4 x 9.6 mm
+# (1.42), fitted to 22 % of the reference region, lay up to 4 mm beyond the retina 30-90 deg
+# from the data, where an eye's globe is trusted to 0.3 mm.
+EYE_AXIS_RATIO_MAX = 1.25
 GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
 GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
 
 
 def eyes_radii(r0: float, r1: float, r2: float) -> bool:
-    """Whether semi-axes r0, r1, r2 (mm) are an eye's: each within EYE_RADII_MM (NaN is not).
-    Three floats, not an array: np.min / np.max's dispatch was a third of global_for_local's
-    time per A-scan."""
+    """Whether semi-axes r0, r1, r2 (mm) are an eye's: each within EYE_RADII_MM and the
+    longest at most EYE_AXIS_RATIO_MAX times the shortest (NaN is not). Three floats, not
+    an array: np.min / np.max's dispatch was a third of global_for_local's time per A-scan."""
     lo, hi = EYE_RADII_MM
-    return lo <= r0 <= hi and lo <= r1 <= hi and lo <= r2 <= hi
+    return (lo <= r0 <= hi and lo <= r1 <= hi and lo <= r2 <= hi
+            and max(r0, r1, r2) <= EYE_AXIS_RATIO_MAX * min(r0, r1, r2))
 
 
 class ModelUpdate(NamedTuple):
@@ -151,7 +160,7 @@ class AdaptiveEyeModel:
 
     def global_for_local(self) -> Sphere | Ellipsoid | None:
         """The global quadric under the local model: the ellipsoid while the model is one
-        and its semi-axes are an eye's (EYE_RADII_MM); else the robust globe
+        and its semi-axes are an eye's (eyes_radii); else the robust globe
         (models.fit.streaming_robust) while it is taken up (_globe_taken); else the sphere fit."""
         return self.quadrics_for_local()[0]
 

@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from models import AdaptiveEyeModel
-from models.adaptive.model import EYE_RADII_MM
+from models.adaptive.model import EYE_AXIS_RATIO_MAX, EYE_RADII_MM, GLOBE_MIN_SCAN_RANGE_MM, eyes_radii
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
+from models.eyes.catalog import radii_for_refraction
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM
 from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig, biweight, tukey_rho
 from models.fit.streaming_robust import StreamingRobustFit
@@ -220,3 +223,52 @@ def test_taken_globe_outlasts_a_patch_the_sphere_fits_and_yields_to_a_long_run()
         if model.globe_taken:
             break
     assert model.globe_taken
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-20.0, 9.0))
+def test_every_refractions_retina_is_an_eyes(dioptres):
+    """The catalog's retina (Atchison's per-dioptre growth) of any refraction from +9 D to
+    -20 D has an eye's semi-axes: the axis ratio bound (1.25) lets every one through."""
+    assert eyes_radii(*radii_for_refraction(dioptres))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(9.0, 14.0), st.floats(1.26, 1.6))
+def test_semi_axes_further_apart_than_an_eyes_are_not(shortest, ratio):
+    """Semi-axes each within EYE_RADII_MM whose longest exceeds 1.25 x the shortest are no
+    eye's (the bound of EYE_AXIS_RATIO_MAX), whatever their order."""
+    lo, hi = EYE_RADII_MM
+    longest = shortest * ratio
+    if longest > hi:
+        return
+    mid = 0.5 * (shortest + longest)
+    assert EYE_AXIS_RATIO_MAX == 1.25
+    for r in ((shortest, mid, longest), (longest, shortest, mid), (mid, longest, shortest)):
+        assert lo <= min(r) and max(r) <= hi and not eyes_radii(*r)
+
+
+def test_a_globe_too_elongated_for_an_eye_is_not_taken():
+    """A scan of a 14 x 10 x 10 mm ellipsoid (axis ratio 1.4: no eye's, each semi-axis
+    within EYE_RADII_MM): the robust globe fits it, and predicts the new points better
+    than the sphere, but is not the quadric under the local model (the sphere is); a scan of
+    the emmetropic retina (1.13) gives a globe that is taken."""
+    for radii, taken in (((14.0, 10.0, 10.0), False), (tuple(radii_for_refraction(0.0)), True)):
+        U = np.random.default_rng(2).normal(size=(6000, 3))
+        U = U[U[:, 2] < -0.2 * np.linalg.norm(U, axis=1)]  # the posterior pole's cap, as a scan sees it
+        U /= np.linalg.norm(U, axis=1, keepdims=True)
+        P = U / np.sqrt(np.sum((U / np.array(radii)) ** 2, axis=1, keepdims=True))
+        P += np.random.default_rng(3).normal(0.0, 0.02, P.shape)
+        model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+        for k in range(0, len(P), PACKET):
+            model.update(P[k:k + PACKET])
+        fit = model.globe.last_ok
+        assert fit is not None and np.allclose(np.sort(fit.radii), np.sort(radii), atol=0.3)
+        assert model.globe.loss_mm2 < model.globe.rival_loss_mm2
+        assert model.scan_range_mm >= GLOBE_MIN_SCAN_RANGE_MM  # all the old rule asked besides the semi-axes
+        assert model.globe_taken is taken and bool(max(radii) / min(radii) <= EYE_AXIS_RATIO_MAX) is taken
+        g = model.global_for_local()
+        if taken:  # the globe, or the least-squares ellipsoid the criteria took: an eye's either way
+            assert hasattr(g, "radii") and eyes_radii(*g.radii)
+        else:
+            assert g is model.sphere
