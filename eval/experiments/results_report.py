@@ -24,6 +24,7 @@ from pathlib import Path
 
 from eval.cli.io import UsageError, prepare_out_dir, write_atomic, write_json
 from models.eyes import EYE_SHAPES
+from models.scan.spiral import PAPER_PITCH_MM, PAPER_REVOLUTIONS
 
 ROOT = Path(__file__).resolve().parents[2]  # the checkout whose tools are run
 SEED = 11
@@ -93,12 +94,12 @@ PAPER = [
 ]
 
 TABLES = [
-    ("Virtual boundary: safety", "boundary", "Each row: the model built by a 6-turn spiral through the closed loop, then "
-     "adversarial scenarios of 0.5 s. Clearances are TRUE clearances (ground-truth retina) of the tip, port and shaft "
+    ("Virtual boundary: safety", "boundary", f"Each row: the model built by the paper's spiral ({PAPER_REVOLUTIONS:g} turns, "
+     f"{PAPER_PITCH_MM:g} mm pitch) through the closed loop, then adversarial scenarios of 0.5 s. Clearances are TRUE clearances (ground-truth retina) of the tip, port and shaft "
      "points; a violation is a scenario whose smallest true clearance is below 0.45 mm (the 0.5 mm boundary, 50 um "
      "tolerance), a contact one at or below 0.", BOUNDARY_SAFETY),
     ("Virtual boundary: model and sphere phase", "boundary", "The final fitted model (exact MAE against the true retina) "
-     "and the campaign against the model of the first 1.5 spiral turns (a sphere).", BOUNDARY_MODEL),
+     "and the campaign against the model of the spiral's first quarter of its turns (a sphere).", BOUNDARY_MODEL),
     ("Virtual boundary: speed", "boundary", "The filter's whole compiled step against Drake's "
      "DoDifferentialInverseKinematics on every 10th step's state of the same runs; realtime factor = simulated time / "
      "wall time of the simulations (the first scenario, logged step by step for replay, included; then without it).",
