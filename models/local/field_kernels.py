@@ -133,8 +133,8 @@ def field_at(fp, P, barrier):
     """(h (M,) mm, g (M, 3), u (M,) mm) of a LocalField's params fp at the points P (M, 3)
     mm. The surface is r = R(u) about the centre; h is the first-order signed distance
     F / |grad F| of F = R(u) - |p - c0| (the tangential gradients of R and u by forward
-    differences of 1e-5 rad: three blends per point where central differences take five,
-    the filter step's largest share; their error, 1e-5 x the curvature / 2, is below 1e-3
+    differences of 1e-5 rad: three blends per point where central differences take five;
+    their error, 1e-5 x the curvature / 2, is below 1e-3
     mm/rad for curvatures under 200 mm/rad^2, and the round-off of radii near 10 mm over
     1e-5 rad ~1e-10 mm/rad), g = grad F / |grad F|, u the blended standard deviation.
     With `barrier` set (fp then holds the barrier's k and a fallback sphere, a
@@ -171,7 +171,10 @@ def field_at(fp, P, barrier):
         nc = candidates(dirs, u0, u1, u2, blend + 2.0 * eps, cand)
         R0, sd, gap = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
         sd = calibrated_sd(sd, gap, cal)
-        S0 = _global_form_sd(sd, R0, c0, gp, u0, u1, u2) if barrier and local == 0.0 else sd  # the sd differentiated
+        if local == 0.0:  # the global surface, uncertain by the local estimate's disagreement too
+            S0 = _global_form_sd(sd, R0, c0, gp, u0, u1, u2)
+        else:
+            S0 = sd
         e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
         grad0, grad1, grad2 = 0.0, 0.0, 0.0
         gs0, gs1, gs2 = 0.0, 0.0, 0.0  # grad of the sd (it depends on the direction alone)
@@ -181,7 +184,7 @@ def field_at(fp, P, barrier):
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             Rp, Sp, gap = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
             Sp = calibrated_sd(Sp, gap, cal)
-            if barrier and local == 0.0:
+            if local == 0.0:
                 Sp = _global_form_sd(Sp, Rp, c0, gp, w0 / q, w1 / q, w2 / q)
             dR = (Rp - R0) / eps  # mm per rad along the tangent a
             dS = (Sp - S0) / eps
@@ -191,8 +194,8 @@ def field_at(fp, P, barrier):
             gs0, gs1, gs2 = gs0 + dS * a0 / r, gs1 + dS * a1 / r, gs2 + dS * a2 / r
         grad0, grad1, grad2 = grad0 - u0, grad1 - u1, grad2 - u2  # grad of R(u) - r
         gn = np.sqrt(grad0 * grad0 + grad1 * grad1 + grad2 * grad2)
-        if local == 0.0:  # the global surface, uncertain by the local estimate's disagreement too
-            sd = _global_form_sd(sd, R0, c0, gp, u0, u1, u2)
+        sd = S0
+        if local == 0.0:
             R0 = global_radius(c0, gp, u0, u1, u2)
             grad0, grad1, grad2 = _global_gradient(c0, gp, u0, u1, u2, r, e10, e11, e12, e20, e21, e22, eps)
             gn = np.sqrt(grad0 * grad0 + grad1 * grad1 + grad2 * grad2)
