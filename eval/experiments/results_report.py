@@ -94,10 +94,11 @@ PAPER = [
 ]
 
 TABLES = [
-    ("Virtual boundary: safety", "boundary", f"Each row: the model built by the paper's spiral ({PAPER_REVOLUTIONS:g} turns, "
-     f"{PAPER_PITCH_MM:g} mm pitch) through the closed loop, then adversarial scenarios of 0.5 s. Clearances are TRUE clearances (ground-truth retina) of the tip, port and shaft "
-     "points; a violation is a scenario whose smallest true clearance is below 0.45 mm (the 0.5 mm boundary, 50 um "
-     "tolerance), a contact one at or below 0.", BOUNDARY_SAFETY),
+    ("Virtual boundary: safety", "boundary", f"Each row: the model built by the paper's spiral ({PAPER_REVOLUTIONS:g} "
+     f"turns, {PAPER_PITCH_MM:g} mm pitch) through the closed loop, then adversarial scenarios of 0.5 s. Clearances "
+     "are TRUE clearances (ground-truth retina) of the tip, port and shaft points; a violation is a scenario whose "
+     "smallest true clearance is below 0.45 mm (the 0.5 mm boundary, 50 um tolerance), a contact one at or below 0.",
+     BOUNDARY_SAFETY),
     ("Virtual boundary: model and sphere phase", "boundary", "The final fitted model (exact MAE against the true retina) "
      "and the campaign against the model of the spiral's first quarter of its turns (a sphere).", BOUNDARY_MODEL),
     ("Virtual boundary: speed", "boundary", "The filter's whole compiled step against Drake's "

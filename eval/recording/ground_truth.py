@@ -60,7 +60,7 @@ from scipy.spatial.transform import Rotation
 
 from eval.recording.bag import RecordingError
 from models import fit_ellipsoid, fit_sphere
-from models.adaptive.model import EYE_RADII_MM
+from models.adaptive.model import eyes_radii
 from models.shapes.icp import MeshIndex, Registration, mesh_index, point_to_plane, register_to_mesh
 from safety.inputs import FilterConfig
 
@@ -134,11 +134,12 @@ def _retina(index: MeshIndex, shape) -> tuple[np.ndarray, MeshIndex]:
 
 def _start_shape(model, P: np.ndarray):
     """The shape whose centre starts the registration: the fitted `model` (Sphere or
-    Ellipsoid) when its semi-axes are an eye's (EYE_RADII_MM), else a sphere fitted to
-    the points P (N, 3) mm (a pointed eye's partial scan can fit a 177 mm cigar whose
-    centre lies 160 mm from the retina's)."""
-    radii = np.atleast_1d(getattr(model, "radii", getattr(model, "radius", np.nan)))
-    return model if np.all((radii >= EYE_RADII_MM[0]) & (radii <= EYE_RADII_MM[1])) else fit_sphere(P)
+    Ellipsoid) when its semi-axes are an eye's (models.adaptive.model.eyes_radii; a
+    sphere's three are its radius), else a sphere fitted to the points P (N, 3) mm (a
+    pointed eye's partial scan can fit a 177 mm cigar whose centre lies 160 mm from the
+    retina's)."""
+    radii = np.broadcast_to(np.atleast_1d(getattr(model, "radii", getattr(model, "radius", np.nan))), 3)
+    return model if eyes_radii(*(float(r) for r in radii)) else fit_sphere(P)
 
 
 def _best_rotations(P: np.ndarray, c_W: np.ndarray, index: MeshIndex, c_M: np.ndarray, k: int = 3) -> list[np.ndarray]:
