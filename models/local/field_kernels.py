@@ -134,9 +134,10 @@ def field_at(fp, P, barrier):
     mm. The surface is r = R(u) about the centre; h is the first-order signed distance
     F / |grad F| of F = R(u) - |p - c0| (the tangential gradients of R and u by forward
     differences of 1e-5 rad: three blends per point where central differences take five;
-    their error, 1e-5 x the curvature / 2, is below 1e-3
-    mm/rad for curvatures under 200 mm/rad^2, and the round-off of radii near 10 mm over
-    1e-5 rad ~1e-10 mm/rad), g = grad F / |grad F|, u the blended standard deviation.
+    their error, 1e-5 x the curvature / 2, is below 1e-3 mm/rad for curvatures under 200
+    mm/rad^2, and the round-off of radii near 10 mm over 1e-5 rad ~1e-10 mm/rad; u's rate
+    only in the barrier's form, which alone reads it), g = grad F / |grad F|, u the blended
+    standard deviation.
     With `barrier` set (fp then holds the barrier's k and a fallback sphere, a
     conservative prior inside every retina: LocalField.with_fallback), a point answers
     the sphere's distance and no uncertainty wherever that allows more than h - k u (each
@@ -183,15 +184,16 @@ def field_at(fp, P, barrier):
             w0, w1, w2 = u0 + eps * a0, u1 + eps * a1, u2 + eps * a2
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             Rp, Sp, gap = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
-            Sp = calibrated_sd(Sp, gap, cal)
-            if local == 0.0:
-                Sp = _global_form_sd(Sp, Rp, c0, gp, w0 / q, w1 / q, w2 / q)
             dR = (Rp - R0) / eps  # mm per rad along the tangent a
-            dS = (Sp - S0) / eps
             grad0 += dR * a0 / r
             grad1 += dR * a1 / r
             grad2 += dR * a2 / r
-            gs0, gs1, gs2 = gs0 + dS * a0 / r, gs1 + dS * a1 / r, gs2 + dS * a2 / r
+            if barrier:  # the sd's rate: only the barrier's form reads it
+                Sp = calibrated_sd(Sp, gap, cal)
+                if local == 0.0:
+                    Sp = _global_form_sd(Sp, Rp, c0, gp, w0 / q, w1 / q, w2 / q)
+                dS = (Sp - S0) / eps
+                gs0, gs1, gs2 = gs0 + dS * a0 / r, gs1 + dS * a1 / r, gs2 + dS * a2 / r
         grad0, grad1, grad2 = grad0 - u0, grad1 - u1, grad2 - u2  # grad of R(u) - r
         gn = np.sqrt(grad0 * grad0 + grad1 * grad1 + grad2 * grad2)
         sd = S0
