@@ -126,7 +126,8 @@ class FilterInputs:
 
 class FilterOutput(NamedTuple):
     """`qdot` (n,) rad/s to command (zeros on a fault); `ok` False on a fault, with
-    `reason` ("ok" otherwise, or "recovery held": safety.stack); `active`: names of the constraints at their bound; `min_clearance_mm`: the
+    `reason` ("ok" otherwise, or the relaxations the step was solved under: "recovery held",
+    "correction eased" or "correction eased, recovery held": safety.stack); `active`: names of the constraints at their bound; `min_clearance_mm`: the
     smallest model clearance of the boundary points minus d_safe-free (mm);
     `cutter_allowed`: the port's clearance exceeds the interlock threshold;
     `intervened`: the output departs from the command (an active constraint, or a tip

@@ -15,8 +15,21 @@ some rows are such recovery rows, the step is solved again with each recovery ro
 only that its point come no closer (right-hand side 0): the robot keeps every other rule
 and holds its recovering points, with RECOVERY_HELD as its reason and among its active
 rows (ok, an intervention), instead of a zero command that the actuator would still carry
-on from. Only a QP infeasible even so stops the robot ("QP: infeasible ..."). Steps whose
-QP is feasible are not touched. Units: mm, s, rad; frame W.
+on from.
+
+Correction eased. An equality constraint whose right-hand side corrects a drift
+(`drift_correction`: the RCM's b = gain x the predicted lateral error, its rows' left side
+the pivot itself) can ask for a correction that no velocity meeting the other rows gives:
+an acceleration-limited robot's predicted trocar error jumps when its velocity changes,
+and the correction with it (measured: 7 to 15 mm/s in one step, the tip, port and two
+shaft points recovering at 5 mm/s, detached eye, local model). When neither the step nor
+its held form solves, the step is solved again with those right-hand sides scaled by
+each of EASED_SCALES in turn (the recovery rows as asked, then held): the shaft still
+pivots about the trocar, and its error decays more slowly that step, or, at 0, stays
+where the actuator's motion leaves it (bounded by the constraint's own planned stop).
+CORRECTION_EASED (and RECOVERY_HELD when held) lead its active rows and its reason.
+Only a QP infeasible even so stops the robot ("QP: infeasible ..."). Steps whose QP is
+feasible are not touched. Units: mm, s, rad; frame W.
 """
 from __future__ import annotations
 
@@ -31,6 +44,14 @@ from safety.inputs import FilterConfig, FilterOutput
 from safety.qp import DenseQP, QPResult, solve, solve_by_solver
 
 RECOVERY_HELD = "recovery held"  # an active-row name: the step held its recovering points (module docstring)
+CORRECTION_EASED = "correction eased"  # an active-row name: the step scaled its drift corrections down (module docstring)
+EASED_SCALES = (0.5, 0.0)  # the drift corrections' scales tried, in order, on a step no other form solves
+RELAXATIONS = (CORRECTION_EASED, RECOVERY_HELD)  # in the order they lead a relaxed step's active rows and reason
+
+
+def relaxations(reason: str) -> tuple[str, ...]:
+    """The relaxations (RELAXATIONS) a step with this FilterOutput reason was solved under."""
+    return tuple(w for w in reason.split(", ") if w in RELAXATIONS)
 _FAULT_WORDS = {core.NONFINITE_Q: "non-finite q", core.NONFINITE_COMMAND: "non-finite v_cmd_W",
                 core.NONFINITE_J_TIP: "non-finite J_tip"}
 
@@ -64,6 +85,7 @@ class ConstraintStack:
         bases, n_ids = row_id_bases(self.constraints, self.groups)
         self._id_owner = [None] * n_ids  # identity -> (constraint index, row within it)
         m_cap = p_cap = 0
+        eased = []  # per equality row: its right-hand side is a drift correction (module docstring)
         for i, c in enumerate(self.constraints):
             rows = c.max_rows(self.groups.get(c.group, 0))
             if c.kind == "inequality":
@@ -71,6 +93,8 @@ class ConstraintStack:
                 m_cap += rows
             elif c.kind == "equality":
                 p_cap += rows
+                eased += [bool(c.drift_correction)] * rows
+        self._eased = np.array(eased, dtype=bool)
         self.active = np.zeros(len(self._id_owner) + 2 * n, dtype=np.bool_)
         self.layout = (n, m_cap, p_cap, sum(self.groups.values()))
         parts, size = workspace_layout(*self.layout)
@@ -145,9 +169,10 @@ class ConstraintStack:
         qp = DenseQP(H, c, lb, ub, G[:m], h[:m], A[:p], b[:p], RowNames(self, ids[:m].copy(), ranges))
         result = solve(qp, self.config.solver) if code == core.STEP_QP_FAILED else \
             solve_by_solver(qp, self.config.solver, core.ACTIVE_TOL, t0)
-        if not result.ok and result.reason.startswith("infeasible") and bool(np.any(qp.h < 0.0)):
-            result = self.held(qp, t0)
-            warm = False  # the relaxed rows are not the step's: nothing to remember
+        if not result.ok and result.reason.startswith("infeasible"):
+            relaxed = self.relaxed(qp, t0)
+            if relaxed is not None and relaxed.ok:
+                result, warm = relaxed, False  # the relaxed rows are not the step's: nothing to remember
         if not result.ok:
             self.reset()
             return FilterOutput(np.zeros(len(q)), False, f"QP: {result.reason}", min_clearance_mm=float(clearance))
@@ -155,21 +180,34 @@ class ConstraintStack:
             core.remember_active(self.active, ids[:m], qp.G, qp.h, lb, ub, result.x, core.ACTIVE_TOL, at_bound)
         return self.finished(result, clearance, port, bool(core.off_command(J_tip, result.x, command)))
 
-    def held(self, qp: DenseQP, t0: float) -> QPResult:
-        """The step's QP with every recovery row held instead (module docstring): its result,
-        with RECOVERY_HELD first among the active rows when it solves."""
-        result = solve(qp._replace(h=np.maximum(qp.h, 0.0)), self.config.solver)
-        if not result.ok:
-            return result
-        return result._replace(active=(RECOVERY_HELD, *result.active), solve_us=1e6 * (time.perf_counter() - t0))
+    def relaxed(self, qp: DenseQP, t0: float) -> QPResult | None:
+        """The infeasible step's QP solved in its relaxed forms, in order (module docstring):
+        recovery held; then each of EASED_SCALES on the drift corrections, with the recovery
+        rows as asked, then held. The first that solves, its relaxations leading its active
+        rows; else the last failure (None: no form to try)."""
+        recovering = bool(np.any(qp.h < 0.0))
+        eased = self._eased if len(qp.b) == len(self._eased) and bool(np.any(qp.b[self._eased] != 0.0)) else None
+        forms = [(1.0, True)] if recovering else []
+        if eased is not None:
+            for scale in EASED_SCALES:
+                forms += [(scale, False)] + ([(scale, True)] if recovering else [])
+        result = None
+        for scale, hold in forms:
+            b = qp.b if scale == 1.0 else np.where(eased, scale * qp.b, qp.b)
+            result = solve(qp._replace(h=np.maximum(qp.h, 0.0) if hold else qp.h, b=b), self.config.solver)
+            if result.ok:
+                marks = ((CORRECTION_EASED,) if scale < 1.0 else ()) + ((RECOVERY_HELD,) if hold else ())
+                return result._replace(active=(*marks, *result.active), solve_us=1e6 * (time.perf_counter() - t0))
+        return result
 
     def finished(self, result: QPResult, clearance: float, port_clearance_mm: float | None,
                  off_command: bool) -> FilterOutput:
         """The FilterOutput of a solved step."""
         cutter = port_clearance_mm is not None and bool(port_clearance_mm > self.config.cutter_clearance_mm)
-        intervened = bool(off_command or any(a.split(":", 1)[0] in self._intervening or a == RECOVERY_HELD
+        intervened = bool(off_command or any(a.split(":", 1)[0] in self._intervening or a in RELAXATIONS
                                              for a in result.active))
-        reason = RECOVERY_HELD if result.active[:1] == (RECOVERY_HELD,) else "ok"
+        marks = tuple(a for a in result.active[:len(RELAXATIONS)] if a in RELAXATIONS)
+        reason = ", ".join(marks) if marks else "ok"
         return FilterOutput(result.x, True, reason, result.active, float(clearance), cutter, intervened, result.solve_us)
 
     def row_names(self, ids, ranges) -> tuple:

@@ -130,7 +130,7 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
     spiral = build.run
     result = {
         **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction",
-                             "tracking_rmse_mm_s", "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps",
+                             "tracking_rmse_mm_s", "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "correction_eased_steps",
                              "solve_us", "drake_diffik_us", "realtime_factor", "realtime_factor_unlogged")},
         "shape": args.shape, "eye_params": args.eye_params, "seed": args.seed, "sensor_mode": args.sensor_mode,
         "scenario_s": args.duration_s, "violation_threshold_mm": 0.45, "loop": loop_record(args, config),
@@ -196,7 +196,7 @@ def main(args) -> int:
     out = Path(args.out)
     print(f"\n{'scenarios':24s} {result['scenarios']}")
     for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
-                "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "realtime_factor",
+                "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "correction_eased_steps", "realtime_factor",
                 "realtime_factor_unlogged", "worst_found_clearance_mm"):
         if key not in result:
             continue

@@ -112,7 +112,7 @@ def _shape_classes(args, shape: str, params: dict, names: list, base, workers) -
             f"  detection max {'-' if worst is None else f'{worst:.1f}'} ms, undetected {c['detection_ms']['undetected']}"
         print(f"{shape:10s} {name:14s} model {c['model']['kind']} MAE {c['model']['mae_um']:.0f} um"
               f"  violations {c['violations']:3d}  contacts {c['contacts']:3d}"
-              f"  min {c['min_true_clearance_mm']:.3f} mm  infeasible {c['infeasible_qp_stops']}  held {c.get('recovery_held_steps', 0)}"
+              f"  min {c['min_true_clearance_mm']:.3f} mm  infeasible {c['infeasible_qp_stops']}  held {c.get('recovery_held_steps', 0)}  eased {c.get('correction_eased_steps', 0)}"
               f"  stops {c['failsafe_stops']:3d} {c['stops_by_reason']}{detection}")
     return {"classes": classes, "margin_costs_mm": margin_costs(classes)}
 

@@ -19,7 +19,7 @@ from eval.cli.progress import progress_bar
 from models.metrics import mae_exact
 from models.scan.spiral import PAPER_PITCH_MM, PAPER_REVOLUTIONS
 from planning import IKFailure, SurgeryScenario, start_posture
-from safety.stack import RECOVERY_HELD
+from safety.stack import CORRECTION_EASED, RECOVERY_HELD, relaxations
 
 VIOLATION_MM = 0.45  # true clearance below this is a violation (0.5 mm boundary, 50 um tolerance)
 # The model-building spiral: the paper's (models.scan.spiral: pitch 0.5 mm, 18 revolutions, 9 mm in radius in the
@@ -194,7 +194,9 @@ class Campaign:
             "stops_by_reason": stops_by_reason(runs),
             "infeasible_qp_stops": infeasible_stops(runs),
             # accepted steps that held their recovering points instead of an infeasible QP's stop (safety.stack)
-            "recovery_held_steps": int(sum(sum(1 for x in r.reasons if x == RECOVERY_HELD) for r in runs)),
+            "recovery_held_steps": int(sum(sum(1 for x in r.reasons if RECOVERY_HELD in relaxations(x)) for r in runs)),
+            # accepted steps that eased the trocar's drift correction instead of an infeasible QP's stop (safety.stack)
+            "correction_eased_steps": int(sum(sum(1 for x in r.reasons if CORRECTION_EASED in relaxations(x)) for r in runs)),
             "solve_us": _quantiles(solve),
             "drake_diffik_us": _quantiles(drake),
             "realtime_factor": sim / wall if wall > 0 else None,

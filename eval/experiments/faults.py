@@ -146,7 +146,7 @@ def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: f
     s = campaign.summary()
     out = {"parameters": fc.parameters,
            **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "failsafe_stops",
-                                "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "max_rcm_error_um", "intervention_fraction", "tracking_rmse_mm_s", "realtime_factor",
+                                "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "correction_eased_steps", "max_rcm_error_um", "intervention_fraction", "tracking_rmse_mm_s", "realtime_factor",
                                 "realtime_factor_unlogged")},
            "model": model,
            "calibration_margin_mm": fc.campaign.filter.calibration_margin_mm,

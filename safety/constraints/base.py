@@ -64,7 +64,9 @@ class Constraint:
     `name`, `params()` and, for an inequality, `max_rows(group_size)`. `group`: the point
     group it reads (None: none); `field`: the field slot it keeps its points from (None:
     none); `intervenes`: a row of it at its bound means the filter changed the command;
-    `reports_clearance`: its points' field distances count as the boundary's clearance."""
+    `reports_clearance`: its points' field distances count as the boundary's clearance;
+    `drift_correction`: an equality whose right-hand side corrects a drift, which a step
+    with no other solution may scale down (safety.stack: correction eased)."""
 
     kind: ClassVar[str] = "inequality"
     filler: ClassVar[object] = None
@@ -72,6 +74,7 @@ class Constraint:
     field: str | None = None
     intervenes: bool = True
     reports_clearance: bool = False
+    drift_correction: bool = False
 
     name: str
 

@@ -96,6 +96,7 @@ class RcmEquality(Constraint):
     kind = "equality"
     filler = staticmethod(fill_rcm)
     intervenes = False
+    drift_correction = True  # b is the correction; a step with no other solution eases it (safety.stack)
 
     def __post_init__(self):
         check_finite_positive("RcmEquality", gain_per_s=self.gain_per_s, max_correction_mm_s=self.max_correction_mm_s)
