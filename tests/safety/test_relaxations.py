@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from safety import ConstraintStack, FilterConfig
-from safety.constraints import JointPositionLimits, LinearEquality, PointBarrier, RcmEquality
-from safety.stack import CORRECTION_EASED, RECOVERY_HELD, relaxations
+from safety.constraints import JointPositionLimits, JointSpeedLimits, LinearEquality, PointBarrier, RcmEquality
+from safety.stack import CORRECTION_EASED, EASED_SCALES, RECOVERY_HELD, relaxations
 from safety.tabulated_field import tabulate, tabulated_kernel
 
 GAIN, ERROR = 50.0, 0.1  # 1/s, mm: the RCM asks GAIN x ERROR = 5 mm/s along y
@@ -22,13 +24,15 @@ BARRIER = PointBarrier("boundary", "eye", d_safe_mm=0.5, gain_per_s=20.0, max_re
 CONFIG = FilterConfig(calibration_bound_mm=0.0, calibration_bound_deg=0.0)
 
 
-def step(h_mm: float, equality=None, extra=()):
-    """The filter's step on the toy with the tip at clearance h_mm, commanded 3 mm/s along x."""
-    equality = RcmEquality(np.array([0.0, ERROR, 0.0]), GAIN, group="trocar") if equality is None else equality
+def step(h_mm: float, equality=None, extra=(), normal=(0.0, -1.0, 0.0), error=(ERROR, 0.0)):
+    """The filter's step on the toy with the tip at clearance h_mm (the field's gradient
+    `normal`), the trocar `error` (y, z) mm off the shaft, commanded 3 mm/s along x."""
+    if equality is None:
+        equality = RcmEquality(np.array([0.0, error[0], error[1]]), GAIN, group="trocar")
     groups = {"boundary": 1, "trocar": 1}
     stack = ConstraintStack([BARRIER, equality, *extra], groups, {"eye": tabulated_kernel}, CONFIG, n_joints=3)
     P, J = np.zeros((2, 3)), np.tile(np.eye(3), (2, 1, 1))
-    table = tabulate([h_mm], [[0.0, -1.0, 0.0]], [0.0])
+    table = tabulate([h_mm], [normal], [0.0])
     out, _ = stack.solve(np.zeros(3), np.array([3.0, 0.0, 0.0, 0.0]), np.zeros(3), np.eye(3), np.zeros((0, 3)), P, J,
                          np.array([[0, 1], [1, 2]]), (table,))
     return out
@@ -76,3 +80,40 @@ def test_an_equality_that_is_no_drift_correction_is_never_eased():
     given = LinearEquality(np.array([[0.0, 1.0, 0.0]]), np.array([GAIN * ERROR]))
     out = step(0.65, equality=given)
     assert not out.ok and out.reason.startswith("QP: infeasible")
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(0.2, 1.5), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-0.2, 0.2),
+       st.floats(-0.2, 0.2))
+def test_the_step_is_the_first_relaxed_form_that_has_a_velocity(h, gx, gy, gz, ey, ez):
+    """Any wall normal, clearance and trocar error, joint speeds within 12 rad/s: the
+    filter's answer is the first of the forms (correction x1, x0.5, x0; recovery as asked,
+    then held) that has a velocity (for this toy: the free x joint can make up
+    |g_x| x 12 mm/s of the barrier's row), the trocar rows met at that scale exactly and the
+    barrier's row as that form asks it; a stop when none has one."""
+    g = np.array([gx, gy, gz])
+    assume(np.linalg.norm(g) > 0.1)
+    g /= np.linalg.norm(g)
+    vmax = 12.0
+    rhs = max(20.0 * (h - 0.5), -5.0)  # the barrier's row: -g . qdot <= rhs
+    b = GAIN * np.array([ey, ez])
+    forms = [(1.0, False)] + ([(1.0, True)] if rhs < 0 else [])
+    if np.any(b != 0.0):
+        for scale in EASED_SCALES:
+            forms += [(scale, False)] + ([(scale, True)] if rhs < 0 else [])
+
+    def slack(scale, hold):  # > 0: the form has a velocity
+        return (max(rhs, 0.0) if hold else rhs) + abs(g[0]) * vmax + g[1:] @ (scale * b)
+
+    assume(all(abs(slack(*f)) > 1e-6 for f in forms))  # away from the edges the solver's tolerance decides
+    expected = next((f for f in forms if slack(*f) > 0), None)
+    out = step(h, extra=(JointSpeedLimits(np.full(3, vmax)),), normal=g, error=(ey, ez))
+    if expected is None:
+        assert not out.ok and out.reason.startswith("QP: infeasible") and not out.qdot.any()
+        return
+    scale, hold = expected
+    want = ((CORRECTION_EASED,) if scale < 1.0 else ()) + ((RECOVERY_HELD,) if hold else ())
+    assert out.ok and relaxations(out.reason) == want and out.active[:len(want)] == want
+    np.testing.assert_allclose(out.qdot[1:], scale * b, atol=1e-6)
+    assert -g @ out.qdot <= (max(rhs, 0.0) if hold else rhs) + 1e-6
+    assert np.all(np.abs(out.qdot) <= vmax + 1e-6)
