@@ -178,6 +178,8 @@ class LocalConfig:
             raise ValueError(f"LocalConfig.spacing_deg must be in [0.5, 20] deg, got {self.spacing_deg}")
         if self.support_deg < 1.5 * self.spacing_deg or self.blend_deg < self.spacing_deg:
             raise ValueError("LocalConfig: support_deg must be >= 1.5 x spacing_deg and blend_deg >= spacing_deg")
+        if self.departure_deg < self.blend_deg:  # one neighbour table (within departure_deg) serves both
+            raise ValueError(f"LocalConfig: departure_deg ({self.departure_deg}) must be >= blend_deg ({self.blend_deg})")
         if self.sd_far_mm < self.sd_near_mm:
             raise ValueError(f"LocalConfig.sd_far_mm ({self.sd_far_mm}) must be >= sd_near_mm ({self.sd_near_mm})")
 
@@ -334,7 +336,7 @@ class LocalRetinaModel:
         predictions of the updates between read the last ones."""
         spread_departures(self._dirs, self._x, self._has, self._excess, self._dev, self._slope, self._near,
                           np.radians(self.config.spacing_deg), self._reach, self.config.departure_floor_mm, self._blend,
-                          self._extra)
+                          *self._neighbours(), self._extra)
         fill_trend(self._dirs, self._has, self._near, self.center, self._tp, np.cos(np.radians(self.config.trend_deg)),
                    self._x)
 
