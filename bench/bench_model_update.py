@@ -157,6 +157,13 @@ def local_field_figures(points: np.ndarray) -> None:
     kernel(params, Q)
     t = time_calls_us(lambda i: kernel(params, Q), 2000)
     print(f"  local field at 12 points (one control step's tip, port, shaft):        {summary_us(t)}")
+    for name, model, P in (("emmetropic", m, points), ("detached", None, paper_scan(make_eye("detached"), seed=0).points)):
+        if model is None:
+            model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+            for i in range(0, len(P), 20):
+                model.update(P[i:i + 20])
+        t = time_calls_us(lambda i: model.local.params(True), 50)
+        print(f"  local field's refresh (every 5 updates), {name} eye, paper spiral:      {summary_us(t)}")
 
 
 def run() -> None:

@@ -106,7 +106,8 @@ def neighbour_table(dirs, reach):
 
 
 @njit(cache=True)
-def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor, cross, nb_off, nb_idx, nb_ang, out):
+def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor, cross, nb_off, nb_idx, nb_ang,
+                      nx_off, nx_idx, nx_ang, out):
     """out (n,) mm^2: a node's variance beyond its quadratic's posterior.
 
     A node with data j: its excess plus the largest squared error of its quadratic at the
@@ -128,9 +129,10 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
     with the departure's linear extrapolation from k to j: beyond the edge of the data a
     pathology may go on rising where the data show it rising, and the field reads the
     global quadric there (the same departures loosen every node's prior: solve_node).
-    The pairs (k, j) come from the neighbour table (nb_off, nb_idx, nb_ang: neighbour_table
-    within at least max(reach, cross) rad): a data node's ~215 neighbours within 25 deg, not
-    the ~1,900 of its z band (5.5 ms -> 0.5 ms per field refresh on a staphyloma's model)."""
+    The pairs (k, j) come from two neighbour tables (neighbour_table): (nb_off, nb_idx,
+    nb_ang) within at least max(reach, cross) rad for a departing node k, (nx_off, nx_idx,
+    nx_ang) within at least `cross` for the others: a departing node's ~215 neighbours
+    within 25 deg and another's ~10 within 4.8, not the ~1,900 or ~380 of its z band."""
     n = dirs.shape[0]
     for k in range(n):
         out[k] = excess[k] if has[k] != 0.0 else 0.0
@@ -144,10 +146,11 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
         within = max(reach, cross) if spread else cross  # the departure's reach only where there is one
         if spread and near[k] < cos_e:  # a departing edge node's own value: extrapolated that far along the rise
             out[k] = max(out[k], excess[k] + (np.hypot(slope[k, 0], slope[k, 1]) * np.arccos(max(near[k], -1.0))) ** 2)
-        for i in range(nb_off[k], nb_off[k + 1]):  # the neighbours (k itself above)
-            if nb_ang[i] > within:
+        off, idx, ang = (nb_off, nb_idx, nb_ang) if spread else (nx_off, nx_idx, nx_ang)
+        for i in range(off[k], off[k + 1]):  # the neighbours (k itself above)
+            if ang[i] > within:
                 continue
-            j = nb_idx[i]
+            j = idx[i]
             c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
             rise = 0.0  # the departure's linear extrapolation from node k to node j (gnomonic, k's frame)
             if spread and c > 0.0:

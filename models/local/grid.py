@@ -336,7 +336,7 @@ class LocalRetinaModel:
         predictions of the updates between read the last ones."""
         spread_departures(self._dirs, self._x, self._has, self._excess, self._dev, self._slope, self._near,
                           np.radians(self.config.spacing_deg), self._reach, self.config.departure_floor_mm, self._blend,
-                          *self._neighbours(), self._extra)
+                          *self._neighbours(), *_neighbour_table_of(self.n_nodes, self.config.blend_deg), self._extra)
         fill_trend(self._dirs, self._has, self._near, self.center, self._tp, np.cos(np.radians(self.config.trend_deg)),
                    self._x)
 
