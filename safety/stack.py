@@ -47,13 +47,13 @@ RECOVERY_HELD = "recovery held"  # an active-row name: the step held its recover
 CORRECTION_EASED = "correction eased"  # an active-row name: the step scaled its drift corrections down (module docstring)
 EASED_SCALES = (0.5, 0.0)  # the drift corrections' scales tried, in order, on a step no other form solves
 RELAXATIONS = (CORRECTION_EASED, RECOVERY_HELD)  # in the order they lead a relaxed step's active rows and reason
+_FAULT_WORDS = {core.NONFINITE_Q: "non-finite q", core.NONFINITE_COMMAND: "non-finite v_cmd_W",
+                core.NONFINITE_J_TIP: "non-finite J_tip"}
 
 
 def relaxations(reason: str) -> tuple[str, ...]:
     """The relaxations (RELAXATIONS) a step with this FilterOutput reason was solved under."""
     return tuple(w for w in reason.split(", ") if w in RELAXATIONS)
-_FAULT_WORDS = {core.NONFINITE_Q: "non-finite q", core.NONFINITE_COMMAND: "non-finite v_cmd_W",
-                core.NONFINITE_J_TIP: "non-finite J_tip"}
 
 
 class ConstraintStack:
@@ -171,7 +171,7 @@ class ConstraintStack:
             solve_by_solver(qp, self.config.solver, core.ACTIVE_TOL, t0)
         if not result.ok and result.reason.startswith("infeasible"):
             relaxed = self.relaxed(qp, t0)
-            if relaxed is not None and relaxed.ok:
+            if relaxed is not None:
                 result, warm = relaxed, False  # the relaxed rows are not the step's: nothing to remember
         if not result.ok:
             self.reset()
@@ -184,21 +184,21 @@ class ConstraintStack:
         """The infeasible step's QP solved in its relaxed forms, in order (module docstring):
         recovery held; then each of EASED_SCALES on the drift corrections, with the recovery
         rows as asked, then held. The first that solves, its relaxations leading its active
-        rows; else the last failure (None: no form to try)."""
+        rows; None when none does. The eased rows are the equality rows in the constraints'
+        order (each equality writes its max_rows)."""
         recovering = bool(np.any(qp.h < 0.0))
         eased = self._eased if len(qp.b) == len(self._eased) and bool(np.any(qp.b[self._eased] != 0.0)) else None
         forms = [(1.0, True)] if recovering else []
         if eased is not None:
             for scale in EASED_SCALES:
                 forms += [(scale, False)] + ([(scale, True)] if recovering else [])
-        result = None
         for scale, hold in forms:
             b = qp.b if scale == 1.0 else np.where(eased, scale * qp.b, qp.b)
             result = solve(qp._replace(h=np.maximum(qp.h, 0.0) if hold else qp.h, b=b), self.config.solver)
             if result.ok:
                 marks = ((CORRECTION_EASED,) if scale < 1.0 else ()) + ((RECOVERY_HELD,) if hold else ())
                 return result._replace(active=(*marks, *result.active), solve_us=1e6 * (time.perf_counter() - t0))
-        return result
+        return None
 
     def finished(self, result: QPResult, clearance: float, port_clearance_mm: float | None,
                  off_command: bool) -> FilterOutput:

@@ -122,13 +122,13 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
     node itself too, whichever way the rise goes: its own value is extrapolated that far
     from its data); nearer the data the quadratics follow the rise, and the pointed eye's
     cap, which departs from its sphere everywhere, keeps its sigma between the scan lines:
-    36 um median within 2 deg of the data, 58 um with every data node's distance counted). A node without data j: the
-    largest unseen_departure_variance of the data nodes k within `reach` rad whose
-    departure |dev[k]| > floor mm (dev: the mean radius of a node's data less the global
-    radius there; slope (n, 2) its rate along the node's frame, both at its last solve),
-    with the departure's linear extrapolation from k to j: beyond the edge of the data a
-    pathology may go on rising where the data show it rising, and the field reads the
-    global quadric there (the same departures loosen every node's prior: solve_node).
+    36 um median within 2 deg of the data, 58 um with every data node's distance counted).
+    A node without data j: the largest unseen_departure_variance of the data nodes k within
+    `reach` rad whose departure |dev[k]| > floor mm (dev: the mean radius of a node's data
+    less the global radius there; slope (n, 2) its rate along the node's frame, both at its
+    last solve), with the departure's linear extrapolation from k to j: beyond the edge of
+    the data a pathology may go on rising where the data show it rising, and the field reads
+    the global quadric there (the same departures loosen every node's prior: solve_node).
     The pairs (k, j) come from two neighbour tables (neighbour_table): (nb_off, nb_idx,
     nb_ang) within at least max(reach, cross) rad for a departing node k, (nx_off, nx_idx,
     nx_ang) within at least `cross` for the others: a departing node's ~215 neighbours

@@ -178,7 +178,7 @@ class LocalConfig:
             raise ValueError(f"LocalConfig.spacing_deg must be in [0.5, 20] deg, got {self.spacing_deg}")
         if self.support_deg < 1.5 * self.spacing_deg or self.blend_deg < self.spacing_deg:
             raise ValueError("LocalConfig: support_deg must be >= 1.5 x spacing_deg and blend_deg >= spacing_deg")
-        if self.departure_deg < self.blend_deg:  # one neighbour table (within departure_deg) serves both
+        if self.departure_deg < self.blend_deg:  # a departing node's table (departure_deg) holds its blend neighbours too
             raise ValueError(f"LocalConfig: departure_deg ({self.departure_deg}) must be >= blend_deg ({self.blend_deg})")
         if self.sd_far_mm < self.sd_near_mm:
             raise ValueError(f"LocalConfig.sd_far_mm ({self.sd_far_mm}) must be >= sd_near_mm ({self.sd_near_mm})")
