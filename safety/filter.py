@@ -80,7 +80,8 @@ class SafetyFilter:
         while always < k and x.boundary_points[always].name in ALWAYS_KEPT:
             always += 1
         has_rcm = x.rcm_A is not None
-        rcm = LinearEquality(np.atleast_2d(x.rcm_A), np.atleast_1d(x.rcm_b), refusal=x.rcm_refusal) if has_rcm else None
+        rcm = LinearEquality(np.atleast_2d(x.rcm_A), np.atleast_1d(x.rcm_b), refusal=x.rcm_refusal,
+                             drift_correction=True) if has_rcm else None  # the RCM's b: its correction
         constraints = default_constraints(self.config, x.q_min, x.q_max, x.qdot_max, (("boundary", "eye", always),),
                                           ("lens", "lens") if m else None, rcm, self.extra)
         if x.pending is not None:  # the actuator the inputs describe

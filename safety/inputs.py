@@ -88,7 +88,8 @@ class FilterInputs:
     """One control step's inputs (mm, s, rad; W frame).
 
     `boundary_points` must stay inside the retina model, `lens_points` outside the lens
-    keep-out; `rcm_A qdot = rcm_b` are the RCM rows; `model` answers signed_distance and
+    keep-out; `rcm_A qdot = rcm_b` are the RCM rows (rcm_b their drift correction, which
+    a step with no other solution eases: safety.stack); `model` answers signed_distance and
     gradient (> 0 inside); `margin_mm` is added to d_safe (model uncertainty);
     `model_time_s` / `sensor_time_s` are the times of the last model update and sensor
     sample, checked against `t_s`. `fallback` (a shape inside every plausible retina,

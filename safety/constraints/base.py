@@ -97,8 +97,10 @@ class Constraint:
         return f"{self.name}: fault {code}"
 
     def key(self) -> tuple:
-        """What the assembled step depends on (not the parameter values)."""
-        return (type(self).__module__, type(self).__qualname__, self.kind, self.group, self.field)
+        """What the assembled step depends on (not the parameter values): also whether its
+        equality rows are a drift correction (the stack's relaxed forms read it)."""
+        return (type(self).__module__, type(self).__qualname__, self.kind, self.group, self.field,
+                bool(self.drift_correction))
 
 
 def as_params(*parts) -> np.ndarray:

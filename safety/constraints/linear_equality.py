@@ -30,12 +30,15 @@ def fill_linear_equality(sp, q, A, b, p):
 @dataclass(frozen=True, eq=False)
 class LinearEquality(Constraint):
     """Rows A (r, n) qdot = b (r,) (rad/s in, the rows' units out); a non-empty `refusal`
-    refuses the step with it as the reason."""
+    refuses the step with it as the reason; `drift_correction`: b corrects a drift (the
+    RCM's rows: gain x the lateral error), which a step with no other solution may scale
+    down (safety.stack)."""
 
     A: np.ndarray
     b: np.ndarray
     name: str = "rcm"
     refusal: str = ""
+    drift_correction: bool = False
 
     kind = "equality"
     filler = staticmethod(fill_linear_equality)

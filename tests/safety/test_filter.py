@@ -19,10 +19,11 @@ DT = 1e-3
 NO_CALIBRATION = FilterConfig(calibration_bound_mm=0.0, calibration_bound_deg=0.0)  # the margin is d_safe alone
 
 
-def inputs(p, v_cmd, t=0.0, model=EYE, model_time=0.0, sensor_time=0.0, **kw):
+def inputs(p, v_cmd, t=0.0, model=EYE, model_time=0.0, sensor_time=0.0, q_min=None, **kw):
     p = np.asarray(p, float)
     return FilterInputs(
-        t_s=t, q=p, q_min=np.full(3, -50.0), q_max=np.full(3, 50.0), qdot_max=np.full(3, 100.0),
+        t_s=t, q=p, q_min=np.full(3, -50.0) if q_min is None else q_min, q_max=np.full(3, 50.0),
+        qdot_max=np.full(3, 100.0),
         v_cmd_W=np.asarray(v_cmd, float), J_tip=np.eye(3),
         boundary_points=[PointKinematics("tip", p, np.eye(3))],
         model=model, model_time_s=model_time, sensor_time_s=sensor_time, **kw,
@@ -92,7 +93,8 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
         (dict(t=1.0, model_time=0.0, sensor_time=1.0), "stale model"),
         (dict(t=1.0, model_time=1.0, sensor_time=0.5), "stale sensor"),
         (dict(model=None), "no eye model"),
-        (dict(rcm_A=np.array([[1.0, 0, 0], [1.0, 0, 0]]), rcm_b=np.array([1.0, -1.0])), "QP"),
+        # the RCM asks x at 1 mm/s (eased: 0.5, 0) while x lies 1 below its limit (its bound: >= 10 rad/s)
+        (dict(rcm_A=np.array([[1.0, 0, 0]]), rcm_b=np.array([1.0]), q_min=np.array([1.0, -50.0, -50.0])), "QP"),
     ],
 )
 def test_faults_command_zero_velocity_and_say_why(kw, reason):
