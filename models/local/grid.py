@@ -324,10 +324,10 @@ class LocalRetinaModel:
                     self._excess, self._has, self._listed, self._solved_w)
         self._n_dirty = 0
 
-    def _neighbours(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The grid's neighbour table within departure_deg (shared by every model of the
-        process, never copied with one: ~16 MB)."""
-        return _neighbour_table_of(self.n_nodes, self.config.departure_deg)
+    def _neighbours(self, reach_deg: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The grid's neighbour table within reach_deg (default departure_deg; shared by every
+        model of the process, never copied with one: ~16 MB at 25 deg)."""
+        return _neighbour_table_of(self.n_nodes, self.config.departure_deg if reach_deg is None else reach_deg)
 
     def _spread(self) -> None:
         """The nodes without data take the departure of the data nodes near them
@@ -336,7 +336,7 @@ class LocalRetinaModel:
         predictions of the updates between read the last ones."""
         spread_departures(self._dirs, self._x, self._has, self._excess, self._dev, self._slope, self._near,
                           np.radians(self.config.spacing_deg), self._reach, self.config.departure_floor_mm, self._blend,
-                          *self._neighbours(), *_neighbour_table_of(self.n_nodes, self.config.blend_deg), self._extra)
+                          *self._neighbours(), *self._neighbours(self.config.blend_deg), self._extra)
         fill_trend(self._dirs, self._has, self._near, self.center, self._tp, np.cos(np.radians(self.config.trend_deg)),
                    self._x)
 
