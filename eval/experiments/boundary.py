@@ -162,6 +162,14 @@ def start_at(loop: ClosedLoop, model_shape, u_E, depth_mm: float):
     return None if np.min(robot.joint_margin_rad(q)) < np.radians(3.0) else q
 
 
+# The keys of Campaign.summary() a campaign's report carries (boundary.json, faults.json) and prints:
+# its safety, its stops and relaxed steps, its RCM and tracking, its speed (the filter's solve
+# times, "solve_us" and "drake_diffik_us", are printed in a line of their own).
+CAMPAIGN_KEYS = ("scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction",
+                 "tracking_rmse_mm_s", "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps",
+                 "correction_eased_steps", "max_rcm_error_um", "realtime_factor", "realtime_factor_unlogged")
+
+
 @dataclass
 class Campaign:
     """Adversarial runs against one model (a phase), summarised by `summary()`."""

@@ -38,7 +38,7 @@ import dataclasses
 
 import numpy as np
 
-from eval.experiments.boundary import build_model_by_spiral, reason_class, run_campaign
+from eval.experiments.boundary import CAMPAIGN_KEYS, build_model_by_spiral, reason_class, run_campaign
 from eval.experiments.model_report import model_summary
 from planning import SurgeryScenario
 from planning.iioct.stream import StreamFault
@@ -145,9 +145,7 @@ def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: f
     campaign = run_campaign(loop, build.model, build.coverage, n, seed, duration_s, progress=progress, **campaign_kwargs)
     s = campaign.summary()
     out = {"parameters": fc.parameters,
-           **{k: s[k] for k in ("scenarios", "violations", "contacts", "min_true_clearance_mm", "failsafe_stops",
-                                "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "correction_eased_steps", "max_rcm_error_um", "intervention_fraction", "tracking_rmse_mm_s", "realtime_factor",
-                                "realtime_factor_unlogged")},
+           **{k: s[k] for k in CAMPAIGN_KEYS},
            "model": model,
            "calibration_margin_mm": fc.campaign.filter.calibration_margin_mm,
            "spiral_min_true_clearance_mm": float(build.run.true_clearance_mm.min())}
