@@ -4,8 +4,6 @@ Points and quadrics are in the fits' scaled coordinates (models.fit.ellipsoid_fi
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
@@ -16,19 +14,22 @@ _DIRECTIONS = unit_sphere_grid(12, 24)  # 288 directions over the whole surface
 
 
 @njit(cache=True, error_model="numpy")  # a zero length divides as NumPy divides: inf, NaN
-def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm, anterior_norm):
-    """drift_and_gap over the directions D (K, 3), the anterior direction normalised by
-    `anterior_norm` (its length as NumPy computes it: the crop test of a point can hang on
-    its last bits). All in the fits' scaled coordinates ((x - p0) / scale, computed
-    element by element as NumPy's array arithmetic computes them); one pass, no temporary
-    arrays but X and the heights h along the anterior direction."""
+def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm):
+    """drift_and_gap over the directions D (K, 3). All in the fits' scaled coordinates
+    ((x - p0) / scale, computed element by element as NumPy's array arithmetic computes
+    them, and the anterior direction's length by np.dot, NumPy's own: the crop test of a
+    point can hang on its last bits); one pass, no temporary arrays but X and the heights
+    h along the anterior direction."""
     center, radii, anterior, c_sf = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     for i in range(3):
         center[i] = (center_mm[i] - p0[i]) / scale
         radii[i] = radii_mm[i] / scale
         # from the points' centroid to the centre: the scanned retina lies opposite the front of the eye
-        anterior[i] = (center[i] - S[6 + i, 9] / (2.0 * S[9, 9])) / anterior_norm
+        anterior[i] = center[i] - S[6 + i, 9] / (2.0 * S[9, 9])
         c_sf[i] = (c_sf_mm[i] - p0[i]) / scale
+    anterior_norm = np.sqrt(np.dot(anterior, anterior))
+    for i in range(3):
+        anterior[i] /= anterior_norm
     crop, r_sf = crop_mm / scale, r_sf_mm / scale
     K = D.shape[0]
     X = np.empty((K, 3))
@@ -61,7 +62,4 @@ def drift_and_gap(center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c
     distance from the quadric v_old (10,), the gap the distance from the sphere (c_sf_mm
     (3,), r_sf_mm mm). The quadric, S and the results are in the fits' scaled coordinates
     ((x - p0) / scale, p0 (3,) mm); NaNs and K = 0 when the cap covers the whole ellipsoid."""
-    anterior = (center_mm - p0) / scale - S[6:9, 9] / (2.0 * S[9, 9])
-    return _drift_and_gap(_DIRECTIONS, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm,
-                          math.sqrt(anterior.dot(anterior)))
-
+    return _drift_and_gap(_DIRECTIONS, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm)

@@ -13,7 +13,8 @@ from typing import NamedTuple
 import numpy as np
 
 from models.adaptive.extrapolation import drift_and_gap
-from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, taubin_residual
+from models.fit.ellipsoid_fit import LENGTH_SCALE_MM
+from models.fit.quadric_residuals import residuals_since
 from models.shapes.validation import check_count, check_positive
 
 
@@ -204,8 +205,8 @@ class PredictiveCriteria:
         gain, better = np.nan, False
         if old_ef is not None and 0 <= w < len(mem.n) - 1 and mem.v_sf[j] is not None:
             # RMS errors (mm) of the old sphere and ellipsoid over the points since checkpoint w
-            errors = LENGTH_SCALE_MM * taubin_residual(snap.S - mem.S[w], np.array([mem.v_sf[j], old_ef]))
-            e_sf, e_ef = errors.tolist()
+            e_sf, e_ef = residuals_since(snap.S, mem.S[w], mem.v_sf[j], old_ef)
+            e_sf, e_ef = LENGTH_SCALE_MM * e_sf, LENGTH_SCALE_MM * e_ef
             gain, better = e_sf - e_ef, e_ef < e_sf
         mem.last["prediction"] = (gain, better)
 

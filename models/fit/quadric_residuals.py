@@ -44,6 +44,18 @@ def taubin_residuals(S, V):
 
 
 @njit(cache=True)
+def residuals_since(S, S_old, v1, v2):
+    """(e1, e2): taubin_residuals of the quadrics v1 and v2 (10,) over the points added to a
+    scatter matrix since it was S_old (S - S_old), in one compiled call (a checkpoint's
+    prequential errors: models.adaptive.transition)."""
+    V = np.empty((2, 10))
+    V[0, :] = v1
+    V[1, :] = v2
+    e = taubin_residuals(S - S_old, V)
+    return e[0], e[1]
+
+
+@njit(cache=True)
 def sampson_one(v, x, y, z):
     """|Q| / |grad Q| of the point (x, y, z) (scaled coordinates) from the quadric v (10,):
     Sampson's first-order distance (scaled units; inf where the gradient vanishes)."""

@@ -45,8 +45,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_scatter
-from models.fit.quadric_kernels import design_row
+from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit
+from models.fit.quadric_kernels import FIT_STATUS, design_row, fit_ellipsoid_scatter
 from models.fit.quadric_residuals import sampson_one
 from models.fit.robust_fit import RobustFitConfig, biweight_one, tukey_rho
 
@@ -56,7 +56,7 @@ def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
     """Weigh the scaled points X[i0:i1] by the biweight (biweight_one) of their Sampson
     distance from the quadric v (scaled units; cut-off `cutoff` scaled; weight 1 without a
     fit), write the weights to w[i0:i1] and add their weighted design rows to S (10, 10)'s
-    upper triangle in place (the lower is its mirror: lower_from_upper at the pass's end,
+    upper triangle in place (the lower is its mirror: close_pass at the pass's end,
     half the work per point); returns how many got a weight > 0."""
     m = np.empty(10)
     inliers = 0
@@ -76,11 +76,16 @@ def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
 
 
 @njit(cache=True)
-def lower_from_upper(S):
-    """S (n, n) made symmetric in place from its upper triangle."""
-    for i in range(S.shape[0]):
+def close_pass(S, p0, scale):
+    """The running pass's end: S (10, 10) made symmetric from its upper triangle, the
+    ellipsoid fitted to it (fit_ellipsoid_scatter's (code, v, centre, semi-axes, rotation))
+    and S zeroed in place for the next pass."""
+    for i in range(10):
         for j in range(i):
             S[i, j] = S[j, i]
+    fit = fit_ellipsoid_scatter(S, p0, scale, True)
+    S[:, :] = 0.0
+    return fit
 
 
 @njit(cache=True)
@@ -104,11 +109,16 @@ def sphere_loss(X, i0, i1, c, r, cutoff):
 
 
 @njit(cache=True)
-def step_rows(S, X, w, i0, n, cursor, end, chunk, v, weighing, cutoff, scored, rival, c, r):
+def step_rows(S, X, w, i0, n, cursor, end, chunk, v, weighing, cutoff, scored, rival, c_mm, r_mm, p0, scale):
     """One step's compiled work (StreamingRobustFit.step): the pending points X[i0:n]'
-    biweight losses under the fit v (when `scored`) and the sphere (c, r) (when `rival`),
-    their weights, then the running pass's points X[cursor:min(cursor + chunk, end)]'
-    (weigh_rows into S). Returns (loss, rival loss, points given a weight > 0, new cursor)."""
+    biweight losses under the fit v (when `scored`) and the sphere of centre c_mm (3,) and
+    radius r_mm, mm (when `rival`; scaled here like the points: (x - p0) / scale), their
+    weights, then the running pass's points X[cursor:min(cursor + chunk, end)]' (weigh_rows
+    into S). Returns (loss, rival loss, points given a weight > 0, new cursor)."""
+    c = np.empty(3)
+    for i in range(3):
+        c[i] = (c_mm[i] - p0[i]) / scale
+    r = r_mm / scale
     loss = biweight_loss(X, i0, n, v, cutoff) if scored and n > i0 else 0.0
     rival_loss = sphere_loss(X, i0, n, c, r, cutoff) if scored and rival and n > i0 else 0.0
     inliers = weigh_rows(S, X, w, i0, n, v, weighing, cutoff) if n > i0 else 0
@@ -228,7 +238,7 @@ class StreamingRobustFit:
         """The averages over about `memory` and `hold_memory` added points, of which k stored
         ones scored `loss` (scaled units^2, a sum)."""
         loss *= LENGTH_SCALE_MM ** 2 / k
-        if np.isnan(current):
+        if current != current:  # NaN: the first score
             return loss, loss
         n = k * self.stride
         return (current + min(n / self.memory, 1.0) * (loss - current), held + min(n / self.hold_memory, 1.0) * (loss - held))
@@ -240,14 +250,12 @@ class StreamingRobustFit:
         i0, n = self._taken, self._n
         k, received = n - i0, self._received
         self._received = 0
-        scored, has_rival = self.last_ok is not None, rival is not None
-        c, r = _NO_CENTER, 0.0
-        if scored and has_rival and k:
-            c, r = (np.asarray(rival.center, dtype=float) - self.p0) / LENGTH_SCALE_MM, float(rival.radius) / LENGTH_SCALE_MM
+        scored, has_rival = self.last_ok is not None, rival is not None and k > 0
         cursor = self._cursor
         loss, rival_loss, inliers, self._cursor = step_rows(
             self._next, self._X, self._w, i0, n, cursor, self._end, max(self.min_chunk, self.chunk_per_point * received), self._v,
-            self._weighing(), self._cut, scored, has_rival, c, r)
+            self._weighing(), self._cut, scored, has_rival, rival.center if has_rival else _NO_CENTER,
+            float(rival.radius) if has_rival else 0.0, _NO_CENTER if self.p0 is None else self.p0, LENGTH_SCALE_MM)
         if k:
             if scored:
                 self.loss_mm2, self.held_loss_mm2 = self._score(loss, k, self.loss_mm2, self.held_loss_mm2)
@@ -259,14 +267,13 @@ class StreamingRobustFit:
         self.last_step_weighed = self._cursor - cursor
         if self._cursor < self._end or n == 0:
             return None
-        lower_from_upper(self._next)
-        fit = fit_scatter(self._next, self.p0)
+        code, v, center, radii, rotation = close_pass(self._next, self.p0, LENGTH_SCALE_MM)
+        fit = EllipsoidFit(FIT_STATUS[code]) if code else EllipsoidFit("ok", center, radii, rotation, v=v)
         self.passes += 1
         restart = not self._plain and self._settling == 0 and self._inliers < self.config.min_inlier_fraction * n
         self._settling = self.config.iterations if restart else max(self._settling - 1, 0)
         self._plain = restart or self.last_ok is None
         if fit.ok:
             self.last_ok, self._v = fit, fit.v
-        self._next = np.zeros((10, 10))
         self._cursor, self._end, self._inliers = 0, n, 0
         return fit if fit.ok else None

@@ -75,7 +75,7 @@ def local_step(P, c0, gp_old, prior_old, gp, prior, tp, gate, dirs, support, tra
         for i in range(rest):
             dirty[i] = dirty[count_ + i]
         n_dirty = rest
-    if n_data:
+    if n_data and sweep:
         nodes = np.empty(sweep, dtype=np.int64)
         keep = np.empty(sweep, dtype=np.bool_)
         for s in range(sweep):

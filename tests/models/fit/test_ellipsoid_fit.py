@@ -272,3 +272,22 @@ def test_non_finite_points_are_refused(bad):
     P[5, 1] = bad
     with pytest.raises(ValueError, match="P contains NaN or inf"):
         fit_ellipsoid(P)
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 10_000), n_old=st.integers(10, 200), n_new=st.integers(10, 200))
+def test_residuals_since_a_checkpoint_are_the_rms_distances_of_the_new_points(seed, n_old, n_new):
+    # the prequential check's errors: the quadrics' RMS (Taubin) distance over only the points added since
+    from models.fit.quadric_kernels import add_design_rows
+    from models.fit.quadric_residuals import residuals_since, taubin_residuals
+    rng = np.random.default_rng(seed)
+    ell = Ellipsoid(np.zeros(3), np.array([12.0, 11.5, 10.5]))
+    P = ell.sample_surface(20, 40, z_max=3.0)[rng.permutation(800)[:n_old + n_new]] + rng.normal(0, 0.05, (n_old + n_new, 3))
+    p0, S_old, S_new, S = P[0], np.zeros((10, 10)), np.zeros((10, 10)), np.zeros((10, 10))
+    add_design_rows(S_old, P[:n_old], p0, ellipsoid_fit.LENGTH_SCALE_MM)
+    add_design_rows(S_new, P[n_old:], p0, ellipsoid_fit.LENGTH_SCALE_MM)
+    S[:] = S_old + S_new
+    v1, v2 = ellipsoid_fit.fit_scatter(S, p0).v, ellipsoid_fit.fit_scatter(S_old, p0).v
+    e1, e2 = residuals_since(S, S_old, v1, v2)
+    assert (e1, e2) == tuple(taubin_residuals(S - S_old, np.array([v1, v2])))  # the same arithmetic
+    np.testing.assert_allclose([e1, e2], taubin_residuals(S_new, np.array([v1, v2])), rtol=1e-6)

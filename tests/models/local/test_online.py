@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from models import Ellipsoid, Sphere
-from models.local.grid import LocalRetinaModel
+from models.local.grid import LocalConfig, LocalRetinaModel, sweep_share
 from models.local.kernels import global_params
 from models.local.online import holds
 
@@ -47,3 +47,28 @@ def test_every_node_some_point_weighed_is_recorded_once(seed, batch):
     recorded = m._data_nodes[:m._n_data]
     assert len(np.unique(recorded)) == len(recorded)
     assert set(recorded.tolist()) == set(np.flatnonzero(m._wsum > 0.0).tolist())
+
+
+@settings(max_examples=200, deadline=None)
+@given(sizes=st.lists(st.integers(0, 60), min_size=1, max_size=80), rate=st.sampled_from([0.2, 0.25, 0.5, 1.0, 0.1]))
+def test_the_sweep_owes_its_rate_per_point_over_any_split(sizes, rate):
+    # a stream of single A-scans and one of the loop's packets re-solve as many nodes per point
+    credit, total = 0.0, 0
+    for n in sizes:
+        nodes, credit = sweep_share(credit, rate, n)
+        assert nodes >= 0 and 0.0 <= credit < 1.0
+        total += nodes
+    assert total == int(np.floor(rate * sum(sizes) + 1e-6))
+
+
+def test_packets_of_twenty_sweep_four_nodes_each_and_single_points_one_in_five():
+    credit, per_packet = 0.0, []
+    for _ in range(50):
+        nodes, credit = sweep_share(credit, LocalConfig().sweep_per_point, 20)
+        per_packet.append(nodes)
+    assert per_packet == [4] * 50
+    credit, singles = 0.0, []
+    for _ in range(50):
+        nodes, credit = sweep_share(credit, LocalConfig().sweep_per_point, 1)
+        singles.append(nodes)
+    assert singles == [0, 0, 0, 0, 1] * 10
