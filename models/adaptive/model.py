@@ -33,7 +33,7 @@ EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5
 # from the data, where an eye's globe is trusted to 0.3 mm.
 EYE_AXIS_RATIO_MAX = 1.25
 GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
-GLOBE_BATCH = 5  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
+GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
 
 
 def eyes_radii(r0: float, r1: float, r2: float) -> bool:
