@@ -59,7 +59,12 @@ def fit_scatter(S: np.ndarray, p0: np.ndarray, scale: float = LENGTH_SCALE_MM, c
     """Fit an ellipsoid to the points summarised by scatter matrix S (see module doc).
     `check_spread=False` skips the collinear/coplanar test (for a caller that knows the
     cloud is already spread in 3-D); too few points are always refused."""
-    code, v, center, radii, rotation = fit_ellipsoid_scatter(S, p0, scale, check_spread)
+    return fit_of(fit_ellipsoid_scatter(S, p0, scale, check_spread))
+
+
+def fit_of(result) -> EllipsoidFit:
+    """The EllipsoidFit of fit_ellipsoid_scatter's (code, v, centre, semi-axes, rotation)."""
+    code, v, center, radii, rotation = result
     if code:
         return EllipsoidFit(FIT_STATUS[code])
     return EllipsoidFit("ok", center, radii, rotation, v=v)

@@ -45,8 +45,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit
-from models.fit.quadric_kernels import FIT_STATUS, design_row, fit_ellipsoid_scatter
+from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_of
+from models.fit.quadric_kernels import design_row, fit_ellipsoid_scatter
 from models.fit.quadric_residuals import sampson_one
 from models.fit.robust_fit import RobustFitConfig, biweight_one, tukey_rho
 
@@ -267,8 +267,7 @@ class StreamingRobustFit:
         self.last_step_weighed = self._cursor - cursor
         if self._cursor < self._end or n == 0:
             return None
-        code, v, center, radii, rotation = close_pass(self._next, self.p0, LENGTH_SCALE_MM)
-        fit = EllipsoidFit(FIT_STATUS[code]) if code else EllipsoidFit("ok", center, radii, rotation, v=v)
+        fit = fit_of(close_pass(self._next, self.p0, LENGTH_SCALE_MM))
         self.passes += 1
         restart = not self._plain and self._settling == 0 and self._inliers < self.config.min_inlier_fraction * n
         self._settling = self.config.iterations if restart else max(self._settling - 1, 0)
