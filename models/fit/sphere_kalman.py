@@ -72,5 +72,5 @@ class SphereKalmanFilter:
         """The current Sphere estimate (mm, frame of the points), or None; the same object
         until the filter takes points."""
         if self._sphere is None and self.state is not None:
-            self._sphere = Sphere(*self.center_radius)
+            self._sphere = Sphere.of_fit(*self.center_radius)
         return self._sphere

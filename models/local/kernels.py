@@ -225,11 +225,14 @@ def solve_nodes(nodes, count, dirs, c0, gp, tp, A, b, rr, wsum, near, prior, rea
         solved_w[k] = wsum[k]
 
 
+_IDENTITY = np.eye(3).ravel()
+
+
 def global_params(shape) -> np.ndarray:
     """The kernels' (GLOBAL_SIZE,) packing of a models.Sphere or Ellipsoid."""
     gp = np.zeros(GLOBAL_SIZE)
     if hasattr(shape, "radii"):
         gp[0], gp[1:4], gp[4:13], gp[13:16] = ELLIPSOID, shape.center, np.asarray(shape.rotation).ravel(), shape.radii
     else:
-        gp[0], gp[1:4], gp[4:13], gp[13] = SPHERE, shape.center, np.eye(3).ravel(), shape.radius
+        gp[0], gp[1:4], gp[4:13], gp[13] = SPHERE, shape.center, _IDENTITY, shape.radius
     return gp

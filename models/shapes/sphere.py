@@ -59,6 +59,22 @@ class Sphere:
     def __deepcopy__(self, memo) -> Sphere:
         return self  # immutable: a copy would only turn its read-only centre writeable
 
+    @classmethod
+    def of_fit(cls, center: np.ndarray, radius: float) -> Sphere:
+        """The Sphere of a fit's centre (a float64 (3,) array of its own, which it then holds
+        read-only) and radius mm, without the constructor's checks of the centre (the
+        sphere filter makes a new one after every update: 0.8 us against 2.7 us); a radius
+        that is not finite and > 0 goes to the checked constructor, which refuses it."""
+        radius = float(radius)
+        if not (0.0 < radius < np.inf and center.dtype == np.float64 and center.shape == (3,)
+                and -np.inf < sum(center.tolist()) < np.inf):  # a NaN or an inf makes the sum one
+            return cls(center, radius)
+        sphere = object.__new__(cls)
+        center.setflags(write=False)
+        object.__setattr__(sphere, "center", center)
+        object.__setattr__(sphere, "radius", radius)
+        return sphere
+
     @property
     def volume(self) -> float:
         """Enclosed volume in mm^3."""
