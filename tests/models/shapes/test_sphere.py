@@ -143,3 +143,21 @@ def test_bad_points_are_refused(Q):
     P = np.vstack([np.eye(3), -np.eye(3)])
     with pytest.raises(ValueError, match="P"):
         fit_sphere(np.vstack([P, Q]) if np.shape(Q)[1] == 3 else P[:, :2])
+
+
+@PROPERTY
+@given(spheres)
+def test_of_fit_holds_what_the_checked_constructor_holds(s):
+    # the sphere filter's unchecked constructor: the same sphere, its centre read-only
+    fit = Sphere.of_fit(np.array(s.center, dtype=float), s.radius)
+    np.testing.assert_array_equal(fit.center, s.center)
+    assert fit.radius == s.radius and not fit.center.flags.writeable
+    Q = cap(s, 0, n=20) * 0.9
+    np.testing.assert_array_equal(fit.signed_distance(Q), s.signed_distance(Q))
+
+
+@pytest.mark.parametrize("center, radius", [([np.nan, 0.0, 0.0], 11.0), ([0.0, np.inf, 0.0], 11.0), ([0.0, 0.0, 0.0], 0.0),
+                                            ([0.0, 0.0, 0.0], -1.0), ([0.0, 0.0, 0.0], np.nan)])
+def test_of_fit_refuses_what_the_checked_constructor_refuses(center, radius):
+    with pytest.raises(ValueError, match="must be finite|radius"):
+        Sphere.of_fit(np.array(center), radius)
