@@ -141,13 +141,10 @@ class LocalConfig:
     it to there. Replayed loop points (seed 0, the paper's spiral pitch at 10 mm/s):
     scanned p95 631 um without the trend, 55 / 33 / 30 / 30 um with 10 / 12 / 15 / 20 deg,
     3-sigma coverage 1.000 and no unsafe-side miss in each.
-    `solves_per_point` 4 and `sweep_per_point` 0.2: per point an update is given, up to 4
-    solves of the nodes the points touched and 0.2 re-solves of the nodes with data in turn
-    (the global prior they read moves with the global fit): 4 per sensor packet of 20
-    A-scans, one per 5 A-scans fed one at a time (4 per call would re-solve a stream of
-    single A-scans' nodes 20 times as often as the loop's packets, at 5.5 us per A-scan;
-    the loop's packets of 20 need 43 solves on average, p90 55, within their 80; 8 per
-    point would be spent on every single A-scan, 2.2 per A-scan in packets)."""
+    `solves_per_point` 4, `sweep_per_point` 0.2: per point given, up to 4 solves of the nodes
+    it touched and 0.2 re-solves of the nodes with data in turn (the global prior moves): 4
+    per packet of 20 A-scans, 1 per 5 single A-scans (a packet needs 43 solves on average,
+    p90 55; 8 per point would be spent on every single A-scan, 2.2 per A-scan in packets)."""
 
     spacing_deg: float = 3.0
     support_deg: float = 9.0
@@ -187,8 +184,13 @@ class LocalConfig:
             raise ValueError("LocalConfig: support_deg must be >= 1.5 x spacing_deg and blend_deg >= spacing_deg")
         if self.departure_deg < self.blend_deg:  # a departing node's table (departure_deg) holds its blend neighbours too
             raise ValueError(f"LocalConfig: departure_deg ({self.departure_deg}) must be >= blend_deg ({self.blend_deg})")
-        if not (np.isfinite(self.sweep_per_point) and self.sweep_per_point >= 0.0):
-            raise ValueError(f"LocalConfig.sweep_per_point must be finite and >= 0, got {self.sweep_per_point}")
+        for name, least in (("solves_per_point", 0), ("refresh", 1)):  # the compiled step trusts them (no bounds checks)
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and v >= least):
+                raise ValueError(f"LocalConfig.{name} must be an integer >= {least}, got {v!r}")
+        if self.fitted_terms not in (1, 3, 6) or not (np.isfinite(self.sweep_per_point) and self.sweep_per_point >= 0.0):
+            raise ValueError(f"LocalConfig: fitted_terms must be 1, 3 or 6 and sweep_per_point finite and >= 0, got "
+                             f"{self.fitted_terms!r}, {self.sweep_per_point!r}")
         if self.sd_far_mm < self.sd_near_mm:
             raise ValueError(f"LocalConfig.sd_far_mm ({self.sd_far_mm}) must be >= sd_near_mm ({self.sd_near_mm})")
 
@@ -306,9 +308,8 @@ class LocalRetinaModel:
         prior = self._prior if gp is None else self._priors[int(gp[0] == ELLIPSOID)]
         cfg, cal = self.config, self.calibration
         pred = np.empty((len(P), 6))
-        sweep = 0
-        if gp is not None:  # the sweep runs on a global model: its re-solves are owed from then on
-            sweep, self._sweep_credit = sweep_share(self._sweep_credit, cfg.sweep_per_point, len(P))
+        sweep, self._sweep_credit = (0, self._sweep_credit) if gp is None else sweep_share(  # owed once there is a global model
+            self._sweep_credit, cfg.sweep_per_point, len(P))
         self._n_dirty, taken, self._n_data, self._sweep_at = local_step(
             P, self.center, old, self._prior, _NO_GLOBAL if gp is None else gp, prior, self._tp, self._gate, self._dirs,
             self._support, self._track, self._blend, cfg.relist_growth, max(len(P), 1) * cfg.solves_per_point,

@@ -444,3 +444,14 @@ def test_past_the_data_the_field_reads_the_trend_quadric():
     V = np.c_[np.sin(far) * np.cos(phi), np.sin(far) * np.sin(phi), -np.cos(far) * np.ones(len(phi))]
     for m in models:
         np.testing.assert_allclose(m.radius_and_sd(V)[0], sphere.radius, atol=1e-9)
+
+
+@pytest.mark.parametrize("field, value, message", [("solves_per_point", -1, "solves_per_point must be an integer >= 0"),
+                                                   ("solves_per_point", 2.5, "solves_per_point must be an integer"),
+                                                   ("refresh", 0, "refresh must be an integer >= 1"),
+                                                   ("fitted_terms", 7, "fitted_terms must be 1, 3 or 6"),
+                                                   ("sweep_per_point", -0.1, "sweep_per_point finite and >= 0")])
+def test_config_refuses_counts_the_compiled_step_cannot_take(field, value, message):
+    # the online step indexes its dirty list and workspace by these without bounds checks
+    with pytest.raises(ValueError, match=message):
+        LocalConfig(**{field: value})
