@@ -246,6 +246,8 @@ class AdaptiveEyeModel:
             if self._globe_steps(len(P), n + k):
                 self.globe.step(self._sf.sphere)
                 self.globe_taken = self._globe_taken()
+            else:
+                self.globe.reweigh(k)
             self.local_choice.absorb(self.local, self.last_accepted, *self.quadrics_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)

@@ -137,14 +137,15 @@ class StreamingRobustFit:
 
     `add(P)` stores finite points P (N, 3) mm; `step(rival)` weighs the points added since
     the last step into the running pass, reweighs up to `chunk_per_point` x as many (at
-    least `min_chunk`) stored points of the pass and, at its end, refits. `last_ok` the
+    least `min_chunk`; less what `reweigh` did since the last step) stored points of the
+    pass and, at its end, refits. `last_ok` the
     newest good EllipsoidFit (None before one); `loss_mm2` the exponential average (over
     about `memory` points) of the new points' biweight loss under the fit before they
     joined (mm^2; NaN before a fit), `rival_loss_mm2` the same of the Sphere `rival` the
     caller passes (the model to beat; NaN without one); `held_loss_mm2` and
     `held_rival_loss_mm2` the same over about `hold_memory` points; `passes` completed passes;
-    `pending` points added since the last step; `last_step_weighed` the stored points the
-    last step reweighed. At most `max_stored` points are kept (module doc: every
+    `pending` points added since the last step; `last_step_weighed` the stored points
+    reweighed from the step before to the last (by reweigh and the step). At most `max_stored` points are kept (module doc: every
     `stride`-th point added); `n_points` the stored ones, `n_received` all added."""
 
     def __init__(self, config: RobustFitConfig | None = None, chunk_per_point: int = 10, min_chunk: int = 50,
@@ -175,6 +176,7 @@ class StreamingRobustFit:
         self._plain = True  # the running pass weighs every point 1 (no fit yet, or a restart)
         self._settling = 0  # passes left after a restart before the next may restart (`iterations`)
         self._v = np.zeros(10)
+        self._ahead = 0  # stored points reweighed since the last step (reweigh), out of its budget
         self.last_step_weighed = 0
 
     @property
@@ -243,6 +245,21 @@ class StreamingRobustFit:
         n = k * self.stride
         return (current + min(n / self.memory, 1.0) * (loss - current), held + min(n / self.hold_memory, 1.0) * (loss - held))
 
+    def reweigh(self, k: int) -> int:
+        """Go on with the running pass between steps: up to chunk_per_point x k more of its
+        stored points (k the points just added) weighed under the current fit, which changes
+        only at a step's pass end, so they weigh as at the next step, and counted against
+        that step's budget. A caller adding one A-scan at a time and stepping once per
+        packet spreads the packet's reweighing over its A-scans. Returns how many."""
+        cursor = self._cursor
+        if cursor >= self._end or k <= 0:
+            return 0
+        i1 = min(cursor + self.chunk_per_point * k, self._end)
+        self._inliers += weigh_rows(self._next, self._X, self._w, cursor, i1, self._v, self._weighing(), self._cut)
+        self._cursor = i1
+        self._ahead += i1 - cursor
+        return i1 - cursor
+
     def step(self, rival=None) -> EllipsoidFit | None:
         """Score and weigh the pending points (against the fit and the Sphere `rival`), go on
         with the running pass; at its end, refit and start the next pass (the new fit, or
@@ -251,9 +268,11 @@ class StreamingRobustFit:
         k, received = n - i0, self._received
         self._received = 0
         scored, has_rival = self.last_ok is not None, rival is not None and k > 0
-        cursor = self._cursor
+        cursor, ahead = self._cursor, self._ahead
+        self._ahead = 0
         loss, rival_loss, inliers, self._cursor = step_rows(
-            self._next, self._X, self._w, i0, n, cursor, self._end, max(self.min_chunk, self.chunk_per_point * received), self._v,
+            self._next, self._X, self._w, i0, n, cursor, self._end,
+            max(max(self.min_chunk, self.chunk_per_point * received) - ahead, 0), self._v,
             self._weighing(), self._cut, scored, has_rival, rival.center if has_rival else _NO_CENTER,
             float(rival.radius) if has_rival else 0.0, _NO_CENTER if self.p0 is None else self.p0, LENGTH_SCALE_MM)
         if k:
@@ -264,7 +283,7 @@ class StreamingRobustFit:
                         rival_loss, k, self.rival_loss_mm2, self.held_rival_loss_mm2)
             self._taken = n
         self._inliers += inliers
-        self.last_step_weighed = self._cursor - cursor
+        self.last_step_weighed = self._cursor - cursor + ahead
         if self._cursor < self._end or n == 0:
             return None
         fit = fit_of(close_pass(self._next, self.p0, LENGTH_SCALE_MM))

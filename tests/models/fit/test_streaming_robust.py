@@ -86,6 +86,42 @@ def test_work_per_step_is_bounded():
     assert fit.passes >= 3
 
 
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), outliers=st.floats(0.0, 0.2))
+def test_reweighing_between_steps_is_the_packets_work_spread(seed, outliers):
+    """One A-scan at a time with `reweigh` after each add and a step every PACKET: the
+    same rows weigh into the same passes as packets of PACKET each stepped at once (the
+    fit changes only at a pass end, so a row weighs the same before the step), so the
+    fits and the weights agree to the sums' rounding; between two steps at most the
+    step's budget is reweighed, and the step itself does what reweigh left of it. Below
+    max_stored points (thinning restarts a pass within a packet)."""
+    rng = np.random.default_rng(seed)
+    U = rng.normal(size=(480, 3))
+    U[:, 2] = -np.abs(U[:, 2]) - 0.5  # a posterior cap
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    r = 11.0 + rng.normal(0.0, 0.02, len(U))
+    r[rng.random(len(U)) < outliers] -= 2.0  # a detachment's worth of points off the globe
+    P = U * r[:, None]
+    packets, singles = StreamingRobustFit(), StreamingRobustFit()
+    budget = max(singles.min_chunk, singles.chunk_per_point * PACKET)
+    for k in range(0, len(P), PACKET):
+        packets.add(P[k:k + PACKET])
+        a = packets.step()
+        ahead = 0
+        for i in range(k, k + PACKET):
+            singles.add(P[i:i + 1])
+            if i < k + PACKET - 1:
+                ahead += singles.reweigh(1)
+        cursor = singles._cursor
+        b = singles.step()
+        assert singles.last_step_weighed <= budget and singles._cursor - cursor <= max(budget - ahead, 0)
+        assert (a is None) == (b is None) and packets.passes == singles.passes
+        if a is not None:
+            np.testing.assert_allclose(np.sign(a.v @ b.v) * b.v, a.v, rtol=1e-9, atol=1e-12)  # v and -v: one quadric
+    assert packets.passes >= 3
+    np.testing.assert_allclose(singles.weights, packets.weights, rtol=0.0, atol=1e-9)
+
+
 def test_adaptive_model_puts_the_local_model_on_the_globe():
     """On the detached eye the quadric model keeps its sphere (the ellipsoid does not explain
     the detachment), while the local model's global quadric is the robust globe: an eye's
