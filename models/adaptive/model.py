@@ -243,8 +243,11 @@ class AdaptiveEyeModel:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
         if self.local is not None:
             self.globe.add(self.last_accepted)
-            if self._globe_steps(len(P), n + k):
-                self.globe.step(self._sf.sphere)
+            if self._globe_steps(len(P), n + k):  # one A-scan's update leaves a pass's refit to the next
+                self.globe.step(self._sf.sphere, defer=len(P) < GLOBE_BATCH)
+                self.globe_taken = self._globe_taken()
+            elif self.globe.close_due:
+                self.globe.close()
                 self.globe_taken = self._globe_taken()
             else:
                 self.globe.reweigh(k)

@@ -177,6 +177,7 @@ class StreamingRobustFit:
         self._settling = 0  # passes left after a restart before the next may restart (`iterations`)
         self._v = np.zeros(10)
         self._ahead = 0  # stored points reweighed since the last step (reweigh), out of its budget
+        self.close_due = False  # a step ended the running pass and left its refit to close()
         self.last_step_weighed = 0
 
     @property
@@ -225,7 +226,10 @@ class StreamingRobustFit:
     def _thin(self) -> None:
         """Keep every other stored point (those whose count is a multiple of twice the
         stride: the stream stays one regular subsample) and start the running pass again on
-        them under the current fit (its scatter matrix held dropped points)."""
+        them under the current fit (its scatter matrix held dropped points; an ended pass
+        is refitted first)."""
+        if self.close_due:
+            self.close()
         n = self._n
         kept = (n + 1) // 2
         self._X[:kept] = self._X[0:n:2]
@@ -260,10 +264,14 @@ class StreamingRobustFit:
         self._ahead += i1 - cursor
         return i1 - cursor
 
-    def step(self, rival=None) -> EllipsoidFit | None:
+    def step(self, rival=None, defer: bool = False) -> EllipsoidFit | None:
         """Score and weigh the pending points (against the fit and the Sphere `rival`), go on
         with the running pass; at its end, refit and start the next pass (the new fit, or
-        None when no pass ended or the fit failed)."""
+        None when no pass ended or the fit failed). With `defer`, a pass the step ends is
+        refitted by close() instead (`close_due`): a caller adding one A-scan at a time puts
+        the refit on the next A-scan, not on the one that steps."""
+        if self.close_due:
+            self.close()
         i0, n = self._taken, self._n
         k, received = n - i0, self._received
         self._received = 0
@@ -286,6 +294,16 @@ class StreamingRobustFit:
         self.last_step_weighed = self._cursor - cursor + ahead
         if self._cursor < self._end or n == 0:
             return None
+        if defer:
+            self.close_due = True
+            return None
+        return self.close()
+
+    def close(self) -> EllipsoidFit | None:
+        """End the running pass: refit from its scatter matrix and start the next pass over
+        the points taken so far (the new fit, or None when the fit failed)."""
+        self.close_due = False
+        n = self._taken
         fit = fit_of(close_pass(self._next, self.p0, LENGTH_SCALE_MM))
         self.passes += 1
         restart = not self._plain and self._settling == 0 and self._inliers < self.config.min_inlier_fraction * n

@@ -200,25 +200,51 @@ def test_bad_hold_memory_raises(hold_memory):
 
 def test_globe_step_and_criteria_checkpoint_fall_on_different_a_scans():
     """One A-scan per update: no update is both the criteria's checkpoint and a globe step,
-    the globe still steps once GLOBE_BATCH points wait (one update later at most); packets
-    of GLOBE_BATCH A-scans (the loop's) step at every packet as before."""
+    nor both a step and a pass's refit (left to the next update), the globe still steps
+    once GLOBE_BATCH points wait (one update later at most); packets of GLOBE_BATCH
+    A-scans (the loop's) step and refit at every packet as before."""
     from models.adaptive.model import GLOBE_BATCH
 
     P = paper_scan(make_eye("emmetropic"), seed=0).points[:2000]
     model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
-    deferred = 0
+    deferred = refits = 0
     for p in P:
-        checkpoints, pending = len(model._memory.n), model.globe.pending
+        checkpoints, pending, passes = len(model._memory.n), model.globe.pending, model.globe.passes
         model.update(p[None])
         checkpoint, stepped = len(model._memory.n) > checkpoints, model.globe.pending <= pending
-        assert not (checkpoint and stepped)
+        refitted = model.globe.passes > passes
+        assert not (checkpoint and stepped) and not (stepped and refitted)
         assert model.globe.pending <= GLOBE_BATCH
         deferred += checkpoint and pending + 1 >= GLOBE_BATCH
-    assert deferred > 0  # the case arose
+        refits += refitted
+    assert deferred > 0 and refits >= 10  # the cases arose
     packets = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
     for k in range(0, len(P), GLOBE_BATCH):
         packets.update(P[k:k + GLOBE_BATCH])
-        assert packets.globe.pending == 0
+        assert packets.globe.pending == 0 and not packets.globe.close_due
+
+
+def test_a_deferred_refit_is_the_steps_own_one_update_later():
+    """step(defer=True) leaves a pass it ends to close(): the same scatter matrix, so the
+    same fit, to the bit, as the step's own refit, and the passes after it the same."""
+    P = paper_scan(make_eye("detached"), seed=1).points[:3000]
+    now, later = StreamingRobustFit(), StreamingRobustFit()
+    closes = 0
+    for k in range(0, len(P), PACKET):
+        now.add(P[k:k + PACKET])
+        later.add(P[k:k + PACKET])
+        a, b = now.step(), later.step(defer=True)
+        assert b is None
+        if later.close_due:
+            assert later.passes == now.passes - 1
+            b = later.close()
+            closes += 1
+            assert (a is None) == (b is None) and not later.close_due
+            if a is not None:
+                np.testing.assert_array_equal(b.v, a.v)
+        assert later.passes == now.passes
+    assert closes >= 10
+    np.testing.assert_array_equal(later.weights, now.weights)
 
 
 def test_taken_globe_outlasts_a_patch_the_sphere_fits_and_yields_to_a_long_run():
