@@ -243,13 +243,14 @@ class AdaptiveEyeModel:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
         if self.local is not None:
             self.globe.add(self.last_accepted)
-            if self._globe_steps(len(P), n + k):  # one A-scan's update leaves a pass's refit to the next
-                self.globe.step(self._sf.sphere, defer=len(P) < GLOBE_BATCH)
+            single = len(P) == 1  # one A-scan at a time: the packet's work spread over its A-scans
+            if self._globe_steps(len(P), n + k):  # a pass's refit left to the next A-scan
+                self.globe.step(self._sf.sphere, defer=single)
                 self.globe_taken = self._globe_taken()
             elif self.globe.close_due:
                 self.globe.close()
                 self.globe_taken = self._globe_taken()
-            else:
+            elif single:
                 self.globe.reweigh(k)
             self.local_choice.absorb(self.local, self.last_accepted, *self.quadrics_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
