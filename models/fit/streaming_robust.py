@@ -145,8 +145,10 @@ class StreamingRobustFit:
     caller passes (the model to beat; NaN without one); `held_loss_mm2` and
     `held_rival_loss_mm2` the same over about `hold_memory` points; `passes` completed passes;
     `pending` points added since the last step; `last_step_weighed` the stored points
-    reweighed from the step before to the last (by reweigh and the step). At most `max_stored` points are kept (module doc: every
-    `stride`-th point added); `n_points` the stored ones, `n_received` all added."""
+    reweighed from the step before to the last (by reweigh and the step); `close_due`
+    whether a deferred step left a pass's refit to `close()`. At most `max_stored` points
+    are kept (module doc: every `stride`-th point added); `n_points` the stored ones,
+    `n_received` all added."""
 
     def __init__(self, config: RobustFitConfig | None = None, chunk_per_point: int = 10, min_chunk: int = 50,
                  memory: float = 400.0, max_stored: int = 500, hold_memory: float = 4000.0):
