@@ -243,15 +243,7 @@ class AdaptiveEyeModel:
             ef.p0, sf.p0, scan.p0 = p0, p0.copy(), p0.copy()
         if self.local is not None:
             self.globe.add(self.last_accepted)
-            single = len(P) == 1  # one A-scan at a time: the packet's work spread over its A-scans
-            if self._globe_steps(len(P), n + k):  # a pass's refit left to the next A-scan
-                self.globe.step(self._sf.sphere, defer=single)
-                self.globe_taken = self._globe_taken()
-            elif self.globe.close_due:
-                self.globe.close()
-                self.globe_taken = self._globe_taken()
-            elif single:
-                self.globe.reweigh(k)
+            self._advance_globe(len(P), n + k, k)
             self.local_choice.absorb(self.local, self.last_accepted, *self.quadrics_for_local())
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)
@@ -273,6 +265,24 @@ class AdaptiveEyeModel:
         if sf_ok:
             return self._evaluate(fit, v_sf, (out[OUT_SF_CENTER:OUT_SIZE], radius), sf_res, ef_res, axis_change)
         return self._evaluate(fit, None, None, sf_res, ef_res, axis_change)
+
+    def _advance_globe(self, received: int, n_points: int, k: int) -> None:
+        """The robust globe's share of an update of `received` points, k of them kept,
+        that brings the model to n_points: its step when due (_globe_steps), and the globe's
+        take-up judged again after it. An update of one A-scan spreads a packet's work over
+        the A-scans: it leaves a pass's refit to the next one (close) and, between steps,
+        reweighs its share of the running pass (StreamingRobustFit.reweigh); packets do it
+        all at their step."""
+        globe, single = self.globe, received == 1
+        if self._globe_steps(received, n_points):
+            globe.step(self._sf.sphere, defer=single)
+        elif globe.close_due:
+            globe.close()
+        else:
+            if single:
+                globe.reweigh(k)
+            return
+        self.globe_taken = self._globe_taken()
 
     def _globe_steps(self, received: int, n_points: int) -> bool:
         """Whether the robust globe steps in an update of `received` points that brings the
