@@ -7,7 +7,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from models.fit.quadric_kernels import design_row
 from models.fit.quadric_residuals import sampson_one
+from models.fit.small_linalg import cholesky, dot, lower_inverse, mat_vec
 from models.shapes.sampling import unit_sphere_grid
 
 _DIRECTIONS = unit_sphere_grid(12, 24)  # 288 directions over the whole surface
@@ -63,3 +65,82 @@ def drift_and_gap(center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c
     (3,), r_sf_mm mm). The quadric, S and the results are in the fits' scaled coordinates
     ((x - p0) / scale, p0 (3,) mm); NaNs and K = 0 when the cap covers the whole ellipsoid."""
     return _drift_and_gap(_DIRECTIONS, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm)
+
+
+_SD_DIRECTIONS = unit_sphere_grid(8, 16)  # 128 directions: the leverage is smooth over the surface
+
+
+@njit(cache=True)
+def _extrapolation_sd(D, S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm):
+    """extrapolation_sd over the directions D (K, 3)."""
+    n = np.sqrt(dot(v, v))
+    vh = v / n
+    q2 = dot(v, mat_vec(S, v))
+    if not (S[9, 9] > 0.0 and n > 0.0):
+        return np.inf
+    var = max(q2, 0.0) / S[9, 9]  # the mean square algebraic residual (weighted)
+    P = np.eye(10)
+    for i in range(10):
+        for j in range(10):
+            P[i, j] -= vh[i] * vh[j]
+    A = P @ S @ P
+    alpha = 0.0
+    for i in range(10):
+        alpha += A[i, i]
+    for i in range(10):  # the fitted quadric's own direction, fixed by the normalisation: any positive weight
+        for j in range(10):
+            A[i, j] += alpha / 10.0 * vh[i] * vh[j]
+    L, ok = cholesky(A)
+    if not ok:
+        return np.inf
+    Li = lower_inverse(L)
+    center, radii, anterior = np.empty(3), np.empty(3), np.empty(3)
+    for i in range(3):
+        center[i] = (center_mm[i] - p0[i]) / scale
+        radii[i] = radii_mm[i] / scale
+        anterior[i] = center[i] - S[6 + i, 9] / (2.0 * S[9, 9])
+    anterior /= np.sqrt(dot(anterior, anterior))
+    K = D.shape[0]
+    X = np.empty((K, 3))
+    h = np.empty(K)
+    h_max = -np.inf
+    for k in range(K):
+        a0, a1, a2 = D[k, 0] * radii[0], D[k, 1] * radii[1], D[k, 2] * radii[2]
+        for i in range(3):
+            X[k, i] = center[i] + (a0 * rotation[i, 0] + a1 * rotation[i, 1] + a2 * rotation[i, 2])
+        h[k] = (X[k, 0] - center[0]) * anterior[0] + (X[k, 1] - center[1]) * anterior[1] + (X[k, 2] - center[2]) * anterior[2]
+        h_max = max(h_max, h[k])
+    cut = h_max - crop_mm / scale
+    m, q, y = np.empty(10), np.empty(10), np.empty(10)
+    worst = 0.0
+    for k in range(K):
+        if h[k] > cut:
+            continue
+        x0, x1, x2 = X[k, 0], X[k, 1], X[k, 2]
+        design_row(x0, x1, x2, m)
+        c = dot(vh, m)
+        for i in range(10):
+            q[i] = m[i] - c * vh[i]
+        for i in range(10):  # y = L^-1 q: lev = |y|^2
+            s = 0.0
+            for j in range(i + 1):
+                s += Li[i, j] * q[j]
+            y[i] = s
+        g0 = 2.0 * (v[0] * x0 + v[5] * x1 + v[4] * x2 + v[6])
+        g1 = 2.0 * (v[5] * x0 + v[1] * x1 + v[3] * x2 + v[7])
+        g2 = 2.0 * (v[4] * x0 + v[3] * x1 + v[2] * x2 + v[8])
+        g = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2) / n
+        worst = max(worst, np.sqrt(var * dot(y, y) / (n * n)) / g)
+    return worst * scale
+
+
+def extrapolation_sd(S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm) -> float:
+    """The largest standard deviation (mm), over the retina (the ellipsoid without the cap
+    within crop_mm of its extreme point along the anterior direction, as drift_and_gap), of
+    the distance from the quadric v (10,) fitted to the weighted scatter matrix S (10, 10)
+    (the ellipsoid center_mm, radii_mm, rotation), were the fit's residuals independent
+    noise: the least-squares covariance (v^T S v / sum w) (P S P)^+ of the coefficients
+    (P: off v, which the normalisation fixes) carried to each point's Sampson distance. Far
+    from the data it grows with how little of the globe they see (the leverage). inf when
+    S holds no points or is singular off v. Scaled coordinates as drift_and_gap."""
+    return _extrapolation_sd(_SD_DIRECTIONS, S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm)

@@ -76,13 +76,14 @@ def weigh_rows(S, X, w, i0, i1, v, has_fit, cutoff):
 
 
 @njit(cache=True)
-def close_pass(S, p0, scale):
-    """The running pass's end: S (10, 10) made symmetric from its upper triangle, the
-    ellipsoid fitted to it (fit_ellipsoid_scatter's (code, v, centre, semi-axes, rotation))
-    and S zeroed in place for the next pass."""
+def close_pass(S, p0, scale, closed):
+    """The running pass's end: S (10, 10) made symmetric from its upper triangle and kept in
+    `closed` (10, 10), the ellipsoid fitted to it (fit_ellipsoid_scatter's (code, v, centre,
+    semi-axes, rotation)) and S zeroed in place for the next pass."""
     for i in range(10):
         for j in range(i):
             S[i, j] = S[j, i]
+    closed[:, :] = S
     fit = fit_ellipsoid_scatter(S, p0, scale, True)
     S[:, :] = 0.0
     return fit
@@ -173,6 +174,8 @@ class StreamingRobustFit:
         self._n = 0  # points stored
         self._taken = 0  # points weighed into the running pass (the rest are pending)
         self._next = np.zeros((10, 10))  # the running pass's scatter matrix
+        self._closed = np.zeros((10, 10))  # a pass's, as it closes
+        self.last_scatter = np.zeros((10, 10))  # the scatter matrix last_ok was fitted to
         self._cursor = self._end = 0  # the pass reweighs the points [0, end); later ones join it as they arrive
         self._inliers = 0  # points of the running pass with a weight > 0
         self._plain = True  # the running pass weighs every point 1 (no fit yet, or a restart)
@@ -306,12 +309,13 @@ class StreamingRobustFit:
         the points taken so far (the new fit, or None when the fit failed)."""
         self.close_due = False
         n = self._taken
-        fit = fit_of(close_pass(self._next, self.p0, LENGTH_SCALE_MM))
+        fit = fit_of(close_pass(self._next, self.p0, LENGTH_SCALE_MM, self._closed))
         self.passes += 1
         restart = not self._plain and self._settling == 0 and self._inliers < self.config.min_inlier_fraction * n
         self._settling = self.config.iterations if restart else max(self._settling - 1, 0)
         self._plain = restart or self.last_ok is None
         if fit.ok:
             self.last_ok, self._v = fit, fit.v
+            self.last_scatter, self._closed = self._closed, self.last_scatter  # the fit's own rows: no copy
         self._cursor, self._end, self._inliers = 0, n, 0
         return fit if fit.ok else None

@@ -59,12 +59,13 @@ class LocalChoice:
         self.mse_local = self.mse_global = np.nan
         self.active = False
 
-    def absorb(self, local, P: np.ndarray, shape, trend=None) -> None:
-        """Let `local` (a LocalRetinaModel) absorb the points P (N, 3) mm on the global `shape`,
-        and score its predictions of them, made before it absorbed them, against the global
-        quadric's (models.local.field_kernels.predictions)."""
+    def absorb(self, local, P: np.ndarray, shape, trend=None, shape_sd_mm=None) -> None:
+        """Let `local` (a LocalRetinaModel) absorb the points P (N, 3) mm on the global `shape`
+        (trend, shape_sd_mm: LocalRetinaModel.update's), and score its predictions of them,
+        made before it absorbed them, against the global quadric's
+        (models.local.field_kernels.predictions)."""
         scored = shape is not None and local.global_params is not None
-        local.update(P, shape, trend)
+        local.update(P, shape, trend, shape_sd_mm)
         if scored:
             el, eg, m = gap_errors(local.last_predictions, self.min_gap_rad, self.outlier_mm)  # predicted before they were absorbed
             if m:

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from models.adaptive.coverage import fibonacci_directions
 from models.local.departures import neighbour_table, spread_departures
-from models.local.grid import LocalConfig
+from models.local.config import LocalConfig
 
 CFG = LocalConfig()
 REACH, CROSS, EDGE = np.radians(CFG.departure_deg), np.radians(CFG.blend_deg), np.radians(CFG.spacing_deg)

@@ -10,7 +10,8 @@ from hypothesis import strategies as st
 
 from models import AdaptiveEyeModel, Ellipsoid, PredictiveCriteria, Sphere
 from models.local.field import FieldValues, LocalField
-from models.local.grid import LocalConfig, LocalRetinaModel
+from models.local.config import LocalConfig
+from models.local.grid import LocalRetinaModel
 
 NOISE_MM = 0.02  # the paper's distance noise
 

@@ -8,7 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from models import Ellipsoid, Sphere
-from models.local.grid import LocalConfig, LocalRetinaModel, sweep_share
+from models.local.config import LocalConfig
+from models.local.grid import LocalRetinaModel, sweep_share
 from models.local.kernels import global_params
 from models.local.online import holds
 
