@@ -16,9 +16,11 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from models import AdaptiveEyeModel
-from models.adaptive.model import EYE_AXIS_RATIO_MAX, EYE_RADII_MM, GLOBE_MIN_SCAN_RANGE_MM, eyes_radii
+from models.adaptive.extrapolation import extrapolation_sd
+from models.adaptive.model import EYE_AXIS_RATIO_MAX, EYE_RADII_MM, GLOBE_MIN_SCAN_RANGE_MM, GLOBE_SD_FACTOR, eyes_radii
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
+from models.eyes.eye import ANTERIOR_CROP_MM
 from models.eyes.catalog import radii_for_refraction
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM
 from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig, biweight, tukey_rho
@@ -139,6 +141,29 @@ def test_adaptive_model_puts_the_local_model_on_the_globe():
     floor = mae_exact(eye.ellipsoid, T).mean
     assert mae_exact(g, T).mean <= floor + 3 * EF_MAE_TARGET_MM  # up to a pass behind the last points
     assert model.globe.loss_mm2 < model.globe.rival_loss_mm2
+
+
+def test_the_local_model_takes_the_globes_own_sd_far_from_the_data():
+    """The globe under the local model comes with its sd far from the data: GLOBE_SD_FACTOR x
+    extrapolation_sd of the scatter matrix its fit came from, raised into the local model's
+    prior where it exceeds the ellipsoid's; a partial scan's globe gets a larger one."""
+    eye = make_eye("detached")
+    P = paper_scan(eye, seed=3).points
+    model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
+    sds = []
+    for k in range(0, len(P), PACKET):
+        model.update(P[k:k + PACKET])
+        g, trend, sd = model.quadrics_for_local()
+        if model.globe_taken:
+            fit, globe = model.globe.last_ok, model.globe
+            assert g is fit.ellipsoid and sd == GLOBE_SD_FACTOR * extrapolation_sd(
+                globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM)
+            far = model.local.config.ellipsoid_sd_far_mm
+            assert model.local._prior[2] == pytest.approx(min(max(sd, far), model.local.config.sd_far_mm))
+            sds.append(sd)
+        else:
+            assert sd is None
+    assert len(sds) > 100 and sds[0] > 2 * sds[-1]  # the first globe, from part of the spiral, is the less certain
 
 
 def test_storage_is_a_regular_subsample_of_at_most_max_stored_points():

@@ -456,3 +456,30 @@ def test_config_refuses_counts_the_compiled_step_cannot_take(field, value, messa
     # the online step indexes its dirty list and workspace by these without bounds checks
     with pytest.raises(ValueError, match=message):
         LocalConfig(**{field: value})
+
+
+def test_a_global_quadrics_own_sd_raises_the_sd_far_from_the_data_only():
+    """LocalRetinaModel.update's shape_sd_mm: far from the data the sd is the global
+    quadric's own (where it exceeds the ellipsoid's 0.3 mm, up to the sphere's 2 mm); at
+    the data it hardly moves: the global sd grows from its value there (0.05 mm), and a
+    node's nearest point lies up to ~1.5 deg off it (0.8 mm at 30 deg: +0.025 mm in its
+    prior's sd, against its data's ~0.02 mm posterior)."""
+    u, P = cap_points(lambda u: np.full(len(u), 11.0), n=3000, cap_deg=30.0)
+    g = Ellipsoid(np.zeros(3), np.array([11.0, 11.0, 11.0]))
+    models = {}
+    for sd in (None, 0.8, 5.0):
+        m = LocalRetinaModel(np.zeros(3))
+        for k in range(0, len(P), 20):
+            m.update(P[k:k + 20], g, None, sd)
+        m.solve_all()
+        models[sd] = m
+    far = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # 90-180 deg from the cap
+    near = u[np.degrees(np.arccos(-u[:, 2])) < 20.0][:50]  # 10 deg and more inside the cap's rim
+    cfg = models[None].config
+    s_far = {sd: m.radius_and_sd(far)[1] for sd, m in models.items()}
+    s_near = {sd: m.radius_and_sd(near)[1] for sd, m in models.items()}
+    floor = cfg.sd_floor_mm
+    np.testing.assert_allclose(s_far[None], np.hypot(cfg.ellipsoid_sd_far_mm, floor), rtol=0.05)
+    np.testing.assert_allclose(s_far[0.8], np.hypot(0.8, floor), rtol=0.05)
+    np.testing.assert_allclose(s_far[5.0], np.hypot(cfg.sd_far_mm, floor), rtol=0.05)  # no more than a sphere's
+    np.testing.assert_allclose(s_near[0.8], s_near[None], rtol=0.1)
