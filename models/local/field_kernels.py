@@ -285,25 +285,6 @@ def radii_at(dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near, 
 
 
 @njit(cache=True)
-def gap_errors(pred, min_gap, outlier):
-    """(sum of squared errors of the local field, of the global quadric, count) over the
-    rows of `pred` (predictions) whose nearest node lies at least `min_gap` rad from the
-    data (a prediction across a gap between scan lines, not along one), mm^2, less the
-    rows that both predict more than `outlier` mm off (a floater the gate let through, or
-    retina neither model has seen: evidence for neither)."""
-    el, eg, m = 0.0, 0.0, 0
-    for i in range(pred.shape[0]):
-        if pred[i, 5] >= min_gap:
-            a, b = pred[i, 0] - pred[i, 1], pred[i, 0] - pred[i, 4]
-            if abs(a) > outlier and abs(b) > outlier:
-                continue
-            el += a * a
-            eg += b * b
-            m += 1
-    return el, eg, m
-
-
-@njit(cache=True)
 def predictions(P, c0, gp, gate, dirs, blend, prior, x, cov, excess, has, near, out):
     """Each point of P (M, 3) mm predicted along its direction from c0 before it is absorbed:
     out (M, 6) rows [measured radius, the local field's radius, its uncalibrated sd (mm),

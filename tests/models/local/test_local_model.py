@@ -392,22 +392,29 @@ def test_the_local_model_is_kept_while_it_predicts_clearly_better():
 
 def test_a_point_both_models_mispredict_counts_for_neither():
     """A floater 1.2 mm short, across a gap, that both the local field and the global
-    quadric predict 1.2 mm off leaves the prediction errors as they were (counted, it took
-    the detached eye's from 114 and 238 to 7,742 and 7,862 um^2 in one step and gave the
-    local model up); a point the global quadric mispredicts by 2 mm over a detachment, and
-    the local field by 20 um, still counts for the local model."""
-    from models.local.field_kernels import gap_errors
-    from models.local.selection import LocalChoice
+    quadric predict 1.2 mm off is not stored for the choice (counted, it took the detached
+    eye's mean square errors from 114 and 238 to 7,742 and 7,862 um^2 in one step and gave
+    the local model up); a point the global quadric mispredicts by 2 mm over a detachment,
+    and the local field by 20 um, still counts for the local model, and a stored point the
+    global quadric now mispredicts by 1.2 mm as well drops out of the averages."""
+    from models.local.kernels import global_params
+    from models.local.selection import LocalChoice, rescore_rows, take_gap_rows
 
     gap = np.radians(3.5)
+    u = np.array([0.0, 0.0, -1.0])
     floater = np.array([[10.0, 11.2, 0.05, gap, 11.2, gap]])  # measured, local, sd, gap, global, nearest
-    el, eg, m = gap_errors(floater, np.radians(2.0), 0.5)
-    assert (el, eg, m) == (0.0, 0.0, 0)
     flank = np.array([[9.0, 9.02, 0.05, gap, 11.0, gap]])
-    el, eg, m = gap_errors(flank, np.radians(2.0), 0.5)
-    assert m == 1 and el == pytest.approx(0.02 ** 2) and eg == pytest.approx(4.0)
+    U, r, el2 = np.empty((4, 3)), np.empty(4), np.empty(4)
     both = np.concatenate([floater, flank])
-    assert gap_errors(both, np.radians(2.0), 0.5) == pytest.approx((0.02 ** 2, 4.0, 1))
+    n, seen = take_gap_rows(both, np.array([10.0 * u, 9.0 * u]), np.zeros(3), np.radians(2.0), 0.5, U, r, el2, 0, 0, 1)
+    assert n == seen == 1 and r[0] == 9.0 and el2[0] == pytest.approx(0.02 ** 2) and np.allclose(U[0], u)
+    sums = np.zeros(3)
+    rescore_rows(U, r, el2, 0, n, np.zeros(3), global_params(Sphere(np.zeros(3), 11.0)), 0.25, sums)
+    np.testing.assert_allclose(sums, [0.02 ** 2, 4.0, 1.0])
+    U[1], r[1], el2[1] = u, 9.0, 1.2 ** 2  # a stored point the local field missed by 1.2 mm
+    sums[:] = 0.0
+    rescore_rows(U, r, el2, 0, 2, np.zeros(3), global_params(Sphere(np.zeros(3), 10.2)), 0.25, sums)
+    np.testing.assert_allclose(sums, [0.02 ** 2, 1.2 ** 2, 1.0])  # the second: 1.2 mm off for both now
     with pytest.raises(ValueError, match="outlier_mm > 0"):
         LocalChoice(outlier_mm=0.0)
 
