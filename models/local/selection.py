@@ -49,6 +49,8 @@ from numba import njit
 
 from models.local.geometry import global_radius
 
+_NO_PREDICTIONS = np.empty((0, 6))
+
 
 @njit(cache=True)
 def take_gap_rows(pred, P, c0, min_gap, outlier, U, r, el2, n, seen, stride):
@@ -91,6 +93,28 @@ def rescore_rows(U, r, el2, i0, i1, c0, gp, outlier2, sums):
         sums[2] += 1.0
 
 
+@njit(cache=True)
+def choice_step(pred, P, c0, gp, min_gap, outlier, U, r, el2, state, share, whole, sums):
+    """One update's compiled work: store pred's rows across gaps (take_gap_rows; none when
+    pred has no rows) and re-score the rows owed (rescore_rows). state (5,): [rows, seen,
+    stride, cursor, rows owed (fractional)], updated; share: the rows owed per stored row
+    (the update's points / rescore_points); `whole`: the rest of the pass at once. Returns
+    whether a pass ended (its sums then in sums, which the caller reads and zeroes)."""
+    n, seen = take_gap_rows(pred, P, c0, min_gap, outlier, U, r, el2, int(state[0]), int(state[1]), int(state[2]))
+    state[0], state[1] = n, seen
+    if n == 0:
+        return False
+    cursor = int(state[3])
+    owed = state[4] + n * share
+    todo = n - cursor if whole else int(owed)
+    state[4] = owed - min(todo, owed)
+    i1 = min(cursor + todo, n)
+    rescore_rows(U, r, el2, cursor, i1, c0, gp, outlier * outlier, sums)
+    ended = i1 == n
+    state[3] = 0 if ended else i1
+    return ended
+
+
 class LocalChoice:
     """The predictive test's state; `active` whether the local model is used;
     `mse_local`, `mse_global` the mean square errors (mm^2) it was last decided by."""
@@ -112,59 +136,52 @@ class LocalChoice:
         self.mse_local = self.mse_global = np.nan
         self.active = False
         self._U, self._r, self._el2 = np.empty((64, 3)), np.empty(64), np.empty(64)
-        self.n_rows = 0  # stored predictions across gaps: every stride-th of the seen ones
-        self._seen, self._stride = 0, 1
-        self._cursor, self._credit = 0, 0.0  # the running re-scoring pass: next row, rows owed
+        self._state = np.array([0.0, 0.0, 1.0, 0.0, 0.0])  # choice_step's: rows, seen, stride, cursor, rows owed
         self._sums = np.zeros(3)
+
+    @property
+    def n_rows(self) -> int:
+        """Stored predictions across gaps: every `stride`-th of those seen."""
+        return int(self._state[0])
+
+    @property
+    def stride(self) -> int:
+        return int(self._state[2])
 
     def absorb(self, local, P: np.ndarray, shape, trend=None, shape_sd_mm=None) -> None:
         """Let `local` (a LocalRetinaModel) absorb the points P (N, 3) mm on the global `shape`
         (trend, shape_sd_mm: LocalRetinaModel.update's), store its predictions of them across
         gaps, made before it absorbed them (models.local.field_kernels.predictions), and
-        re-score rows_owed of the stored ones against the global quadric as it is now."""
+        re-score the rows owed against the global quadric as it is now (choice_step)."""
         scored = shape is not None and local.global_params is not None
         local.update(P, shape, trend, shape_sd_mm)
-        if scored:
-            self._store(local.last_predictions, P, local.center)
-        if self.n_rows and local.global_params is not None:
-            self._rescore(len(P), local.center, local.global_params)
+        gp = local.global_params
+        if gp is not None:
+            pred = local.last_predictions if scored else _NO_PREDICTIONS
+            if self._state[0] + len(pred) > len(self._r):
+                self._make_room(len(pred))
+            if choice_step(pred, P, local.center, gp, self.min_gap_rad, self.outlier_mm, self._U, self._r, self._el2,
+                           self._state, len(P) / self.rescore_points, self.mse_global != self.mse_global, self._sums):
+                s = self._sums
+                if s[2] > 0:
+                    self.mse_local, self.mse_global = s[0] / s[2], s[1] / s[2]
+                s[:] = 0.0
         self.decide(local.n_points)
 
-    def _store(self, pred: np.ndarray, P: np.ndarray, c0: np.ndarray) -> None:
-        if self.n_rows + len(pred) > len(self._r):
-            if len(self._r) < self.max_rows:
-                size = min(2 * len(self._r) + len(pred), self.max_rows)
-                self._U = np.concatenate([self._U[:self.n_rows], np.empty((size - self.n_rows, 3))])
-                self._r = np.concatenate([self._r[:self.n_rows], np.empty(size - self.n_rows)])
-                self._el2 = np.concatenate([self._el2[:self.n_rows], np.empty(size - self.n_rows)])
-            if self.n_rows + len(pred) > len(self._r):  # full: every other row kept, the stride doubled
-                k = (self.n_rows + 1) // 2
-                self._U[:k], self._r[:k], self._el2[:k] = (self._U[:self.n_rows:2].copy(), self._r[:self.n_rows:2].copy(),
-                                                           self._el2[:self.n_rows:2].copy())
-                self.n_rows, self._cursor, self._stride = k, 0, 2 * self._stride
-                self._sums[:] = 0.0
-        self.n_rows, self._seen = take_gap_rows(pred, P, c0, self.min_gap_rad, self.outlier_mm, self._U, self._r,
-                                                self._el2, self.n_rows, self._seen, self._stride)
-
-    def _rescore(self, n_points: int, c0: np.ndarray, gp: np.ndarray) -> None:
-        """Re-score the rows owed for n_points points (all of them every rescore_points points;
-        at once while no pass has ended yet); at a pass's end the averages are its sums."""
-        self._credit += self.n_rows * n_points / self.rescore_points
-        todo = int(self._credit)
-        if np.isnan(self.mse_global):
-            todo = self.n_rows - self._cursor
-        self._credit -= min(todo, self._credit)
-        while todo > 0:
-            i1 = min(self._cursor + todo, self.n_rows)
-            rescore_rows(self._U, self._r, self._el2, self._cursor, i1, c0, gp, self.outlier_mm ** 2, self._sums)
-            todo -= i1 - self._cursor
-            self._cursor = i1
-            if i1 == self.n_rows:
-                if self._sums[2] > 0:
-                    self.mse_local, self.mse_global = self._sums[0] / self._sums[2], self._sums[1] / self._sums[2]
-                self._sums[:] = 0.0
-                self._cursor = 0
-                break
+    def _make_room(self, k: int) -> None:
+        """Room for k more rows: the store grows up to max_rows; full, every other row is
+        kept, the stride doubles and the running pass starts again."""
+        n = self.n_rows
+        if len(self._r) < self.max_rows:
+            size = min(2 * len(self._r) + k, self.max_rows)
+            self._U = np.concatenate([self._U[:n], np.empty((size - n, 3))])
+            self._r = np.concatenate([self._r[:n], np.empty(size - n)])
+            self._el2 = np.concatenate([self._el2[:n], np.empty(size - n)])
+        if n + k > len(self._r):
+            h = (n + 1) // 2
+            self._U[:h], self._r[:h], self._el2[:h] = self._U[:n:2].copy(), self._r[:n:2].copy(), self._el2[:n:2].copy()
+            self._state[0], self._state[2], self._state[3] = h, 2 * self._state[2], 0
+            self._sums[:] = 0.0
 
     def decide(self, n_points: int) -> bool:
         """Take up or give up the local model of n_points points from the prediction errors

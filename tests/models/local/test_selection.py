@@ -73,9 +73,9 @@ def test_the_averages_are_the_global_quadrics_errors_as_it_is_now():
         local.last_predictions = pred
         if k == 50:
             local.global_params = exact
-        before = choice._cursor, choice.n_rows
+        before = choice._state[3], choice.n_rows
         choice.absorb(local, P, "shape")
-        done = (choice._cursor - before[0]) % max(choice.n_rows, 1)
+        done = (choice._state[3] - before[0]) % max(choice.n_rows, 1)
         assert done <= np.ceil(before[1] * 20 / 400) + 1 or np.isnan(choice.mse_global) or k < 2
     assert choice.n_rows == 100
     for _ in range(20):  # one more pass, all under the exact sphere
@@ -96,8 +96,8 @@ def test_stored_predictions_stay_a_regular_subsample_within_max_rows():
         choice.absorb(local, np.array([[0.0, 0.0, -11.0]]), "shape")
         assert choice.n_rows <= 64
     kept = np.round((choice._r[:choice.n_rows] - 11.0) / 1e-4).astype(int)  # which A-scans were kept
-    np.testing.assert_array_equal(kept, np.arange(0, 300, choice._stride)[:choice.n_rows])  # every stride-th, from the first
-    assert choice._stride == 8 and choice.n_rows >= 32
+    np.testing.assert_array_equal(kept, np.arange(0, 300, choice.stride)[:choice.n_rows])  # every stride-th, from the first
+    assert choice.stride == 8 and choice.n_rows >= 32
     with pytest.raises(ValueError, match="max_rows"):
         LocalChoice(max_rows=1)
     with pytest.raises(ValueError, match="rescore_points"):
