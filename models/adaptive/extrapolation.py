@@ -15,24 +15,23 @@ from models.shapes.sampling import unit_sphere_grid
 _DIRECTIONS = unit_sphere_grid(12, 24)  # 288 directions over the whole surface
 
 
-@njit(cache=True, error_model="numpy")  # a zero length divides as NumPy divides: inf, NaN
-def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm):
-    """drift_and_gap over the directions D (K, 3). All in the fits' scaled coordinates
-    ((x - p0) / scale, computed element by element as NumPy's array arithmetic computes
-    them, and the anterior direction's length by np.dot, NumPy's own: the crop test of a
-    point can hang on its last bits); one pass, no temporary arrays but X and the heights
-    h along the anterior direction."""
-    center, radii, anterior, c_sf = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+@njit(cache=True, error_model="numpy", inline="always")  # a zero length divides as NumPy divides: inf, NaN
+def _retina(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm):
+    """(X (K, 3), keep (K,)): the points of the ellipsoid (center_mm, radii_mm, rotation)
+    along the directions D (K, 3) and whether each is on the retina (not in the cap within
+    crop_mm of its extreme point along the anterior direction: from the centroid of S's
+    points to the centre, the scanned retina lying opposite the front of the eye). In the
+    fits' scaled coordinates ((x - p0) / scale, computed element by element as NumPy's array
+    arithmetic computes them, and the anterior direction's length by np.dot, NumPy's own: the
+    crop test of a point can hang on its last bits)."""
+    center, radii, anterior = np.empty(3), np.empty(3), np.empty(3)
     for i in range(3):
         center[i] = (center_mm[i] - p0[i]) / scale
         radii[i] = radii_mm[i] / scale
-        # from the points' centroid to the centre: the scanned retina lies opposite the front of the eye
         anterior[i] = center[i] - S[6 + i, 9] / (2.0 * S[9, 9])
-        c_sf[i] = (c_sf_mm[i] - p0[i]) / scale
     anterior_norm = np.sqrt(np.dot(anterior, anterior))
     for i in range(3):
         anterior[i] /= anterior_norm
-    crop, r_sf = crop_mm / scale, r_sf_mm / scale
     K = D.shape[0]
     X = np.empty((K, 3))
     h = np.empty(K)
@@ -44,10 +43,20 @@ def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_ol
         h[k] = ((X[k, 0] - center[0]) * anterior[0] + (X[k, 1] - center[1]) * anterior[1]
                 + (X[k, 2] - center[2]) * anterior[2])
         h_max = max(h_max, h[k])
-    cut = h_max - crop
+    return X, h <= h_max - crop_mm / scale
+
+
+@njit(cache=True, error_model="numpy")
+def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_old, c_sf_mm, r_sf_mm):
+    """drift_and_gap over the directions D (K, 3), on the points of _retina."""
+    X, keep = _retina(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm)
+    c_sf = np.empty(3)
+    for i in range(3):
+        c_sf[i] = (c_sf_mm[i] - p0[i]) / scale
+    r_sf = r_sf_mm / scale
     drift, gap, m = 0.0, 0.0, 0
-    for k in range(K):
-        if h[k] <= cut:
+    for k in range(D.shape[0]):
+        if keep[k]:
             x, y, z = X[k, 0], X[k, 1], X[k, 2]
             drift += sampson_one(v_old, x, y, z)
             dx, dy, dz = x - c_sf[0], y - c_sf[1], z - c_sf[2]
@@ -94,27 +103,11 @@ def _extrapolation_sd(D, S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm
     if not ok:
         return np.inf
     Li = lower_inverse(L)
-    center, radii, anterior = np.empty(3), np.empty(3), np.empty(3)
-    for i in range(3):
-        center[i] = (center_mm[i] - p0[i]) / scale
-        radii[i] = radii_mm[i] / scale
-        anterior[i] = center[i] - S[6 + i, 9] / (2.0 * S[9, 9])
-    anterior /= np.sqrt(dot(anterior, anterior))
-    K = D.shape[0]
-    X = np.empty((K, 3))
-    h = np.empty(K)
-    h_max = -np.inf
-    for k in range(K):
-        a0, a1, a2 = D[k, 0] * radii[0], D[k, 1] * radii[1], D[k, 2] * radii[2]
-        for i in range(3):
-            X[k, i] = center[i] + (a0 * rotation[i, 0] + a1 * rotation[i, 1] + a2 * rotation[i, 2])
-        h[k] = (X[k, 0] - center[0]) * anterior[0] + (X[k, 1] - center[1]) * anterior[1] + (X[k, 2] - center[2]) * anterior[2]
-        h_max = max(h_max, h[k])
-    cut = h_max - crop_mm / scale
+    X, keep = _retina(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm)
     m, q, y = np.empty(10), np.empty(10), np.empty(10)
     worst = 0.0
-    for k in range(K):
-        if h[k] > cut:
+    for k in range(D.shape[0]):
+        if not keep[k]:
             continue
         x0, x1, x2 = X[k, 0], X[k, 1], X[k, 2]
         design_row(x0, x1, x2, m)
