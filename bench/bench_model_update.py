@@ -11,8 +11,11 @@ from numba import njit
 
 from bench.timing import machine_stalls, summary_us, time_calls_us
 from models import AdaptiveEyeModel, Ellipsoid, fit_ellipsoid, fit_sphere
+from models.adaptive.extrapolation import extrapolation_sd
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
+from models.eyes.eye import ANTERIOR_CROP_MM
+from models.fit.ellipsoid_fit import LENGTH_SCALE_MM
 from models.fit.robust_fit import RobustFitConfig
 from models.fit.small_linalg import cholesky, eigh_sym, lower_inverse, pivoted_solve
 from models.local.field import LocalField
@@ -164,6 +167,10 @@ def local_field_figures(points: np.ndarray) -> None:
                 model.update(P[i:i + 20])
         t = time_calls_us(lambda i: model.local.params(True), 50)
         print(f"  local field's refresh (every 5 updates), {name} eye, paper spiral:      {summary_us(t)}")
+    globe, fit = model.globe, model.globe.last_ok  # the detached eye's: its sd far from the data, once per new fit
+    args = (globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM)
+    t = time_calls_us(lambda i: extrapolation_sd(*args), 2000)
+    print(f"  the robust globe's sd far from the data (extrapolation_sd), detached eye:  {summary_us(t)}")
 
 
 def run() -> None:

@@ -313,7 +313,7 @@ class AdaptiveEyeModel:
         self.globe_taken = self._globe_taken()
 
     def _globe_sd(self) -> None:
-        """globe_sd_mm of the robust globe's last fit (GLOBE_SD_FACTOR; 6-7 us)."""
+        """globe_sd_mm of the robust globe's last fit (GLOBE_SD_FACTOR; 5-9 us: make bench)."""
         globe = self.globe
         fit = self._sd_fit = globe.last_ok
         sd = extrapolation_sd(globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM,
