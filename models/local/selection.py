@@ -9,7 +9,7 @@ is no longer below `keep_ratio` times it (reversible). The local field's errors 
 predicted them; the global quadric's are those of the quadric as it is now: every stored
 prediction is scored again against the current one, a pass over them every
 `rescore_points` points, spread over the updates (rows x points / rescore_points per
-update: ~150 rows per packet of 20 A-scans at the end of the loop's spiral, a few per
+update: ~110 per packet of 20 A-scans at the end of the loop's spiral, of 2,100-2,400 stored, ~6 per
 single A-scan), and the averages are each pass's. At most `max_rows` are kept, a regular
 subsample (every other one dropped and the stride doubled when full).
 Why the current quadric: the global quadric improves along the spiral, and averages that
