@@ -8,7 +8,7 @@ import numpy as np
 from numba import njit
 
 from models.fit.quadric_kernels import design_row
-from models.fit.quadric_residuals import sampson_one
+from models.fit.quadric_residuals import half_gradient, sampson_one
 from models.fit.small_linalg import cholesky, dot, lower_inverse, mat_vec
 from models.shapes.sampling import unit_sphere_grid
 
@@ -119,9 +119,8 @@ def _extrapolation_sd(D, S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm
             for j in range(i + 1):
                 s += Li[i, j] * q[j]
             y[i] = s
-        g0 = 2.0 * (v[0] * x0 + v[5] * x1 + v[4] * x2 + v[6])
-        g1 = 2.0 * (v[5] * x0 + v[1] * x1 + v[3] * x2 + v[7])
-        g2 = 2.0 * (v[4] * x0 + v[3] * x1 + v[2] * x2 + v[8])
+        h0, h1, h2 = half_gradient(v, x0, x1, x2)
+        g0, g1, g2 = 2.0 * h0, 2.0 * h1, 2.0 * h2
         g = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2) / n
         worst = max(worst, np.sqrt(var * dot(y, y) / (n * n)) / g)
     return worst * scale

@@ -55,13 +55,21 @@ def residuals_since(S, S_old, v1, v2):
     return e[0], e[1]
 
 
+@njit(cache=True, inline="always")
+def half_gradient(v, x, y, z):
+    """grad Q / 2 at the point (x, y, z) (scaled coordinates) of the quadric v (10,), as
+    three floats."""
+    return (v[0] * x + v[5] * y + v[4] * z + v[6], v[5] * x + v[1] * y + v[3] * z + v[7],
+            v[4] * x + v[3] * y + v[2] * z + v[8])
+
+
 @njit(cache=True)
 def sampson_one(v, x, y, z):
     """|Q| / |grad Q| of the point (x, y, z) (scaled coordinates) from the quadric v (10,):
     Sampson's first-order distance (scaled units; inf where the gradient vanishes)."""
     a, b, c, f, g, h, p, q, r, d = v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8], v[9]
     Q = a * x * x + b * y * y + c * z * z + 2.0 * (f * y * z + g * x * z + h * x * y + p * x + q * y + r * z) + d
-    gx, gy, gz = a * x + h * y + g * z + p, h * x + b * y + f * z + q, g * x + f * y + c * z + r
+    gx, gy, gz = half_gradient(v, x, y, z)
     grad = 2.0 * np.sqrt(gx * gx + gy * gy + gz * gz)
     return abs(Q) / grad if grad > 0.0 else np.inf
 
