@@ -86,7 +86,7 @@ def _extrapolation_sd(D, S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm
     vh = v / n
     q2 = dot(v, mat_vec(S, v))
     if not (S[9, 9] > 0.0 and n > 0.0):
-        return np.inf, np.inf
+        return np.inf
     var = max(q2, 0.0) / S[9, 9]  # the mean square algebraic residual (weighted)
     P = np.eye(10)
     for i in range(10):
@@ -101,11 +101,11 @@ def _extrapolation_sd(D, S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm
             A[i, j] += alpha / 10.0 * vh[i] * vh[j]
     L, ok = cholesky(A)
     if not ok:
-        return np.inf, np.inf
+        return np.inf
     Li = lower_inverse(L)
     X, keep = _retina(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm)
     m, q, y = np.empty(10), np.empty(10), np.empty(10)
-    worst, sum_sq, count = 0.0, 0.0, 0
+    worst = 0.0
     for k in range(D.shape[0]):
         if not keep[k]:
             continue
@@ -122,22 +122,17 @@ def _extrapolation_sd(D, S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm
         h0, h1, h2 = half_gradient(v, x0, x1, x2)
         g0, g1, g2 = 2.0 * h0, 2.0 * h1, 2.0 * h2
         g = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2) / n
-        sd = np.sqrt(var * dot(y, y) / (n * n)) / g
-        worst = max(worst, sd)
-        sum_sq += sd * sd
-        count += 1
-    return (worst * scale, np.sqrt(sum_sq / count) * scale) if count else (np.inf, np.inf)
+        worst = max(worst, np.sqrt(var * dot(y, y) / (n * n)) / g)
+    return worst * scale
 
 
-def extrapolation_sd(S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm) -> tuple[float, float]:
-    """(largest, rms): the largest and the root-mean-square standard deviation (mm), over the
-    retina's points in 128 equal-area directions (the ellipsoid without the cap within
-    crop_mm of its extreme point along the anterior direction, as drift_and_gap), of
+def extrapolation_sd(S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm) -> float:
+    """The largest standard deviation (mm), over the retina (the ellipsoid without the cap
+    within crop_mm of its extreme point along the anterior direction, as drift_and_gap), of
     the distance from the quadric v (10,) fitted to the weighted scatter matrix S (10, 10)
     (the ellipsoid center_mm, radii_mm, rotation), were the fit's residuals independent
     noise: the least-squares covariance (v^T S v / sum w) (P S P)^+ of the coefficients
     (P: off v, which the normalisation fixes) carried to each point's Sampson distance. Far
-    from the data it grows with how little of the globe they see (the leverage). infs when
-    S holds no points or is singular off v, or the cap covers the ellipsoid. Scaled
-    coordinates as drift_and_gap."""
+    from the data it grows with how little of the globe they see (the leverage). inf when
+    S holds no points or is singular off v. Scaled coordinates as drift_and_gap."""
     return _extrapolation_sd(_SD_DIRECTIONS, S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm)

@@ -6,7 +6,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from models.adaptive.extrapolation import drift_and_gap, extrapolation_sd
+from models.adaptive.extrapolation import extrapolation_sd
 from models.adaptive.history import History
 from models.adaptive.outlier_gate import GateState, OutlierGate
 from models.adaptive.scan_range import ScanRange
@@ -53,13 +53,6 @@ GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): it
 # data came within 30 deg (models.local.grid.LocalRetinaModel.update's shape_sd_mm) and never
 # below the ellipsoid's (models.local.config.LocalConfig.ellipsoid_sd_far_mm).
 GLOBE_SD_FACTOR = 3.0
-# The robust globe is taken up only where the data tell it from the sphere: its mean distance
-# from the sphere over the retina (drift_and_gap's gap) above GLOBE_DEPARTURE x GLOBE_SD_FACTOR x
-# the rms over the retina of its own sd (extrapolation_sd). Measured on the paper spiral (seeds
-# 0-8, every new fit from 9 % of the spiral on): while a myopic eye's globe was less accurate
-# than the sphere that ratio reached 1.71 (its loss, over the newest points, already lower);
-# a detached eye's globe, more accurate from 11-14 %, passed 2 at 14.4-19.1 %.
-GLOBE_DEPARTURE = 2.0
 
 
 def eyes_radii(r0: float, r1: float, r2: float) -> bool:
@@ -154,7 +147,6 @@ class AdaptiveEyeModel:
         self.globe = StreamingRobustFit() if local is not None else None
         self.globe_taken = False  # the robust globe is the quadric under the local model (_globe_taken)
         self.globe_sd_mm = np.inf  # the robust globe's sd far from the data (GLOBE_SD_FACTOR), of the fit _sd_fit
-        self.globe_departure_mm = (np.nan, np.inf)  # (its mean distance from the sphere, its rms sd): _globe_sd
         self._sd_fit = None
 
     def __deepcopy__(self, memo) -> AdaptiveEyeModel:
@@ -210,21 +202,17 @@ class AdaptiveEyeModel:
 
     def _globe_taken(self) -> bool:
         """Whether the robust globe is the quadric under the local model (after its step):
-        its semi-axes are an eye's and the scan range at least GLOBE_MIN_SCAN_RANGE_MM; to be
-        taken up, it departs from the sphere by more than its own uncertainty allows
-        (GLOBE_DEPARTURE); and it predicts the new points better than the sphere (a lower
-        biweight loss: a pathology counts as much against either) over the last ~`memory`
-        points, or, once taken, over the last ~`hold_memory` (models.fit.streaming_robust).
-        Judged over the short memory alone, the quadric swaps between globe and sphere 7-10
-        times in each local plan of the detached eye and the staphyloma (seed 0), each time
-        for 200-600 A-scans as the tool enters through a port (the retina by the ora
-        serrata, which the sphere fits better), and moves the boundary by up to 0.46 mm."""
+        its semi-axes are an eye's and the scan range at least GLOBE_MIN_SCAN_RANGE_MM, and
+        it predicts the new points better than the sphere (a lower biweight loss: a
+        pathology counts as much against either) over the last ~`memory` points, or, once
+        taken, over the last ~`hold_memory` (models.fit.streaming_robust). Judged over the
+        short memory alone, the quadric swaps between globe and sphere 7-10 times in each
+        local plan of the detached eye and the staphyloma (seed 0), each time for 200-600
+        A-scans as the tool enters through a port (the retina by the ora serrata, which the
+        sphere fits better), and moves the boundary by up to 0.46 mm."""
         globe = self.globe
         fit = globe.last_ok
         if fit is None or self._range.diameter_mm < GLOBE_MIN_SCAN_RANGE_MM or not eyes_radii(*fit.radii):
-            return False
-        gap, sd = self.globe_departure_mm
-        if not (self.globe_taken or gap > GLOBE_DEPARTURE * sd):
             return False
         return globe.loss_mm2 < globe.rival_loss_mm2 or (
             self.globe_taken and globe.held_loss_mm2 < globe.held_rival_loss_mm2)
@@ -325,19 +313,12 @@ class AdaptiveEyeModel:
         self.globe_taken = self._globe_taken()
 
     def _globe_sd(self) -> None:
-        """globe_sd_mm and globe_departure_mm of the robust globe's last fit (GLOBE_SD_FACTOR,
-        GLOBE_DEPARTURE; the sphere's as it is now; 5-9 us and ~5 us: make bench)."""
+        """globe_sd_mm of the robust globe's last fit (GLOBE_SD_FACTOR; 5-9 us: make bench)."""
         globe = self.globe
         fit = self._sd_fit = globe.last_ok
-        S = globe.last_scatter
-        largest, rms = extrapolation_sd(S, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM,
-                                        ANTERIOR_CROP_MM)
-        self.globe_sd_mm = GLOBE_SD_FACTOR * largest
-        sphere = self._sf.sphere
-        gap = np.nan if sphere is None else drift_and_gap(
-            fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, S, ANTERIOR_CROP_MM, fit.v, sphere.center,
-            sphere.radius)[1] * LENGTH_SCALE_MM
-        self.globe_departure_mm = (gap, GLOBE_SD_FACTOR * rms)
+        sd = extrapolation_sd(globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM,
+                              ANTERIOR_CROP_MM)
+        self.globe_sd_mm = GLOBE_SD_FACTOR * sd
 
     def _globe_steps(self, received: int, n_points: int) -> bool:
         """Whether the robust globe steps in an update of `received` points that brings the

@@ -157,7 +157,7 @@ def test_the_local_model_takes_the_globes_own_sd_far_from_the_data():
         if model.globe_taken:
             fit, globe = model.globe.last_ok, model.globe
             assert g is fit.ellipsoid and sd == GLOBE_SD_FACTOR * extrapolation_sd(
-                globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM)[0]
+                globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM)
             far = model.local.config.ellipsoid_sd_far_mm
             assert model.local._prior[2] == pytest.approx(min(max(sd, far), model.local.config.sd_far_mm))
             sds.append(sd)
