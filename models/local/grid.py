@@ -64,8 +64,8 @@ and the standard deviation with it: 3 sigma covers 99.3-100 % of the reference r
 README's table).
 The support is 9 deg. On the loop's spiral (seed 0) 12 deg follows a 3 mm staphyloma's
 wall between scan lines (scanned p95 39 um against 111), but a detached eye's sphere-phase
-scenario that started inside that model's bound then recovered along the model's distance
-gradient towards the true retina, to 0.485 mm of it (0.623 mm at 9 deg).
+scenario that started inside that model's bound then came to 0.485 mm of the true retina
+(0.623 mm at 9 deg; README).
 Units: mm, rad (deg where named).
 """
 from __future__ import annotations
