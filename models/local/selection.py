@@ -44,6 +44,8 @@ much too is left out of the pass.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -161,7 +163,7 @@ class LocalChoice:
             if self._state[0] + len(pred) > len(self._r):
                 self._make_room(len(pred))
             if choice_step(pred, P, local.center, gp, self.min_gap_rad, self.outlier_mm, self._U, self._r, self._el2,
-                           self._state, len(P) / self.rescore_points, self.mse_global != self.mse_global, self._sums):
+                           self._state, len(P) / self.rescore_points, math.isnan(self.mse_global), self._sums):
                 s = self._sums
                 if s[2] > 0:
                     self.mse_local, self.mse_global = s[0] / s[2], s[1] / s[2]
