@@ -29,7 +29,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import DiscreteTimeIntegrator
 
-from eval.clearance import true_clearances
+from eval.clearance import bound_excess, true_clearances
 from eval.loop_config import LoopConfig
 from eval.systems.actuator import ActuatorSystem
 from eval.systems.filter import FilterSystem, Step
@@ -58,7 +58,13 @@ class LoopRun:
     `filter_wall_s` in the rest of the filter system's steps (the filter, its record and
     log); `model_epochs` the
     model the filter used (ModelSnapshot, W) from each change of kind on (prior -> sphere
-    -> ellipsoid), the first one from the start of the run."""
+    -> ellipsoid), the first one from the start of the run. `bound_excess_mm`: the largest
+    amount by which the bound on a monitored point's true clearance that the barrier
+    assumed (h - k sigma - calibration) exceeded its true clearance, at step
+    `bound_excess_step`, where that point's true clearance was `bound_excess_clearance_mm`
+    (eval.clearance.bound_excess; > 0: the rule's premise failed there; -inf: no bound);
+    `bound_excess_in_reach_mm` the same over the bounds within the barrier's reach of
+    d_safe (d_safe + max tip speed / gain: the rows that can act within the step)."""
 
     t: np.ndarray
     q: np.ndarray
@@ -83,6 +89,10 @@ class LoopRun:
     model_wall_s: float = 0.0
     filter_wall_s: float = 0.0
     logged: bool = False  # every step went to an MCAP log (RunLogger): slower than an unlogged run
+    bound_excess_mm: float = -np.inf
+    bound_excess_step: int = -1
+    bound_excess_clearance_mm: float = np.nan
+    bound_excess_in_reach_mm: float = -np.inf
 
     @property
     def duration_s(self) -> float:
@@ -240,6 +250,9 @@ class ClosedLoop:
             lens_clear[lens_counts > 0] = np.minimum.reduceat(d, starts)
         a = lambda x, shape=None: np.array(x, dtype=float) if len(x) else np.zeros(shape or (0,))  # noqa: E731
         qdot, J_tip = a(col["qdot"], (0, 6)), a(col["J_tip"], (0, 3, 6))
+        f = self.config.filter
+        (excess, at, clearance), (in_reach, _, _) = bound_excess(
+            col["points_W"], col["bounds_mm"], eye, (np.inf, f.d_safe_mm + f.max_tip_speed_mm_s / f.gain_per_s))
         return LoopRun(
             t=a(col["t"]), q=a(col["q"], (0, 6)), qdot=qdot, v_cmd=a(col["v_cmd"], (0, 3)),
             v_tip=np.einsum("kij,kj->ki", J_tip, qdot), ok=np.array(col["ok"], dtype=bool), reasons=col["reason"],
@@ -250,5 +263,6 @@ class ClosedLoop:
             drake_diffik_us=a(self.filter.record.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
             model_epochs=list(self.model.epochs), command_wall_s=self.filter.command_wall_s, model_wall_s=self.model.wall_s,
             filter_wall_s=self.filter.wall_s - self.filter.command_wall_s,
-            logged=logged,
+            logged=logged, bound_excess_mm=excess, bound_excess_step=at, bound_excess_clearance_mm=clearance,
+            bound_excess_in_reach_mm=in_reach,
         )

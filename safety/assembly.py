@@ -65,9 +65,10 @@ def row_id_bases(constraints, capacities: dict) -> tuple[list, int]:
 
 def workspace_layout(n: int, m_cap: int, p_cap: int, k_cap: int) -> tuple[dict, int]:
     """({name: (start, stop, shape)}, size) of the float workspace for n joints, m_cap
-    inequality rows, p_cap equality rows and k_cap points: H, c, lb, ub, G, h, A, b, point_h."""
+    inequality rows, p_cap equality rows and k_cap points: H, c, lb, ub, G, h, A, b, point_h, point_bound."""
     parts = (("H", (n, n)), ("c", (n,)), ("lb", (n,)), ("ub", (n,)), ("G", (m_cap, n)), ("h", (m_cap,)),
-             ("A", (p_cap, n)), ("b", (p_cap,)), ("point_h", (max(k_cap, 1),)))
+             ("A", (p_cap, n)), ("b", (p_cap,)), ("point_h", (max(k_cap, 1),)),
+             ("point_bound", (max(k_cap, 1),)))
     out, o = {}, 0
     for name, shape in parts:
         size = int(np.prod(shape))
@@ -146,6 +147,7 @@ def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, pendin
     lb[:] = -np.inf
     ub[:] = np.inf
     point_h[:] = np.inf
+    point_bound[:] = np.inf
     m = 0
     p = 0
     clearance = np.inf

@@ -103,6 +103,7 @@ class ConstraintStack:
         # the step's workspace as views (H, c, lb, ub, G, h, ids, A, b, point_h, rows at bound)
         self.ws = (v["H"], v["c"], v["lb"], v["ub"], v["G"], v["h"], self.wsi[:m_cap], v["A"], v["b"], v["point_h"],
                    self.wsi[m_cap:])
+        self.point_bound = v["point_bound"]  # the last step's bound per point on the true clearance (point_barrier)
         self.set_params()
 
     def reset(self) -> None:

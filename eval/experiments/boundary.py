@@ -167,7 +167,9 @@ def start_at(loop: ClosedLoop, model_shape, u_E, depth_mm: float):
 # times, "solve_us" and "drake_diffik_us", are printed in a line of their own).
 CAMPAIGN_KEYS = ("scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction",
                  "tracking_rmse_mm_s", "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps",
-                 "correction_eased_steps", "max_rcm_error_um", "realtime_factor", "realtime_factor_unlogged")
+                 "correction_eased_steps", "max_rcm_error_um", "realtime_factor", "realtime_factor_unlogged",
+                 "bound_over_truth_runs", "max_bound_excess_mm", "bound_excess_true_clearance_mm",
+                 "bound_over_truth_in_reach_runs", "max_bound_excess_in_reach_mm")
 
 
 @dataclass
@@ -215,7 +217,25 @@ class Campaign:
             "free_tracking_error_p99": float(np.percentile(free_rel, 99)) if len(free_rel) else 0.0,
             "lens_violations": int(sum(np.min(r.lens_clearance_mm) < 0.0 for r in runs)),
             "max_rcm_error_um": float(1e3 * max(np.nanmax(r.rcm_error_mm) for r in runs)) if runs else None,
+            **_bound_summary(runs),
         }
+
+
+def _bound_summary(runs: list) -> dict:
+    """The barrier's premise over LoopRuns (LoopRun.bound_excess_mm): in how many runs the
+    bound on a monitored point's true clearance that the filter assumed (h - k sigma - c)
+    lay over the true clearance at some step, the largest such excess (mm; < 0: the
+    smallest margin by which the bounds held) and the true clearance where it was (mm);
+    the same over the bounds within the barrier's reach of d_safe (the rows that could act).
+    None without a bound."""
+    out = {}
+    for suffix, key in (("", "bound_excess_mm"), ("_in_reach", "bound_excess_in_reach_mm")):
+        finite = [getattr(r, key) for r in runs if np.isfinite(getattr(r, key))]
+        out[f"bound_over_truth{suffix}_runs"] = int(sum(x > 0.0 for x in finite))
+        out[f"max_bound_excess{suffix}_mm"] = float(max(finite)) if finite else None
+    worst = max((r for r in runs if np.isfinite(r.bound_excess_mm)), key=lambda r: r.bound_excess_mm, default=None)
+    out["bound_excess_true_clearance_mm"] = None if worst is None else float(worst.bound_excess_clearance_mm)
+    return out
 
 
 def reason_class(reason: str) -> str:

@@ -53,7 +53,9 @@ JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
 
 class Step(NamedTuple):
     """One control step's record: time, joints, command and result, what the filter saw
-    (mm, s, rad; W). The tip velocity done is J_tip qdot (LoopRun computes it)."""
+    (mm, s, rad; W). The tip velocity done is J_tip qdot (LoopRun computes it);
+    `bounds_mm` (k,) the lower bound on each boundary point's (points_W) true clearance
+    that the barrier assumed, h - k sigma - calibration (+inf: none; a refused step: all +inf)."""
 
     t: float
     q: np.ndarray
@@ -70,6 +72,7 @@ class Step(NamedTuple):
     rcm_error_mm: float
     points_W: np.ndarray
     lens_W: np.ndarray
+    bounds_mm: np.ndarray
 
 
 @dataclass
@@ -325,11 +328,17 @@ class FilterSystem(LeafSystem):
             rec.diffik_states.append((q, command[:3]))  # Drake is timed on these after the run (ClosedLoop.run)
         rec.steps.append(Step(t, q, out.qdot, command[:3], J_tip, out.ok, out.reason, out.intervened, out.solve_us,
                               step_us, out.min_clearance_mm, snap.kind, float(rcm_error), P[:ranges[1, 1]],
-                              P[ranges[2, 0]:ranges[2, 1]]))
+                              P[ranges[2, 0]:ranges[2, 1]], self._bounds(out, ranges[1, 1])))
         if self.logger is not None:
             meas = self._meas.Eval(context)
             self._log(t, q, command, snap, sensor_t, out, float(meas[0]) if meas[1] > 0 else float("nan"),
                       None if self._actuator is None else pending)
+
+    def _bounds(self, out, k: int) -> np.ndarray:
+        """The step's bounds (k,) mm on its boundary points' true clearance (Step.bounds_mm);
+        +inf after a fault (the compiled step stopped before the barriers)."""
+        faulted = not out.ok and out.min_clearance_mm != out.min_clearance_mm
+        return np.full(k, np.inf) if faulted else self.stack.point_bound[:k].copy()
 
     def time_drake_diffik(self) -> None:
         """Time Drake's DoDifferentialInverseKinematics on the states recorded during the

@@ -41,7 +41,8 @@ model, takes it past the margin) refuses the step with the reason "actuator cann
 before the boundary": zero command, the fastest braking the actuator allows, rather than
 a QP that finds no velocity a few steps later. It holds until the queue drains.
 
-The clearance the barrier reports (`point_h`) is the present one, h.
+The clearance the barrier reports (`point_h`) is the present one, h, and so is the bound
+on the true clearance it assumes (`point_bound`: h - k sigma - calibration).
 """
 from __future__ import annotations
 
@@ -89,7 +90,7 @@ def braking_margins(side, P, J, start, stop, fh, fg, pending, inv_2r, revolute, 
 
 
 @njit(cache=True)
-def fill_actuated_barrier(sp, P, J, start, stop, fh, fg, fu, pending, G, h, ids, m, id0, point_h):
+def fill_actuated_barrier(sp, P, J, start, stop, fh, fg, fu, pending, G, h, ids, m, id0, point_h, point_bound):
     """sp = [len(base), the PointBarrier's params (base), 1 / (2 R) 1/mm, stop tolerance mm,
     revolute joints 1/0];
     the point barrier's rows on the predicted clearance, or -CANNOT_BRAKE (module docstring)."""
@@ -111,11 +112,12 @@ def fill_actuated_barrier(sp, P, J, start, stop, fh, fg, fu, pending, G, h, ids,
         if b[i] > 0.0 and present >= h_min - tol and present - b[i] < h_min - tol:
             return -CANNOT_BRAKE
         predicted[i] = side * (present - b[i])
-    m_out = fill_point_barrier(base, P, J, start, stop, predicted, fg, fu, G, h, ids, m, id0, point_h)
+    m_out = fill_point_barrier(base, P, J, start, stop, predicted, fg, fu, G, h, ids, m, id0, point_h, point_bound)
     if m_out >= 0:
         for i in range(k):
             if point_h[start + i] != np.inf:
                 point_h[start + i] = side * fh[i]
+                point_bound[start + i] = side * fh[i] - k_sigma * fu[i] - calibration
     return m_out
 
 

@@ -18,6 +18,11 @@ step and is left out of the QP; the first `always_first` points of the group (th
 and the cutter port: the clearance and the cutter interlock) are always kept. A field
 that answers +inf at a point puts no boundary there (no row, no clearance). A NaN
 distance, a non-finite gradient, or a NaN or negative uncertainty refuses the step.
+
+The filler reports each point's clearance h (`point_h`) and the bound on its TRUE
+clearance that the rule assumes, h - k u - c (`point_bound`): where the true retina lies
+nearer than that, the field's uncertainty or the calibration bound was not honest there
+(the closed loop measures it against the true eye: eval.clearance.bound_excess).
 """
 from __future__ import annotations
 
@@ -32,16 +37,18 @@ NON_FINITE_FIELD = 1  # the filler's fault code
 
 
 @njit(cache=True)
-def fill_point_barrier(sp, P, J, start, stop, fh, fg, fu, G, h, ids, m, id0, point_h):
+def fill_point_barrier(sp, P, J, start, stop, fh, fg, fu, G, h, ids, m, id0, point_h, point_bound):
     """sp = [side (+1: keep inside the field, -1: keep outside), d_safe mm, k, gain 1/s,
     max recovery mm/s, screen reach mm, always_first, calibration bound mm]; the rows of
-    the group's points P[start:stop] (Jacobians J) from the field's values fh, fg, fu there."""
+    the group's points P[start:stop] (Jacobians J) from the field's values fh, fg, fu there;
+    point_h the points' clearance h, point_bound the true clearance the rule assumes, h_min - d_safe below h."""
     side, d_safe, k_sigma, gain, max_recovery, reach, always_first = sp[0], sp[1], sp[2], sp[3], sp[4], sp[5], sp[6]
     calibration = sp[7]
     n = J.shape[2]
     for i in range(stop - start):
         if fh[i] == np.inf and side > 0.0:  # no boundary at this point
             point_h[start + i] = np.inf
+            point_bound[start + i] = np.inf
             continue
         hi = side * fh[i]
         g0, g1, g2 = side * fg[i, 0], side * fg[i, 1], side * fg[i, 2]
@@ -50,6 +57,7 @@ def fill_point_barrier(sp, P, J, start, stop, fh, fg, fu, G, h, ids, m, id0, poi
             return -NON_FINITE_FIELD
         h_min = d_safe + k_sigma * fu[i] + calibration
         point_h[start + i] = hi
+        point_bound[start + i] = hi - (h_min - d_safe)
         if hi - h_min <= reach or i < always_first:
             r = start + i
             for j in range(n):  # -(grad . J) qdot <= gain (h - h_min), the recovery below h_min capped

@@ -1,9 +1,10 @@
-"""eval.clearance.true_clearances: each step's smallest true clearance, bit for bit what
+"""eval.clearance: each step's smallest true clearance (true_clearances) and the largest
+excess of the barrier's bounds over the true clearance (bound_excess), bit for bit what
 searching every point gives, from fewer searches."""
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from eval.clearance import true_clearances
+from eval.clearance import bound_excess, true_clearances
 from models.eyes import make_eye
 
 
@@ -81,3 +82,47 @@ def test_composite_eye_same_minima():
 
 def test_no_steps():
     assert true_clearances([], CountingEye()).shape == (0,)
+
+
+def _bounds(rng, pts, eye, spread_mm):
+    """Per step, each point's true clearance plus noise of `spread_mm` (a bound that is
+    sometimes over the truth), one point in five without a bound (+inf)."""
+    out = []
+    for P in pts:
+        b = eye.signed_distance(P) + rng.normal(scale=spread_mm, size=len(P)) - 0.5 * spread_mm
+        b[rng.random(len(P)) < 0.2] = np.inf
+        out.append(b)
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), steps=st.integers(1, 200), speed=st.floats(1e-4, 0.5),
+       switch=st.integers(0, 200), spread=st.floats(1e-3, 1.0), cap=st.floats(0.0, 12.0))
+def test_bound_excess_equals_searching_every_point(seed, steps, speed, switch, spread, cap):
+    rng = np.random.default_rng(seed)
+    counts = [4 if i < switch else 5 for i in range(steps)]
+    pts = _instrument_path(rng, steps, counts, speed)
+    bounds = _bounds(rng, pts, CountingEye(), spread)
+    eye = CountingEye()
+    results = bound_excess(pts, bounds, eye, (np.inf, cap))
+    assert eye.asked <= sum(counts)
+    for c, (best, step, clearance) in zip((np.inf, cap), results):
+        every = [np.where(np.isfinite(b) & (b <= c), b - CountingEye().signed_distance(P), -np.inf)
+                 for P, b in zip(pts, bounds)]
+        k = int(np.argmax([e.max() for e in every]))
+        if not np.isfinite(every[k].max()):
+            assert (best, step) == (-np.inf, -1)
+            continue
+        assert best == every[k].max() and step == k
+        assert clearance == CountingEye().signed_distance(pts[k])[int(np.argmax(every[k]))]
+
+
+def test_bound_excess_searches_few_points_when_the_bounds_hold():
+    """Bounds 0.2 mm under the truth on a slow instrument: the anchors and the few points
+    within an anchor gap of the largest excess are searched."""
+    rng = np.random.default_rng(4)
+    pts = _instrument_path(rng, 500, [4] * 500, 0.01)
+    bounds = [CountingEye().signed_distance(P) - 0.2 - 0.1 * rng.random(4) for P in pts]
+    eye = CountingEye()
+    [(best, _, _)] = bound_excess(pts, bounds, eye)
+    assert -0.3 <= best <= -0.2 and eye.asked < 0.5 * 4 * 500

@@ -96,6 +96,25 @@ def test_adversarial_scenarios_keep_the_true_clearance_on_a_regular_eye(emmetrop
     assert s["max_rcm_error_um"] <= 1e3 * RCM_TOL_MM
     # the adversary really attacks: the boundary is reached (within 0.3 mm of the 0.5 mm boundary)
     assert s["min_true_clearance_mm"] <= 0.8 and s["intervention_fraction"] > 0.05
+    # and the barrier's premise held: no monitored point's true clearance fell under the bound it assumed
+    assert s["bound_over_truth_runs"] == 0 and s["max_bound_excess_mm"] < 0.0
+
+
+def test_a_model_that_is_not_the_eye_shows_as_bounds_over_the_truth(emmetropic):
+    """The emmetropic eye's local model against a hyperopic eye (shorter: its retina nearer than
+    the model's, with the model's sigma tens of um): the bounds the barrier assumed lie over
+    the true clearance, and the run's largest excess is what every step's bounds and points give."""
+    _, model = emmetropic
+    loop = ClosedLoop(SurgeryScenario(eye_name="hyperopic"), LoopConfig(local_model=True))
+    eye = loop.scenario.eye
+    path_W = loop.scenario.eye_pose.to_W(np.array([[0.0, 0.0, -9.0], [0.0, 0.0, -11.5]]))  # towards the pole
+    q0 = start_posture(loop.robot, path_W[0], loop.scenario.p_WC)
+    run = loop.run(TipPathCommand(np.array([0.0, 1.0]), path_W), q0, 1.0, **model.kw())
+    steps = loop.filter.record.steps
+    every = [np.where(np.isfinite(st.bounds_mm), st.bounds_mm - eye.signed_distance(st.points_W), -np.inf)
+             for st in steps]
+    k = int(np.argmax([e.max() for e in every]))
+    assert run.bound_excess_mm == every[k].max() > 0.0 and run.bound_excess_step == k
 
 
 def test_free_space_command_is_tracked_within_1_percent(emmetropic):

@@ -65,19 +65,25 @@ def test_bad_actuator_parameters_are_refused(kw):
 
 
 def test_the_barrier_keeps_the_braking_travel_towards_the_wall_in_its_margin():
-    b = ActuatedPointBarrier("g", "f", d_safe_mm=0.5, gain_per_s=20.0, curvature_radius_mm=5.0, revolute_joints=False)
+    b = ActuatedPointBarrier("g", "f", d_safe_mm=0.5, gain_per_s=20.0, curvature_radius_mm=5.0, revolute_joints=False,
+                             sigma_factor=3.0)
     G, h, ids = np.zeros((1, 3)), np.zeros(1), np.zeros(1, dtype=np.int64)
-    point_h = np.zeros(1)
+    point_h, point_bound = np.zeros(1), np.zeros(1)
     pending = np.array([[0.0, 0.0, -0.2], [0.0, 0.0, 0.3]])  # 0.2 mm towards the wall, 0.3 mm away
     m = fill_actuated_barrier(b.params(), np.zeros((1, 3)), np.eye(3)[None], 0, 1, np.array([1.0]),
-                              np.array([[0.0, 0.0, 1.0]]), np.zeros(1), pending, G, h, ids, 0, 0, point_h)
+                              np.array([[0.0, 0.0, 1.0]]), np.zeros(1), pending, G, h, ids, 0, 0, point_h, point_bound)
     margin = 0.2 + 0.5 ** 2 / (2 * 5.0)  # the inward part only, and the curvature over the 0.5 mm of travel
     assert m == 1 and point_h[0] == 1.0  # the reported clearance is the present one
+    assert point_bound[0] == 1.0  # and so is the bound on the true clearance (sigma 0 here)
     np.testing.assert_allclose(G[0], [0.0, 0.0, -1.0])
     assert h[0] == pytest.approx(20.0 * (1.0 - margin - 0.5))
+    fill_actuated_barrier(b.params(), np.zeros((1, 3)), np.eye(3)[None], 0, 1, np.array([1.0]),
+                          np.array([[0.0, 0.0, 1.0]]), np.array([0.05]), pending, G, h, ids, 0, 0, point_h, point_bound)
+    assert point_bound[0] == pytest.approx(1.0 - 3.0 * 0.05)
     # within the margin at present, past it once braked: a planned stop
     m = fill_actuated_barrier(b.params(), np.zeros((1, 3)), np.eye(3)[None], 0, 1, np.array([0.55]),
-                              np.array([[0.0, 0.0, 1.0]]), np.zeros(1), pending[:1], G, h, ids, 0, 0, point_h)
+                              np.array([[0.0, 0.0, 1.0]]), np.zeros(1), pending[:1], G, h, ids, 0, 0, point_h,
+                              point_bound)
     assert m == -CANNOT_BRAKE
     assert b.fault_reason(CANNOT_BRAKE) == "actuator cannot brake before the boundary"
 

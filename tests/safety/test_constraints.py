@@ -36,17 +36,20 @@ def test_the_tip_speed_polytope_holds_the_ball_and_stays_within_the_limit():
 def test_a_point_barrier_row_is_the_barrier_condition():
     # a point 1.0 mm inside a field whose gradient is +z, Jacobian identity: the row allows an
     # outward speed of gain (h - d_safe - k u) along -z
-    b = PointBarrier("g", "f", d_safe_mm=0.5, gain_per_s=20.0, max_recovery_mm_s=5.0, sigma_factor=2.0)
+    b = PointBarrier("g", "f", d_safe_mm=0.5, gain_per_s=20.0, max_recovery_mm_s=5.0, sigma_factor=2.0,
+                     calibration_mm=0.05)
     G, h, ids = buffers(1, 3)
-    point_h = np.full(1, np.nan)
+    point_h, point_bound = np.full(1, np.nan), np.full(1, np.nan)
     m = fill_point_barrier(b.params(), np.zeros((1, 3)), np.eye(3)[None], 0, 1, np.array([1.0]),
-                           np.array([[0.0, 0.0, 1.0]]), np.array([0.1]), G, h, ids, 0, 3, point_h)
+                           np.array([[0.0, 0.0, 1.0]]), np.array([0.1]), G, h, ids, 0, 3, point_h, point_bound)
     assert m == 1 and ids[0] == 3 and point_h[0] == 1.0
+    # the true clearance the rule takes as certain: h - k u - calibration
+    assert point_bound[0] == pytest.approx(1.0 - 2.0 * 0.1 - 0.05)
     np.testing.assert_allclose(G[0], [0.0, 0.0, -1.0])
-    assert h[0] == pytest.approx(20.0 * (1.0 - 0.5 - 2.0 * 0.1))
+    assert h[0] == pytest.approx(20.0 * (1.0 - 0.5 - 2.0 * 0.1 - 0.05))
     # below the margin the recovery is capped at max_recovery
     m = fill_point_barrier(b.params(), np.zeros((1, 3)), np.eye(3)[None], 0, 1, np.array([-3.0]),
-                           np.array([[0.0, 0.0, 1.0]]), np.zeros(1), G, h, ids, 0, 0, point_h)
+                           np.array([[0.0, 0.0, 1.0]]), np.zeros(1), G, h, ids, 0, 0, point_h, point_bound)
     assert h[0] == -5.0
 
 
@@ -56,17 +59,18 @@ def test_rows_out_of_reach_are_screened_and_infinity_means_no_boundary_and_nan_r
     P, J = np.zeros((3, 3)), np.tile(np.eye(3), (3, 1, 1))
     g = np.tile([0.0, 0.0, 1.0], (3, 1))
     # point 0 far but always kept, point 1 far (left out), point 2 near
+    point_h, point_bound = np.zeros(3), np.zeros(3)
     assert fill_point_barrier(b.params(), P, J, 0, 3, np.array([5.0, 5.0, 1.0]), g, np.zeros(3), G, h, ids, 0, 0,
-                              np.zeros(3)) == 2
+                              point_h, point_bound) == 2
     np.testing.assert_array_equal(ids[:2], [0, 2])
-    point_h = np.zeros(3)
+    np.testing.assert_array_equal(point_bound, [5.0, 5.0, 1.0])  # screened-out points keep their bound
     assert fill_point_barrier(b.params(), P, J, 0, 3, np.array([np.inf, 1.0, 1.0]), g, np.zeros(3), G, h, ids, 0, 0,
-                              point_h) == 2 and point_h[0] == np.inf
+                              point_h, point_bound) == 2 and point_h[0] == np.inf and point_bound[0] == np.inf
     assert fill_point_barrier(b.params(), P, J, 0, 3, np.array([np.nan, 1.0, 1.0]), g, np.zeros(3), G, h, ids, 0, 0,
-                              point_h) == -NON_FINITE_FIELD
+                              point_h, point_bound) == -NON_FINITE_FIELD
     # a keep-out reads the field from outside: +inf is inside the keep-out, a fault
     assert fill_point_barrier(KeepOut("g", "f").params(), P, J, 0, 3, np.array([np.inf, -1.0, -1.0]), g, np.zeros(3),
-                              G, h, ids, 0, 0, point_h) == -NON_FINITE_FIELD
+                              G, h, ids, 0, 0, point_h, point_bound) == -NON_FINITE_FIELD
 
 
 def test_the_rcm_rows_hold_the_trocar_and_correct_a_lateral_error():
