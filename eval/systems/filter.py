@@ -326,19 +326,16 @@ class FilterSystem(LeafSystem):
         step_us = 1e6 * (time.perf_counter() - t0)
         if self.config.drake_diffik_every and len(rec.steps) % self.config.drake_diffik_every == 0 and out.ok:
             rec.diffik_states.append((q, command[:3]))  # Drake is timed on these after the run (ClosedLoop.run)
+        k = ranges[1, 1]  # the bounds on the points' true clearance; +inf after a fault (no barrier ran)
+        bounds = np.full(k, np.inf) if not out.ok and out.min_clearance_mm != out.min_clearance_mm else \
+            self.stack.point_bound[:k].copy()
         rec.steps.append(Step(t, q, out.qdot, command[:3], J_tip, out.ok, out.reason, out.intervened, out.solve_us,
                               step_us, out.min_clearance_mm, snap.kind, float(rcm_error), P[:ranges[1, 1]],
-                              P[ranges[2, 0]:ranges[2, 1]], self._bounds(out, ranges[1, 1])))
+                              P[ranges[2, 0]:ranges[2, 1]], bounds))
         if self.logger is not None:
             meas = self._meas.Eval(context)
             self._log(t, q, command, snap, sensor_t, out, float(meas[0]) if meas[1] > 0 else float("nan"),
                       None if self._actuator is None else pending)
-
-    def _bounds(self, out, k: int) -> np.ndarray:
-        """The step's bounds (k,) mm on its boundary points' true clearance (Step.bounds_mm);
-        +inf after a fault (the compiled step stopped before the barriers)."""
-        faulted = not out.ok and out.min_clearance_mm != out.min_clearance_mm
-        return np.full(k, np.inf) if faulted else self.stack.point_bound[:k].copy()
 
     def time_drake_diffik(self) -> None:
         """Time Drake's DoDifferentialInverseKinematics on the states recorded during the
