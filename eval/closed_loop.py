@@ -252,7 +252,7 @@ class ClosedLoop:
         qdot, J_tip = a(col["qdot"], (0, 6)), a(col["J_tip"], (0, 3, 6))
         f = self.config.filter
         (excess, at, clearance), (in_reach, _, _) = bound_excess(
-            col["points_W"], col["bounds_mm"], eye, (np.inf, f.d_safe_mm + f.max_tip_speed_mm_s / f.gain_per_s))
+            col["points_W"], col["bounds_mm"], eye, (np.inf, f.d_safe_mm + f.barrier_reach_mm))
         return LoopRun(
             t=a(col["t"]), q=a(col["q"], (0, 6)), qdot=qdot, v_cmd=a(col["v_cmd"], (0, 3)),
             v_tip=np.einsum("kij,kj->ki", J_tip, qdot), ok=np.array(col["ok"], dtype=bool), reasons=col["reason"],

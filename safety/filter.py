@@ -33,7 +33,7 @@ def default_constraints(config: FilterConfig, q_min, q_max, qdot_max, retina_gro
     point barrier per (group, field slot, points always kept) of `retina_groups` (with the
     declared calibration bound in its margin: FilterConfig.calibration_margin_mm), the
     lens keep-out on (group, field slot) `lens_group`, the RCM constraint `rcm`, then `extra`."""
-    reach = config.max_tip_speed_mm_s / config.gain_per_s  # what the speed limit closes at the barrier rate
+    reach = config.barrier_reach_mm  # what the speed limit closes at the barrier rate
     out = [TipSpeedLimit(config.max_tip_speed_mm_s), JointSpeedLimits(np.asarray(qdot_max, dtype=float)),
            JointPositionLimits(np.asarray(q_min, dtype=float), np.asarray(q_max, dtype=float), config.joint_gain_per_s,
                                config.joint_margin_rad)]

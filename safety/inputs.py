@@ -57,11 +57,17 @@ class FilterConfig:
         `model_margin_mm` (its uncertainty term): d_safe + that margin + the calibration margin."""
         return self.d_safe_mm + float(model_margin_mm) + self.calibration_margin_mm
 
+    @property
+    def barrier_reach_mm(self) -> float:
+        """How far past its bound a barrier row can act within a step (mm): what the tip
+        speed limit closes at the barrier's rate, max_tip_speed / gain."""
+        return self.max_tip_speed_mm_s / self.gain_per_s
+
     def field_bound(self, fallback) -> tuple:
-        """(sigma_factor, fallback Sphere, kept distance mm): the barrier's bound on a local
-        model's field (models.local.field.LocalField.with_fallback, its params' bound block),
-        one definition for the model system that writes it and the filter that reads it."""
-        return self.sigma_factor, fallback, self.boundary_mm()
+        """(sigma_factor, fallback Sphere, kept distance mm, reach mm): the barrier's bound on
+        a local model's field (models.local.field.LocalField.with_fallback, its params' bound
+        block), one definition for the model system that writes it and the filter that reads it."""
+        return self.sigma_factor, fallback, self.boundary_mm(), self.barrier_reach_mm
 
     @property
     def calibration_margin_mm(self) -> float:

@@ -57,15 +57,16 @@ class LocalField(KernelQueries):
         head[2] = -1.0
         return cls(head, "none")
 
-    def with_fallback(self, sigma_factor: float, fallback, keep_mm: float) -> LocalField:
+    def with_fallback(self, sigma_factor: float, fallback, keep_mm: float, reach_mm: float = np.inf) -> LocalField:
         """The barrier's form: points answer the `fallback` Sphere (inside every retina)
         wherever it allows more than the model's h - sigma_factor x sigma, and their gradient
         elsewhere is that of h - sigma_factor x sigma, or, where that lies below `keep_mm`
-        (the distance the filter keeps: d_safe and the calibration margin), of h (local_field).
+        (the distance the filter keeps: d_safe and the calibration margin), of h (local_field);
+        within `reach_mm` of keep_mm the bound is the lowest beside the point too (lateral_bound).
         It shares this field's params when they already hold that bound (bound_params; the
         loop's model system writes it, so the filter's step copies nothing), else it is a
         copy (~1 MB)."""
-        bound = bound_params(sigma_factor, fallback, keep_mm)
+        bound = bound_params(sigma_factor, fallback, keep_mm, reach_mm)
         if np.array_equal(self.params[BOUND:HEAD], bound):
             return LocalField(self.params, self.kind, barrier=True)
         params = self.params.copy()
@@ -104,15 +105,18 @@ class LocalField(KernelQueries):
         return self.center + R[:, None] * U
 
 
-def bound_params(sigma_factor: float, fallback, keep_mm: float) -> np.ndarray:
+def bound_params(sigma_factor: float, fallback, keep_mm: float, reach_mm: float = np.inf) -> np.ndarray:
     """The params' bound block (BOUND:HEAD) of the barrier's form: [k, fallback centre (3,)
-    mm, fallback radius mm, keep_mm] for the barrier's `sigma_factor` k >= 0, a `fallback`
-    Sphere and the distance `keep_mm` >= 0 the filter keeps besides k sigma."""
-    k, radius, keep = float(sigma_factor), float(fallback.radius), float(keep_mm)
-    if not (np.isfinite(k) and k >= 0.0 and np.isfinite(radius) and radius > 0.0 and np.isfinite(keep) and keep >= 0.0):
-        raise ValueError(f"the barrier's bound needs sigma_factor >= 0, a fallback radius > 0 mm and keep_mm >= 0, "
-                         f"got {k}, {radius}, {keep}")
-    return np.array([k, *np.asarray(fallback.center, dtype=float), radius, keep])
+    mm, fallback radius mm, keep_mm, reach_mm] for the barrier's `sigma_factor` k >= 0, a
+    `fallback` Sphere, the distance `keep_mm` >= 0 the filter keeps besides k sigma and the
+    barrier's reach past it, `reach_mm` > 0 (inf: everywhere), within which the bound
+    looks beside the point too (field_kernels.lateral_bound)."""
+    k, radius, keep, reach = float(sigma_factor), float(fallback.radius), float(keep_mm), float(reach_mm)
+    if not (np.isfinite(k) and k >= 0.0 and np.isfinite(radius) and radius > 0.0 and np.isfinite(keep) and keep >= 0.0
+            and reach > 0.0):
+        raise ValueError(f"the barrier's bound needs sigma_factor >= 0, a fallback radius > 0 mm, keep_mm >= 0 and "
+                         f"reach_mm > 0, got {k}, {radius}, {keep}, {reach}")
+    return np.array([k, *np.asarray(fallback.center, dtype=float), radius, keep, reach])
 
 
 class FieldValues:

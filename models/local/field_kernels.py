@@ -12,7 +12,7 @@ from numba import njit
 from models.local.geometry import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, node_frame, wendland
 from models.local.kernels import global_sd
 
-MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60)
+MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60; lateral_bound's two blends: 240)
 CAL_KNOTS_RAD = np.radians(np.array([0.0, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0]))  # the sd calibration's gaps
 N_CAL = CAL_KNOTS_RAD.shape[0]
 
@@ -145,7 +145,9 @@ def field_at(fp, P, barrier):
     of the bound h - k u itself, g - k grad u (not a unit vector): the barrier's rate row
     then holds the bound's own rate, so a point moving along the surface towards
     directions the model knows less of (u growing) is held back as much as one moving
-    towards the surface. Below its bound (h - k u under the distance the filter keeps,
+    towards the surface. Within the barrier's reach of the distance kept (h - k u under
+    fp[BOUND + 5] + fp[BOUND + 6]) u is raised so that h - k u is the lowest of that bound and
+    the bounds beside the point (lateral_bound). Below its bound (h - k u under the distance the filter keeps,
     fp[BOUND + 5]: d_safe and the calibration margin) g stays the distance's: the point
     recovers by moving away from the model's retina. Recovering along g - k grad u, a tip
     the model's update had left 0.66 mm of sigma slid 1.5 mm towards the retina, to 0.21
@@ -159,6 +161,7 @@ def field_at(fp, P, barrier):
     h, g, u = np.empty(M), np.empty((M, 3)), np.empty(M)
     eps = 1e-5
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    wide = np.empty(MAX_CANDIDATES, dtype=np.int64)  # lateral_bound's
     for m in range(M):
         v0, v1, v2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
         r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
@@ -207,6 +210,12 @@ def field_at(fp, P, barrier):
         rp = fp[BOUND + 4]
         if barrier:  # the barrier's form: the gradient of h - k u, or the fallback sphere's bound
             k = fp[BOUND]
+            if k > 0.0 and h[m] - k * sd <= fp[BOUND + 5] + fp[BOUND + 6]:  # within the barrier's reach: the
+                lateral = lateral_bound(  # retina nearer in a direction beside the point's, its bound there if lower
+                    r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cal, local, k, wide)
+                if lateral < h[m] - k * sd:
+                    sd = (h[m] - lateral) / k
+                    u[m] = sd
             w0, w1, w2 = fp[BOUND + 1] - P[m, 0], fp[BOUND + 2] - P[m, 1], fp[BOUND + 3] - P[m, 2]
             q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             if rp - q > h[m] - k * sd and q > 0.0:  # the sphere, inside every retina: no uncertainty
@@ -216,6 +225,42 @@ def field_at(fp, P, barrier):
                 g[m, 0], g[m, 1], g[m, 2] = g[m, 0] - k * gs0, g[m, 1] - k * gs1, g[m, 2] - k * gs2
             # else: below its bound the point recovers along the distance's own gradient
     return h, g, u
+
+
+LATERAL_RINGS = (0.5, 1.0)  # the rings of directions lateral_bound reads, in blends from the point's direction
+LATERAL_AZIMUTHS = 4  # directions per ring (the second ring turned by half their spacing)
+
+
+@njit(cache=True)
+def lateral_bound(r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cal, local, k, cand):
+    """The smallest bound on the true distance from the point r u (from c0) to the retina
+    over directions w beside u, LATERAL_AZIMUTHS on each ring of LATERAL_RINGS blends
+    from it: the distance from the point to the field's surface along w (its radius R(w),
+    the global form's when `local` is 0) less k times the field's sd there, as field_at
+    answers both (_blend_at, calibrated_sd, _global_form_sd). The bound at the point's
+    own direction, h - k sigma, holds while the nearest retina lies along it; where a
+    detachment's flank rises beside the point the nearest retina lies a few degrees off,
+    where the field may know less (a detached eye's sphere phase with a 12 deg support:
+    1.9-4.6 deg off, the field's error there 0.53-0.67 mm at sigma 0.20-0.37 mm against
+    0.10 mm at the point). `cand`: a buffer for the nodes within two blends of u."""
+    nc = candidates(dirs, u0, u1, u2, 2.0 * blend + 1e-4, cand)
+    e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
+    best = np.inf
+    for i in range(len(LATERAL_RINGS)):
+        theta = LATERAL_RINGS[i] * blend
+        ct, st = np.cos(theta), np.sin(theta)
+        for a in range(LATERAL_AZIMUTHS):
+            phi = 2.0 * np.pi * (a + 0.5 * i) / LATERAL_AZIMUTHS
+            t1, t2 = st * np.cos(phi), st * np.sin(phi)
+            w0, w1, w2 = ct * u0 + t1 * e10 + t2 * e20, ct * u1 + t1 * e11 + t2 * e21, ct * u2 + t1 * e12 + t2 * e22
+            R, sd, gap = _blend_at(w0, w1, w2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            sd = calibrated_sd(sd, gap, cal)
+            if local == 0.0:
+                sd = _global_form_sd(sd, R, c0, gp, w0, w1, w2)
+                R = global_radius(c0, gp, w0, w1, w2)
+            dist = np.sqrt(max(r * r + R * R - 2.0 * r * R * ct, 0.0))
+            best = min(best, dist - k * sd)
+    return best
 
 
 @njit(cache=True, inline="always")
@@ -243,7 +288,7 @@ def _global_gradient(c0, gp, u0, u1, u2, r, e10, e11, e12, e20, e21, e22, eps):
     return grad0, grad1, grad2
 
 
-BOUND_SIZE = 6  # [k, fallback centre (3), fallback radius, the distance kept below which a point recovers]
+BOUND_SIZE = 7  # [k, fallback centre (3), fallback radius, the distance kept below which a point recovers, reach]
 HEAD = 6 + 8 + GLOBAL_SIZE + N_CAL + BOUND_SIZE  # n, blend, local, c0 (3), prior (8), global (16), sd calibration, bound
 CAL = 14 + GLOBAL_SIZE  # where the sd calibration's factors begin
 BOUND = HEAD - BOUND_SIZE  # where the bound block begins (fallback radius 0: none)

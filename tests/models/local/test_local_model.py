@@ -216,7 +216,7 @@ def test_the_barrier_form_holds_the_rate_of_the_sd_too(bumped, seed, local):
     ahead = np.array([(plain.uncertainty((P + e)[None])[0] - u0) / step for e in np.eye(3) * step])
     behind = np.array([(u0 - plain.uncertainty((P - e)[None])[0]) / step for e in np.eye(3) * step])
     grad_u = 0.5 * (ahead + behind)
-    assert h[0] == h0[0] and s[0] == s0[0]  # the bound's values themselves unchanged
+    assert h[0] == h0[0] and s[0] >= s0[0]  # the distance unchanged, sigma raised only beside the point (lateral_bound)
     if h[0] - k * s[0] >= 0.0:  # at or above the distance kept (0 here)
         assert np.all(np.abs(g[0] - (g0[0] - k * grad_u)) <= 0.5 * k * np.abs(ahead - behind) + 1e-4)
     else:  # below it: the distance's own gradient (the recovery's)
@@ -225,7 +225,7 @@ def test_the_barrier_form_holds_the_rate_of_the_sd_too(bumped, seed, local):
     keep = max(h[0] - k * s[0], 0.0) + 0.1
     hr, gr, sr = plain.with_fallback(k, Sphere(np.zeros(3), 1.0), keep).signed_distance_gradient_uncertainty(P[None])
     np.testing.assert_array_equal(gr[0], g0[0])
-    assert hr[0] == h0[0] and sr[0] == s0[0]
+    assert hr[0] == h0[0] and sr[0] >= s0[0]
     assert np.linalg.norm(g0[0]) == pytest.approx(1.0)  # the field alone: the distance's unit gradient
 
 
