@@ -105,8 +105,17 @@ def neighbour_table(dirs, reach):
     return off, idx, ang
 
 
+# A node's data are faint where its nearest datum lies beyond this fraction of the support:
+# Wendland's weight there is under 1.6 % of a datum's at the node, and the prior holds the
+# node's quadratic near the global quadric (spread_departures). With a 12 deg support and
+# only the edge rule, 2.6 % of a detachment's unscanned top (data stopping 0.85 of its radius
+# from its centre, 3.5 mm high) lay beyond 3 sigma on the unsafe side, up to 0.43 mm, 8.5-12
+# deg from the data (tests/models/local/test_local_model.py).
+FAINT_SUPPORT = 0.75
+
+
 @njit(cache=True)
-def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor, cross, nb_off, nb_idx, nb_ang,
+def spread_departures(dirs, x, has, excess, dev, slope, near, edge, faint, reach, floor, cross, nb_off, nb_idx, nb_ang,
                       nx_off, nx_idx, nx_ang, out):
     """out (n,) mm^2: a node's variance beyond its quadratic's posterior.
 
@@ -123,7 +132,9 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
     from its data); nearer the data the quadratics follow the rise, and the pointed eye's
     cap, which departs from its sphere everywhere, keeps its sigma between the scan lines:
     36 um median within 2 deg of the data, 58 um with every data node's distance counted).
-    A node without data j: the largest unseen_departure_variance of the data nodes k within
+    A node with data whose nearest datum lies further than `faint` rad (its data weigh
+    little: the prior holds its quadratic near the global quadric) takes, besides, what a
+    node without data would. A node without data j: the largest unseen_departure_variance of the data nodes k within
     `reach` rad whose departure |dev[k]| > floor mm (dev: the mean radius of a node's data
     less the global radius there; slope (n, 2) its rate along the node's frame, both at its
     last solve), with the departure's linear extrapolation from k to j: beyond the edge of
@@ -136,7 +147,7 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
     n = dirs.shape[0]
     for k in range(n):
         out[k] = excess[k] if has[k] != 0.0 else 0.0
-    cos_x, cos_e = np.cos(cross), np.cos(edge)
+    cos_x, cos_e, cos_f = np.cos(cross), np.cos(edge), np.cos(faint)
     for k in range(n):
         if has[k] == 0.0:
             continue
@@ -157,6 +168,9 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, reach, floor
                 rise = (slope[k, 0] * (dirs[j, 0] * f10 + dirs[j, 1] * f11 + dirs[j, 2] * f12)
                         + slope[k, 1] * (dirs[j, 0] * f20 + dirs[j, 1] * f21 + dirs[j, 2] * f22)) / c
             if has[j] != 0.0:
+                if spread and near[j] < cos_f:
+                    u2 = excess[j] + unseen_departure_variance(dev[k], rise, np.arccos(min(c, 1.0)), reach)
+                    out[j] = max(out[j], u2)
                 if c <= cos_x:
                     continue
                 e2 = 0.0

@@ -22,7 +22,7 @@ Why this and not a global basis: spherical harmonics or a global RBF solve coupl
 coefficient (a dense solve per update, or a rank-1 update of a K x K inverse: K^2 per
 A-scan, ~4 ms at K = 2,000); a Gaussian process needs its neighbours' Cholesky per
 query (tens of us per point at 1 kHz x ten points). The node-local normal equations
-cost about 30 x 27 multiply-adds per point and a few 6 x 6 Cholesky solves per update.
+cost about 50 x 27 multiply-adds per point and a few 6 x 6 Cholesky solves per update.
 
 The global quadric under it (models.adaptive.model.AdaptiveEyeModel.global_for_local): the
 ellipsoid once the transition criteria accept it, else the robust ellipsoid
@@ -62,10 +62,10 @@ lines 4-10 deg apart and their extrapolation past the edge of the data, not the 
 and the standard deviation with it: 3 sigma covers 99.3-100 % of the reference region
 (100 % on the six shapes and four variants in the closed loop's own runs, seed 11: the
 README's table).
-The support is 9 deg. On the loop's spiral (seed 0) 12 deg follows a 3 mm staphyloma's
-wall between scan lines (scanned p95 39 um against 111), but in a detached eye's sphere
-phase the field at a tip nearing the detachment's flank was 0.38 mm off with sigma 0.09
-mm, and the tip came to 0.485 mm of the true retina (0.623 mm at 9 deg; README).
+The support is 12 deg: on the loop's spiral (seed 0) a 9 deg quadratic bends between
+scan lines that cross a 3 mm staphyloma's wall several degrees apart (scanned p95 111 um;
+12 deg: 39 um). Nodes 9-12 deg into a detachment's unscanned top then hold faint data and
+take the no-data departure rule too (departures.FAINT_SUPPORT).
 Units: mm, rad (deg where named).
 """
 from __future__ import annotations
@@ -79,7 +79,7 @@ from models.local.field import LocalField, bound_params
 from models.local.calibration import SigmaCalibration
 from models.local.config import LocalConfig
 from models.local.field_kernels import BOUND_SIZE, radii_at
-from models.local.departures import fill_trend, neighbour_table, node_departures, spread_departures
+from models.local.departures import FAINT_SUPPORT, fill_trend, neighbour_table, node_departures, spread_departures
 from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV
 from models.local.kernels import global_params, solve_nodes
 from models.local.online import holds, local_step
@@ -264,7 +264,8 @@ class LocalRetinaModel:
         quadratic (departures.fill_trend): with each field (params, radius_and_sd); the
         predictions of the updates between read the last ones."""
         spread_departures(self._dirs, self._x, self._has, self._excess, self._dev, self._slope, self._near,
-                          np.radians(self.config.spacing_deg), self._reach, self.config.departure_floor_mm, self._blend,
+                          np.radians(self.config.spacing_deg), FAINT_SUPPORT * self._support, self._reach,
+                          self.config.departure_floor_mm, self._blend,
                           *self._neighbours(), *self._neighbours(self.config.blend_deg), self._extra)
         fill_trend(self._dirs, self._has, self._near, self.center, self._tp, np.cos(np.radians(self.config.trend_deg)),
                    self._x)

@@ -8,17 +8,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from models.adaptive.coverage import fibonacci_directions
-from models.local.departures import neighbour_table, spread_departures
+from models.local.departures import FAINT_SUPPORT, neighbour_table, spread_departures
 from models.local.config import LocalConfig
 
 CFG = LocalConfig()
 REACH, CROSS, EDGE = np.radians(CFG.departure_deg), np.radians(CFG.blend_deg), np.radians(CFG.spacing_deg)
+FAINT = FAINT_SUPPORT * np.radians(CFG.support_deg)
 FLOOR = CFG.departure_floor_mm
 
 
 def spread(dirs, x, has, excess, dev, slope, near, table, near_table=None):
     near_table = table if near_table is None else near_table
-    return spread_departures(dirs, x, has, excess, dev, slope, near, EDGE, REACH, FLOOR, CROSS, *table, *near_table,
+    return spread_departures(dirs, x, has, excess, dev, slope, near, EDGE, FAINT, REACH, FLOOR, CROSS, *table, *near_table,
                              np.zeros(len(dirs)))
 
 
