@@ -10,7 +10,7 @@ import numpy as np
 from numba import njit
 
 from bench.timing import machine_stalls, summary_us, time_calls_us
-from models import AdaptiveEyeModel, Ellipsoid, fit_ellipsoid, fit_sphere
+from models import AdaptiveEyeModel, Ellipsoid, Sphere, fit_ellipsoid, fit_sphere
 from models.adaptive.extrapolation import extrapolation_sd
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
@@ -22,6 +22,7 @@ from models.local.field import LocalField
 from models.local.grid import LocalRetinaModel
 from models.realtime import collector_paused
 from models.scan.paper_scan import paper_scan
+from safety import FilterConfig
 
 RADII = np.array([11.455, 11.365, 10.148])
 
@@ -160,6 +161,13 @@ def local_field_figures(points: np.ndarray) -> None:
     kernel(params, Q)
     t = time_calls_us(lambda i: kernel(params, Q), 2000)
     print(f"  local field at 12 points (one control step's tip, port, shaft):        {summary_us(t)}")
+    # the barrier's form (the loop's k = 3, d_safe + calibration kept, its reach): the 12 points lie 5 % of the
+    # radius inside the retina, within the reach, so each also reads eight directions beside it (lateral_bound)
+    barrier = f.with_fallback(*FilterConfig(sigma_factor=3.0).field_bound(Sphere(np.zeros(3), 1.0)))
+    kernel, params = barrier.field_kernel()
+    kernel(params, Q)
+    t = time_calls_us(lambda i: kernel(params, Q), 2000)
+    print(f"  the same in the barrier's form, every point within its reach:         {summary_us(t)}")
     for name, model, P in (("emmetropic", m, points), ("detached", None, paper_scan(make_eye("detached"), seed=0).points)):
         if model is None:
             model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
