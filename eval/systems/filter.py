@@ -55,7 +55,8 @@ class Step(NamedTuple):
     """One control step's record: time, joints, command and result, what the filter saw
     (mm, s, rad; W). The tip velocity done is J_tip qdot (LoopRun computes it);
     `bounds_mm` (k,) the lower bound on each boundary point's (points_W) true clearance
-    that the barrier assumed, h - k sigma - calibration (+inf: none; a refused step: all +inf)."""
+    that the barrier assumed, h - k sigma - calibration (+inf: none; all +inf at a step refused
+    by a fault, whose output carries no clearance; a QP the filter could not solve keeps them)."""
 
     t: float
     q: np.ndarray

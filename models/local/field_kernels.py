@@ -229,6 +229,8 @@ def field_at(fp, P, barrier):
 
 LATERAL_RINGS = (0.5, 1.0)  # the rings of directions lateral_bound reads, in blends from the point's direction
 LATERAL_AZIMUTHS = 4  # directions per ring (the second ring turned by half their spacing)
+_PHI = 2.0 * np.pi * (np.arange(LATERAL_AZIMUTHS)[None, :] + 0.5 * np.arange(len(LATERAL_RINGS))[:, None]) / LATERAL_AZIMUTHS
+LATERAL_TURNS = np.stack([np.cos(_PHI), np.sin(_PHI)], axis=-1)  # (rings, azimuths, 2): each direction's turn
 
 
 @njit(cache=True)
@@ -250,8 +252,7 @@ def lateral_bound(r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near,
         theta = LATERAL_RINGS[i] * blend
         ct, st = np.cos(theta), np.sin(theta)
         for a in range(LATERAL_AZIMUTHS):
-            phi = 2.0 * np.pi * (a + 0.5 * i) / LATERAL_AZIMUTHS
-            t1, t2 = st * np.cos(phi), st * np.sin(phi)
+            t1, t2 = st * LATERAL_TURNS[i, a, 0], st * LATERAL_TURNS[i, a, 1]
             w0, w1, w2 = ct * u0 + t1 * e10 + t2 * e20, ct * u1 + t1 * e11 + t2 * e21, ct * u2 + t1 * e12 + t2 * e22
             R, sd, gap = _blend_at(w0, w1, w2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
             sd = calibrated_sd(sd, gap, cal)

@@ -115,9 +115,9 @@ def fill_actuated_barrier(sp, P, J, start, stop, fh, fg, fu, pending, G, h, ids,
     m_out = fill_point_barrier(base, P, J, start, stop, predicted, fg, fu, G, h, ids, m, id0, point_h, point_bound)
     if m_out >= 0:
         for i in range(k):
-            if point_h[start + i] != np.inf:
+            if point_h[start + i] != np.inf:  # the present clearance and bound: the predicted ones moved back by b
+                point_bound[start + i] += side * fh[i] - point_h[start + i]
                 point_h[start + i] = side * fh[i]
-                point_bound[start + i] = side * fh[i] - k_sigma * fu[i] - calibration
     return m_out
 
 
