@@ -162,7 +162,7 @@ def local_field_figures(points: np.ndarray) -> None:
     t = time_calls_us(lambda i: kernel(params, Q), 2000)
     print(f"  local field at 12 points (one control step's tip, port, shaft):        {summary_us(t)}")
     # the barrier's form (the loop's k = 3, d_safe + calibration kept, its reach): the 12 points lie 5 % of the
-    # radius inside the retina, within the reach, so each also reads eight directions beside it (lateral_bound)
+    # radius inside the retina, within the reach, so each also reads the directions beside it (lateral_bound)
     barrier = f.with_fallback(*FilterConfig(sigma_factor=3.0).field_bound(Sphere(np.zeros(3), 1.0)))
     kernel, params = barrier.field_kernel()
     kernel(params, Q)

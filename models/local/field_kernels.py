@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.local.geometry import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, node_frame, wendland
+from models.local.geometry import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, node_frame, small_angle, wendland
 from models.local.kernels import global_sd
 
-MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60; lateral_bound's two blends: 240)
+MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60; lateral_bound's 1.75 blends: 185)
 CAL_KNOTS_RAD = np.radians(np.array([0.0, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0]))  # the sd calibration's gaps
 N_CAL = CAL_KNOTS_RAD.shape[0]
 
@@ -51,7 +51,7 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
         c = u0 * d0 + u1 * d1 + u2 * d2
         if c <= cos_b:
             continue
-        w = wendland(np.arccos(min(c, 1.0)) / blend)
+        w = wendland(small_angle(c) / blend)
         if w <= 0.0:
             continue
         if has[k] != 0.0 or x[k, 0] > 0.0:  # its quadratic: fitted, or the trend's (departures.fill_trend)
@@ -72,10 +72,10 @@ def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior,
                 if rg != rg:
                     rg = global_radius(c0, gp, u0, u1, u2)
                 r = rg
-            sd = global_sd(np.arccos(min(near[k], 1.0)), prior)
+            sd = global_sd(small_angle(near[k]), prior)
             v = sd * sd + excess[k]  # and the departure of the data nodes nearby (spread_departures)
         v += prior[5] * prior[5]  # the floor: what the quadratics' spread near data leaves unexplained
-        sWa += w * np.arccos(max(min(near[k], 1.0), -1.0))
+        sWa += w * small_angle(near[k])
         sW += w  # the nodes' spread about the mean in their plain Wendland weights (a confident node
         sWr += w * r  # that extrapolates must not hide the others' disagreement)
         sWrr += w * r * r
@@ -227,25 +227,28 @@ def field_at(fp, P, barrier):
     return h, g, u
 
 
-LATERAL_RINGS = (0.5, 1.0)  # the rings of directions lateral_bound reads, in blends from the point's direction
-LATERAL_AZIMUTHS = 4  # directions per ring (the second ring turned by half their spacing)
+LATERAL_RINGS = (0.75,)  # the rings of directions lateral_bound reads, in blends from the point's direction
+LATERAL_AZIMUTHS = 4  # directions per ring (each further ring turned by half their spacing)
 _PHI = 2.0 * np.pi * (np.arange(LATERAL_AZIMUTHS)[None, :] + 0.5 * np.arange(len(LATERAL_RINGS))[:, None]) / LATERAL_AZIMUTHS
 LATERAL_TURNS = np.stack([np.cos(_PHI), np.sin(_PHI)], axis=-1)  # (rings, azimuths, 2): each direction's turn
+LATERAL_REACH = max(LATERAL_RINGS)  # the outermost ring
 
 
 @njit(cache=True)
 def lateral_bound(r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cal, local, k, cand):
     """The smallest bound on the true distance from the point r u (from c0) to the retina
     over directions w beside u, LATERAL_AZIMUTHS on each ring of LATERAL_RINGS blends
-    from it: the distance from the point to the field's surface along w (its radius R(w),
-    the global form's when `local` is 0) less k times the field's sd there, as field_at
-    answers both (_blend_at, calibrated_sd, _global_form_sd). The bound at the point's
+    from it: along each w the retina lies no nearer the centre than the field's radius
+    R(w) less k times its sd there (the global form's when `local` is 0, as field_at
+    answers both: _blend_at, calibrated_sd, _global_form_sd), so the point is at least as
+    far from it as from the nearest point of w beyond that radius (the point's foot on w
+    where that radius lies below it). The bound at the point's
     own direction, h - k sigma, holds while the nearest retina lies along it; where a
     detachment's flank rises beside the point the nearest retina lies a few degrees off,
     where the field may know less (a detached eye's sphere phase with a 12 deg support:
     1.9-4.6 deg off, the field's error there 0.53-0.67 mm at sigma 0.20-0.37 mm against
-    0.10 mm at the point). `cand`: a buffer for the nodes within two blends of u."""
-    nc = candidates(dirs, u0, u1, u2, 2.0 * blend + 1e-4, cand)
+    0.10 mm at the point). `cand`: a buffer for the nodes within a blend of the rings."""
+    nc = candidates(dirs, u0, u1, u2, (LATERAL_REACH + 1.0) * blend + 1e-4, cand)
     e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
     best = np.inf
     for i in range(len(LATERAL_RINGS)):
@@ -259,8 +262,8 @@ def lateral_bound(r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near,
             if local == 0.0:
                 sd = _global_form_sd(sd, R, c0, gp, w0, w1, w2)
                 R = global_radius(c0, gp, w0, w1, w2)
-            dist = np.sqrt(max(r * r + R * R - 2.0 * r * R * ct, 0.0))
-            best = min(best, dist - k * sd)
+            t = max(R - k * sd, r * ct)  # the retina along w lies no nearer than R - k sd: the nearest
+            best = min(best, np.sqrt(max(r * r + t * t - 2.0 * r * t * ct, 0.0)))  # of it, or the point's foot on w
     return best
 
 

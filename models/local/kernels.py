@@ -16,7 +16,7 @@ from numba import njit
 from models.fit.small_linalg import cholesky_into
 from models.local.departures import SLOPE_UNDERSTATEMENT, gathered_departure, node_departure
 from models.local.geometry import (ELLIPSOID, GLOBAL_SIZE, N_BASIS, SPHERE, band, global_radius, node_frame,
-                                   quadric_taylor, wendland)
+                                   quadric_taylor, small_angle, wendland)
 
 WORKSPACE = 159  # solve_node's small arrays: R 9, m, pinv, A m 6 each, rhs, y, z 6 each, M, L, L^-1 36 each, the
 # global's quadratic 6
@@ -70,7 +70,7 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
                 near[k] = c
             if c < cos_s:
                 continue
-            w = share * wendland(np.arccos(min(c, 1.0)) / support)
+            w = share * wendland(small_angle(c) / support)
             if w <= 0.0:
                 continue
             e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)

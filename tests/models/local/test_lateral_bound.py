@@ -8,6 +8,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from models import Sphere
+from models.local.field_kernels import LATERAL_RINGS, LATERAL_TURNS, MAX_CANDIDATES, lateral_bound, unpack
+from models.local.geometry import node_frame
 from models.local.grid import LocalRetinaModel
 from tests.models.local.test_local_model import cap_points, detachment
 
@@ -64,3 +66,31 @@ def test_the_lateral_bound_only_lowers_the_bound(flank):
     h, _, s = plain.with_fallback(K, NEVER, 0.0).signed_distance_gradient_uncertainty(Q)
     np.testing.assert_array_equal(h, h0)
     assert np.all(s >= s0) and np.any(s > s0 + 0.01)
+
+
+def test_each_direction_beside_the_point_bounds_the_retina_along_it_by_its_3_sigma(flank):
+    """lateral_bound is the nearest the retina can come to the point along any of its
+    directions w (LATERAL_RINGS, LATERAL_TURNS), the retina lying no nearer than the
+    field's radius less 3 sigma along each: checked against that minimum taken over a
+    dense set of radii from the field's own radius and sd along w (radius_and_sd), 1 um
+    apart, on 200 points."""
+    m, Q, _ = flank
+    field = m.field(local=True)
+    fp = field.params
+    dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near = unpack(fp)
+    cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    for p in Q[:200]:
+        v = p - c0
+        r = np.linalg.norm(v)
+        u = v / r
+        got = lateral_bound(r, *u, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cal, local, K, cand)
+        e1, e2 = np.array(node_frame(*u)).reshape(2, 3)
+        expected = np.inf
+        for i, ring in enumerate(LATERAL_RINGS):
+            theta = ring * blend
+            for t1, t2 in LATERAL_TURNS[i]:
+                w = np.cos(theta) * u + np.sin(theta) * (t1 * e1 + t2 * e2)
+                (R,), (sd,) = field.radius_and_sd(w[None])
+                along = np.arange(R - K * sd, 25.0, 1e-3)  # from the nearest the retina may lie, 1 um apart
+                expected = min(expected, np.min(np.linalg.norm(v[None] - along[:, None] * w[None], axis=1)))
+        assert got == pytest.approx(expected, abs=1e-4)
