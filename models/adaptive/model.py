@@ -6,6 +6,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from models.adaptive.dwell import DWELL_MAX_POINTS, DWELL_RADIUS_MM, dwell_keep, new_state
 from models.adaptive.extrapolation import extrapolation_sd
 from models.adaptive.history import History
 from models.adaptive.outlier_gate import GateState, OutlierGate
@@ -104,7 +105,9 @@ class AdaptiveEyeModel:
     """Retina model from measured retinal points: sphere (Kalman filter) -> ellipsoid.
 
     `update(P)` absorbs a batch of points (N, 3) mm (any N, including one A-scan's
-    point); non-finite points are skipped and counted in `n_rejected_nonfinite`; points
+    point); non-finite points are skipped and counted in `n_rejected_nonfinite`; the
+    A-scans of a beam held on one spot past models.adaptive.dwell's cap are skipped and
+    counted in `n_dwelling` (they measure nothing new but their noise); points
     the innovation gate (`gate`, an OutlierGate; None disables it) finds too far from
     the current model are skipped and counted in `n_rejected_outliers`. Each
     call with at least one finite point is one update: the sphere filter and the
@@ -140,6 +143,8 @@ class AdaptiveEyeModel:
         self.kind = "sphere"
         self.transition_index: int | None = None
         self.n_rejected_nonfinite = 0
+        self.n_dwelling = 0  # A-scans of a beam held still, past the dwell rule's cap (models.adaptive.dwell)
+        self._dwell = new_state()
         self.history: History = History()  # of ModelUpdate; appended without copying the old entries
         self.last_accepted = np.zeros((0, 3))
         self.local = local
@@ -245,6 +250,14 @@ class AdaptiveEyeModel:
         if P.ndim == 1:
             P = P.reshape(1, 3)
         self.n_received += len(P)
+        keep = np.empty(len(P), dtype=np.bool_)
+        taken = dwell_keep(P, self._dwell, DWELL_RADIUS_MM, DWELL_MAX_POINTS, keep)
+        if taken < len(P):
+            self.n_dwelling += len(P) - taken
+            if taken == 0:
+                self.last_accepted = np.zeros((0, 3))
+                return None
+            P = np.ascontiguousarray(P[keep])
         sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
         n = sf.n_points  # the scan range's too: all three take the same points
         scan.reserve(len(P) + 1)  # the gate may add its pending first point
