@@ -161,13 +161,16 @@ def local_field_figures(points: np.ndarray) -> None:
     kernel(params, Q)
     t = time_calls_us(lambda i: kernel(params, Q), 2000)
     print(f"  local field at 12 points (one control step's tip, port, shaft):        {summary_us(t)}")
-    # the barrier's form (the loop's k = 3, d_safe + calibration kept, its reach): the 12 points lie 5 % of the
-    # radius inside the retina, within the reach, so each also reads the directions beside it (lateral_bound)
+    # the barrier's form (the loop's k = 3, d_safe + calibration kept, its reach): 12 points 9 % of the radius
+    # (~1 mm) inside the retina each read the directions beside it (lateral_bound); at 5 % (~0.55 mm, at the
+    # boundary) their bound lies below their distance from every ray the look reads, and the look is skipped
     barrier = f.with_fallback(*FilterConfig(sigma_factor=3.0).field_bound(Sphere(np.zeros(3), 1.0)))
     kernel, params = barrier.field_kernel()
-    kernel(params, Q)
-    t = time_calls_us(lambda i: kernel(params, Q), 2000)
-    print(f"  the same in the barrier's form, every point within its reach:         {summary_us(t)}")
+    for label, P in (("1 mm inside, each reading the look", points[::400][:12] * 0.91),
+                     ("0.55 mm inside, the look skipped ", Q)):
+        kernel(params, P)
+        t = time_calls_us(lambda i: kernel(params, P), 2000)
+        print(f"  the same in the barrier's form, {label}:    {summary_us(t)}")
     for name, model, P in (("emmetropic", m, points), ("detached", None, paper_scan(make_eye("detached"), seed=0).points)):
         if model is None:
             model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))

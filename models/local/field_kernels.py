@@ -210,10 +210,13 @@ def field_at(fp, P, barrier):
         rp = fp[BOUND + 4]
         if barrier:  # the barrier's form: the gradient of h - k u, or the fallback sphere's bound
             k = fp[BOUND]
-            if k > 0.0 and h[m] - k * sd <= fp[BOUND + 5] + fp[BOUND + 6]:  # within the barrier's reach: the
-                lateral = lateral_bound(  # retina nearer in a direction beside the point's, its bound there if lower
+            own = h[m] - k * sd
+            # within the barrier's reach the bound looks beside the point, unless it is already below
+            # the point's distance from every ray it would read (none can lower it)
+            if k > 0.0 and r * np.sin(LATERAL_NEAREST * blend) < own <= fp[BOUND + 5] + fp[BOUND + 6]:
+                lateral = lateral_bound(
                     r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cal, local, k, wide)
-                if lateral < h[m] - k * sd:
+                if lateral < own:
                     sd = (h[m] - lateral) / k
                     u[m] = sd
             w0, w1, w2 = fp[BOUND + 1] - P[m, 0], fp[BOUND + 2] - P[m, 1], fp[BOUND + 3] - P[m, 2]
@@ -232,6 +235,7 @@ LATERAL_AZIMUTHS = 4  # directions per ring (each further ring turned by half th
 _PHI = 2.0 * np.pi * (np.arange(LATERAL_AZIMUTHS)[None, :] + 0.5 * np.arange(len(LATERAL_RINGS))[:, None]) / LATERAL_AZIMUTHS
 LATERAL_TURNS = np.stack([np.cos(_PHI), np.sin(_PHI)], axis=-1)  # (rings, azimuths, 2): each direction's turn
 LATERAL_REACH = max(LATERAL_RINGS)  # the outermost ring
+LATERAL_NEAREST = min(LATERAL_RINGS)  # the innermost: a point is r sin(it x blend) or more from any ray the look reads
 
 
 @njit(cache=True)

@@ -94,3 +94,19 @@ def test_each_direction_beside_the_point_bounds_the_retina_along_it_by_its_3_sig
                 along = np.arange(R - K * sd, 25.0, 1e-3)  # from the nearest the retina may lie, 1 um apart
                 expected = min(expected, np.min(np.linalg.norm(v[None] - along[:, None] * w[None], axis=1)))
         assert got == pytest.approx(expected, abs=1e-4)
+
+
+def test_the_barrier_form_takes_the_lower_of_the_point_s_bound_and_the_look_s(flank):
+    """h - 3 sigma in the barrier's form is min(the point's own bound, lateral_bound) at
+    every point, including those whose own bound already lies below their distance from
+    every ray the look reads (the form skips the look there: it could not lower it)."""
+    m, Q, _ = flank
+    plain = m.field(local=True)
+    h0, _, s0 = plain.signed_distance_gradient_uncertainty(Q)
+    h, _, s = plain.with_fallback(K, NEVER, 0.0).signed_distance_gradient_uncertainty(Q)
+    dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near = unpack(plain.params)
+    cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    lateral = np.array([lateral_bound(np.linalg.norm(p - c0), *((p - c0) / np.linalg.norm(p - c0)), dirs, blend, c0, gp,
+                                      x, cov, excess, has, near, prior, cal, local, K, cand) for p in Q])
+    np.testing.assert_allclose(h - K * s, np.minimum(h0 - K * s0, lateral), atol=1e-9)
+    assert np.any(h0 - K * s0 <= np.linalg.norm(Q - c0, axis=1) * np.sin(min(LATERAL_RINGS) * blend))  # skipped ones
