@@ -162,6 +162,7 @@ def field_at(fp, P, barrier):
     eps = 1e-5
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
     wide = np.empty(MAX_CANDIDATES, dtype=np.int64)  # lateral_bound's
+    sin_nearest = np.sin(LATERAL_NEAREST * blend)  # a point r from c0 lies r sin_nearest or more from the look's rays
     for m in range(M):
         v0, v1, v2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
         r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
@@ -213,7 +214,7 @@ def field_at(fp, P, barrier):
             own = h[m] - k * sd
             # within the barrier's reach the bound looks beside the point, unless it is already below
             # the point's distance from every ray it would read (none can lower it)
-            if k > 0.0 and r * np.sin(LATERAL_NEAREST * blend) < own <= fp[BOUND + 5] + fp[BOUND + 6]:
+            if k > 0.0 and r * sin_nearest < own <= fp[BOUND + 5] + fp[BOUND + 6]:
                 lateral = lateral_bound(
                     r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cal, local, k, wide)
                 if lateral < own:
