@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.framework import DiagramBuilder, EventStatus
 from pydrake.systems.primitives import DiscreteTimeIntegrator
 
 from eval.clearance import bound_excess, true_clearances
@@ -186,7 +186,9 @@ class ClosedLoop:
         segment's trocar (FilterSystem.set_trocar), the joints start it at q0 with the
         filter's held command zeroed (what happens between segments, a switch of ports
         outside the eye, is not simulated) and its source is called with the time since the
-        segment's start. Simulation time runs on across segments."""
+        segment's start. Simulation time runs on across segments. A source with a `finished`
+        attribute (eval.experiments.command_sources.PacedTipPath) ends its segment at the
+        first control step after it turns true, before its duration is out."""
         segments = [(np.asarray(p, dtype=float), src, np.asarray(q0, dtype=float), float(d)) for p, src, q0, d in segments]
         for _, _, q0, d in segments:
             if q0.shape != (6,) or not np.all(np.isfinite(q0)):
@@ -217,15 +219,30 @@ class ClosedLoop:
                     self.filter.GetMyMutableContextFromRoot(context).get_mutable_discrete_state(0).set_value(np.zeros(6))
                 if k == 0:
                     self.simulator.Initialize()
+                self._end_when_finished(source)
                 t0 = time.perf_counter()
-                t_end += duration_s
-                self.simulator.AdvanceTo(t_end)
+                self.simulator.AdvanceTo(t_end + duration_s)
                 wall += time.perf_counter() - t0
+                t_end = context.get_time()
         finally:
+            self.simulator.clear_monitor()
             gc.unfreeze()
         self.model.flush_log()
         self.filter.time_drake_diffik()
         return self._collect(wall, logger is not None)
+
+    def _end_when_finished(self, source) -> None:
+        """The simulator's monitor: the run's segment ends once `source.finished` (a source
+        without one, or whose `finished` is None, runs its whole duration)."""
+        if getattr(source, "finished", None) is None:
+            self.simulator.clear_monitor()
+            return
+        diagram = self.diagram
+
+        def monitor(context):
+            return EventStatus.ReachedTermination(diagram, "the command's path is done") if source.finished else None
+
+        self.simulator.set_monitor(monitor)
 
     def new_model(self) -> AdaptiveEyeModel:
         """A fresh adaptive model with the predictive criteria and, with config.local_model,

@@ -15,7 +15,7 @@ import numpy as np
 
 from eval.closed_loop import ClosedLoop, LoopRun
 from eval.experiments.campaign import Workers, run_tasks, scenario_seed
-from eval.experiments.command_sources import AdversarialCommand, TipPathCommand
+from eval.experiments.command_sources import PACE_FLOOR, AdversarialCommand, PacedTipPath
 from eval.cli.progress import progress_bar
 from models.metrics import mae_exact
 from models.scan.spiral import PAPER_PITCH_MM, PAPER_REVOLUTIONS
@@ -62,25 +62,33 @@ def spiral_path_W(scenario: SurgeryScenario, pitch_mm: float, revolutions: float
 
 
 class _SimTimeProgress:
-    """A command source that advances a progress bar by each whole second of simulation
-    time it is asked for, and otherwise is `source`."""
+    """A command source that advances a progress bar by each whole second of its own clock
+    (the path's, `source.path_time_s`, when it has one; else simulation time) and otherwise
+    is `source`."""
 
     def __init__(self, source, bar):
         self._source, self._bar, self._next_s = source, bar, 1.0
 
+    @property
+    def finished(self) -> bool | None:
+        return getattr(self._source, "finished", None)
+
     def __call__(self, t_s: float, p_WT, q):
-        if t_s >= self._next_s:
+        out = self._source(t_s, p_WT, q)
+        while getattr(self._source, "path_time_s", t_s) >= self._next_s:
             self._bar.update(1)
             self._next_s += 1.0
-        return self._source(t_s, p_WT, q)
+        return out
 
 
-def run_with_progress(loop: ClosedLoop, source, q0, duration_s: float, desc: str | None, **run_kwargs) -> LoopRun:
+def run_with_progress(loop: ClosedLoop, source, q0, duration_s: float, desc: str | None, progress_s: float | None = None,
+                      **run_kwargs) -> LoopRun:
     """loop.run(source, q0, duration_s, **run_kwargs) with a progress bar labelled `desc`
-    over the simulated seconds (none when `desc` is None)."""
+    over `progress_s` (default duration_s) seconds of the source's clock (none when `desc`
+    is None)."""
     if desc is None:
         return loop.run(source, q0, duration_s, **run_kwargs)
-    with progress_bar(math.ceil(duration_s), f"{desc}, simulated s", unit="s") as bar:
+    with progress_bar(math.ceil(progress_s or duration_s), f"{desc}, s of the path", unit="s") as bar:
         return loop.run(_SimTimeProgress(source, bar), q0, duration_s, **run_kwargs)
 
 
@@ -89,7 +97,10 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = SPIRAL_SPEED_MM_
                           revolutions: float = SPIRAL_REVOLUTIONS, logger=None, truth_grid: int = 100,
                           progress: str | None = None, sensor_seed=None) -> SpiralBuild:
     """Scan the spiral (pitch, revolutions) at `speed_mm_s` through `loop` from the IK
-    posture at its start, building a fresh AdaptiveEyeModel from the sensor's points;
+    posture at its start, building a fresh AdaptiveEyeModel from the sensor's points. The
+    spiral is a PacedTipPath: a robot that falls behind it (actuator lag, acceleration
+    limits, the boundary holding the tip) slows its clock, and the run ends with the path
+    (at most 1 / PACE_FLOOR times its duration);
     MAEs in the exact form against a truth_grid^2 sampling of the true retina.
     `progress`: the label of a progress bar (eval.cli.progress, stderr) over the scan's
     simulated seconds, or None for none. `sensor_seed`: the sensor's draws start from it
@@ -100,23 +111,23 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = SPIRAL_SPEED_MM_
     # no hold at the start: a still beam adds nothing but lets the floaters that land within
     # the gate's jump limit of the retina pile up on one line before the model can judge them
     times = s / speed_mm_s
-    path = TipPathCommand(times, P)
+    path = PacedTipPath(times, P)
     q0 = start_posture(loop.robot, P[0], scenario.p_WC)
     model, coverage = loop.new_model(), loop.new_coverage()
-    run = run_with_progress(loop, path, q0, float(times[-1]) + 0.05, progress, model=model, coverage=coverage,
-                            logger=logger, sensor_seed=sensor_seed)
+    run = run_with_progress(loop, path, q0, float(times[-1]) / PACE_FLOOR + 0.05, progress, float(times[-1]),
+                            model=model, coverage=coverage, logger=logger, sensor_seed=sensor_seed)
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)
-    trans = _transition_fraction(run, times[-1])
+    trans = _transition_fraction(run, path)
     return SpiralBuild(model, coverage, run, model.kind,
                        trans, 1e3 * mae_exact(model.ellipsoid, truth).mean if model.ellipsoid is not None else float("nan"),
                        1e3 * mae_exact(model.sphere, truth).mean, loop.model.n_samples, loop.model.n_oblique)
 
 
-def _transition_fraction(run: LoopRun, duration_s: float) -> float | None:
-    """Fraction of the scan's duration at which the model switched (from the filter's
-    record of the model kind)."""
+def _transition_fraction(run: LoopRun, path: PacedTipPath) -> float | None:
+    """Fraction of the spiral (of its path's clock) done when the model switched (from the
+    filter's record of the model kind)."""
     k = next((i for i, kind in enumerate(run.kind) if kind == "ellipsoid"), None)
-    return None if k is None else float(run.t[k] / duration_s)
+    return None if k is None else path.path_fraction(float(run.t[k]))
 
 
 def adversarial_starts(loop: ClosedLoop, model_shape, n: int, rng: np.random.Generator) -> list:

@@ -4,8 +4,11 @@ A command source is called once per control step, in time order, as
 `source(t_s, p_WT, q) -> (v_W (3,) mm/s, roll_rate rad/s)` with the current tip position
 p_WT (mm, W) and joint angles q (rad). The safety filter decides what is actually done.
 
-- `TipPathCommand`: a time-parameterised tip path (the spiral scan, planned paths):
-  feed-forward velocity plus position feedback.
+- `TipPathCommand`: a time-parameterised tip path (planned paths): feed-forward velocity
+  plus position feedback.
+- `PacedTipPath`: the same path on its own clock, which slows while the tip lags behind
+  its reference (the model-building spiral): a robot that cannot keep up scans the whole
+  path late rather than cut it short.
 - `VelocityReplayCommand`: recorded tip velocities (and roll rates), zero-order hold.
 - `AdversarialCommand`: a seeded adversary that pushes toward and along the retina at up
   to the speed limit, moves laterally with roll so the cutter port faces the retina, and
@@ -92,6 +95,84 @@ class TipPathCommand:
             s = self.max_feedback_mm_s / n
             fx, fy, fz = fx * s, fy * s, fz * s
         return np.array((vx + fx, vy + fy, vz + fz)), (self._roll_l[k] if inside else 0.0)
+
+
+# The paced path's clock (PacedTipPath): full pace while the tip is within PACE_FREE_MM of its reference (a
+# first-order lag of 20 ms trails a 15 mm/s reference by 0.3 mm: its ordinary tracking leaves the pace alone), the
+# slowest pace PACE_FLOOR from PACE_HOLD_MM behind, linear between. The floor is not zero, so that a tip held by
+# the boundary itself (a model that places the retina across the path) cannot stop the scan: the path then takes
+# at most 1 / PACE_FLOOR times its own duration.
+PACE_FREE_MM = 0.5
+PACE_HOLD_MM = 2.0
+PACE_FLOOR = 0.25
+
+
+class PacedTipPath(TipPathCommand):
+    """A TipPathCommand on its own clock: `path_time_s` starts at the path's first time at
+    the first call and advances by pace x (the time since the previous call), the pace 1
+    while the tip is within `free_mm` of the reference at path_time_s, `floor` from `hold_mm`
+    on, linear between; the command is the path's feed-forward (and roll rate) times the
+    pace plus the capped position feedback to that reference. `finished` once the path's
+    clock has reached its end and the tip has come within `free_mm` of the last point, or
+    has been pulled toward it for `settle_s` (s; default the time the capped feedback takes
+    over 2 hold_mm): the closed loop then ends the run (ClosedLoop.run_segments).
+    `path_fraction(t_s)`: the fraction of the path's duration done at call time t_s."""
+
+    def __init__(self, times_s, P_WT, roll_rad=None, gain_per_s: float = 20.0, max_feedback_mm_s: float = 10.0,
+                 free_mm: float = PACE_FREE_MM, hold_mm: float = PACE_HOLD_MM, floor: float = PACE_FLOOR,
+                 settle_s: float | None = None):
+        super().__init__(times_s, P_WT, roll_rad, gain_per_s, max_feedback_mm_s)
+        self.free_mm = float(free_mm)
+        self.hold_mm = float(hold_mm)
+        self.floor = float(floor)
+        if not (np.isfinite(self.free_mm) and 0 <= self.free_mm < self.hold_mm < np.inf):
+            raise ValueError(f"free_mm and hold_mm must satisfy 0 <= free_mm < hold_mm (mm), got {free_mm}, {hold_mm}")
+        if not (0 < self.floor <= 1):
+            raise ValueError(f"floor must be in (0, 1], got {floor}")
+        self.settle_s = 2.0 * self.hold_mm / self.max_feedback_mm_s if settle_s is None else float(settle_s)
+        if not self.settle_s >= 0:
+            raise ValueError(f"settle_s must be >= 0 s, got {settle_s}")
+        self.path_time_s = self._t[0]
+        self.finished = False
+        self._t_last: float | None = None
+        self._t_end: float | None = None  # call time at which the clock reached the path's end
+        self._calls_t: list[float] = []
+        self._calls_path: list[float] = []
+
+    def path_fraction(self, t_s: float) -> float:
+        """Fraction (0-1) of the path's duration done by call time t_s (s)."""
+        if not self._calls_t:
+            return 0.0
+        tau = float(np.interp(t_s, self._calls_t, self._calls_path))
+        return (tau - self._t[0]) / (self._t[-1] - self._t[0])
+
+    def pace(self, lag_mm: float) -> float:
+        """The clock's rate (floor-1) for a tip `lag_mm` from its reference."""
+        x = min(max((lag_mm - self.free_mm) / (self.hold_mm - self.free_mm), 0.0), 1.0)
+        return 1.0 - (1.0 - self.floor) * x
+
+    def __call__(self, t_s: float, p_WT, q) -> tuple[np.ndarray, float]:
+        t_s = float(t_s)
+        tau = self.path_time_s
+        rx, ry, rz = self._reference(tau, self._segment(tau))
+        px, py, pz = p_WT
+        lag_mm = math.sqrt((rx - px) ** 2 + (ry - py) ** 2 + (rz - pz) ** 2)
+        rate = self.pace(lag_mm)
+        if self._t_end is not None:
+            self.finished = lag_mm <= self.free_mm or t_s - self._t_end >= self.settle_s
+        elif self._t_last is not None and t_s > self._t_last:
+            tau = self.path_time_s = min(tau + rate * (t_s - self._t_last), self._t[-1])
+            if tau >= self._t[-1]:
+                self._t_end = t_s
+        self._t_last = t_s
+        self._calls_t.append(t_s)
+        self._calls_path.append(tau)
+        v, roll = super().__call__(tau, p_WT, q)
+        k = self._segment(tau)
+        if 0 <= k < len(self._Vl):  # the feed-forward at the clock's pace
+            v -= (1.0 - rate) * np.array(self._Vl[k])
+            roll *= rate
+        return v, roll
 
 
 class VelocityReplayCommand:
