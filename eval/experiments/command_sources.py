@@ -7,8 +7,9 @@ p_WT (mm, W) and joint angles q (rad). The safety filter decides what is actuall
 - `TipPathCommand`: a time-parameterised tip path (planned paths): feed-forward velocity
   plus position feedback.
 - `PacedTipPath`: the same path on its own clock, which slows while the tip lags behind
-  its reference (the model-building spiral): a robot that cannot keep up scans the whole
-  path late rather than cut it short.
+  its reference (the model-building spiral on a robot with a declared actuator lag,
+  delay or acceleration limit): a robot that cannot keep up scans the whole path late
+  rather than cut it short.
 - `VelocityReplayCommand`: recorded tip velocities (and roll rates), zero-order hold.
 - `AdversarialCommand`: a seeded adversary that pushes toward and along the retina at up
   to the speed limit, moves laterally with roll so the cutter port faces the retina, and
@@ -61,6 +62,10 @@ class TipPathCommand:
     @property
     def duration_s(self) -> float:
         return float(self.times_s[-1] - self.times_s[0])
+
+    def path_fraction(self, t_s: float) -> float:
+        """Fraction (0-1) of the path's duration done at call time t_s (s)."""
+        return (min(max(float(t_s), self._t[0]), self._t[-1]) - self._t[0]) / (self._t[-1] - self._t[0])
 
     def reference(self, t_s: float) -> np.ndarray:
         """p_des (3,) mm at t_s (clamped to the path's ends)."""

@@ -10,7 +10,7 @@ import pytest
 
 from eval.experiments.boundary import VIOLATION_MM, adversarial_starts, run_campaign
 from eval.closed_loop import ClosedLoop, LoopConfig
-from eval.experiments.command_sources import PacedTipPath, TipPathCommand, VelocityReplayCommand
+from eval.experiments.command_sources import TipPathCommand, VelocityReplayCommand
 from eval.log.writer import RunLogger
 from eval.log.replay import replay
 from models import AdaptiveEyeModel, Ellipsoid
@@ -140,40 +140,6 @@ def test_a_tip_path_is_followed(emmetropic):
     assert np.linalg.norm(p_end - (p0 + [1.5, 0.0, 0.0])) < 0.05  # the position feedback holds the tip at the path's end (0.1 s after it)
     # the command source's and the model system's own time is part of the run's, and counted afresh per run
     assert 0.0 < run.command_wall_s and 0.0 < run.model_wall_s and run.command_wall_s + run.model_wall_s < run.wall_s
-
-
-def _off_polyline_mm(X: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """(N,) mm: each point of X from the polyline P (M, 3)."""
-    d = np.full(len(X), np.inf)
-    for a, b in zip(P[:-1], P[1:]):
-        s = np.clip((X - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
-        d = np.minimum(d, np.linalg.norm(X - (a + s[:, None] * (b - a)), axis=1))
-    return d
-
-
-def test_a_paced_path_waits_for_a_tip_that_cannot_keep_up(emmetropic):
-    """A corner (5 mm along x, then 5 mm along -y) at 60 mm/s, three times the filter's tip
-    speed limit (20 mm/s), far from the retina. The timed path runs ahead and its feedback
-    pulls the tip across the corner; the paced path's clock slows to what the tip can do
-    (at the floor the reference moves at 15 mm/s, so the tip stays within hold_mm of it)
-    and the tip, heading for a reference at most hold_mm down the path, stays within
-    hold_mm / sqrt(2) of the corner's path. The run ends when the paced path is finished:
-    the tip within free_mm of its end."""
-    loop, model = emmetropic
-    q0 = deep_start(loop)
-    p0 = loop.robot.pose("T", q0)[1]
-    P = np.vstack([p0, p0 + [5.0, 0.0, 0.0], p0 + [5.0, -5.0, 0.0]])
-    t = np.array([0.0, 5.0, 10.0]) / 60.0
-    timed = loop.run(TipPathCommand(t, P), q0, 1.0, **model.kw())
-    paced_path = PacedTipPath(t, P)
-    paced = loop.run(paced_path, q0, 1.0, **model.kw())
-    tips = lambda run: np.array([loop.robot.pose("T", q)[1] for q in run.q])  # noqa: E731
-    off_timed, off_paced = _off_polyline_mm(tips(timed), P), _off_polyline_mm(tips(paced), P)
-    assert timed.ok.all() and paced.ok.all()
-    assert off_paced.max() <= paced_path.hold_mm / np.sqrt(2.0) < off_timed.max()
-    # the tip moved at least the path less free_mm at 20 mm/s
-    assert paced_path.finished and (10.0 - paced_path.free_mm) / 20.0 <= paced.t[-1] < 0.99 < timed.t[-1]
-    assert np.linalg.norm(tips(paced)[-1] - P[-1]) <= paced_path.free_mm + 0.02  # + one step at 20 mm/s
 
 
 def test_the_command_is_made_for_the_joint_angles_the_filter_filters(emmetropic):

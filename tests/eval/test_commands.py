@@ -22,6 +22,7 @@ def test_a_tip_path_commands_its_velocity_plus_position_feedback():
     np.testing.assert_allclose(v, [2.0, -1.0, 0.0])  # 0.1 mm off: 10/s x 0.1 mm back
     v, _ = cmd(3.0, [1.0, 2.0, 0.0], None)
     np.testing.assert_allclose(v, 0.0)  # after the end: hold the last point
+    assert [cmd.path_fraction(t) for t in (-1.0, 0.75, 3.0)] == [0.0, 0.5, 1.0]  # the path's time is the call's
     with pytest.raises(ValueError, match="increasing"):
         TipPathCommand([0.0, 0.0], P[:2])
 
