@@ -120,8 +120,9 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = SPIRAL_SPEED_MM_
     path = PacedTipPath(times, P) if paced else TipPathCommand(times, P)
     q0 = start_posture(loop.robot, P[0], scenario.p_WC)
     model, coverage = loop.new_model(), loop.new_coverage()
-    run = run_with_progress(loop, path, q0, float(times[-1]) / (PACE_FLOOR if paced else 1.0) + 0.05, progress,
-                            float(times[-1]), model=model, coverage=coverage, logger=logger, sensor_seed=sensor_seed)
+    cap_s = float(times[-1]) / PACE_FLOOR + path.settle_s if paced else float(times[-1])  # the paced path's slowest
+    run = run_with_progress(loop, path, q0, cap_s + 0.05, progress, float(times[-1]), model=model, coverage=coverage,
+                            logger=logger, sensor_seed=sensor_seed)
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)
     trans = _transition_fraction(run, path)
     return SpiralBuild(model, coverage, run, model.kind,

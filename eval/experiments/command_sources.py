@@ -87,7 +87,10 @@ class TipPathCommand:
     def __call__(self, t_s: float, p_WT, q) -> tuple[np.ndarray, float]:
         """(v_W (3,) mm/s, roll rate rad/s) at t_s for the tip at p_WT (3,) mm in W: scalar
         arithmetic on the path's precomputed segments (called at the control rate)."""
-        t_s = float(t_s)
+        return self._command(float(t_s), p_WT, 1.0)
+
+    def _command(self, t_s: float, p_WT, pace: float) -> tuple[np.ndarray, float]:
+        """The command at path time t_s with the feed-forward (and roll rate) times `pace`."""
         k = self._segment(t_s)
         inside = 0 <= k < len(self._Vl)
         vx, vy, vz = self._Vl[k] if inside else (0.0, 0.0, 0.0)
@@ -99,7 +102,7 @@ class TipPathCommand:
         if n > self.max_feedback_mm_s:
             s = self.max_feedback_mm_s / n
             fx, fy, fz = fx * s, fy * s, fz * s
-        return np.array((vx + fx, vy + fy, vz + fz)), (self._roll_l[k] if inside else 0.0)
+        return np.array((pace * vx + fx, pace * vy + fy, pace * vz + fz)), (pace * self._roll_l[k] if inside else 0.0)
 
 
 # The paced path's clock (PacedTipPath): full pace while the tip is within PACE_FREE_MM of its reference (a
@@ -172,12 +175,7 @@ class PacedTipPath(TipPathCommand):
         self._t_last = t_s
         self._calls_t.append(t_s)
         self._calls_path.append(tau)
-        v, roll = super().__call__(tau, p_WT, q)
-        k = self._segment(tau)
-        if 0 <= k < len(self._Vl):  # the feed-forward at the clock's pace
-            v -= (1.0 - rate) * np.array(self._Vl[k])
-            roll *= rate
-        return v, roll
+        return self._command(tau, p_WT, rate)  # the feed-forward at the clock's pace
 
 
 class VelocityReplayCommand:

@@ -135,11 +135,10 @@ def test_a_held_tip_slows_the_paced_clock_to_its_floor_and_the_path_ends_after_s
     assert cmd.finished and t_end + 0.4 - 1e-9 <= cmd._t_last <= t_end + 0.4 + dt + 1e-9
     assert cmd.path_fraction(t_end) == 1.0 and 0.0 < cmd.path_fraction(1.0) < 0.5
     # at the floor the feed-forward is a quarter of the path's (10 mm/s) plus the capped feedback (10 mm/s)
-    v, roll = PacedTipPath([0.0, 1.0], P, roll_rad=[0.0, 1.0]), None
-    cmd2 = v
-    cmd2(0.0, P[0], None)
-    cmd2.path_time_s = 0.5  # the reference 5 mm ahead
-    v, roll = cmd2(0.001, P[0], None)
+    held = PacedTipPath([0.0, 1.0], P, roll_rad=[0.0, 1.0])
+    held(0.0, P[0], None)
+    held.path_time_s = 0.5  # the reference 5 mm ahead
+    v, roll = held(0.001, P[0], None)
     np.testing.assert_allclose(v, [2.5 + 10.0, 0.0, 0.0], atol=1e-9)
     assert abs(roll - 0.25) <= 1e-12
 
