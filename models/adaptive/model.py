@@ -145,6 +145,7 @@ class AdaptiveEyeModel:
         self.n_rejected_nonfinite = 0
         self.n_dwelling = 0  # A-scans of a beam held still, past the dwell rule's cap (models.adaptive.dwell)
         self._dwell = new_state()
+        self._keep = np.empty(64, dtype=np.bool_)  # dwell_keep's verdicts, reused across updates
         self.history: History = History()  # of ModelUpdate; appended without copying the old entries
         self.last_accepted = np.zeros((0, 3))
         self.local = local
@@ -250,7 +251,9 @@ class AdaptiveEyeModel:
         if P.ndim == 1:
             P = P.reshape(1, 3)
         self.n_received += len(P)
-        keep = np.empty(len(P), dtype=np.bool_)
+        if len(self._keep) < len(P):
+            self._keep = np.empty(len(P), dtype=np.bool_)
+        keep = self._keep[:len(P)]
         taken = dwell_keep(P, self._dwell, DWELL_RADIUS_MM, DWELL_MAX_POINTS, keep)
         if taken < len(P):
             self.n_dwelling += len(P) - taken
