@@ -97,7 +97,8 @@ def run_shape(
     settings (models.fit.robust_fit); `eye_params`: make_eye's shape parameters.
     """
     eye = make_eye(shape, pose, **(eye_params or {}))
-    points = paper_scan(eye, noise_um=noise_um, seed=seed).points[:: int(stride)]
+    scan = paper_scan(eye, noise_um=noise_um, seed=seed)
+    points, beams = scan.points[:: int(stride)], scan.beam_W[:: int(stride)]
     n = len(points)
     # consecutive points of a thinned scan lie `stride` times further apart
     gate = OutlierGate(max_jump_mm=OutlierGate().max_jump_mm * stride)
@@ -110,9 +111,9 @@ def run_shape(
     curve_truth = eye.reference_samples(60, 60)
     lc_curve, globe_curve, local_at, was_local = {}, {}, None, False
     global_ellipsoid_at, was_ellipsoid = None, False
-    for i, p in enumerate(points):
+    for i, (p, beam) in enumerate(zip(points, beams)):
         for m in models.values():
-            m.update(p)
+            m.update(p, beam)
         if first.level == "local" and not was_local:
             local_at = (i + 1) / n
         was_local = first.level == "local"

@@ -223,22 +223,22 @@ def fit_recording(joints: JointStream, oct: OctStream, sensor: SensorPose | None
     accepted = []
     row = {p.tobytes(): i for i, p in enumerate(P)}  # the model keeps points as given: each is a row of P
     for k in range(0, len(P), PACKET):
-        if model.update(np.ascontiguousarray(P[k:k + PACKET])) is not None:
+        if model.update(np.ascontiguousarray(P[k:k + PACKET]), np.ascontiguousarray(U_p[k:k + PACKET])) is not None:
             # the gate may add a point it held back from an earlier packet: looked up in all of P
             accepted.append([row[p.tobytes()] for p in model.last_accepted])
     acc = np.concatenate(accepted).astype(int) if accepted else np.zeros(0, dtype=int)
     return FitResult(joints, oct, (i0, i1), s, offset, oct.t_s[use], P, model, P[acc], sensor, calibrated,
-                     local_fit(P[acc], model.shape), (O_p[acc], U_p[acc]),
+                     local_fit(P[acc], model.shape, U_p[acc]), (O_p[acc], U_p[acc]),
                      sensor_displacements(sensor, Q[acc], oct.distance_mm[use][acc]))
 
 
 LOCAL_BATCH = 2000  # points per local-model update: its kernels' working set stays small
 
 
-def local_fit(points, shape):
+def local_fit(points, shape, beams=None):
     """Step 6 of the module docstring: the LocalField (models.local.field) of the points
     (N, 3) mm about the global `shape` (Sphere or Ellipsoid in W), or None without a
-    shape or points."""
+    shape or points; `beams`: None or their beams' directions (N, 3) in W."""
     from models.local.field import LocalField
     from models.local.grid import LocalRetinaModel
 
@@ -246,7 +246,8 @@ def local_fit(points, shape):
         return None
     local = LocalRetinaModel(shape.center)
     for k in range(0, len(points), LOCAL_BATCH):
-        local.update(np.ascontiguousarray(points[k:k + LOCAL_BATCH]), shape)
+        local.update(np.ascontiguousarray(points[k:k + LOCAL_BATCH]), shape,
+                     beam_W=None if beams is None else np.ascontiguousarray(beams[k:k + LOCAL_BATCH]))
     if local.global_params is None:  # the shape does not hold its centre: no local frame
         return None
     local.solve_all()

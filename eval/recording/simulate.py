@@ -218,7 +218,7 @@ def direct_model(spec: RecordingSpec, true_sensor_pose: bool = False, progress=N
         Qk = np.ascontiguousarray(Q[k:k + packet])
         p = sensor.packet_of_arrays(np.ascontiguousarray(T[k:k + packet]), Qk, Qk.copy())
         if p.valid.any():
-            model.update(np.ascontiguousarray(p.p_W[p.valid]))
+            model.update(np.ascontiguousarray(p.p_W[p.valid]), np.ascontiguousarray(p.beam_dir_W[p.valid]))
         if progress is not None and (k // packet) % 100 == 0:
             progress(k, len(T))
     return model

@@ -293,7 +293,9 @@ class AdaptiveModelSystem(LeafSystem):
             n_valid = n_taken
         if n_valid:
             t0 = time.perf_counter()
-            entry = self.model.update(packet.p_W if n_valid == len(T) else packet.p_W[valid])
+            whole = n_valid == len(T)
+            entry = self.model.update(packet.p_W if whole else packet.p_W[valid],
+                                      packet.beam_dir_W if whole else packet.beam_dir_W[valid])
             # only what the model took in: a floater the gate turned away must not count as
             # retina measured deep inside the model (it would become every nearby point's margin)
             self.coverage.add(self.model.last_accepted)

@@ -24,7 +24,7 @@ from models.eyes.eye import ANTERIOR_CROP_MM
 from models.shapes.ellipsoid import Ellipsoid
 from models.shapes.sphere import Sphere
 from models.local.selection import LocalChoice
-from models.shapes.validation import as_points
+from models.shapes.validation import as_beams, as_points
 
 EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5 mm)
 # The longest semi-axis of a plausible retina over its shortest: the catalog's per-dioptre
@@ -148,6 +148,7 @@ class AdaptiveEyeModel:
         self._keep = np.empty(64, dtype=np.bool_)  # dwell_keep's verdicts, reused across updates
         self.history: History = History()  # of ModelUpdate; appended without copying the old entries
         self.last_accepted = np.zeros((0, 3))
+        self.last_beams = None  # their beams' directions, when the update was given them
         self.local = local
         self.local_choice = LocalChoice() if local is not None else None
         self.globe = StreamingRobustFit() if local is not None else None
@@ -236,9 +237,12 @@ class AdaptiveEyeModel:
     def scan_range_mm(self) -> float:
         return self._range.diameter_mm
 
-    def update(self, P) -> ModelUpdate | None:
+    def update(self, P, beam_W=None) -> ModelUpdate | None:
         """Absorb points P (N, 3) or (3,) mm; return this update's history entry (None, and
-        no entry, if no point was finite and passed the gate).
+        no entry, if no point was finite and passed the gate). `beam_W`: None or the
+        A-scans' beam directions in W, one row per point (N, 3) or (3,): the local model
+        measures each A-scan's share of a sample across its beam (LocalRetinaModel.update);
+        last_beams holds those of last_accepted (None without them).
 
         One compiled call does the update (models.adaptive.update_kernel.packet_update):
         the gate, the sphere filter, the scan range and, for the least-squares ellipsoid,
@@ -250,6 +254,7 @@ class AdaptiveEyeModel:
             P = as_points(P, "P", allow_nonfinite=True)
         if P.ndim == 1:
             P = P.reshape(1, 3)
+        B = None if beam_W is None else as_beams(beam_W, len(P))
         self.n_received += len(P)
         if len(self._keep) < len(P):
             self._keep = np.empty(len(P), dtype=np.bool_)
@@ -259,8 +264,10 @@ class AdaptiveEyeModel:
             self.n_dwelling += len(P) - taken
             if taken == 0:
                 self.last_accepted = np.zeros((0, 3))
+                self.last_beams = None if B is None else np.zeros((0, 3))
                 return None
             P = np.ascontiguousarray(P[keep])
+            B = None if B is None else B[keep]
         sf, ef, scan, gate = self._sf, self._ef, self._range, self._gate
         n = sf.n_points  # the scan range's too: all three take the same points
         scan.reserve(len(P) + 1)  # the gate may add its pending first point
@@ -268,15 +275,17 @@ class AdaptiveEyeModel:
         current = self._current
         out = np.empty(OUT_SIZE)
         kept = np.empty((len(P) + 1, 3))
+        rows = np.empty(len(P) + 1, dtype=np.int64)
         p0 = np.zeros(3) if ef.p0 is None else ef.p0  # without a point yet: the kernel writes the first one
         refit = not self._robust  # the least-squares fit's refit is in the kernel; the robust one's below
         n_nonfinite, k, check, sf_ok, code, diameter, sf_res, ef_res, axis_change, radius = packet_update(
             P, n, p0, gate is not None, _NO_QUADRIC if current is None else current, current is not None,
             g.params, g.counts, g.last, g.scales, g.recent, sf.information, sf.information_vector, refit, ef.S,
             ef.spread_checked_at if refit else 0, ef.SPREAD_RECHECK if refit else 0, scan.X, scan.block_r,
-            scan.diameter_mm, self._prev_radii, self._has_prev, LENGTH_SCALE_MM, kept, out)
+            scan.diameter_mm, self._prev_radii, self._has_prev, LENGTH_SCALE_MM, kept, rows, out)
         self.n_rejected_nonfinite += n_nonfinite
         self.last_accepted = kept[:k]
+        self.last_beams = None if B is None else B[rows[:k]]
         if k == 0:
             return None
         if ef.p0 is None:
@@ -284,7 +293,7 @@ class AdaptiveEyeModel:
         if self.local is not None:
             self.globe.add(self.last_accepted)
             self._advance_globe(len(P), n + k, k)
-            self.local_choice.absorb(self.local, self.last_accepted, *self.quadrics_for_local())
+            self.local_choice.absorb(self.local, self.last_accepted, *self.quadrics_for_local(), self.last_beams)
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)
         v_sf = out[OUT_V_SF:OUT_V_EF]

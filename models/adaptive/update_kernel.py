@@ -52,13 +52,15 @@ OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTE
 
 @njit(cache=True)
 def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_scales, g_recent,
-                  Y, y, refit, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, out):
+                  Y, y, refit, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, rows, out):
     """The adaptive model's update by the points P (N, 3) mm (one A-scan's or a packet's), in
     one call. A model of n points, p0 (mm) the origin of every part (its first point; when
     n = 0 the first point kept here is written to p0), skips the non-finite rows of P,
     gates the others (gate_points, when `gate_on`; `quadric` the current model about p0)
     and copies those it keeps to kept[:K] (kept: (N + 1, 3): the gate may add its pending
-    first point); if K > 0 it absorbs them into the sphere filter (Y, y) and the scan range
+    first point) and their rows of P to rows[:K] (rows (N + 1,) int: the pending point, an
+    A-scan of an earlier call, takes the row of the point that confirms it, its neighbour
+    in the stream); if K > 0 it absorbs them into the sphere filter (Y, y) and the scan range
     (X with room for K more rows, block_r, `diameter` mm) and, when `refit`, into the
     scatter matrix S, refits the ellipsoid (with the spread test when
     spread_check_due(checked_at, n + K, recheck)) and summarises the fits (fit_summary),
@@ -76,19 +78,24 @@ def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g
     for i in range(P.shape[0]):  # row 0 is left for the gate's pending first point
         if np.isfinite(P[i, 0]) and np.isfinite(P[i, 1]) and np.isfinite(P[i, 2]):
             kept[m + 1, 0], kept[m + 1, 1], kept[m + 1, 2] = P[i, 0], P[i, 1], P[i, 2]
+            rows[m + 1] = i
             m += 1
     n_nonfinite, k = P.shape[0] - m, 0
     keep = np.ones(m, np.bool_)
+    took_pending = False
     if gate_on and m > 0:
         pending_x, pending_y, pending_z = g_last[0], g_last[1], g_last[2]
         if gate_points(kept[1:m + 1], keep, quadric, has_quadric, p0, scale, n, g_params, g_counts, g_last,
                        g_scales, g_recent)[1]:
             kept[0, 0], kept[0, 1], kept[0, 2] = pending_x, pending_y, pending_z
-            k = 1
+            k, took_pending = 1, True
     for i in range(m):
         if keep[i]:
             kept[k, 0], kept[k, 1], kept[k, 2] = kept[i + 1, 0], kept[i + 1, 1], kept[i + 1, 2]
+            rows[k] = rows[i + 1]
             k += 1
+    if took_pending:
+        rows[0] = rows[1] if k > 1 else 0
     if k == 0:
         return n_nonfinite, 0, False, False, 0, diameter, np.nan, np.nan, np.nan, np.nan
     A = kept[:k]

@@ -39,8 +39,9 @@ class LocalConfig:
     spans 25 deg from its centre; with 15 deg the variant 3.5 mm high at 25 deg kept
     0.25 % of its reference samples beyond 3 sigma on the unsafe side, up to 0.59 mm).
     `sample_length_mm` 0.2: the A-scans of one stretch of scan line this long on the
-    retina count as one sample (each weighs its lateral distance from the previous one over
-    this length, at most 1; models.local.kernels.absorb_points). At 2 kHz the loop's
+    retina count as one sample (each weighs its lateral step from the previous one over
+    this length, at most 1, measured across its beam when the update is given the beams'
+    directions: the distance noise lies along the beam; models.local.kernels.absorb_points). At 2 kHz the loop's
     A-scans lie 8-15 um apart on the retina, and their errors are not independent: 55 % of
     the extractor's error variance is common to A-scans more than 5 mm apart along the
     loop's spiral (seed 0, every shape). Counted one by one they held each node's quadratic

@@ -83,10 +83,11 @@ from models.local.departures import FAINT_SUPPORT, fill_trend, neighbour_table, 
 from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV
 from models.local.kernels import global_params, solve_nodes
 from models.local.online import holds, local_step
-from models.shapes.validation import as_points, as_vector3
+from models.shapes.validation import as_beams, as_points, as_vector3
 
 
 _NO_GLOBAL = np.zeros(GLOBAL_SIZE)
+_NO_BEAMS = np.zeros((0, 3))
 
 
 def sweep_share(credit: float, rate: float, n_points: int) -> tuple[int, float]:
@@ -145,7 +146,7 @@ class LocalRetinaModel:
         self._in_data = np.zeros(n, dtype=np.bool_)
         self._sweep_at = 0
         self._sweep_credit = 0.0  # re-solves owed to the sweep (sweep_per_point per point given)
-        self._last = np.zeros(4)  # the last taken point's direction from the centre (3,), and whether there is one
+        self._last = np.zeros(8)  # the last taken point's direction from the centre, whether there is one, its position, n_samples
         self._gp = None
         self._priors = (cfg.prior_for(False), cfg.prior_for(True))
         self._prior = self._priors[0]
@@ -169,12 +170,20 @@ class LocalRetinaModel:
         return self._gp
 
     @property
+    def n_samples(self) -> float:
+        """The samples the taken points count as: their shares (LocalConfig.sample_length_mm)
+        summed, the scan lines' length on the retina over sample_length_mm."""
+        return float(self._last[7])
+
+    @property
     def dirs(self) -> np.ndarray:
         """(n, 3) the nodes' directions (read, don't change)."""
         return self._dirs
 
-    def update(self, P, shape=None, trend=None, shape_sd_mm=None) -> None:
-        """Absorb the points P (N, 3) mm; re-solve the nodes they touched (up to
+    def update(self, P, shape=None, trend=None, shape_sd_mm=None, beam_W=None) -> None:
+        """Absorb the points P (N, 3) mm; `beam_W`: None or their beams' unit directions
+        (N, 3), which measure each A-scan's share of a sample across its beam, where its
+        noise does not lengthen it (models.local.kernels.absorb_points). Re-solve the nodes they touched (up to
         solves_per_point x N, the rest at the next updates: consecutive A-scans touch mostly
         the same nodes) and sweep_per_point x N more nodes with data in turn (the global prior moves
         with every update of the global fit). Each point is first predicted by the model as
@@ -185,6 +194,7 @@ class LocalRetinaModel:
         kind (up to the sphere's sd_far_mm). One compiled call (models.local.online.local_step)."""
         if not (type(P) is np.ndarray and P.dtype == np.float64 and P.ndim == 2 and P.flags.c_contiguous):
             P = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True).reshape(-1, 3))
+        B = _NO_BEAMS if beam_W is None else as_beams(beam_W, len(P))
         self._updates += 1
         gp = self._global_of(shape)
         if trend is not self._trend_seen:
@@ -197,7 +207,7 @@ class LocalRetinaModel:
         sweep, self._sweep_credit = (0, self._sweep_credit) if gp is None else sweep_share(  # owed once there is a global model
             self._sweep_credit, cfg.sweep_per_point, len(P))
         self._n_dirty, taken, self._n_data, self._sweep_at = local_step(
-            P, self.center, old, self._prior, _NO_GLOBAL if gp is None else gp, prior, self._tp, self._gate, self._dirs,
+            P, B, self.center, old, self._prior, _NO_GLOBAL if gp is None else gp, prior, self._tp, self._gate, self._dirs,
             self._support, self._track, self._blend, cfg.relist_growth, max(len(P), 1) * cfg.solves_per_point,
             sweep, self._reach, *self._neighbours(), self._A, self._b, self._rr, self._wsum, self._near,
             self._listed, self._dirty, self._n_dirty, self._solved_w, self._data_nodes, self._n_data, self._in_data,

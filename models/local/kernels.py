@@ -22,8 +22,8 @@ WORKSPACE = 159  # solve_node's small arrays: R 9, m, pinv, A m 6 each, rhs, y, 
 # global's quadratic 6
 
 @njit(cache=True)
-def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, growth,
-                  last, sample_mm):
+def absorb_points(P, B, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w,
+                  growth, last, sample_mm):
     """Add the finite points P (M, 3) mm to the nodes of an n-node grid within `support`
     rad of their direction from c0: per node the weighted normal equations of the local
     quadratic in gnomonic coordinates (A (n, 6, 6) upper triangle, b (n, 6), rr (n,) sum
@@ -32,10 +32,16 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
     appended to dirty once (listed (n,) bool marks it until it is solved) when its weight
     exceeds (1 + growth) x its weight at its last solve (solved_w; a node solved on 100
     points barely moves with the 101st: consecutive A-scans touch the same nodes). Each
-    point's weights are scaled by its share of a sample: its lateral distance on the retina
-    (radius x the chord between its direction and the previous taken point's, last (4,):
-    that direction and 1 once there is one, updated in place) over sample_mm, at most 1 (a
-    still beam adds nothing; LocalConfig.sample_length_mm). A point whose
+    point's weights are scaled by its share of a sample: its lateral step from the previous
+    taken point over sample_mm, at most 1 (a still beam adds nothing;
+    LocalConfig.sample_length_mm). With the beams' directions B (M, 3; normalised here; a row
+    not finite or shorter than 0.5 takes the rule without beams) the step is measured
+    across the point's beam (the step less its component along the beam: an
+    A-scan's noise lies along its beam and drops out); without them (B of 0 rows) it is the
+    radius x the chord between the point's direction from c0 and the previous one's, which
+    the noise of an oblique beam lengthens. last (8,): the previous taken point's direction
+    from c0 (3,), 1 once there is one, its position (3,) mm and the shares' running sum;
+    updated in place. A point whose
     radius lies outside [gate[0], gate[1]] mm, or further than gate[2] mm from the global
     quadric gp along its direction (when gp[0] != 0), is skipped: no retina of the
     population lies there. Returns (new n_dirty, points taken)."""
@@ -43,6 +49,7 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
     cos_s, cos_t = np.cos(support), np.cos(track)
     phi = np.empty(N_BASIS)
     taken = 0
+    beams = B.shape[0] == P.shape[0] and B.shape[0] > 0
     for i in range(P.shape[0]):
         v0, v1, v2 = P[i, 0] - c0[0], P[i, 1] - c0[1], P[i, 2] - c0[2]
         r = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
@@ -54,12 +61,21 @@ def absorb_points(P, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, l
         if gp[0] != 0.0 and not abs(r - global_radius(c0, gp, u0, u1, u2)) <= gate[2]:
             continue
         taken += 1
-        if last[3] != 0.0:
+        if last[3] == 0.0:
+            share = 1.0
+        elif beams and B[i, 0] * B[i, 0] + B[i, 1] * B[i, 1] + B[i, 2] * B[i, 2] > 0.25:  # finite, not degenerate
+            nb = np.sqrt(B[i, 0] * B[i, 0] + B[i, 1] * B[i, 1] + B[i, 2] * B[i, 2])
+            b0, b1, b2 = B[i, 0] / nb, B[i, 1] / nb, B[i, 2] / nb
+            s0, s1, s2 = P[i, 0] - last[4], P[i, 1] - last[5], P[i, 2] - last[6]
+            along = s0 * b0 + s1 * b1 + s2 * b2
+            s0, s1, s2 = s0 - along * b0, s1 - along * b1, s2 - along * b2
+            share = min(np.sqrt(s0 * s0 + s1 * s1 + s2 * s2) / sample_mm, 1.0)
+        else:
             g0, g1, g2 = u0 - last[0], u1 - last[1], u2 - last[2]
             share = min(r * np.sqrt(g0 * g0 + g1 * g1 + g2 * g2) / sample_mm, 1.0)
-        else:
-            share = 1.0
         last[0], last[1], last[2], last[3] = u0, u1, u2, 1.0
+        last[4], last[5], last[6] = P[i, 0], P[i, 1], P[i, 2]
+        last[7] += share
         k0, k1 = band(dirs.shape[0], u2, chord_t)
         for k in range(k0, k1):
             d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]

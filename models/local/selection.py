@@ -150,13 +150,13 @@ class LocalChoice:
     def stride(self) -> int:
         return int(self._state[2])
 
-    def absorb(self, local, P: np.ndarray, shape, trend=None, shape_sd_mm=None) -> None:
+    def absorb(self, local, P: np.ndarray, shape, trend=None, shape_sd_mm=None, beam_W=None) -> None:
         """Let `local` (a LocalRetinaModel) absorb the points P (N, 3) mm on the global `shape`
-        (trend, shape_sd_mm: LocalRetinaModel.update's), store its predictions of them across
+        (trend, shape_sd_mm, beam_W: LocalRetinaModel.update's), store its predictions of them across
         gaps, made before it absorbed them (models.local.field_kernels.predictions), and
         re-score the rows owed against the global quadric as it is now (choice_step)."""
         scored = shape is not None and local.global_params is not None
-        local.update(P, shape, trend, shape_sd_mm)
+        local.update(P, shape, trend, shape_sd_mm, beam_W)
         gp = local.global_params
         if gp is not None:
             pred = local.last_predictions if scored else _NO_PREDICTIONS

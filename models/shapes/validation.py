@@ -45,6 +45,19 @@ def as_points(P, name: str = "P", *, allow_nonfinite: bool = False) -> np.ndarra
     return A
 
 
+def as_beams(B, n: int, name: str = "beam_W") -> np.ndarray:
+    """Return B, the beams' directions of n points, as a C-contiguous float (n, 3) array
+    (a single (3,) direction becomes (1, 3)); ValueError naming `name` when it is not n
+    rows of 3. Its rows need not be unit vectors: the model normalises them, and takes a
+    row that is not finite or is shorter than 0.5 as no beam for that point."""
+    if type(B) is np.ndarray and B.dtype == np.float64 and B.shape == (n, 3) and B.flags.c_contiguous:
+        return B
+    A = as_points(B, name, allow_nonfinite=True)
+    if len(A) != n:
+        raise ValueError(f"{name} must hold one beam direction per point: {n} rows, got {len(A)}")
+    return np.ascontiguousarray(A)
+
+
 def as_vector3(v, name: str) -> np.ndarray:
     """Return v as a finite float (3,) array, or raise ValueError naming `name`."""
     try:

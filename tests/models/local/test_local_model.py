@@ -333,47 +333,6 @@ def test_the_neighbour_table_is_every_node_within_reach(n, reach_deg):
         np.testing.assert_allclose(np.cos(ang[off[k]:off[k + 1]]), dirs[idx[off[k]:off[k + 1]]] @ dirs[k], atol=1e-12)
 
 
-def arc_points(spacing_mm, length_mm=6.0):
-    """Points every `spacing_mm` along a 6 mm arc of an 11 mm globe, 20 deg off the posterior
-    pole, whose radius ripples by 50 um over 4.4 mm: one scan line."""
-    s = np.arange(0.0, length_mm, spacing_mm)
-    a = (s - 0.5 * length_mm) / 11.0
-    tilt = np.radians(20.0)
-    u = np.c_[np.sin(a), -np.sin(tilt) * np.cos(a), -np.cos(tilt) * np.cos(a)]
-    return u, (11.0 + 0.05 * np.sin(s / 0.7))[:, None] * u
-
-
-def test_a_scan_line_weighs_its_length_not_its_a_scans():
-    """A-scans closer than LocalConfig.sample_length_mm share one sample: the same line
-    sampled every 5 um and every 10 um (both far denser than 0.2 mm) gives the same model,
-    off the line too (the sums are two Riemann sums of one line integral: they differ by
-    O(spacing / sample length)). Counted one by one, the denser line would weigh twice."""
-    u, _ = arc_points(0.2)
-    rng = np.random.default_rng(3)
-    Q = u[rng.integers(0, len(u), 300)] + rng.normal(0.0, 0.06, (300, 3))  # up to ~10 deg off the line
-    Q /= np.linalg.norm(Q, axis=1, keepdims=True)
-    R5, S5 = model_on_the_globe(arc_points(0.005)[1]).radius_and_sd(Q)
-    R10, S10 = model_on_the_globe(arc_points(0.01)[1]).radius_and_sd(Q)
-    assert np.max(np.abs(R5 - R10)) < 5e-4  # mm: 1 % of the ripple
-    np.testing.assert_allclose(S5, S10, rtol=0.01)
-
-
-def test_a_still_beam_counts_once():
-    """A beam held still measures one direction again and again: those A-scans add nothing
-    to the first (a still beam's errors are one error)."""
-    u = np.array([[0.2, -0.1, -0.97]])
-    u /= np.linalg.norm(u)
-    rng = np.random.default_rng(0)
-    first = 11.0 * u
-    again = (11.0 + rng.normal(0.0, NOISE_MM, (500, 1))) * u
-    _, P = cap_points(lambda v: np.full(len(v), 11.0), n=3000, cap_deg=40.0)
-    Q = P[::5] / 11.0
-    once = model_on_the_globe(np.vstack([P, first])).radius_and_sd(Q)
-    held = model_on_the_globe(np.vstack([P, first, again])).radius_and_sd(Q)
-    np.testing.assert_allclose(held[0], once[0], rtol=0.0, atol=1e-9)  # mm: the sums' rounding
-    np.testing.assert_allclose(held[1], once[1], rtol=0.0, atol=1e-9)
-
-
 def test_the_local_model_is_kept_while_it_predicts_clearly_better():
     """Taken up when its prediction error is below 0.7 x the global model's, kept while
     below 0.85 x (past a pathology both predict the healthy periphery more alike), given

@@ -47,7 +47,7 @@ class _Local:
     def __init__(self, gp):
         self.center, self.global_params, self.n_points, self.last_predictions = np.zeros(3), gp, 0, None
 
-    def update(self, P, shape, trend, sd):
+    def update(self, P, shape, trend, sd, beam_W=None):
         self.n_points += len(P)
 
 
