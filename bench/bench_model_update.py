@@ -28,14 +28,15 @@ RADII = np.array([11.455, 11.365, 10.148])
 
 
 def _update_times(points, criteria, batch: int, robust: RobustFitConfig | None = None, local: bool = False,
-                  repeat: int = 1) -> np.ndarray:
-    """Per-A-scan time (us) of each update of a new model fed `points` in packets of `batch`
-    (`repeat` times over), as a real-time stream runs it: with the cyclic garbage collector
-    paused (models.realtime)."""
+                  repeat: int = 1, beams=None) -> np.ndarray:
+    """Per-A-scan time (us) of each update of a new model fed `points` (and their `beams`,
+    as the loop gives them, when not None) in packets of `batch` (`repeat` times over), as
+    a real-time stream runs it: with the cyclic garbage collector paused (models.realtime)."""
     m = AdaptiveEyeModel(criteria, robust=robust, local=LocalRetinaModel(np.zeros(3)) if local else None)
     chunks = [points[i:i + batch] for i in range(0, len(points), batch)] * repeat
+    beam_chunks = [None] * len(chunks) if beams is None else [beams[i:i + batch] for i in range(0, len(beams), batch)] * repeat
     with collector_paused():
-        return time_calls_us(lambda i: m.update(chunks[i]), len(chunks)) / batch
+        return time_calls_us(lambda i: m.update(chunks[i], beam_chunks[i]), len(chunks)) / batch
 
 
 def collector_figures(points: np.ndarray, repeat: int = 8) -> None:
@@ -186,31 +187,34 @@ def local_field_figures(points: np.ndarray) -> None:
 
 def run() -> None:
     eye = make_eye("emmetropic")
-    points = paper_scan(eye, seed=0).points
+    scan = paper_scan(eye, seed=0)
+    points, beams = scan.points, scan.beam_W  # the local model is given the beams, as the loop gives them
     _update_times(points, None, 1)  # warm-up: loads the compiled kernels once (a whole spiral: every one it calls)
     _update_times(points, PredictiveCriteria(), 1, RobustFitConfig())  # and those of models.fit.robust_fit
-    _update_times(points, PredictiveCriteria(), 1, local=True)  # and those of models.local
+    _update_times(points, PredictiveCriteria(), 1, local=True, beams=beams)  # and those of models.local
     # what a p99 measured here includes: a ~50 us update meets a stall about (rate x 50 us) of the time
     print(f"  this machine, a busy loop: {machine_stalls()}")
     variants = (("paper criteria", None, None, False), ("predictive criteria", PredictiveCriteria(), None, False),
                 ("predictive, robust EF", PredictiveCriteria(), RobustFitConfig(), False),
                 ("predictive + local", PredictiveCriteria(), None, True))
     for name, criteria, robust, local in variants:
-        passes = np.array([_update_times(points, criteria, 1, robust, local) for _ in range(3)])
+        passes = np.array([_update_times(points, criteria, 1, robust, local, beams=beams if local else None)
+                           for _ in range(3)])
         for t in passes:  # as a real-time stream runs it: the cyclic garbage collector paused
             print(f"  AdaptiveEyeModel.update, one A-scan per call, {name:21s}: {summary_us(t)}   mean {t.mean():6.1f} us")
         # the same update in each pass does the same work: its fastest pass is that work
         # without the machine's interruptions (a shared VM's p99 is ~2.7 x its median)
         print(f"    the same, per update the fastest of the 3 passes (work alone):    {summary_us(passes.min(axis=0))}")
-    detached = paper_scan(make_eye("detached"), seed=0).points  # the local model on the robust globe
-    passes = np.array([_update_times(detached, PredictiveCriteria(), 1, None, True) for _ in range(3)])
+    detached = paper_scan(make_eye("detached"), seed=0)  # the local model on the robust globe
+    passes = np.array([_update_times(detached.points, PredictiveCriteria(), 1, None, True, beams=detached.beam_W)
+                       for _ in range(3)])
     for t in passes:
         print(f"  the same, predictive + local, detached eye:                          {summary_us(t)}")
     print(f"  the same, predictive + local, detached eye, fastest of 3 passes:     {summary_us(passes.min(axis=0))}")
     collector_figures(points)
     t = _update_times(points, None, 10)
     print(f"  AdaptiveEyeModel.update, 10 A-scans per call (200 Hz), per A-scan:       {summary_us(t)}")
-    t = _update_times(points, PredictiveCriteria(), 20, local=True)
+    t = _update_times(points, PredictiveCriteria(), 20, local=True, beams=beams)
     print(f"  the same + local model, 20 A-scans per call (the loop's packet), per A-scan: {summary_us(t)}")
     local_field_figures(points)
     small_linalg_figures(points)
