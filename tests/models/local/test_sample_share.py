@@ -104,8 +104,8 @@ def test_a_still_beam_counts_once(oblique):
 
 
 def test_the_model_passes_each_kept_points_beam_on():
-    """AdaptiveEyeModel.update's beams follow its points through the dwell rule and the
-    gate: every kept point's beam is its own (the gate's pending first point, an A-scan of
+    """AdaptiveEyeModel.update's beams follow its points through the gate and the dwell
+    rule (a beam held on one spot past its cap): every kept point's beam is its own (the gate's pending first point, an A-scan of
     the packet before, takes its neighbour's: within 1e-3 rad here); a floater's and
     non-finite rows' are dropped with them."""
     u, P = arc_points(0.01)
@@ -120,6 +120,12 @@ def test_the_model_passes_each_kept_points_beam_on():
         own = (A - O_W) / np.linalg.norm(A - O_W, axis=1, keepdims=True)
         assert np.max(np.linalg.norm(own - AB, axis=1)) < 1e-3
     assert model.n_rejected_outliers >= 1
+    held = P[-1] + np.random.default_rng(5).normal(0.0, NOISE_MM, (150, 1)) * B[-1]  # a beam held still: the dwell rule
+    for k in range(0, 150, 20):
+        model.update(held[k:k + 20], np.repeat(B[-1:], len(held[k:k + 20]), axis=0))
+        if len(model.last_accepted):
+            assert np.max(np.linalg.norm(model.last_beams - B[-1], axis=1)) < 1e-12
+    assert model.n_dwelling > 0
     model.update(P_m[:3])
     assert model.last_beams is None
 
