@@ -34,7 +34,8 @@ def _update_times(points, criteria, batch: int, robust: RobustFitConfig | None =
     a real-time stream runs it: with the cyclic garbage collector paused (models.realtime)."""
     m = AdaptiveEyeModel(criteria, robust=robust, local=LocalRetinaModel(np.zeros(3)) if local else None)
     chunks = [points[i:i + batch] for i in range(0, len(points), batch)] * repeat
-    beam_chunks = [None] * len(chunks) if beams is None else [beams[i:i + batch] for i in range(0, len(beams), batch)] * repeat
+    beam_chunks = ([None] * len(chunks) if beams is None
+                   else [beams[i:i + batch] for i in range(0, len(beams), batch)] * repeat)
     with collector_paused():
         return time_calls_us(lambda i: m.update(chunks[i], beam_chunks[i]), len(chunks)) / batch
 

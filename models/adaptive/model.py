@@ -148,7 +148,7 @@ class AdaptiveEyeModel:
         self._keep = np.empty(64, dtype=np.bool_)  # dwell_keep's verdicts, reused across updates
         self.history: History = History()  # of ModelUpdate; appended without copying the old entries
         self.last_accepted = np.zeros((0, 3))
-        self.last_beams = None  # their beams' directions, when the update was given them
+        self.last_beams = None  # their beams' directions, when the update was given them and there is a local model
         self.local = local
         self.local_choice = LocalChoice() if local is not None else None
         self.globe = StreamingRobustFit() if local is not None else None
@@ -242,7 +242,7 @@ class AdaptiveEyeModel:
         no entry, if no point was finite and passed the gate). `beam_W`: None or the
         A-scans' beam directions in W, one row per point (N, 3) or (3,): the local model
         measures each A-scan's share of a sample across its beam (LocalRetinaModel.update);
-        last_beams holds those of last_accepted (None without them).
+        last_beams holds those of last_accepted (None without them or without a local model).
 
         One compiled call does the update (models.adaptive.update_kernel.packet_update):
         the gate, the sphere filter, the scan range and, for the least-squares ellipsoid,
@@ -255,6 +255,8 @@ class AdaptiveEyeModel:
         if P.ndim == 1:
             P = P.reshape(1, 3)
         B = None if beam_W is None else as_beams(beam_W, len(P))
+        if self.local is None:  # only the local model weighs by the beams
+            B = None
         self.n_received += len(P)
         if len(self._keep) < len(P):
             self._keep = np.empty(len(P), dtype=np.bool_)

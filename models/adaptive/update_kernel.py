@@ -52,7 +52,8 @@ OUT_STATE, OUT_V_SF, OUT_V_EF, OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTE
 
 @njit(cache=True)
 def packet_update(P, n, p0, gate_on, quadric, has_quadric, g_params, g_counts, g_last, g_scales, g_recent,
-                  Y, y, refit, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, rows, out):
+                  Y, y, refit, S, checked_at, recheck, X, block_r, diameter, prev_radii, has_prev, scale, kept, rows,
+                  out):
     """The adaptive model's update by the points P (N, 3) mm (one A-scan's or a packet's), in
     one call. A model of n points, p0 (mm) the origin of every part (its first point; when
     n = 0 the first point kept here is written to p0), skips the non-finite rows of P,

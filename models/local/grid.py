@@ -146,7 +146,8 @@ class LocalRetinaModel:
         self._in_data = np.zeros(n, dtype=np.bool_)
         self._sweep_at = 0
         self._sweep_credit = 0.0  # re-solves owed to the sweep (sweep_per_point per point given)
-        self._last = np.zeros(8)  # the last taken point's direction from the centre, whether there is one, its position, n_samples
+        # the last taken point's direction from the centre (3,), whether there is one, its position (3,); n_samples
+        self._last = np.zeros(8)
         self._gp = None
         self._priors = (cfg.prior_for(False), cfg.prior_for(True))
         self._prior = self._priors[0]
@@ -181,10 +182,10 @@ class LocalRetinaModel:
         return self._dirs
 
     def update(self, P, shape=None, trend=None, shape_sd_mm=None, beam_W=None) -> None:
-        """Absorb the points P (N, 3) mm; `beam_W`: None or their beams' unit directions
-        (N, 3), which measure each A-scan's share of a sample across its beam, where its
-        noise does not lengthen it (models.local.kernels.absorb_points). Re-solve the nodes they touched (up to
-        solves_per_point x N, the rest at the next updates: consecutive A-scans touch mostly
+        """Absorb the points P (N, 3) mm; `beam_W`: None or their beams' directions (N, 3),
+        which measure each A-scan's share of a sample across its beam, where its noise does
+        not lengthen it (models.local.kernels.absorb_points). Re-solve the nodes they
+        touched (up to solves_per_point x N, the rest at the next updates: consecutive A-scans touch mostly
         the same nodes) and sweep_per_point x N more nodes with data in turn (the global prior moves
         with every update of the global fit). Each point is first predicted by the model as
         it stood (last_predictions) and the sd's calibration takes the errors. `trend`: None
@@ -207,7 +208,8 @@ class LocalRetinaModel:
         sweep, self._sweep_credit = (0, self._sweep_credit) if gp is None else sweep_share(  # owed once there is a global model
             self._sweep_credit, cfg.sweep_per_point, len(P))
         self._n_dirty, taken, self._n_data, self._sweep_at = local_step(
-            P, B, self.center, old, self._prior, _NO_GLOBAL if gp is None else gp, prior, self._tp, self._gate, self._dirs,
+            P, B, self.center, old, self._prior, _NO_GLOBAL if gp is None else gp, prior, self._tp, self._gate,
+            self._dirs,
             self._support, self._track, self._blend, cfg.relist_growth, max(len(P), 1) * cfg.solves_per_point,
             sweep, self._reach, *self._neighbours(), self._A, self._b, self._rr, self._wsum, self._near,
             self._listed, self._dirty, self._n_dirty, self._solved_w, self._data_nodes, self._n_data, self._in_data,

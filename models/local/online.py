@@ -38,10 +38,11 @@ def holds(gp, p, margin):
 
 
 @njit(cache=True)
-def local_step(P, B, c0, gp_old, prior_old, gp, prior, tp, gate, dirs, support, track, blend, growth, budget, sweep, reach,
-               nb_off, nb_idx, nb_ang, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, data_nodes, n_data, in_data,
-               sweep_at, x, cov, excess, extra, has, dev, slope, cal_k, cal_width, hist, count, memory, pred, last, sample_mm):
-    """One update of the local model by the points P (M, 3) mm, their beams' unit directions
+def local_step(P, B, c0, gp_old, prior_old, gp, prior, tp, gate, dirs, support, track, blend, growth, budget, sweep,
+               reach, nb_off, nb_idx, nb_ang, A, b, rr, wsum, near, listed, dirty, n_dirty, solved_w, data_nodes, n_data,
+               in_data, sweep_at, x, cov, excess, extra, has, dev, slope, cal_k, cal_width, hist, count, memory, pred, last,
+               sample_mm):
+    """One update of the local model by the points P (M, 3) mm, their beams' directions
     B (M, 3) or none (0 rows; kernels.absorb_points). gp_old, prior_old: the
     global quadric and prior the nodes were last solved on (gp_old[0] == 0: none yet; then
     pred is all NaN), which predict P into pred (M, 6) and the calibration's histograms
@@ -58,8 +59,8 @@ def local_step(P, B, c0, gp_old, prior_old, gp, prior, tp, gate, dirs, support, 
     else:
         pred[:, :] = np.nan
     before = n_dirty
-    n_dirty, taken = absorb_points(P, B, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty, n_dirty,
-                                   solved_w, growth, last, sample_mm)
+    n_dirty, taken = absorb_points(P, B, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near, listed, dirty,
+                                   n_dirty, solved_w, growth, last, sample_mm)
     for i in range(before, n_dirty):
         k = dirty[i]
         if not in_data[k]:

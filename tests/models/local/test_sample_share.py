@@ -105,9 +105,10 @@ def test_a_still_beam_counts_once(oblique):
 
 def test_the_model_passes_each_kept_points_beam_on():
     """AdaptiveEyeModel.update's beams follow its points through the gate and the dwell
-    rule (a beam held on one spot past its cap): every kept point's beam is its own (the gate's pending first point, an A-scan of
-    the packet before, takes its neighbour's: within 1e-3 rad here); a floater's and
-    non-finite rows' are dropped with them."""
+    rule (a beam held on one spot past its cap): every kept point's beam is its own (the
+    gate's pending first point, an A-scan of the packet before, takes its neighbour's:
+    within 1e-3 rad here); a floater's and non-finite rows' are dropped with them; a model
+    without a local part keeps none."""
     u, P = arc_points(0.01)
     P_m, B = beamed(P, NOISE_MM, 4)
     P_m[57] += 3.0 * B[57]  # a floater 3 mm behind the retina
@@ -128,6 +129,9 @@ def test_the_model_passes_each_kept_points_beam_on():
     assert model.n_dwelling > 0
     model.update(P_m[:3])
     assert model.last_beams is None
+    quadric_only = AdaptiveEyeModel(criteria=PredictiveCriteria())
+    quadric_only.update(P_m[:20], B[:20])
+    assert len(quadric_only.last_accepted) and quadric_only.last_beams is None
 
 
 def test_bad_beams_are_refused():
