@@ -83,3 +83,20 @@ def test_the_model_building_spiral_is_paced_on_a_declared_actuator_lag(lag_s):
     np.testing.assert_allclose(np.linalg.norm(B, axis=1), 1.0, atol=1e-9)
     U = (A - scenario.p_WC) / np.linalg.norm(A - scenario.p_WC, axis=1, keepdims=True)
     assert np.all(np.degrees(np.arccos(np.clip(np.sum(U * B, axis=1), -1.0, 1.0))) < 0.01)
+
+
+def test_a_slower_scan_of_the_same_spiral_counts_the_same_samples():
+    """The same short spiral (2 turns, pitch 1.5 mm) at 15 and at 5 mm/s through the loop:
+    the slower scan takes three times the A-scans (2 kHz), and the local model counts the
+    same samples from them, its scan lines' length on the retina over sample_length_mm
+    (the shares are measured across the beams the loop passes on, so the distance noise of
+    the extra A-scans adds no length). Within 2 %: the paths differ only by how closely the
+    tip follows the spiral's turns at each speed."""
+    counts, points = [], []
+    for speed in (15.0, 5.0):
+        loop = ClosedLoop(SurgeryScenario(eye_name="staphyloma"), LoopConfig(local_model=True))
+        build = build_model_by_spiral(loop, pitch_mm=1.5, revolutions=2.0, truth_grid=20, speed_mm_s=speed)
+        counts.append(build.model.local.n_samples)
+        points.append(build.model.n_points)
+    assert points[1] / points[0] == pytest.approx(3.0, rel=0.05)
+    assert counts[1] / counts[0] == pytest.approx(1.0, abs=0.02)
