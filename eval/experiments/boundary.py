@@ -101,11 +101,10 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = SPIRAL_SPEED_MM_
     the loop's declared actuator not ideal (delay, lag, acceleration limit: LoopConfig's
     `actuator`) the spiral is a PacedTipPath, whose clock slows while the tip lags its
     reference, and the run ends with the path (at most 1 / PACE_FLOOR times its duration);
-    with the ideal actuator it is the timed TipPathCommand (measured in the README: under
-    a 20 ms lag the timed spiral's models came out at up to 106 um MAE and 506 um scanned
-    p95, paced 33-44 and 26-156; with the ideal actuator the paced clock, slowed where the
-    boundary holds the tip, left worse models on the 3 mm staphyloma, scanned p95 48-124
-    um against 39-44, and the 4 mm pointed apex, 3-sigma coverage 0.862 against 1.000);
+    with the ideal actuator it is the timed TipPathCommand (why, measured: README, the
+    robot-errors section: under a lag the paced spiral's models are the better ones; with
+    the ideal actuator the paced clock, slowed where the boundary holds the tip, leaves
+    worse models on the 3 mm staphyloma and the 4 mm pointed apex);
     MAEs in the exact form against a truth_grid^2 sampling of the true retina.
     `progress`: the label of a progress bar (eval.cli.progress, stderr) over the scan's
     simulated seconds, or None for none. `sensor_seed`: the sensor's draws start from it

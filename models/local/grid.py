@@ -146,8 +146,7 @@ class LocalRetinaModel:
         self._in_data = np.zeros(n, dtype=np.bool_)
         self._sweep_at = 0
         self._sweep_credit = 0.0  # re-solves owed to the sweep (sweep_per_point per point given)
-        # the last taken point's direction from the centre (3,), whether there is one, its position (3,); n_samples
-        self._last = np.zeros(8)
+        self._last = np.zeros(5)  # the last taken point's position (3,), whether there is one; n_samples
         self._gp = None
         self._priors = (cfg.prior_for(False), cfg.prior_for(True))
         self._prior = self._priors[0]
@@ -174,7 +173,7 @@ class LocalRetinaModel:
     def n_samples(self) -> float:
         """The samples the taken points count as: their shares (LocalConfig.sample_length_mm)
         summed, the scan lines' length on the retina over sample_length_mm."""
-        return float(self._last[7])
+        return float(self._last[4])
 
     @property
     def dirs(self) -> np.ndarray:

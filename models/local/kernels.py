@@ -39,9 +39,8 @@ def absorb_points(P, B, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near
     across the point's beam (the step less its component along the beam: an
     A-scan's noise lies along its beam and drops out); without them (B of 0 rows) it is the
     radius x the chord between the point's direction from c0 and the previous one's, which
-    the noise of an oblique beam lengthens. last (8,): the previous taken point's direction
-    from c0 (3,), 1 once there is one, its position (3,) mm and the shares' running sum;
-    updated in place. A point whose
+    the noise of an oblique beam lengthens. last (5,): the previous taken point's position
+    (3,) mm, 1 once there is one, and the shares' running sum; updated in place. A point whose
     radius lies outside [gate[0], gate[1]] mm, or further than gate[2] mm from the global
     quadric gp along its direction (when gp[0] != 0), is skipped: no retina of the
     population lies there. Returns (new n_dirty, points taken)."""
@@ -66,16 +65,17 @@ def absorb_points(P, B, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near
         elif beams and B[i, 0] * B[i, 0] + B[i, 1] * B[i, 1] + B[i, 2] * B[i, 2] > 0.25:  # finite, not degenerate
             nb = np.sqrt(B[i, 0] * B[i, 0] + B[i, 1] * B[i, 1] + B[i, 2] * B[i, 2])
             b0, b1, b2 = B[i, 0] / nb, B[i, 1] / nb, B[i, 2] / nb
-            s0, s1, s2 = P[i, 0] - last[4], P[i, 1] - last[5], P[i, 2] - last[6]
+            s0, s1, s2 = P[i, 0] - last[0], P[i, 1] - last[1], P[i, 2] - last[2]
             along = s0 * b0 + s1 * b1 + s2 * b2
             s0, s1, s2 = s0 - along * b0, s1 - along * b1, s2 - along * b2
             share = min(np.sqrt(s0 * s0 + s1 * s1 + s2 * s2) / sample_mm, 1.0)
-        else:
-            g0, g1, g2 = u0 - last[0], u1 - last[1], u2 - last[2]
+        else:  # the previous point's direction from c0, computed as this point's is
+            w0, w1, w2 = last[0] - c0[0], last[1] - c0[1], last[2] - c0[2]
+            rl = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            g0, g1, g2 = u0 - w0 / rl, u1 - w1 / rl, u2 - w2 / rl
             share = min(r * np.sqrt(g0 * g0 + g1 * g1 + g2 * g2) / sample_mm, 1.0)
-        last[0], last[1], last[2], last[3] = u0, u1, u2, 1.0
-        last[4], last[5], last[6] = P[i, 0], P[i, 1], P[i, 2]
-        last[7] += share
+        last[0], last[1], last[2], last[3] = P[i, 0], P[i, 1], P[i, 2], 1.0
+        last[4] += share
         k0, k1 = band(dirs.shape[0], u2, chord_t)
         for k in range(k0, k1):
             d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
