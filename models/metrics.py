@@ -95,6 +95,36 @@ def paper_metrics(model, truth, points, n_grid: int = 500, truth_samples=None) -
     )
 
 
+@dataclass(frozen=True)
+class SigmaHonesty:
+    """How well a field's sigma covers its true error at samples of the true retina:
+    `coverage` the fraction whose error is within 3 sigma (NaN without a finite sigma),
+    `unsafe_fraction` the fraction where the model's retina lies beyond the true one (the
+    field's signed distance there > 0: it overstates clearance) by more than 3 sigma, and
+    `worst_excess_mm` the largest such excess (mm; <= 0 when 3 sigma holds on that side)."""
+
+    coverage: float
+    unsafe_fraction: float
+    worst_excess_mm: float
+
+    @classmethod
+    def of(cls, signed_mm: np.ndarray, sigma_mm: np.ndarray) -> SigmaHonesty:
+        """From the field's signed distances (mm, > 0 inside its retina) and sigmas (mm) at
+        the true retina's samples."""
+        signed, sigma = np.asarray(signed_mm, dtype=float), np.asarray(sigma_mm, dtype=float)
+        if not np.isfinite(sigma).all():
+            return cls(float("nan"), float("nan"), float("nan"))
+        excess = signed - 3.0 * sigma
+        return cls(float(np.mean(np.abs(signed) <= 3.0 * sigma)), float(np.mean(excess > 0.0)), float(excess.max()))
+
+
+def sigma_honesty(field, samples) -> SigmaHonesty:
+    """SigmaHonesty of a distance field with `uncertainty` (e.g. models.local.field.LocalField)
+    at `samples` (N, 3) mm of the true retina (e.g. Eye.reference_samples)."""
+    samples = as_points(samples, "samples")
+    return SigmaHonesty.of(field.signed_distance(samples), field.uncertainty(samples))
+
+
 def field_report(field, truth, angle_from_data_rad, n_grid: int = 100, scanned_deg: float = 10.0) -> dict:
     """The accuracy and honesty of a model `field` (a distance field with `uncertainty`,
     e.g. models.local.field.LocalField, frame W) against the ground truth `truth`
@@ -116,12 +146,12 @@ def field_report(field, truth, angle_from_data_rad, n_grid: int = 100, scanned_d
     sigma = np.asarray(field.uncertainty(T), dtype=float)
     scanned = np.asarray(angle_from_data_rad(T)) <= np.radians(scanned_deg)
     has_sigma = bool(np.isfinite(sigma).all())
-    excess = signed - 3.0 * sigma
-    return {"sigma3_unsafe_fraction": float(np.mean(excess > 0.0)) if has_sigma else None,
-            "sigma3_worst_excess_um": 1e3 * float(excess.max()) if has_sigma else None,
+    honesty = SigmaHonesty.of(signed, sigma)
+    return {"sigma3_unsafe_fraction": honesty.unsafe_fraction if has_sigma else None,
+            "sigma3_worst_excess_um": 1e3 * honesty.worst_excess_mm if has_sigma else None,
             "mae_um": 1e3 * float(err.mean()),
             "scanned_p95_um": 1e3 * float(np.percentile(err[scanned], 95)) if scanned.any() else float("nan"),
-            "sigma3_coverage": float(np.mean(err <= 3.0 * sigma)) if np.isfinite(sigma).all() else None,
+            "sigma3_coverage": honesty.coverage if has_sigma else None,
             "scanned_fraction": float(scanned.mean()),
             "sigma_um": ({"median": 1e3 * float(np.median(sigma)), "p95": 1e3 * float(np.percentile(sigma, 95))}
                          if np.isfinite(sigma).all() else None)}

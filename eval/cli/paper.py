@@ -109,6 +109,7 @@ def aggregate(runs, criterion: str, ellipsoid_fit: str) -> dict:
     global_quadric.update(optimal_transition_at=optimal_global, per_seed=per_seed,
                           globe_mae=float(globe_curve[-1]))
     out.update(
+        local_honesty=honesty_along_spiral(runs),
         transition_at=chosen["transition_at"],
         optimal_transition_at=optimal,
         criteria_met_at=per_criterion["paper"]["criteria_met_at"] if "paper" in per_criterion else chosen["criteria_met_at"],
@@ -127,6 +128,27 @@ def aggregate(runs, criterion: str, ellipsoid_fit: str) -> dict:
     )
     out["_curves"] = (fractions, sf_curve, ef_curve, lc_curve)
     return out
+
+
+def honesty_along_spiral(runs) -> dict:
+    """The local model's sigma against its true error along the spiral (ShapeRun's lc_*_curve),
+    worst over the curve's points and the runs: the lowest 3-sigma coverage and the fraction
+    of the spiral where it was, the largest unsafe-side fraction and where, the worst
+    unsafe-side excess (um), and the lowest coverage and largest unsafe fraction at the end."""
+    fractions = runs[0].fractions
+    cov = np.array([r.lc_coverage_curve for r in runs])
+    unsafe = np.array([r.lc_unsafe_curve for r in runs])
+    excess = np.array([r.lc_excess_curve for r in runs])
+    if not np.isfinite(cov).any():
+        return {"lowest_coverage": None, "lowest_coverage_at": None, "largest_unsafe_fraction": None,
+                "largest_unsafe_at": None, "worst_excess_um": None, "end_coverage": None, "end_unsafe_fraction": None}
+    worst_cov = np.nanmin(cov, axis=0)
+    worst_unsafe = np.nanmax(unsafe, axis=0)
+    return {"lowest_coverage": float(np.nanmin(worst_cov)), "lowest_coverage_at": float(fractions[np.nanargmin(worst_cov)]),
+            "largest_unsafe_fraction": float(np.nanmax(worst_unsafe)),
+            "largest_unsafe_at": float(fractions[np.nanargmax(worst_unsafe)]) if np.nanmax(worst_unsafe) > 0 else None,
+            "worst_excess_um": 1e3 * float(np.nanmax(excess)),
+            "end_coverage": float(worst_cov[-1]), "end_unsafe_fraction": float(worst_unsafe[-1])}
 
 
 def _fmt(pair) -> str:
@@ -185,6 +207,24 @@ def table_markdown(results: dict, args) -> str:
         d = r["global_quadric"]
         lines.append(f"| {shape} | {_pct(d['optimal_transition_at'])} | {_pct(d['transition_at'])} / {_pct(d['lag'])} / "
                      f"{_yes(d['decision_right'])} / {_yes(d['timely'])} | {d['globe_mae']:.3f} |")
+    lines += [
+        "\n## The local model's sigma along the spiral\n",
+        "At each point of the Fig. 5 curves the local model's field (its distance and sigma) against the true retina "
+        "over a 60 x 60 reference sampling: 3-sigma coverage (target >= 0.99) and the unsafe side (the model's retina "
+        "beyond the true one by more than 3 sigma: a point held at d_safe + 3 sigma there comes that much inside "
+        "d_safe). Worst over the spiral's points and the seeds; at = fraction of the spiral.\n",
+        "| shape | lowest 3-sigma coverage (at) | largest unsafe-side fraction (at) | worst unsafe-side excess (um) | "
+        "at the end: coverage / unsafe fraction |",
+        "|---|---|---|---|---|",
+    ]
+    for shape, r in results.items():
+        h = r["local_honesty"]
+        if h["lowest_coverage"] is None:
+            lines.append(f"| {shape} | - | - | - | - |")
+            continue
+        lines.append(f"| {shape} | {h['lowest_coverage']:.3f} ({_pct(h['lowest_coverage_at'])}) | "
+                     f"{h['largest_unsafe_fraction']:.3f} ({_pct(h['largest_unsafe_at'])}) | {h['worst_excess_um']:.0f} | "
+                     f"{h['end_coverage']:.3f} / {h['end_unsafe_fraction']:.3f} |")
     lines.append("\n## Accuracy against the paper's 0.5 mm requirement\n")
     for shape, r in results.items():
         ok = r["meets_required_accuracy"]

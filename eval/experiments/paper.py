@@ -17,7 +17,7 @@ from models.eyes import EyePose, make_eye
 from models.fit.robust_fit import RobustFitConfig
 from models.local.grid import LocalRetinaModel
 from models.local.field import LocalField
-from models.metrics import PaperMetrics, mae_exact, paper_metrics
+from models.metrics import PaperMetrics, mae_exact, paper_metrics, sigma_honesty
 from models.scan.paper_scan import paper_scan
 
 # Table 2 of the paper (simulation), mm: mean, SD.
@@ -50,6 +50,12 @@ class ShapeRun:
     lc: PaperMetrics | None = None
     local_at: float | None = None  # fraction of the spiral at which the local correction was last taken up
     globe_mae_curve: np.ndarray | None = None  # the robust globe's (models.fit.streaming_robust), NaN before its fit
+    # the local model's sigma against its true error along the spiral (models.metrics.SigmaHonesty; NaN before a global
+    # model): the fraction of the curve's reference samples within 3 sigma, the fraction beyond 3 sigma on the unsafe
+    # side (the model's retina beyond the true one) and the largest such excess (mm)
+    lc_coverage_curve: np.ndarray | None = None
+    lc_unsafe_curve: np.ndarray | None = None
+    lc_excess_curve: np.ndarray | None = None
     global_ellipsoid_at: float | None = None  # from here on the local part's global quadric is an ellipsoid (None: ends a sphere)
     transitions: dict = field(default_factory=dict)  # criterion name -> fraction or None
     criteria_met_at: dict = field(default_factory=dict)  # criterion name -> {name: fraction or None}
@@ -91,7 +97,8 @@ def run_shape(
     The first criterion's model carries the local part; its global quadric
     (AdaptiveEyeModel.global_for_local: the least-squares ellipsoid or the robust globe,
     else the sphere) is followed along the curve (`global_ellipsoid_at`), with the robust
-    globe's MAE (`globe_mae_curve`).
+    globe's MAE (`globe_mae_curve`), and so is the honesty of the local model's sigma
+    (`lc_coverage_curve`, `lc_unsafe_curve`, `lc_excess_curve`: models.metrics.SigmaHonesty).
     `keep_history` keeps the model history (of the first criterion) in the result;
     `robust`: None for the paper's least-squares ellipsoid, else the robust fit's
     settings (models.fit.robust_fit); `eye_params`: make_eye's shape parameters.
@@ -109,7 +116,7 @@ def run_shape(
     first = next(iter(models.values()))
     scans_c = np.unique(np.linspace(1, n, n_curve).round().astype(int))
     curve_truth = eye.reference_samples(60, 60)
-    lc_curve, globe_curve, local_at, was_local = {}, {}, None, False
+    lc_curve, honesty, globe_curve, local_at, was_local = {}, {}, {}, None, False
     global_ellipsoid_at, was_ellipsoid = None, False
     for i, (p, beam) in enumerate(zip(points, beams)):
         for m in models.values():
@@ -119,7 +126,9 @@ def run_shape(
         was_local = first.level == "local"
         if i + 1 in scans_c:
             if first.local.global_params is not None:
-                lc_curve[i + 1] = mae_exact(LocalField(first.local.params(was_local)), curve_truth).mean
+                lc_field = LocalField(first.local.params(was_local))
+                lc_curve[i + 1] = mae_exact(lc_field, curve_truth).mean
+                honesty[i + 1] = sigma_honesty(lc_field, curve_truth)
             globe = first.globe.last_ok
             globe_curve[i + 1] = np.nan if globe is None else mae_exact(globe.ellipsoid, curve_truth).mean
             is_ellipsoid = isinstance(first.global_for_local(), Ellipsoid)
@@ -151,6 +160,8 @@ def run_shape(
         lc_mae_curve=np.array([lc_curve.get(int(k), np.nan) for k in scans]),
         local_at=local_at if first.level == "local" else None,
         globe_mae_curve=np.array([globe_curve.get(int(k), np.nan) for k in scans]),
+        **{f"lc_{name}_curve": np.array([getattr(honesty[int(k)], attr) if int(k) in honesty else np.nan for k in scans])
+           for name, attr in (("coverage", "coverage"), ("unsafe", "unsafe_fraction"), ("excess", "worst_excess_mm"))},
         global_ellipsoid_at=global_ellipsoid_at if was_ellipsoid else None,
     )
     first.local.solve_all()

@@ -83,8 +83,30 @@ def test_cli_writes_the_contract(tmp_path):
         assert g[key] is None or -1.0 <= g[key] <= 1.0
     assert isinstance(g["decision_right"], bool) and isinstance(g["timely"], bool) and len(g["per_seed"]) == 1
     assert 0.0 <= g["globe_mae"] < 1.0  # mm: the robust globe of a regular eye, fitted to every 20th A-scan
+    h = entry["local_honesty"]
+    assert 0.0 <= h["lowest_coverage"] <= h["end_coverage"] <= 1.0 and 0.0 <= h["lowest_coverage_at"] <= 1.0
+    assert 0.0 <= h["end_unsafe_fraction"] <= h["largest_unsafe_fraction"] <= 1.0
+    assert (h["largest_unsafe_at"] is None) == (h["largest_unsafe_fraction"] == 0.0) == (h["worst_excess_um"] <= 0.0)
     assert (out / "table2.md").read_text().startswith("# Table 2")
+    assert "## The local model's sigma along the spiral" in (out / "table2.md").read_text()
     assert (out / "fig5_myopic.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("shape", ["emmetropic", "myopic", "hyperopic"])
+def test_the_local_models_sigma_is_followed_along_the_spiral(reduced_runs, shape):
+    """Each point of the curves holds the local field's SigmaHonesty once there is a global
+    model; at the end of a regular eye's spiral the field is its ellipsoid's, within the
+    0.3 mm far sd (3 sigma 0.9 mm) of an ellipsoid a few um off: every sample covered,
+    none beyond on the unsafe side."""
+    run = reduced_runs[shape]
+    n = len(run.fractions)
+    curves = (run.lc_coverage_curve, run.lc_unsafe_curve, run.lc_excess_curve)
+    assert all(len(c) == n for c in curves)
+    has = np.isfinite(run.lc_mae_curve)
+    assert has[-1] and np.array_equal(has, np.isfinite(run.lc_coverage_curve))
+    cov, unsafe = run.lc_coverage_curve[has], run.lc_unsafe_curve[has]
+    assert np.all((0.0 <= cov) & (cov <= 1.0)) and np.all((0.0 <= unsafe) & (unsafe <= 1.0 - cov + 1e-12))
+    assert cov[-1] == 1.0 and unsafe[-1] == 0.0 and run.lc_excess_curve[-1] < 0.0
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,8 @@ import pytest
 
 from models import Ellipsoid, Sphere
 from models.eyes import make_eye
-from models.metrics import MeanSD, mae_exact, mmae_exact, fmae_exact, model_samples, nearest_sample_distance, paper_metrics
+from models.metrics import (MeanSD, SigmaHonesty, fmae_exact, mae_exact, mmae_exact, model_samples, nearest_sample_distance,
+                            paper_metrics, sigma_honesty)
 
 ROUND_OFF_MM = 1e-9
 
@@ -73,3 +74,38 @@ def test_bad_points_are_refused_naming_them(bad):
         mmae_exact(bad, truth)
     with pytest.raises(ValueError, match="truth_samples"):
         mae_exact(truth.ellipsoid, bad)
+
+
+class _ShiftedSphere:
+    """A sphere model 1 mm larger than the true 12 mm retina (its retina beyond the true
+    one: each true sample lies 1 mm inside it, signed distance +1 mm) with a sigma that
+    grows with the sample's height z: 0.2 mm + 0.05 z^2 / mm."""
+
+    def __init__(self):
+        self.sphere = Sphere(np.zeros(3), 13.0)
+
+    def signed_distance(self, Q):
+        return self.sphere.signed_distance(Q)
+
+    def uncertainty(self, Q):
+        return 0.2 + 0.05 * np.asarray(Q)[:, 2] ** 2
+
+
+def test_sigma_honesty_counts_the_unsafe_side_beyond_three_sigma():
+    # on the true 12 mm sphere the error is 1 mm everywhere: covered where 3 (0.2 + 0.05 z^2) >= 1, i.e. |z| >= 2 mm
+    z = np.linspace(-11.0, 11.0, 2201)
+    x = np.sqrt(144.0 - z ** 2)
+    P = np.column_stack([x, np.zeros_like(z), z])
+    h = sigma_honesty(_ShiftedSphere(), P)
+    short = np.abs(z) < np.sqrt((1.0 / 3.0 - 0.2) / 0.05)  # 3 sigma < 1 mm there
+    assert h.coverage == pytest.approx(1.0 - short.mean(), abs=1e-12)
+    assert h.unsafe_fraction == pytest.approx(short.mean(), abs=1e-12)
+    assert h.worst_excess_mm == pytest.approx(1.0 - 0.6, abs=1e-9)  # at z = 0: 1 mm - 3 x 0.2 mm
+
+
+def test_sigma_honesty_misses_on_the_safe_side_are_not_unsafe():
+    # the model's retina inside the true one (signed distance < 0 at the true samples): misses, none unsafe
+    h = SigmaHonesty.of(np.array([-1.0, -0.1, 0.05]), np.array([0.1, 0.1, 0.1]))
+    assert (h.coverage, h.unsafe_fraction) == (pytest.approx(2 / 3), 0.0)
+    assert h.worst_excess_mm == pytest.approx(-0.25)
+    assert np.isnan(SigmaHonesty.of(np.array([0.0]), np.array([np.inf])).coverage)
