@@ -7,7 +7,7 @@ from typing import NamedTuple
 import numpy as np
 
 from models.adaptive.dwell import DWELL_MAX_POINTS, DWELL_RADIUS_MM, dwell_keep, new_state
-from models.adaptive.extrapolation import extrapolation_sd
+from models.adaptive.global_sd import GlobalSd
 from models.adaptive.history import History
 from models.adaptive.outlier_gate import GateState, OutlierGate
 from models.adaptive.scan_range import ScanRange
@@ -20,7 +20,6 @@ from models.fit.quadric_kernels import FIT_STATUS
 from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig
 from models.fit.streaming_robust import StreamingRobustFit
 from models.fit.sphere_kalman import SphereKalmanFilter
-from models.eyes.eye import ANTERIOR_CROP_MM
 from models.shapes.ellipsoid import Ellipsoid
 from models.shapes.sphere import Sphere
 from models.local.selection import LocalChoice
@@ -37,23 +36,6 @@ EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5
 EYE_AXIS_RATIO_MAX = 1.25
 GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
 GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
-# The robust globe's standard deviation far from the data: GLOBE_SD_FACTOR x the largest over
-# the retina of its fit's own, were its residuals independent (extrapolation_sd: the leverage of
-# a globe seen over a small part of the retina). They are not: 500 stored points subsample a
-# scan whose errors are correlated over millimetres, and a pathology's flank down-weighted but
-# not left out biases the fit. Measured in 12 faults-campaign builds (seed 0; the accel_limit
-# class on every shape but the hyperopic eye, the detached eye's and the staphyloma's
-# time_offset, the detached eye's floaters, and three builds of a choice then being tried): 40
-# deg and more from the data, a globe's error p99 was 0.9-7.0 x that sd at the same point where
-# the globe was within 0.41 mm of the eye's retina (where that sd is 20-170 um the ellipsoid's
-# 0.3 mm covers; the pointed eye's globe, no eye's, is never taken), and 7.1-8.2 x on a detached
-# eye's globe of 13.08 x 12.54 x 12.36 mm fitted to a quarter of the reference region (the eye
-# 12.30 x 11.97 x 11.95; 1.76 mm off, p99, 1.86 max). The largest sd over the retina, which the
-# rule takes, was 0.26 mm there (6.8 x less than that p99) and 0.14 mm on the same class's good
-# globe. 3 makes the barrier's 3 sd 9 x it (2.3 mm there); the local model takes it where no
-# data came within 30 deg (models.local.grid.LocalRetinaModel.update's shape_sd_mm) and never
-# below the ellipsoid's (models.local.config.LocalConfig.ellipsoid_sd_far_mm).
-GLOBE_SD_FACTOR = 3.0
 
 
 def eyes_radii(r0: float, r1: float, r2: float) -> bool:
@@ -153,8 +135,7 @@ class AdaptiveEyeModel:
         self.local_choice = LocalChoice() if local is not None else None
         self.globe = StreamingRobustFit() if local is not None else None
         self.globe_taken = False  # the robust globe is the quadric under the local model (_globe_taken)
-        self.globe_sd_mm = np.inf  # the robust globe's sd far from the data (GLOBE_SD_FACTOR), of the fit _sd_fit
-        self._sd_fit = None
+        self._global_sd = GlobalSd()  # the sd far from the data of the ellipsoid under the local model
 
     def __deepcopy__(self, memo) -> AdaptiveEyeModel:
         """An independent copy (it updates without touching this model) that shares the
@@ -198,14 +179,21 @@ class AdaptiveEyeModel:
         no eye's, like the pointed eye's 177 x 31 x 31 mm fit to its posterior paraboloid),
         else None: the local model reads it next to the data and the global quadric far
         from them (models.local.config.LocalConfig.trend_deg), and the global quadric's own
-        sd far from the data (mm) when it is the robust globe (globe_sd_mm), else None (the
+        sd far from the data (mm) when it is an ellipsoid (models.adaptive.global_sd: its
+        leverage and its gaps from the rivals the data do not rule out), else None (the
         local model's for its kind). One look at the model's shape: this runs once per update."""
         ellipsoid = self.ellipsoid if self.kind == "ellipsoid" else None
         if ellipsoid is not None and eyes_radii(*ellipsoid.radii):
-            return ellipsoid, None, None
+            return ellipsoid, None, None if self.globe is None else self._global_sd.of_least_squares(self.globe)
         if self.globe_taken:
-            return self.globe.last_ok.ellipsoid, ellipsoid, self.globe_sd_mm
+            return self.globe.last_ok.ellipsoid, ellipsoid, self._global_sd.of_globe(self.globe)
         return self.sphere, ellipsoid, None
+
+    @property
+    def globe_sd_mm(self) -> float:
+        """The robust globe's leverage sd far from the data, mm (models.adaptive.global_sd:
+        GLOBE_SD_FACTOR x extrapolation_sd of its last fit; inf before one)."""
+        return self._global_sd.leverage_mm
 
     def _globe_taken(self) -> bool:
         """Whether the robust globe is the quadric under the local model (after its step):
@@ -329,23 +317,28 @@ class AdaptiveEyeModel:
             globe.step(self._sf.sphere, defer=single)
         elif globe.close_due:
             globe.close()
-        elif globe.last_ok is not self._sd_fit:  # a single A-scan's: on the update after the fit's
-            self._globe_sd()
+        elif globe.last_ok is not self._global_sd.fit:  # a single A-scan's: on the update after the fit's
+            self._globe_sd(gaps=not single)
+        elif single and self._global_sd.gaps_due:  # and its gaps on the next
+            self._globe_sd(gaps=True, leverage=False)
         else:
             if single:
                 globe.reweigh(k)
             return
-        if not single and globe.last_ok is not self._sd_fit:
-            self._globe_sd()
+        if not single and globe.last_ok is not self._global_sd.fit:
+            self._globe_sd(gaps=True)
         self.globe_taken = self._globe_taken()
 
-    def _globe_sd(self) -> None:
-        """globe_sd_mm of the robust globe's last fit (GLOBE_SD_FACTOR; 5-9 us: make bench)."""
-        globe = self.globe
-        fit = self._sd_fit = globe.last_ok
-        sd = extrapolation_sd(globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM,
-                              ANTERIOR_CROP_MM)
-        self.globe_sd_mm = GLOBE_SD_FACTOR * sd
+    def _globe_sd(self, gaps: bool, leverage: bool = True) -> None:
+        """Measure the robust globe's last fit for the sd far from the data (GlobalSd): its
+        `leverage` (5-9 us) and its `gaps` from the sphere and the least-squares ellipsoid
+        as they are (8-12 us; make bench)."""
+        if leverage:
+            self._global_sd.measure_leverage(self.globe)
+        if gaps:
+            ls = self._ef.last_ok
+            ls = ls if ls is not None and eyes_radii(*ls.radii) else None
+            self._global_sd.measure_gaps(self.globe, self.sphere, ls, self._ef.S, self._ef.p0)
 
     def _globe_steps(self, received: int, n_points: int) -> bool:
         """Whether the robust globe steps in an update of `received` points that brings the

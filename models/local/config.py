@@ -21,7 +21,7 @@ class LocalConfig:
     `ellipsoid_sd_near_mm` 0.05 and `ellipsoid_sd_far_mm` 0.3 (the ellipsoid's exact MAE
     over the whole retina on the regular eyes, 25-65 um in the loop, its worst extrapolated
     points a few times that; a robust globe seen over less of the retina may bring a larger
-    one of its own: models.adaptive.model.GLOBE_SD_FACTOR). `sd_floor_mm` 0.02, added in quadrature to every sd: the
+    one of its own: models.adaptive.global_sd). `sd_floor_mm` 0.02, added in quadrature to every sd: the
     model claims to know the retina no better than one A-scan measures it (20 um distance
     noise); the quadratics' bias between scan lines has terms of its own (above).
     `departure_floor_mm` 0.03: the least departure from the global quadric that counts (at

@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 
 from models import AdaptiveEyeModel
 from models.adaptive.extrapolation import extrapolation_sd
-from models.adaptive.model import EYE_AXIS_RATIO_MAX, EYE_RADII_MM, GLOBE_MIN_SCAN_RANGE_MM, GLOBE_SD_FACTOR, eyes_radii
+from models.adaptive.global_sd import GAP_SD_SHARE, GLOBE_SD_FACTOR, GlobalSd
+from models.adaptive.model import EYE_AXIS_RATIO_MAX, EYE_RADII_MM, GLOBE_MIN_SCAN_RANGE_MM, eyes_radii
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
 from models.eyes.eye import ANTERIOR_CROP_MM
@@ -144,9 +145,11 @@ def test_adaptive_model_puts_the_local_model_on_the_globe():
 
 
 def test_the_local_model_takes_the_globes_own_sd_far_from_the_data():
-    """The globe under the local model comes with its sd far from the data: GLOBE_SD_FACTOR x
-    extrapolation_sd of the scatter matrix its fit came from, raised into the local model's
-    prior where it exceeds the ellipsoid's; a partial scan's globe gets a larger one."""
+    """The globe under the local model comes with its sd far from the data: the larger of
+    GLOBE_SD_FACTOR x extrapolation_sd of the scatter matrix its fit came from and half its
+    largest gap from the sphere while the sphere is a rival (models.adaptive.global_sd),
+    raised into the local model's prior where it exceeds the ellipsoid's; a partial scan's
+    globe gets a larger one."""
     eye = make_eye("detached")
     P = paper_scan(eye, seed=3).points
     model = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(np.zeros(3)))
@@ -156,8 +159,11 @@ def test_the_local_model_takes_the_globes_own_sd_far_from_the_data():
         g, trend, sd = model.quadrics_for_local()
         if model.globe_taken:
             fit, globe = model.globe.last_ok, model.globe
-            assert g is fit.ellipsoid and sd == GLOBE_SD_FACTOR * extrapolation_sd(
+            leverage = GLOBE_SD_FACTOR * extrapolation_sd(
                 globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM)
+            assert g is fit.ellipsoid and model.globe_sd_mm == leverage
+            gap = model._global_sd.globe_to_sphere_mm if GlobalSd.sphere_credible(globe) else 0.0
+            assert sd == max(leverage, GAP_SD_SHARE * gap)
             far = model.local.config.ellipsoid_sd_far_mm
             assert model.local._prior[2] == pytest.approx(min(max(sd, far), model.local.config.sd_far_mm))
             sds.append(sd)
