@@ -11,7 +11,7 @@ from numba import njit
 
 from bench.timing import machine_stalls, summary_us, time_calls_us
 from models import AdaptiveEyeModel, Ellipsoid, Sphere, fit_ellipsoid, fit_sphere
-from models.adaptive.extrapolation import extrapolation_sd
+from models.adaptive.extrapolation import extrapolation_sd, largest_gaps
 from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
 from models.eyes.eye import ANTERIOR_CROP_MM
@@ -184,6 +184,11 @@ def local_field_figures(points: np.ndarray) -> None:
     args = (globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM)
     t = time_calls_us(lambda i: extrapolation_sd(*args), 2000)
     print(f"  the robust globe's sd far from the data (extrapolation_sd), detached eye:  {summary_us(t)}")
+    # its gaps from the rivals (models.adaptive.global_sd: two calls per fit, the second with an ellipsoid)
+    gap_args = (globe.last_scatter, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM,
+                model.sphere, model.ellipsoid)
+    t = time_calls_us(lambda i: largest_gaps(*gap_args), 2000)
+    print(f"  its largest gaps from the sphere and an ellipsoid (largest_gaps), detached eye: {summary_us(t)}")
 
 
 def run() -> None:
