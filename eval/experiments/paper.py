@@ -17,7 +17,7 @@ from models.eyes import EyePose, make_eye
 from models.fit.robust_fit import RobustFitConfig
 from models.local.grid import LocalRetinaModel
 from models.local.field import LocalField
-from models.metrics import PaperMetrics, mae_exact, paper_metrics, sigma_honesty
+from models.metrics import MeanSD, PaperMetrics, SigmaHonesty, mae_exact, paper_metrics
 from models.scan.paper_scan import paper_scan
 
 # Table 2 of the paper (simulation), mm: mean, SD.
@@ -127,8 +127,9 @@ def run_shape(
         if i + 1 in scans_c:
             if first.local.global_params is not None:
                 lc_field = LocalField(first.local.params(was_local))
-                lc_curve[i + 1] = mae_exact(lc_field, curve_truth).mean
-                honesty[i + 1] = sigma_honesty(lc_field, curve_truth)
+                signed = lc_field.signed_distance(curve_truth)  # once for the MAE and the sigma's honesty
+                lc_curve[i + 1] = MeanSD.of(signed).mean
+                honesty[i + 1] = SigmaHonesty.of(signed, lc_field.uncertainty(curve_truth))
             globe = first.globe.last_ok
             globe_curve[i + 1] = np.nan if globe is None else mae_exact(globe.ellipsoid, curve_truth).mean
             is_ellipsoid = isinstance(first.global_for_local(), Ellipsoid)
