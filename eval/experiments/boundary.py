@@ -16,6 +16,7 @@ import numpy as np
 from eval.closed_loop import ClosedLoop, LoopRun
 from eval.experiments.campaign import Workers, run_tasks, scenario_seed
 from eval.experiments.command_sources import PACE_FLOOR, AdversarialCommand, PacedTipPath, TipPathCommand
+from eval.experiments.model_report import BuildHonesty
 from eval.cli.progress import progress_bar
 from models.metrics import mae_exact
 from models.scan.spiral import PAPER_PITCH_MM, PAPER_REVOLUTIONS
@@ -54,6 +55,7 @@ class SpiralBuild:
     sf_mae_um: float
     samples: int = 0  # the sensor's samples during the scan
     oblique_samples: int = 0  # valid samples not taken in: their beam met the filter's model beyond the sensor's limit
+    honesty: dict | None = None  # the local model's sigma on the way (eval.experiments.model_report.BuildHonesty)
 
 
 def spiral_path_W(scenario: SurgeryScenario, pitch_mm: float, revolutions: float, spacing_mm: float = 0.1) -> np.ndarray:
@@ -120,13 +122,18 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = SPIRAL_SPEED_MM_
     q0 = start_posture(loop.robot, P[0], scenario.p_WC)
     model, coverage = loop.new_model(), loop.new_coverage()
     cap_s = float(times[-1]) / PACE_FLOOR + path.settle_s if paced else float(times[-1])  # the paced path's slowest
-    run = run_with_progress(loop, path, q0, cap_s + 0.05, progress, float(times[-1]), model=model, coverage=coverage,
-                            logger=logger, sensor_seed=sensor_seed)
+    watch = loop.model.on_snapshot = BuildHonesty(scenario.eye) if model.local is not None else None
+    try:
+        run = run_with_progress(loop, path, q0, cap_s + 0.05, progress, float(times[-1]), model=model,
+                                coverage=coverage, logger=logger, sensor_seed=sensor_seed)
+    finally:
+        loop.model.on_snapshot = None
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)
     trans = _transition_fraction(run, path)
     return SpiralBuild(model, coverage, run, model.kind,
                        trans, 1e3 * mae_exact(model.ellipsoid, truth).mean if model.ellipsoid is not None else float("nan"),
-                       1e3 * mae_exact(model.sphere, truth).mean, loop.model.n_samples, loop.model.n_oblique)
+                       1e3 * mae_exact(model.sphere, truth).mean, loop.model.n_samples, loop.model.n_oblique,
+                       None if watch is None else watch.summary())
 
 
 def _transition_fraction(run: LoopRun, path: TipPathCommand) -> float | None:

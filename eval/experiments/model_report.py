@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.metrics import field_report
+from models.metrics import field_report, sigma_honesty
 
 
 class _ExactField:
@@ -26,6 +26,43 @@ class _ExactField:
         return np.full(len(P), np.nan)  # the quadric boundary's margins are not a standard deviation
 
 
+class BuildHonesty:
+    """The local model's sigma against the true retina on the way through a build: called
+    with each snapshot the filter reads (eval.systems.model.AdaptiveModelSystem.on_snapshot),
+    it measures the snapshot's field every `every_s` s of simulated time over the eye's
+    n_grid x n_grid reference samples (models.metrics.sigma_honesty). A snapshot without a
+    field (the prior, the quadric model) is not measured. `summary()`: the worst of them."""
+
+    def __init__(self, eye, every_s: float = 0.25, n_grid: int = 60):
+        self.truth = eye.reference_samples(n_grid, n_grid)
+        self.every_s = float(every_s)
+        self._next_t = -np.inf
+        self.rows: list[tuple] = []  # (t_s, SigmaHonesty)
+
+    def __call__(self, snap) -> None:
+        if snap.field is None or snap.t_s < self._next_t:
+            return
+        self._next_t = snap.t_s + self.every_s
+        self.rows.append((snap.t_s, sigma_honesty(snap.field, self.truth)))
+
+    def summary(self) -> dict | None:
+        """`probes`; `lowest_sigma3_coverage` and when (`lowest_at_s`, s into the scan);
+        `largest_unsafe_fraction` (beyond 3 sigma with the model's retina beyond the true
+        one) and when (`largest_unsafe_at_s`, None if none); `worst_excess_um` (the largest
+        such excess; <= 0 when 3 sigma held on that side at every probe). None without a
+        probe."""
+        if not self.rows:
+            return None
+        t = np.array([r[0] for r in self.rows])
+        cov = np.array([r[1].coverage for r in self.rows])
+        unsafe = np.array([r[1].unsafe_fraction for r in self.rows])
+        excess = np.array([r[1].worst_excess_mm for r in self.rows])
+        k, j = int(np.argmin(cov)), int(np.argmax(unsafe))
+        return {"probes": len(t), "lowest_sigma3_coverage": float(cov[k]), "lowest_at_s": float(t[k]),
+                "largest_unsafe_fraction": float(unsafe[j]), "largest_unsafe_at_s": float(t[j]) if unsafe[j] > 0 else None,
+                "worst_excess_um": 1e3 * float(excess.max())}
+
+
 def filter_model(loop, build):
     """(kind, field) of the model the filter reads at the end of the spiral `build`
     (eval.experiments.boundary.SpiralBuild); field None for the prior."""
@@ -38,7 +75,8 @@ def filter_model(loop, build):
 def model_summary(loop, build, n_grid: int = 100) -> dict:
     """boundary.json's, sensor.json's and plan.json's `model` figures of the filter's
     model: kind, mae_um, scanned_p95_um, sigma3_coverage (field_report), the local
-    model's sigma calibration (LocalField.sigma_calibration; None for the quadric), and
+    model's sigma calibration (LocalField.sigma_calibration; None for the quadric), its
+    sigma on the way through the build (`on_the_way`: BuildHonesty.summary), and
     the scan's sensor samples and the valid ones the model did not take for their
     incidence on the filter's model (eval.systems.model.AdaptiveModelSystem)."""
     kind, field = filter_model(loop, build)
@@ -46,6 +84,7 @@ def model_summary(loop, build, n_grid: int = 100) -> dict:
     if field is not None:
         out.update(field_report(field, loop.scenario.eye, build.coverage.view().angle_from_data_rad, n_grid))
     out["sigma_calibration"] = getattr(field, "sigma_calibration", None)
+    out["on_the_way"] = build.honesty  # the field's sigma during the build (BuildHonesty.summary; None without one)
     return out
 
 

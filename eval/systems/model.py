@@ -150,6 +150,7 @@ class AdaptiveModelSystem(LeafSystem):
         self._snap = self.DeclareAbstractState(AbstractValue.Make(_PRIOR_AT_0))
         self.DeclarePeriodicUnrestrictedUpdateEvent(1.0 / packet_rate_hz, offset_s, self._update)
         self.DeclareStateOutputPort("snapshot", self._snap)
+        self.on_snapshot = None  # None, or a callable given each new snapshot (kept across runs: its setter clears it)
         self._compile()
         self.reset(AdaptiveEyeModel(), DirectionCoverage(np.zeros(3)))
 
@@ -308,6 +309,8 @@ class AdaptiveModelSystem(LeafSystem):
             self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust,
                                         bound=self._bound)._replace(
                 healthy_t_s=health.healthy_t_s, stream=health.why)
+            if self.on_snapshot is not None:
+                self.on_snapshot(self._written)
         else:
             self._written = self._written._replace(t_s=self._last_t)
         state.get_mutable_abstract_state(0).set_value(self._written)

@@ -123,6 +123,11 @@ def test_with_the_local_model_the_plan_keeps_to_its_sigma(tmp_path):
     cal = r["model"]["sigma_calibration"]  # the sd's calibration factors: at least 1, never falling with the gap
     assert cal["gap_deg"][0] == 0.0 and len(cal["gap_deg"]) == len(cal["factor"])
     assert all(f >= 1.0 for f in cal["factor"]) and all(b >= a for a, b in zip(cal["factor"], cal["factor"][1:]))
+    # on the way through the spiral (a probe every 0.25 s of its ~33 s): the fits of a regular eye's first rings are
+    # too small (a cap's), so wherever 3 sigma does not cover the retina the model lies inside it: no unsafe-side miss
+    way = r["model"]["on_the_way"]
+    assert way["probes"] >= 100 and 0.0 < way["lowest_sigma3_coverage"] <= r["model"]["sigma3_coverage"] == 1.0
+    assert way["largest_unsafe_fraction"] == 0.0 and way["largest_unsafe_at_s"] is None and way["worst_excess_um"] < 0.0
 
 
 def test_every_reason_a_cell_can_get_has_a_colour_in_the_coverage_map():
