@@ -9,7 +9,7 @@ from __future__ import annotations
 import copy
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -128,6 +128,7 @@ def build_model_by_spiral(loop: ClosedLoop, speed_mm_s: float = SPIRAL_SPEED_MM_
                                 coverage=coverage, logger=logger, sensor_seed=sensor_seed)
     finally:
         loop.model.on_snapshot = None
+    run = replace(run, wall_s=run.wall_s - loop.model.observer_wall_s)  # the scan's own, without the probes
     truth = scenario.eye.reference_samples(truth_grid, truth_grid)
     trans = _transition_fraction(run, path)
     return SpiralBuild(model, coverage, run, model.kind,

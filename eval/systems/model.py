@@ -180,6 +180,7 @@ class AdaptiveModelSystem(LeafSystem):
         self._last_t = -np.inf
         self._written = _PRIOR_AT_0  # the declared state's value, until initial_snapshot
         self.wall_s = 0.0  # wall time (s) of its updates since the reset
+        self.observer_wall_s = 0.0  # of it, on_snapshot's (left out of wall_s)
         self.update_us: list[float] = []
         self._distances: list[tuple] = []  # per packet: its extracted and true distances, and which are valid
         self.n_samples = 0
@@ -245,9 +246,9 @@ class AdaptiveModelSystem(LeafSystem):
         return self._written
 
     def _update(self, context, state) -> None:
-        t0 = time.perf_counter()
+        t0, observed = time.perf_counter(), self.observer_wall_s
         self._absorb(context, state)
-        self.wall_s += time.perf_counter() - t0
+        self.wall_s += time.perf_counter() - t0 - (self.observer_wall_s - observed)
 
     def _health(self, packet, state) -> None:
         """Judge the packet's samples (planning.iioct.stream.StreamHealth); a packet read
@@ -309,8 +310,10 @@ class AdaptiveModelSystem(LeafSystem):
             self._written = snapshot_of(self.model, self.coverage, self._last_t, *self._trust,
                                         bound=self._bound)._replace(
                 healthy_t_s=health.healthy_t_s, stream=health.why)
-            if self.on_snapshot is not None:
+            if self.on_snapshot is not None:  # an observer's time is not the model's (wall_s)
+                t0 = time.perf_counter()
                 self.on_snapshot(self._written)
+                self.observer_wall_s += time.perf_counter() - t0
         else:
             self._written = self._written._replace(t_s=self._last_t)
         state.get_mutable_abstract_state(0).set_value(self._written)
