@@ -14,6 +14,7 @@ the model.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -116,6 +117,29 @@ class SigmaHonesty:
             return cls(float("nan"), float("nan"), float("nan"))
         excess = signed - 3.0 * sigma
         return cls(float(np.mean(np.abs(signed) <= 3.0 * sigma)), float(np.mean(excess > 0.0)), float(excess.max()))
+
+
+class WorstHonesty(NamedTuple):
+    """The worst of SigmaHonesty figures measured at several points (`worst_honesty`)."""
+
+    lowest_coverage: float
+    lowest_at: float  # where (the caller's unit: a fraction of a scan, seconds)
+    largest_unsafe_fraction: float
+    largest_unsafe_at: float | None  # None when no sample was beyond 3 sigma on the unsafe side
+    worst_excess_mm: float
+
+
+def worst_honesty(at, coverage, unsafe_fraction, worst_excess_mm) -> WorstHonesty | None:
+    """The worst of SigmaHonesty figures (arrays, one per point `at`; NaN where nothing was
+    measured, left out): the lowest coverage and where (the first such point), the largest
+    unsafe-side fraction and where, and the worst excess (mm). None when nothing was measured."""
+    at, cov = np.asarray(at, dtype=float), np.asarray(coverage, dtype=float)
+    unsafe, excess = np.asarray(unsafe_fraction, dtype=float), np.asarray(worst_excess_mm, dtype=float)
+    if not np.isfinite(cov).any():
+        return None
+    k, j = int(np.nanargmin(cov)), int(np.nanargmax(unsafe))
+    return WorstHonesty(float(cov[k]), float(at[k]), float(unsafe[j]), float(at[j]) if unsafe[j] > 0 else None,
+                        float(np.nanmax(excess)))
 
 
 def sigma_honesty(field, samples) -> SigmaHonesty:

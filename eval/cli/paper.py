@@ -11,6 +11,7 @@ from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_atomic, 
 from eval.experiments.paper import (ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, best_ellipsoid_curve, decision,
                                     optimal_transition, run_shape)
 from eval.experiments.paper_figures import fig5
+from models.metrics import worst_honesty
 from eval.cli.progress import progress_bar
 from eval.cli.workers import add_worker_flags
 from models.adaptive.transition import CRITERIA
@@ -135,19 +136,17 @@ def honesty_along_spiral(runs) -> dict:
     worst over the curve's points and the runs: the lowest 3-sigma coverage and the fraction
     of the spiral where it was, the largest unsafe-side fraction and where, the worst
     unsafe-side excess (um), and the lowest coverage and largest unsafe fraction at the end."""
-    fractions = runs[0].fractions
     cov = np.array([r.lc_coverage_curve for r in runs])
     unsafe = np.array([r.lc_unsafe_curve for r in runs])
     excess = np.array([r.lc_excess_curve for r in runs])
-    if not np.isfinite(cov).any():
+    worst_cov, worst_unsafe, worst_excess = np.nanmin(cov, axis=0), np.nanmax(unsafe, axis=0), np.nanmax(excess, axis=0)
+    w = worst_honesty(runs[0].fractions, worst_cov, worst_unsafe, worst_excess)
+    if w is None:
         return {"lowest_coverage": None, "lowest_coverage_at": None, "largest_unsafe_fraction": None,
                 "largest_unsafe_at": None, "worst_excess_um": None, "end_coverage": None, "end_unsafe_fraction": None}
-    worst_cov = np.nanmin(cov, axis=0)
-    worst_unsafe = np.nanmax(unsafe, axis=0)
-    return {"lowest_coverage": float(np.nanmin(worst_cov)), "lowest_coverage_at": float(fractions[np.nanargmin(worst_cov)]),
-            "largest_unsafe_fraction": float(np.nanmax(worst_unsafe)),
-            "largest_unsafe_at": float(fractions[np.nanargmax(worst_unsafe)]) if np.nanmax(worst_unsafe) > 0 else None,
-            "worst_excess_um": 1e3 * float(np.nanmax(excess)),
+    return {"lowest_coverage": w.lowest_coverage, "lowest_coverage_at": w.lowest_at,
+            "largest_unsafe_fraction": w.largest_unsafe_fraction, "largest_unsafe_at": w.largest_unsafe_at,
+            "worst_excess_um": 1e3 * w.worst_excess_mm,
             "end_coverage": float(worst_cov[-1]), "end_unsafe_fraction": float(worst_unsafe[-1])}
 
 

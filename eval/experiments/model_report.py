@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.metrics import field_report, sigma_honesty
+from models.metrics import field_report, sigma_honesty, worst_honesty
 
 
 class _ExactField:
@@ -51,16 +51,13 @@ class BuildHonesty:
         one) and when (`largest_unsafe_at_s`, None if none); `worst_excess_um` (the largest
         such excess; <= 0 when 3 sigma held on that side at every probe). None without a
         probe."""
-        if not self.rows:
+        w = worst_honesty([r[0] for r in self.rows], [r[1].coverage for r in self.rows],
+                          [r[1].unsafe_fraction for r in self.rows], [r[1].worst_excess_mm for r in self.rows])
+        if w is None:
             return None
-        t = np.array([r[0] for r in self.rows])
-        cov = np.array([r[1].coverage for r in self.rows])
-        unsafe = np.array([r[1].unsafe_fraction for r in self.rows])
-        excess = np.array([r[1].worst_excess_mm for r in self.rows])
-        k, j = int(np.argmin(cov)), int(np.argmax(unsafe))
-        return {"probes": len(t), "lowest_sigma3_coverage": float(cov[k]), "lowest_at_s": float(t[k]),
-                "largest_unsafe_fraction": float(unsafe[j]), "largest_unsafe_at_s": float(t[j]) if unsafe[j] > 0 else None,
-                "worst_excess_um": 1e3 * float(excess.max())}
+        return {"probes": len(self.rows), "lowest_sigma3_coverage": w.lowest_coverage, "lowest_at_s": w.lowest_at,
+                "largest_unsafe_fraction": w.largest_unsafe_fraction, "largest_unsafe_at_s": w.largest_unsafe_at,
+                "worst_excess_um": 1e3 * w.worst_excess_mm}
 
 
 def filter_model(loop, build):
