@@ -184,11 +184,11 @@ def local_field_figures(points: np.ndarray) -> None:
     args = (globe.last_scatter, fit.v, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM)
     t = time_calls_us(lambda i: extrapolation_sd(*args), 2000)
     print(f"  the robust globe's sd far from the data (extrapolation_sd), detached eye:  {summary_us(t)}")
-    # its gaps from the rivals (models.adaptive.global_sd: two calls per fit, the second with an ellipsoid)
+    # its gaps from the rivals (models.adaptive.global_sd: two calls per fit, the second with another quadric)
     gap_args = (globe.last_scatter, fit.center, fit.radii, fit.rotation, globe.p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM,
-                model.sphere, model.ellipsoid)
+                model.sphere, fit.v, globe.p0)
     t = time_calls_us(lambda i: largest_gaps(*gap_args), 2000)
-    print(f"  its largest gaps from the sphere and an ellipsoid (largest_gaps), detached eye: {summary_us(t)}")
+    print(f"  its largest gaps from the sphere and another quadric (largest_gaps), detached eye: {summary_us(t)}")
 
 
 def run() -> None:

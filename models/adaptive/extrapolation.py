@@ -139,42 +139,34 @@ def extrapolation_sd(S, v, center_mm, radii_mm, rotation, p0, scale, crop_mm) ->
 
 
 @njit(cache=True, error_model="numpy")
-def _largest_gaps(D, S, center_mm, radii_mm, rotation, p0, scale, crop_mm, c_sf_mm, r_sf_mm, c_mm, radii2_mm, rotation2,
-                  has_other):
+def _largest_gaps(D, S, center_mm, radii_mm, rotation, p0, scale, crop_mm, c_sf_mm, r_sf_mm, v_other, p0_other, has_other):
     """largest_gaps over the directions D (K, 3)."""
     X, keep = _retina(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm)
     to_sphere, to_other = 0.0, 0.0
-    y, g = np.empty(3), np.empty(3)
     for k in range(D.shape[0]):
         if not keep[k]:
             continue
         x0, x1, x2 = p0[0] + scale * X[k, 0], p0[1] + scale * X[k, 1], p0[2] + scale * X[k, 2]  # mm
         dx, dy, dz = x0 - c_sf_mm[0], x1 - c_sf_mm[1], x2 - c_sf_mm[2]
         to_sphere = max(to_sphere, abs(np.sqrt(dx * dx + dy * dy + dz * dz) - r_sf_mm))
-        if has_other:
-            dx, dy, dz = x0 - c_mm[0], x1 - c_mm[1], x2 - c_mm[2]
-            f = -1.0
-            for i in range(3):  # the point in the other ellipsoid's axes: y = R^T (x - c)
-                y[i] = (rotation2[0, i] * dx + rotation2[1, i] * dy + rotation2[2, i] * dz) / radii2_mm[i]
-                f += y[i] * y[i]
-            for i in range(3):  # its gradient, 2 R diag(1 / r) y
-                g[i] = 2.0 * (rotation2[i, 0] * y[0] / radii2_mm[0] + rotation2[i, 1] * y[1] / radii2_mm[1]
-                              + rotation2[i, 2] * y[2] / radii2_mm[2])
-            to_other = max(to_other, abs(f) / np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]))
+        if has_other:  # in the other quadric's scaled coordinates
+            to_other = max(to_other, scale * sampson_one(v_other, (x0 - p0_other[0]) / scale, (x1 - p0_other[1]) / scale,
+                                                         (x2 - p0_other[2]) / scale))
     return to_sphere, to_other
 
 
-def largest_gaps(S, center_mm, radii_mm, rotation, p0, scale, crop_mm, sphere, other=None) -> tuple[float, float]:
-    """(to the sphere, to the other ellipsoid) mm: the largest distance over the retina of the
+def largest_gaps(S, center_mm, radii_mm, rotation, p0, scale, crop_mm, sphere, v_other=None, p0_other=None
+                 ) -> tuple[float, float]:
+    """(to the sphere, to the other quadric) mm: the largest distance over the retina of the
     ellipsoid (center_mm, radii_mm, rotation; the retina as drift_and_gap's, its anterior
     direction from the points of the scatter matrix S, scaled coordinates about p0 (3,) mm)
-    from the Sphere `sphere` (exact) and from the Ellipsoid `other` (its Sampson distance,
+    from the Sphere `sphere` (exact) and from the quadric v_other (10,), in the scaled
+    coordinates about p0_other (3,) mm (its Sampson distance, models.fit.quadric_residuals,
     which exceeds the true one by about d^2 / 2r: 0.3 mm at 3 mm on a 12 mm globe; 0.0
     without one)."""
-    has = other is not None
-    c2, r2, R2 = (other.center, other.radii, other.rotation) if has else (_ZERO3, _ONE3, _EYE3)
+    has = v_other is not None
     return _largest_gaps(_DIRECTIONS, S, center_mm, radii_mm, rotation, p0, scale, crop_mm, sphere.center,
-                         float(sphere.radius), c2, r2, R2, has)
+                         float(sphere.radius), v_other if has else _NO_QUADRIC, p0_other if has else _ZERO3, has)
 
 
-_ZERO3, _ONE3, _EYE3 = np.zeros(3), np.ones(3), np.eye(3)
+_NO_QUADRIC, _ZERO3 = np.zeros(10), np.zeros(3)

@@ -90,7 +90,7 @@ class GlobalSd:
         else:
             self.ls_to_sphere_mm, self.ls_to_globe_mm = largest_gaps(
                 ls_S, ls_fit.center, ls_fit.radii, ls_fit.rotation, ls_p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM, sphere,
-                fit.ellipsoid)
+                fit.v, globe.p0)
 
     @staticmethod
     def sphere_credible(globe) -> bool:

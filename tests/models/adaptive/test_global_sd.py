@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from eval.experiments.paper import run_shape
-from models import Ellipsoid, Sphere
+from models import Sphere
 from models.adaptive.extrapolation import largest_gaps
 from models.adaptive.global_sd import CREDIBLE_LOSS_RATIO, GAP_SD_SHARE, GlobalSd
 from models.eyes.eye import ANTERIOR_CROP_MM
@@ -28,10 +28,13 @@ def _posterior_cap_scatter(radius_mm: float):
 
 def test_largest_gaps_of_concentric_spheres():
     """A 12 mm globe against a concentric 11 mm sphere: 1 mm everywhere (exact); against a
-    13 mm one as an ellipsoid: its Sampson distance, (13^2 - 12^2) / (2 x 12) = 25/24 mm."""
+    13 mm one as a quadric: its Sampson distance, (13^2 - 12^2) / (2 x 12) = 25/24 mm."""
     S, p0 = _posterior_cap_scatter(12.0)
     args = (S, np.zeros(3), np.full(3, 12.0), np.eye(3), p0, LENGTH_SCALE_MM, ANTERIOR_CROP_MM)
-    to_sphere, to_other = largest_gaps(*args, Sphere(np.zeros(3), 11.0), Ellipsoid(np.zeros(3), np.full(3, 13.0)))
+    U = np.random.default_rng(1).normal(size=(2000, 3))
+    other = IncrementalEllipsoidFit()  # the 13 mm sphere as a quadric in the fits' scaled coordinates, fitted exactly
+    other.add(13.0 * U / np.linalg.norm(U, axis=1, keepdims=True))
+    to_sphere, to_other = largest_gaps(*args, Sphere(np.zeros(3), 11.0), other.fit().v, other.p0)
     assert to_sphere == pytest.approx(1.0, abs=1e-9)
     assert to_other == pytest.approx(25.0 / 24.0, abs=1e-9)
     assert largest_gaps(*args, Sphere(np.zeros(3), 12.0)) == (pytest.approx(0.0, abs=1e-9), 0.0)
