@@ -45,13 +45,11 @@ class LoopConfig:
     extrapolation is only as good as the eye is regular (models.adaptive.coverage); nearer, its
     margin grows by the model's measured misfit there (how far inside the model the
     retina was measured within `misfit_angle_deg`: a detachment the sphere averages away).
-    With `local_model` (opt-in: measured on 200 scenarios per pathological eye, and on the
-    pointed eye its global quadric is the sphere, README) the model is the local-global
-    one (models.local): the
+    With `local_model` (the default) the model is the local-global one (models.local): the
     filter keeps every point d_safe + k sigma inside it, k = filter.sigma_factor (3 by
     default here: LOCAL_SIGMA_FACTOR) and sigma its standard deviation at the point's
     direction, which replaces the phase margins, the trust angle and the misfit rule
-    (used only with local_model False).
+    (used only with local_model False: the quadric boundary).
     `extra_constraints`: safety.constraints objects the filter stacks after the standard
     ones (their point groups: planning.step_kinematics.POINT_GROUPS).
     `actuator`: the robot's actuator between the filter and the joints (delay, lag,
@@ -75,7 +73,7 @@ class LoopConfig:
     misfit_angle_deg: float = 10.0
     model_radius_range_mm: tuple = (8.0, 16.0)
     extra_constraints: tuple = ()
-    local_model: bool = False
+    local_model: bool = True
     actuator: ActuatorModel = field(default_factory=ActuatorModel)
     oct_time_offset_s: float = 0.0
     encoder_noise_rad: float = 0.0

@@ -73,7 +73,12 @@ def main(args) -> int:
         print(f"{r['t_s']:6.2f} {r['kind']:>11} {r['n_points']:7d} {r['scan_range_mm']:6.2f}mm {sphere} {radii:>22} "
               f"{r['min_true_clearance_mm']:6.2f}mm")
     m = result["model"]
-    print(f"final: {m['kind']}, EF MAE {m['ef_mae_um']:.1f} um, SF MAE {m['sf_mae_um']:.1f} um (exact, vs the true retina)")
+    print(f"final: {m['kind']}, MAE {m['mae_um']:.1f} um (exact, vs the true retina; ellipsoid fit {m['ef_mae_um']:.1f}, "
+          f"sphere fit {m['sf_mae_um']:.1f} um)")
+    if m.get("sigma3_coverage") is not None:  # the local model's sigma: at the end and at worst during the scan
+        way = m.get("on_the_way") or {}
+        during = f", at worst {way['lowest_sigma3_coverage']:.3f} during the scan" if way.get("probes") else ""
+        print(f"  3-sigma coverage of the true retina {m['sigma3_coverage']:.3f}{during} (the filter keeps d_safe + 3 sigma)")
     print(f"\nAdversarial teleoperation: {result['scenarios']} scenarios of 0.5 s")
     for key in ("violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "failsafe_stops",
                 "realtime_factor", "realtime_factor_unlogged"):

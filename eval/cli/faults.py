@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
-from eval.cli.loop_flags import CALIBRATION_BOUND
+from eval.cli.loop_flags import CALIBRATION_BOUND, add_model_flag
 from eval.cli.progress import progress_bar
 from eval.cli.workers import add_worker_flags, workers_of
 from eval.interrupts import is_interrupt
@@ -39,9 +39,7 @@ def register(sub) -> None:
     p.add_argument("--calibration-bound", type=CALIBRATION_BOUND, default=None, metavar="MM,DEG",
                    help=f"declared calibration bound the filter keeps, {CALIBRATION_BOUND.range}; default 0.03,0.13")
     add_eye_param(p)
-    p.add_argument("--local-model", action="store_true",
-                   help="bound the motion by the local-global model (d_safe + 3 sigma) instead of the quadric model "
-                        "with its phase margins")
+    add_model_flag(p)
     p.add_argument("--out", default="out/faults", help="output directory")
     add_worker_flags(p)
     p.set_defaults(func=main)

@@ -8,6 +8,8 @@ them into an eval.loop_config.LoopConfig and a planning.SurgeryScenario:
   (deg/s^2 on every joint; default none);
 - the sensor: --oct-time-offset-ms (the OCT stream's lag behind the joint angles; the
   paper measured up to 2.6 ms), --encoder-noise (SD of the reported joint angles, deg);
+- the model that bounds the motion: --model (local: the local-global model, d_safe + k
+  sigma; quadric: the sphere, then the ellipsoid, with their phase margins);
 - the calibration: --calibration-bound MM,DEG (the declared bound the filter keeps in
   its margin; default safety.FilterConfig's, 3 standard errors of the plate calibration)
   and --sensor-pose-error DX,DY,DZ,RX,RY,RZ (the true sensor pose's error in the sensor
@@ -20,7 +22,7 @@ import dataclasses
 
 import numpy as np
 
-from eval.cli.args import number, numbers
+from eval.cli.args import choice, number, numbers
 
 DELAY_MS = number(0.0, 50.0, "ms")
 LAG_MS = number(0.0, 200.0, "ms")
@@ -31,12 +33,28 @@ CALIBRATION_BOUND = numbers(("MM", "DEG"), 0.0, 10.0, "(mm, deg)")
 POSE_ERROR = numbers(("DX", "DY", "DZ", "RX", "RY", "RZ"), -10.0, 10.0, "(mm, deg)")
 # the flags' defaults: the ideal loop (a Namespace without the flags gets these)
 DEFAULTS = {"actuator_delay_ms": 0.0, "actuator_lag_ms": 0.0, "actuator_accel_limit": None, "oct_time_offset_ms": 0.0,
-            "encoder_noise": 0.0, "calibration_bound": None, "sensor_pose_error": None, "local_model": False}
+            "encoder_noise": 0.0, "calibration_bound": None, "sensor_pose_error": None, "model": "local"}
+# what --model names: the local-global model (models.local; the filter keeps d_safe + k sigma from it) or the
+# quadric (the sphere, then the ellipsoid; the filter keeps the phase margins, the trust angle and the misfit rule)
+MODELS = ("local", "quadric")
 
 
 def flags(args) -> dict:
     """The flags' values of `args` (DEFAULTS for those it lacks)."""
     return {k: getattr(args, k, v) for k, v in DEFAULTS.items()}
+
+
+def local_model(args) -> bool:
+    """Whether `args` bound the motion by the local-global model (--model local, the default)."""
+    return flags(args)["model"] == "local"
+
+
+def add_model_flag(p, default: str = "local") -> None:
+    """--model on parser `p` (MODELS; `default`)."""
+    p.add_argument("--model", type=choice("model", MODELS), default=default,
+                   help="what bounds the motion: local (the local-global model, the filter keeping d_safe + 3 sigma "
+                        "from it) or quadric (the sphere, then the ellipsoid, with their phase margins, trust angle and "
+                        "misfit margin); README: the measured safety of both")
 
 
 def add_loop_flags(p) -> None:
@@ -54,9 +72,7 @@ def add_loop_flags(p) -> None:
     p.add_argument("--calibration-bound", type=CALIBRATION_BOUND, default=None, metavar="MM,DEG",
                    help=f"declared bound of the sensor calibration error the filter keeps in its margin, "
                         f"{CALIBRATION_BOUND.range}; default 0.03,0.13 (3 standard errors of the plate calibration)")
-    p.add_argument("--local-model", action="store_true",
-                   help="bound the motion by the local-global model (d_safe + 3 sigma) instead of the quadric model "
-                        "with its phase margins; README: its measured safety")
+    add_model_flag(p)
     p.add_argument("--sensor-pose-error", type=POSE_ERROR, default=None, metavar="DX,DY,DZ,RX,RY,RZ",
                    help=f"true sensor pose error in S (z along the beam), {POSE_ERROR.range}; "
                         "default 0.02,0,0,0,0.1,0 (the plate calibration's accuracy)")
@@ -78,7 +94,7 @@ def loop_config(args, **kwargs):
     from eval.loop_config import default_filter
 
     f = flags(args)
-    kwargs.setdefault("local_model", f["local_model"])
+    kwargs.setdefault("local_model", local_model(args))
     filt = kwargs.pop("filter", None) or default_filter(kwargs["local_model"])  # the loop's own defaults
     if f["calibration_bound"] is not None:
         filt = dataclasses.replace(filt, calibration_bound_mm=f["calibration_bound"][0],

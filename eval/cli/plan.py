@@ -30,6 +30,7 @@ import numpy as np
 
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
+from eval.cli.loop_flags import add_model_flag, local_model
 from eval.cli.plan_model import flags_named, move_logs, plan_on_model, survey_band
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES
@@ -119,9 +120,9 @@ def register(sub) -> None:
     p.add_argument("--port-angle-deg", type=PORT_ANGLE, default=PORT_FACING_MAX_DEG,
                    help="port rule: the cutter port faces the retina when its normal lies within this angle of the "
                         f"retina's normal, {PORT_ANGLE.range}")
-    p.add_argument("--local-model", action="store_true",
-                   help="bound the motion by the local-global model at d_safe + 3 sigma (models.local) instead of the "
-                        "quadric with its phase margin; the plan keeps to the same boundary")
+    # the plan keeps to the filter's boundary; the band is never measured before the shaving, and there the local
+    # model's sigma is the global model's far from data (README: why the plan's default is the quadric)
+    add_model_flag(p, default="quadric")
     p.add_argument("--survey-mm", type=SURVEY_MM, default=0.0,
                    help="first sweep the band this much deeper than --standoff-mm through the same ports, filter on, "
                         "so that the fibre measures the band and the model takes it in; the shaving is then planned "
@@ -209,9 +210,10 @@ def main(args) -> int:
                                    ports=layout)
     except ValueError as exc:
         raise UsageError(f"--port-clock/--port-limbus-mm: {exc}") from None
-    # the quadric boundary (its phase margin) or, with --local-model, the local model's d_safe + k sigma
-    loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=args.local_model,
-                                          filter=default_filter(args.local_model)), sensor_seed=args.seed)
+    # the quadric boundary (its phase margin) or, with --model local, the local model's d_safe + k sigma
+    local = local_model(args)
+    loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=local,
+                                          filter=default_filter(local)), sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
     if args.survey_passes > 1 and not args.survey_mm:
         raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")

@@ -46,7 +46,7 @@ def plan_on_model(args, loop, build, scenario, visit, spec):
     from planning.peripheral import band_surface
 
     trusted = loop.model.snapshot_for(build.model, build.coverage, 0.0)
-    if (trusted.field if args.local_model else trusted.shape) is None:
+    if (trusted.field if loop.config.local_model else trusted.shape) is None:
         radii = semi_axes_mm(build.model.shape)
         raise UsageError(f"cannot plan: the filter does not trust this {build.kind_final} model (semi-axes "
                          f"{', '.join(f'{r:.1f}' for r in radii)} mm; an eye's lie in {loop.config.model_radius_range_mm} "
@@ -54,7 +54,7 @@ def plan_on_model(args, loop, build, scenario, visit, spec):
     # what the filter will bound the shaft with (the sphere if the ellipsoid is no eye's), as one rule: h - k u;
     # the local model's surface is its field's, its bound the barrier's (planning.field_model.FieldModel)
     shaft = loop.filter.field_objects(trusted)[1]
-    model = FieldModel(trusted.field if args.local_model else shaft, loop.config.filter.sigma_factor, trusted.kind,
+    model = FieldModel(trusted.field if loop.config.local_model else shaft, loop.config.filter.sigma_factor, trusted.kind,
                        bound=shaft)
     spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
     try:

@@ -14,6 +14,7 @@ import numpy as np
 
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
 from eval.cli.io import prepare_out_dir, save_figure, write_json
+from eval.cli.loop_flags import add_model_flag, local_model
 from eval.experiments.boundary import SPIRAL_RADIUS_MM, SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S, spiral_pitch_mm
 from models.eyes import EYE_SHAPES
 
@@ -36,6 +37,7 @@ def register(sub) -> None:
     p.add_argument("--speed-mm-s", type=SPEED, default=SPIRAL_SPEED_MM_S, help=f"tip speed along the spiral, {SPEED.range}")
     p.add_argument("--revolutions", type=REVOLUTIONS, default=SPIRAL_REVOLUTIONS,
                    help=f"spiral revolutions over its {SPIRAL_RADIUS_MM:g} mm radius, {REVOLUTIONS.range}")
+    add_model_flag(p)
     p.set_defaults(func=main)
 
 
@@ -48,7 +50,8 @@ def run_sensor(args) -> dict:
     from planning import SurgeryScenario
 
     scenario = SurgeryScenario(eye_name=args.shape, eye_params=args.eye_params)
-    loop = make_loop(scenario, LoopConfig(sensor_mode=args.mode), sensor_seed=args.seed, floater_rate=args.outliers)
+    config = LoopConfig(sensor_mode=args.mode, local_model=local_model(args))
+    loop = make_loop(scenario, config, sensor_seed=args.seed, floater_rate=args.outliers)
     build = build_model_by_spiral(loop, args.speed_mm_s, pitch_mm=spiral_pitch_mm(args.revolutions), revolutions=args.revolutions,
                                   progress=f"spiral scan ({args.shape} eye, {args.mode} mode)")
     ms = loop.model

@@ -52,7 +52,7 @@ def unseen_departure_variance(D, rise, a, reach):
     on rising at the rate the data show, the top of a detachment the scan did not reach
     lying further from the global quadric than its flank; downhill, departure_variance (it
     fades towards the healthy retina). With departure_variance alone: in the closed loop
-    with the OCT stream 2.6 ms late (`vitreoguard faults --local-model`, class time_offset)
+    with the OCT stream 2.6 ms late (`vitreoguard faults`, class time_offset)
     the boundary held the spiral off the detached eye's top, the data stopped on its flank
     15 deg from its centre, and 0.66 % of the reference samples (that top) lay beyond 3
     sigma on the unsafe side, up to 225 um; with data stopping at 0.75-0.85 of a

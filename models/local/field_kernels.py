@@ -151,8 +151,8 @@ def field_at(fp, P, barrier):
     fp[BOUND + 5]: d_safe and the calibration margin) g stays the distance's: the point
     recovers by moving away from the model's retina. Recovering along g - k grad u, a tip
     the model's update had left 0.66 mm of sigma slid 1.5 mm towards the retina, to 0.21
-    mm of it, while the bound rose as sigma fell (`vitreoguard faults --shape detached
-    --local-model`, class floaters, seed 0, scenario 42). NaN and +inf for a non-finite point; +inf, 0, 0 everywhere for
+    mm of it, while the bound rose as sigma fell (`vitreoguard faults --shape detached`,
+    class floaters, seed 0, scenario 42). NaN and +inf for a non-finite point; +inf, 0, 0 everywhere for
     the field without a boundary (local flag -1)."""
     M = P.shape[0]
     if fp[2] < 0.0:  # no boundary

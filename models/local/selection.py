@@ -34,7 +34,7 @@ the end).
 A point both models predict more than `outlier_mm` off counts for neither: 0.5 mm, the
 least distance in front of the retina of a floater the sensor reports (planning.iioct).
 One such floater, 1.2 mm short, 3.5 deg from the data, let through by the outlier gate as
-an adversarial scenario began (`vitreoguard faults --shape detached --local-model`, class
+an adversarial scenario began (`vitreoguard faults --shape detached`, class
 floaters, seed 0, scenario 42), took the detached eye's mean square errors from 114 and
 238 to 7,742 and 7,862 um^2 in one step: the local model was given up, the filter's sigma
 over the detachment became the local and global surfaces' disagreement (0.92 mm at the

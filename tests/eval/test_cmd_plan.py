@@ -108,14 +108,14 @@ def test_an_ellipsoid_that_is_no_eye_gives_way_to_the_sphere_and_its_wider_bound
 
 
 def test_with_the_local_model_the_plan_keeps_to_its_sigma(tmp_path):
-    """`--local-model`: the plan keeps to the filter's d_safe + 3 sigma. Far from the spiral's
+    """`--model local`: the plan keeps to the filter's d_safe + 3 sigma. Far from the spiral's
     directions the emmetropic eye's sigma is the global ellipsoid's 0.3 mm (LocalConfig), so
     the band's 1 mm-standoff targets lie within 0.564 + 0.9 + 0.2 mm of the model: nearly
     every cell is "uncertain", none planned through a boundary the filter would hold (a cell
     is planned only where 3 sigma at its target, and beside it, is under about 0.1 mm: 15
     of 219 here); the least boundary is at least 0.564 mm + 3 x the 0.03 mm sigma floor."""
     out = tmp_path / "plan"
-    assert main(["plan", "--out", str(out), "--band", "0,2", "--no-execute", "--local-model"]) == 0
+    assert main(["plan", "--out", str(out), "--band", "0,2", "--no-execute", "--model", "local"]) == 0
     r = json.loads((out / "plan.json").read_text())
     assert r["boundary_mm"] >= 0.564 + 3 * 0.03 - 1e-6
     assert r["unreachable"]["uncertain"] >= 0.85 * r["cells"]

@@ -65,13 +65,13 @@ def test_infeasible_stops_count_runs_of_qp_steps_and_those_right_after_an_accept
 
 @pytest.mark.slow
 def test_the_fault_matrix_runs_on_the_local_models_boundary(tmp_path):
-    """`faults --local-model --eye-param ...`: the spiral through the lagging loop builds the
+    """`faults --eye-param ...` (the local model by default): the spiral through the lagging loop builds the
     local-global model of the eye with those parameters, the filter bounds the motion by it
     (kind "local": d_safe + 3 sigma), and the true retina stays past the violation line."""
     from eval.cli import main
 
     out = tmp_path / "faults"
-    argv = ["faults", "--shape", "detached", "--eye-param", "height_mm=2.5", "--local-model", "--classes", "lag",
+    argv = ["faults", "--shape", "detached", "--eye-param", "height_mm=2.5", "--classes", "lag",
             "--scenarios", "3", "--duration-s", "0.2", "--jobs", "1", "--out", str(out)]
     assert main(argv) == 0
     result = json.loads((out / "faults.json").read_text())

@@ -19,10 +19,35 @@ def test_no_flags_give_the_loops_own_filter(command):
 
 
 @pytest.mark.parametrize("command", ["boundary", "faults"])
-def test_the_local_model_flag_gives_its_own_filter(command):
-    local = loop_config(build_parser().parse_args([command, "--local-model"]))
-    assert local.local_model and local.filter == LoopConfig(local_model=True).filter
-    assert local.filter.sigma_factor == 3.0 and LoopConfig().filter.sigma_factor == 1.0
+def test_the_model_flag_gives_each_model_its_own_filter(command):
+    """By default the local-global model bounds the motion at d_safe + 3 sigma; `--model
+    quadric` the quadric with its phase margins (k = 1 on its coverage misfit)."""
+    default = loop_config(build_parser().parse_args([command]))
+    local = loop_config(build_parser().parse_args([command, "--model", "local"]))
+    quadric = loop_config(build_parser().parse_args([command, "--model", "quadric"]))
+    assert default == local and local.local_model and local.filter.sigma_factor == 3.0
+    assert not quadric.local_model and quadric.filter == LoopConfig(local_model=False).filter
+    assert quadric.filter.sigma_factor == 1.0 and LoopConfig().local_model
+
+
+@pytest.mark.parametrize("argv", [["sensor", "--out", "x"], ["plan", "--out", "x"]])
+def test_sensor_and_plan_take_the_model_flag(argv):
+    """sensor's spiral is bounded like boundary's (local by default); plan's default is the
+    quadric (the band is never measured: README, Plan a peripheral vitrectomy)."""
+    from eval.cli.loop_flags import local_model
+
+    parser = build_parser()
+    assert local_model(parser.parse_args(argv)) == (argv[0] == "sensor")
+    assert local_model(parser.parse_args([*argv, "--model", "local"]))
+    assert not local_model(parser.parse_args([*argv, "--model", "quadric"]))
+
+
+def test_an_unknown_model_is_a_one_line_usage_error(capsys):
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(["boundary", "--model", "mesh"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--model" in err and "choose from local, quadric" in err
 
 
 def test_a_calibration_bound_changes_only_the_bound():
