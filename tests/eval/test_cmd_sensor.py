@@ -37,6 +37,10 @@ def test_the_full_chain_meets_the_extraction_and_model_targets(clean_run):
     assert r["kind_final"] == "ellipsoid" and r["ef_mae_um"] <= 50.0
     assert 0.0 <= r["invalid_fraction"] < 0.2
     assert (out / "ascans.png").stat().st_size > 10_000
+    # the spiral is bounded by the local-global model (the default, --model local): its sigma's figures are
+    # reported, and 3 sigma covers the true retina (the issue's >= 0.99) with no miss on the unsafe side
+    m = r["model"]
+    assert m["sigma3_coverage"] >= 0.99 and m["sigma3_unsafe_fraction"] == 0.0 and m["on_the_way"]["probes"] > 0
 
 
 def test_floaters_on_5_percent_of_the_beams_change_the_ef_mae_by_at_most_10_percent(clean_run, tmp_path):
@@ -46,6 +50,15 @@ def test_floaters_on_5_percent_of_the_beams_change_the_ef_mae_by_at_most_10_perc
     dirty, _ = run(tmp_path, "--outliers", "0.05")
     assert dirty["kind_final"] == "ellipsoid"
     assert abs(dirty["ef_mae_um"] - clean["ef_mae_um"]) <= 0.10 * clean["ef_mae_um"]
+
+
+def test_the_quadric_model_flag_reaches_the_loop(tmp_path):
+    """`--model quadric`: the spiral is bounded by the quadric, which has no sigma to report."""
+    out = tmp_path / "quadric"
+    argv = ["sensor", "--out", str(out), "--revolutions", "2", "--speed-mm-s", "17", "--mode", "distance"]
+    assert main([*argv, "--model", "quadric"]) == 0
+    m = json.loads((out / "sensor.json").read_text())["model"]
+    assert m["sigma3_coverage"] is None and m["on_the_way"] is None and m["kind"] in ("sphere", "ellipsoid")
 
 
 @pytest.mark.parametrize("argv, message", [(["--shape", "cube"], "unknown shape"), (["--outliers", "0.9"], "--outliers"),
