@@ -159,7 +159,8 @@ class AdaptiveModelSystem(LeafSystem):
         that no run's first packet holds it: a throwaway model with the predictive criteria
         (their checkpoints' kernels too) and its coverage take packets of 10 points from an
         eye-sized ellipsoid cap (mm) until both fits and a checkpoint's convergence test
-        have run, then the snapshot of each kind (trust limits of 0: any shape)."""
+        have run, then the snapshot of each kind (trust limits of 0: any shape) and its
+        field's answer at two points (its first use otherwise: ~9 s into a first run's scan)."""
         rng = np.random.default_rng(0)
         u = rng.normal(size=(300, 3))
         u /= np.linalg.norm(u, axis=1, keepdims=True)
@@ -172,8 +173,10 @@ class AdaptiveModelSystem(LeafSystem):
             coverage.add(model.last_accepted)
         for shape in (None, model.sphere, model.ellipsoid):
             coverage.view(shape)
-        snapshot_of(model, coverage, 0.0)
+        snap = snapshot_of(model, coverage, 0.0)
         model.local.params(True)
+        if snap.field is not None:  # the field as the model answers it (the filter compiles its barrier form)
+            snap.field.signed_distance_gradient_uncertainty(P[:2])
 
     def reset(self, model: AdaptiveEyeModel, coverage: DirectionCoverage, logger=None) -> None:
         self.model, self.coverage, self.logger = model, coverage, logger
