@@ -14,16 +14,18 @@ PROBE = """
 import json
 from eval.closed_loop import ClosedLoop, LoopConfig
 from planning import SurgeryScenario
-from models.local.field_kernels import local_field, local_model_field
+from models.local.field_kernels import local_model_field
 ClosedLoop(SurgeryScenario(), LoopConfig())
-print(json.dumps({"local_field": len(local_field.signatures), "local_model_field": len(local_model_field.signatures)}))
+print(json.dumps({"local_model_field": len(local_model_field.signatures)}))
 """
 
 
 @pytest.mark.slow
-def test_constructing_the_loop_compiles_both_forms_of_the_local_field():
+def test_constructing_the_loop_compiles_the_local_fields_own_form():
     """In a fresh process (nothing compiled or loaded yet): after the loop's construction
-    both the filter's barrier form and the model's own form have a compiled signature."""
+    the model's own form of the local field, which Python calls, has a compiled (or
+    cache-loaded) signature. (The filter's barrier form is compiled into the filter's step,
+    whose cached code does not go through that kernel's dispatcher.)"""
     out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=600, check=True)
     counts = json.loads(out.stdout.strip().splitlines()[-1])
-    assert counts["local_field"] >= 1 and counts["local_model_field"] >= 1, counts
+    assert counts["local_model_field"] >= 1, counts
