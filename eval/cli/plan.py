@@ -196,7 +196,6 @@ def main(args) -> int:
     from eval.cli.boundary import make_loop
     from eval.cli.plan_export import coverage_figure, write_ros2_trajectories, write_trajectory_csv
     from eval.closed_loop import LoopConfig
-    from eval.loop_config import default_filter
     from eval.experiments.boundary import build_model_by_spiral
     from eval.experiments.plan_execution import execution_figures, executed_passes, phase_figures, swept_cells
     from eval.log.writer import RunLogger
@@ -211,9 +210,8 @@ def main(args) -> int:
     except ValueError as exc:
         raise UsageError(f"--port-clock/--port-limbus-mm: {exc}") from None
     # the quadric boundary (its phase margin) or, with --model local, the local model's d_safe + k sigma
-    local = local_model(args)
-    loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=local,
-                                          filter=default_filter(local)), sensor_seed=args.seed)
+    loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=local_model(args)),
+                     sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
     if args.survey_passes > 1 and not args.survey_mm:
         raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")
