@@ -67,6 +67,19 @@ def test_the_first_scenario_log_replays(boundary_run):
     assert result.ok and result.steps >= 285  # 0.3 s at 1 kHz from the first sensor packet (11 ms) on
 
 
+@pytest.mark.slow
+def test_the_quadric_boundary_runs_and_replays(tmp_path):
+    """`--model quadric`: the loop's filter keeps the quadric's margins (no sigma in the model's
+    figures), its campaign holds and its log replays step for step."""
+    assert main(["boundary", *REDUCED, "--sphere-scenarios", "0", "--model", "quadric", "--jobs", "1",
+                 "--out", str(tmp_path)]) == 0
+    r = json.loads((tmp_path / "boundary.json").read_text())
+    assert r["loop"]["model"] == "quadric" and r["model"]["sigma3_coverage"] is None
+    assert r["violations"] == 0 and r["contacts"] == 0 and r["min_true_clearance_mm"] >= 0.45
+    result = replay(tmp_path / "boundary.mcap")
+    assert result.ok and result.steps >= 285
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--shape", "square"], "unknown shape"),
     (["--scenarios", "0"], "--scenarios"),
