@@ -1,8 +1,9 @@
 """`vitreoguard demo`: the closed loop on the default eye, end to end.
 
 The Meca500 scans a spiral through the trocar while the simulated iiOCT feeds the
-adaptive model (prior -> sphere -> ellipsoid), then an adversarial "surgeon" attacks the
-retina, the port side and the lens while the safety filter holds the 0.5 mm boundary.
+adaptive model (prior -> sphere -> ellipsoid -> ellipsoid + local detail), then an
+adversarial "surgeon" attacks the retina, the port side and the lens while the safety
+filter holds the boundary: 0.5 mm + 3 sigma of the local-global model.
 Prints the model's history and the boundary's summary; writes demo.json (boundary.json's
 keys + the history), the plots and the MCAP logs (open them in Foxglove).
 """
