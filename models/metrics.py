@@ -142,11 +142,22 @@ def worst_honesty(at, coverage, unsafe_fraction, worst_excess_mm) -> WorstHonest
                         float(np.nanmax(excess)))
 
 
+def distances_and_sigmas(field, P) -> tuple[np.ndarray, np.ndarray]:
+    """((M,) signed distance mm, (M,) uncertainty mm) of a distance field with `uncertainty`
+    at P (M, 3) mm: one evaluation where the field answers all three queries in one call
+    (models.shapes.field.KernelQueries' signed_distance_gradient_uncertainty, e.g.
+    models.local.field.LocalField), else its two queries."""
+    both = getattr(field, "signed_distance_gradient_uncertainty", None)
+    if both is not None:
+        h, _, u = both(P)
+        return np.asarray(h, dtype=float), np.asarray(u, dtype=float)
+    return np.asarray(field.signed_distance(P), dtype=float), np.asarray(field.uncertainty(P), dtype=float)
+
+
 def sigma_honesty(field, samples) -> SigmaHonesty:
     """SigmaHonesty of a distance field with `uncertainty` (e.g. models.local.field.LocalField)
     at `samples` (N, 3) mm of the true retina (e.g. Eye.reference_samples)."""
-    samples = as_points(samples, "samples")
-    return SigmaHonesty.of(field.signed_distance(samples), field.uncertainty(samples))
+    return SigmaHonesty.of(*distances_and_sigmas(field, as_points(samples, "samples")))
 
 
 def field_report(field, truth, angle_from_data_rad, n_grid: int = 100, scanned_deg: float = 10.0) -> dict:
@@ -165,9 +176,8 @@ def field_report(field, truth, angle_from_data_rad, n_grid: int = 100, scanned_d
     sigma holds on that side everywhere): a point held at d_safe + 3 sigma there comes
     that much inside d_safe."""
     T = truth.reference_samples(n_grid, n_grid)
-    signed = np.asarray(field.signed_distance(T), dtype=float)
+    signed, sigma = distances_and_sigmas(field, T)
     err = np.abs(signed)
-    sigma = np.asarray(field.uncertainty(T), dtype=float)
     scanned = np.asarray(angle_from_data_rad(T)) <= np.radians(scanned_deg)
     has_sigma = bool(np.isfinite(sigma).all())
     honesty = SigmaHonesty.of(signed, sigma)

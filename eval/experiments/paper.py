@@ -17,7 +17,7 @@ from models.eyes import EyePose, make_eye
 from models.fit.robust_fit import RobustFitConfig
 from models.local.grid import LocalRetinaModel
 from models.local.field import LocalField
-from models.metrics import MeanSD, PaperMetrics, SigmaHonesty, mae_exact, paper_metrics
+from models.metrics import MeanSD, PaperMetrics, SigmaHonesty, distances_and_sigmas, mae_exact, paper_metrics
 from models.scan.paper_scan import paper_scan
 
 # Table 2 of the paper (simulation), mm: mean, SD.
@@ -127,9 +127,9 @@ def run_shape(
         if i + 1 in scans_c:
             if first.local.global_params is not None:
                 lc_field = LocalField(first.local.params(was_local))
-                signed = lc_field.signed_distance(curve_truth)  # once for the MAE and the sigma's honesty
+                signed, sigma = distances_and_sigmas(lc_field, curve_truth)  # once for the MAE and the honesty
                 lc_curve[i + 1] = MeanSD.of(signed).mean
-                honesty[i + 1] = SigmaHonesty.of(signed, lc_field.uncertainty(curve_truth))
+                honesty[i + 1] = SigmaHonesty.of(signed, sigma)
             globe = first.globe.last_ok
             globe_curve[i + 1] = np.nan if globe is None else mae_exact(globe.ellipsoid, curve_truth).mean
             is_ellipsoid = isinstance(first.global_for_local(), Ellipsoid)
