@@ -4,7 +4,8 @@ For each fault class (eval.experiments.faults: actuator delay, lag and accelerat
 limit, calibration error at the declared bound, OCT time offset, encoder noise, dropped,
 frozen and invalid streams, floaters; "ideal" and "none" for reference) builds the model by the
 spiral through the faulty loop and runs the boundary's adversarial campaign against it.
-Writes faults.json ({"classes": {name: {"parameters", "scenarios", "violations",
+Writes faults.json ({"model": the model that bounds the motion, "local" or "quadric" (as
+boundary.json's loop.model), "classes": {name: {"parameters", "scenarios", "violations",
 "contacts", "min_true_clearance_mm", "failsafe_stops", "stops_by_reason",
 "infeasible_qp_stops", "model": the filter's model's figures, ...}}, "margin_costs_mm":
 {name: mm}}) and faults.png (each class's
@@ -74,7 +75,7 @@ def main(args) -> int:
         save_figure(_figure(per_shape[shape]["classes"], shape),
                     out / ("faults.png" if len(shapes) == 1 else f"faults_{shape}.png"))
     result = {"seed": args.seed, "scenario_s": args.duration_s, "violation_threshold_mm": 0.45,
-              "local_model": base.local_model, "eye_params": params,
+              "model": "local" if base.local_model else "quadric", "eye_params": params,
               "calibration_bound": [base.filter.calibration_bound_mm, base.filter.calibration_bound_deg]}
     if len(shapes) == 1:
         result = {"shape": shapes[0], **result, **per_shape[shapes[0]]}

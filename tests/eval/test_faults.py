@@ -75,7 +75,7 @@ def test_the_fault_matrix_runs_on_the_local_models_boundary(tmp_path):
             "--scenarios", "3", "--duration-s", "0.2", "--jobs", "1", "--out", str(out)]
     assert main(argv) == 0
     result = json.loads((out / "faults.json").read_text())
-    assert result["local_model"] is True and result["eye_params"] == {"height_mm": 2.5}
+    assert result["model"] == "local" and result["eye_params"] == {"height_mm": 2.5}
     lag = result["classes"]["lag"]
     assert lag["parameters"]["actuator_lag_ms"] == 20.0 and lag["model"]["kind"] == "local"
     assert lag["model"]["sigma3_coverage"] >= 0.99  # 3 sigma: 99.7 % of a normal error
