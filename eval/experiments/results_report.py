@@ -55,6 +55,8 @@ BOUNDARY_MODEL = [
     ("sphere phase: violations (scenarios)", "sphere_phase.violations", "int"),
     ("sphere phase: contacts (scenarios)", "sphere_phase.contacts", "int"),
     ("sphere phase: min true clearance (mm)", "sphere_phase.min_true_clearance_mm", "f3"),
+    ("sphere phase: model's 3-sigma coverage", "sphere_phase.model.sigma3_coverage", "f3"),
+    ("sphere phase: model's unsafe-side misses (%)", "sphere_phase.model.sigma3_unsafe_fraction", "pct2"),
 ]
 BOUNDARY_SPEED = [
     ("shape", "shape", "str"), ("filter step median (us)", "solve_us.median", "int"),
@@ -107,7 +109,8 @@ TABLES = [
      "(local, ellipsoid or sphere; exact MAE against the true retina over the paper's reference region, scanned p95 "
      "within 10 deg of a measured direction, 3-sigma coverage of the true retina at the end and, lowest, during the "
      "scan; README: boundary.json), the global fits' MAE, and the campaign against the model of the spiral's first "
-     "quarter of its turns.", BOUNDARY_MODEL),
+     "quarter of its turns, with that model's 3-sigma coverage and the share of the reference samples beyond 3 sigma "
+     "on the side the barrier relies on (the model's retina beyond the true one).", BOUNDARY_MODEL),
     ("Virtual boundary: speed", "boundary", "The filter's whole compiled step against Drake's "
      "DoDifferentialInverseKinematics on every 10th step's state of the same runs; realtime factor = simulated time / "
      "wall time of the simulations (the first scenario, logged step by step for replay, included; then without it).",

@@ -42,6 +42,7 @@ def test_boundary_writes_the_contract(boundary_run):
     # the first scenario goes to the MCAP log step by step, the others not: reported apart
     assert r["realtime_factor_unlogged"] > 0
     assert r["sphere_phase"]["scenarios"] == 2 and r["sphere_phase"]["violations"] == 0
+    assert r["sphere_phase"]["model"]["kind"] == "prior"  # half a turn of spiral: no model trusted yet
     # the spiral's samples: the iiOCT's rate over the scan (one packet either way)
     config = LoopConfig()
     assert r["model"]["samples"] == pytest.approx(config.sensor_rate_hz * r["spiral"]["duration_s"], abs=config.sensor_packet)
@@ -59,6 +60,22 @@ def test_one_worker_gives_the_figures_of_two(boundary_run, tmp_path):
         for key in SIMULATED:
             assert part(one)[key] == pytest.approx(part(two)[key], abs=1e-12, rel=0), key
     assert one["model"] == two["model"]
+
+
+def test_the_sphere_phase_reports_the_model_its_scenarios_start_from(tmp_path):
+    """A 4-turn spiral's first turn builds a sphere: boundary.json's sphere_phase.model reports it as
+    `model` reports the built one. On this healthy eye no reference sample lies beyond 3 sigma on the
+    side the barrier relies on (a young model's misses lie inside the retina), and the short build
+    was probed on the way (every 0.25 s of its scan)."""
+    assert main(["boundary", "--scenarios", "1", "--sphere-scenarios", "1", "--duration-s", "0.2",
+                 "--spiral-revolutions", "4", "--jobs", "1", "--out", str(tmp_path)]) == 0
+    r = json.loads((tmp_path / "boundary.json").read_text())
+    young, built = r["sphere_phase"]["model"], r["model"]
+    assert young["kind"] in ("local", "ellipsoid", "sphere") and set(built) - {"fitted_kind", "transition_at", "ef_mae_um",
+                                                                             "sf_mae_um", "n_points", "outliers_rejected"} <= set(young)
+    assert young["mae_um"] > built["mae_um"]  # a quarter of the scan: the built model is the better one
+    assert young["sigma3_unsafe_fraction"] == 0.0 and 0.0 < young["sigma3_coverage"] <= 1.0
+    assert young["on_the_way"]["probes"] >= 1
 
 
 def test_the_first_scenario_log_replays(boundary_run):
