@@ -102,7 +102,8 @@ class RunLogger:
         # Python wrapper's per-call encoding checks
         self._raw = {topic: ch.base for topic, ch in self._channels.items()}
         self._raw_step = self._step_channel.base
-        self._setup_logged, self._models = False, []  # the models logged on /filter/models, by index
+        self._setup_logged = False
+        self._last_model, self._n_models = None, 0  # the last (shape, kind) logged on /filter/models, and how many
         self._writer.write_metadata("time", {"start_time_ns": str(self.start_ns),
                                              "log_time": "start_time_ns + simulation time (ns)"})
         if metadata:
@@ -237,12 +238,12 @@ class RunLogger:
 
     def _model_index(self, ns: int, t_s: float, shape, kind: str | None) -> int:
         """The index of (shape, kind) on /filter/models, logging it when it is not the last one."""
-        last = self._models[-1] if self._models else None
+        last = self._last_model  # only the last is kept: the local boundary logs a new one every step
         if last is None or last[0] is not shape or last[1] != kind:
-            self._models.append((shape, kind))
-            self._write("/filter/models", ns, {"t": float(t_s), "index": len(self._models) - 1, "kind": kind,
+            self._last_model, self._n_models = (shape, kind), self._n_models + 1
+            self._write("/filter/models", ns, {"t": float(t_s), "index": self._n_models - 1, "kind": kind,
                                                "shape": codec.shape_to_json(shape)})
-        return len(self._models) - 1
+        return self._n_models - 1
 
     def log_step(self, t_s, q, command, shape, kind: str | None, model_time_s: float, sensor_time_s: float,
                  margin_mm: float, trusted, misfit_mm, output, pending=None) -> None:

@@ -265,24 +265,25 @@ class FilterSystem(LeafSystem):
         """(FilterInputs, InstrumentPoints) of one step, as replay rebuilds it from the log
         (`pending` the actuator's, None: ideal); ValueError on bad joint angles."""
         ip = self.step_inputs.points_at(q)
-        shape, kind, margin, trusted, misfit = self._step_model(snap, ip)
+        shape, kind, margin, trusted, misfit = self._step_model(snap, ip.P_W)
         x = self.step_inputs(t_s, q, command, shape, kind, t_s if kind is None else snap.t_s, sensor_t_s, margin,
                              trusted, misfit, ip, pending)
         return x, ip
 
-    def _step_model(self, snap: ModelSnapshot, ip) -> tuple:
-        """(shape, kind, margin mm, trusted flags, misfit mm) of a step at the points ip, as the
-        log records them (StepInputs' arguments). With the local model: its field's answers
+    def _step_model(self, snap: ModelSnapshot, P_W) -> tuple:
+        """(shape, kind, margin mm, trusted flags, misfit mm) of a step whose monitored points
+        (tip, port, shaft; planning.instrument_points) are P_W (K, 3) mm, as the log records
+        them (StepInputs' arguments). With the local model: its field's answers
         at the boundary points (models.local.field.FieldValues) and their sigma as the points'
         margins (the barrier's k multiplies them), kind None before it is trusted."""
         if not self.local:
             kind = None if snap.shape is None else snap.kind
             return (snap.shape, kind, snap.margin_mm(self.config.margins),
-                    *self._trust(snap, ip.P_W[:StepInputs.boundary_count(kind, ip)]))
+                    *self._trust(snap, P_W[:StepInputs.boundary_count(kind, len(P_W))]))
         if snap.field is None:
             return None, None, 0.0, np.ones(2, dtype=bool), np.zeros(2)
         self.fields(snap)
-        P = ip.P_W[:StepInputs.boundary_count(snap.kind, ip)]
+        P = P_W[:StepInputs.boundary_count(snap.kind, len(P_W))]
         h, g, sigma = self._bounded.signed_distance_gradient_uncertainty(P)  # the shaft's points too
         return FieldValues(P, h, g), snap.kind, 0.0, np.ones(len(P), dtype=bool), sigma
 
@@ -361,7 +362,8 @@ class FilterSystem(LeafSystem):
         finite = bool(np.isfinite(q).all())
         if finite:  # non-finite joint angles: nothing the replay could re-run
             if self.local:
-                shape, kind, margin, trusted, misfit = self._step_model(snap, self.step_inputs.points_at(q))
+                # the compiled step's points: planning.step_kinematics runs instrument_points' kernel
+                shape, kind, margin, trusted, misfit = self._step_model(snap, P)
             else:
                 shape, margin = snap.shape, snap.margin_mm(self.config.margins)
                 trusted, misfit = self._trust(snap, P[:2] if kind is None else P)

@@ -36,10 +36,10 @@ class StepInputs:
         return instrument_points(self.robot, q, self.rcm.p_WC, self.points)
 
     @staticmethod
-    def boundary_count(kind: str | None, ip) -> int:
-        """How many monitored points the filter keeps inside the model: the tip and the port
-        against the prior (kind None), all of them against a fitted model."""
-        return 2 if kind is None else len(ip.names)
+    def boundary_count(kind: str | None, n_points: int) -> int:
+        """How many of the `n_points` monitored points the filter keeps inside the model: the
+        tip and the port against the prior (kind None), all of them against a fitted model."""
+        return 2 if kind is None else n_points
 
     def __call__(self, t_s: float, q, command, shape, kind: str | None, model_time_s: float, sensor_time_s: float,
                  margin_mm: float, trusted, misfit_mm, ip=None, pending=None) -> FilterInputs:
@@ -50,7 +50,7 @@ class StepInputs:
         rows and their planned stop account for as in the loop (safety.constraints.rcm)."""
         robot = self.robot
         ip = self.points_at(q) if ip is None else ip
-        k = self.boundary_count(kind, ip)
+        k = self.boundary_count(kind, len(ip.names))
         if len(trusted) != k or len(misfit_mm) != k:
             raise ValueError(f"{k} boundary points at these joint angles, but {len(trusted)} trusted flags and "
                              f"{len(misfit_mm)} misfits")

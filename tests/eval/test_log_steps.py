@@ -3,6 +3,9 @@ the log carries, and replay rebuilds the filter's inputs from them (kinematics o
 logged scenario's robot) and catches a changed output."""
 from __future__ import annotations
 
+import gc
+import weakref
+
 import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -28,9 +31,12 @@ def setup():
     return scenario, robot, StepInputs(robot, MonitoredPointsConfig(), FilterConfig())
 
 
-def _write(path, setup, tamper: int | None = None, steps: int = 30):
+def _write(path, setup, tamper: int | None = None, steps: int = 30, models: list | None = None, while_open=None):
     """A compact log of `steps` steps against a sphere model, outputs from SafetyFilter;
-    step `tamper` logged with its rates changed by 1e-3 rad/s."""
+    step `tamper` logged with its rates changed by 1e-3 rad/s. With a list `models`: a new
+    sphere (the same one, another object) every step, as the local boundary's per-step
+    field values are, and a weak reference to each appended to it; `while_open` called after
+    the last step, the log still open."""
     scenario, robot, build = setup
     filt = SafetyFilter(FilterConfig())
     model = Sphere(scenario.eye_pose.p_WE, 11.0)
@@ -38,15 +44,21 @@ def _write(path, setup, tamper: int | None = None, steps: int = 30):
     with RunLogger(path, FilterConfig()) as log:
         log.log_setup(setup_to_json(scenario, build.points, 10.0, 10.0))
         for k in range(steps):
+            if models is not None:
+                model = Sphere(scenario.eye_pose.p_WE, 11.0)
+                models.append(weakref.ref(model))
             t = 0.011 + 1e-3 * k
             command = np.array([5.0, -2.0, -8.0, 0.0])
             ip = build.points_at(q)
-            n = StepInputs.boundary_count("sphere", ip)
+            n = StepInputs.boundary_count("sphere", len(ip.names))
             trusted, misfit = np.ones(n, dtype=bool), np.full(n, 0.01)
             out = filt(build(t, q, command, model, "sphere", t - 0.004, t - 0.001, 0.5, trusted, misfit, ip))
             logged = out._replace(qdot=out.qdot + 1e-3) if k == tamper else out
             log.log_step(t, q, command, model, "sphere", t - 0.004, t - 0.001, 0.5, trusted, misfit, logged)
             q = q + 1e-3 * out.qdot
+        if while_open is not None:
+            del model
+            while_open()
 
 
 def test_a_compact_log_replays_exactly_and_holds_few_bytes_per_step(setup, tmp_path):
@@ -56,6 +68,19 @@ def test_a_compact_log_replays_exactly_and_holds_few_bytes_per_step(setup, tmp_p
     sizes = [len(data) for _, data in read_log(tmp_path / "c.mcap").messages[STEP_TOPIC]]
     assert max(sizes) <= MAX_STEP_BYTES
     assert read_log(tmp_path / "c.mcap").count("/filter/models") == 1  # one model: logged once
+
+
+def test_a_model_per_step_is_logged_per_step_and_not_held(setup, tmp_path):
+    """The local boundary logs its field's values at the points every step (a new model
+    object each time): each goes to /filter/models, the log replays, and the writer keeps
+    none but the last (a long logged run would otherwise hold every step's)."""
+    models, held = [], []
+    _write(tmp_path / "m.mcap", setup, steps=12, models=models,
+           while_open=lambda: held.extend(ref() is not None for ref in models if gc.collect() >= 0))
+    assert held == [False] * 11 + [True]  # while the writer is open, only the last model is alive
+    assert read_log(tmp_path / "m.mcap").count("/filter/models") == 12
+    result = replay(tmp_path / "m.mcap")
+    assert result.ok and result.steps == 12 and result.max_abs_diff == 0.0
 
 
 def test_a_changed_step_is_detected(setup, tmp_path):
