@@ -355,14 +355,13 @@ class FilterSystem(LeafSystem):
         states and clearances at 100 Hz; frames and the 3D scene (model, lens, trocar, the
         beam to the last measured distance) at 20 Hz."""
         log, k = self.logger, len(self.record.steps)
-        P = self.record.steps[-1].points_W  # the compiled step's boundary points: tip, port, shaft
+        P = self.record.steps[-1].points_W  # the compiled step's tip, port, shaft: instrument_points' kernel's
         prior = snap.shape is None or (self.local and snap.field is None)
         kind = None if prior else snap.kind
         model = self.prior if prior else snap.shape
         finite = bool(np.isfinite(q).all())
         if finite:  # non-finite joint angles: nothing the replay could re-run
             if self.local:
-                # the compiled step's points: planning.step_kinematics runs instrument_points' kernel
                 shape, kind, margin, trusted, misfit = self._step_model(snap, P)
             else:
                 shape, margin = snap.shape, snap.margin_mm(self.config.margins)
