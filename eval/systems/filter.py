@@ -361,11 +361,7 @@ class FilterSystem(LeafSystem):
         model = self.prior if prior else snap.shape
         finite = bool(np.isfinite(q).all())
         if finite:  # non-finite joint angles: nothing the replay could re-run
-            if self.local:
-                shape, kind, margin, trusted, misfit = self._step_model(snap, P)
-            else:
-                shape, margin = snap.shape, snap.margin_mm(self.config.margins)
-                trusted, misfit = self._trust(snap, P[:2] if kind is None else P)
+            shape, kind, margin, trusted, misfit = self._step_model(snap, P)
             log.log_step(t, q, command, shape, kind, t if kind is None else snap.t_s, sensor_t, margin, trusted,
                          misfit, out, pending)
         if k % 10 == 1:
