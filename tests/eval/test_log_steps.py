@@ -75,8 +75,12 @@ def test_a_model_per_step_is_logged_per_step_and_not_held(setup, tmp_path):
     object each time): each goes to /filter/models, the log replays, and the writer keeps
     none but the last (a long logged run would otherwise hold every step's)."""
     models, held = [], []
-    _write(tmp_path / "m.mcap", setup, steps=12, models=models,
-           while_open=lambda: held.extend(ref() is not None for ref in models if gc.collect() >= 0))
+
+    def alive():
+        gc.collect()
+        held.extend(ref() is not None for ref in models)
+
+    _write(tmp_path / "m.mcap", setup, steps=12, models=models, while_open=alive)
     assert held == [False] * 11 + [True]  # while the writer is open, only the last model is alive
     assert read_log(tmp_path / "m.mcap").count("/filter/models") == 12
     result = replay(tmp_path / "m.mcap")
