@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.local.geometry import band, global_radius, node_frame, quadric_taylor
+from models.local.geometry import band, global_radius, quadric_taylor
 
 @njit(cache=True, inline="always")
 def node_departure(k, dirs, c0, gp, b, wsum):
@@ -115,8 +115,8 @@ FAINT_SUPPORT = 0.75
 
 
 @njit(cache=True)
-def spread_departures(dirs, x, has, excess, dev, slope, near, edge, faint, reach, floor, cross, nb_off, nb_idx, nb_ang,
-                      nx_off, nx_idx, nx_ang, out):
+def spread_departures(dirs, frames, x, has, excess, dev, slope, near, edge, faint, reach, floor, cross, nb_off, nb_idx,
+                      nb_ang, nx_off, nx_idx, nx_ang, out):
     """out (n,) mm^2: a node's variance beyond its quadratic's posterior.
 
     A node with data j: its excess plus the largest squared error of its quadratic at the
@@ -143,7 +143,9 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, faint, reach
     The pairs (k, j) come from two neighbour tables (neighbour_table): (nb_off, nb_idx,
     nb_ang) within at least max(reach, cross) rad for a departing node k, (nx_off, nx_idx,
     nx_ang) within at least `cross` for the others: a departing node's ~215 neighbours
-    within 25 deg and another's ~10 within 4.8, not the ~1,900 or ~380 of its z band."""
+    within 25 deg and another's ~10 within 4.8, not the ~1,900 or ~380 of its z band;
+    `frames` (n, 6): geometry.node_frames(dirs)). A pair's rise and quadratic are computed
+    only where they count, its angle read from the table."""
     n = dirs.shape[0]
     for k in range(n):
         out[k] = excess[k] if has[k] != 0.0 else 0.0
@@ -152,40 +154,44 @@ def spread_departures(dirs, x, has, excess, dev, slope, near, edge, faint, reach
         if has[k] == 0.0:
             continue
         d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
-        f10, f11, f12, f20, f21, f22 = node_frame(d0, d1, d2)
+        f10, f11, f12, f20, f21, f22 = frames[k, 0], frames[k, 1], frames[k, 2], frames[k, 3], frames[k, 4], frames[k, 5]
         spread = abs(dev[k]) > floor
         within = max(reach, cross) if spread else cross  # the departure's reach only where there is one
         if spread and near[k] < cos_e:  # a departing edge node's own value: extrapolated that far along the rise
             out[k] = max(out[k], excess[k] + (np.hypot(slope[k, 0], slope[k, 1]) * np.arccos(max(near[k], -1.0))) ** 2)
         off, idx, ang = (nb_off, nb_idx, nb_ang) if spread else (nx_off, nx_idx, nx_ang)
         for i in range(off[k], off[k + 1]):  # the neighbours (k itself above)
-            if ang[i] > within:
+            a = ang[i]  # arccos of c below, as the table computed it
+            if a > within:
                 continue
             j = idx[i]
             c = d0 * dirs[j, 0] + d1 * dirs[j, 1] + d2 * dirs[j, 2]
+            data = has[j] != 0.0
+            faint_j = data and spread and near[j] < cos_f
+            close = c > cos_x
+            if (data and not faint_j and not close) or not (data or spread):
+                continue  # nothing of this pair counts
             rise = 0.0  # the departure's linear extrapolation from node k to node j (gnomonic, k's frame)
             if spread and c > 0.0:
                 rise = (slope[k, 0] * (dirs[j, 0] * f10 + dirs[j, 1] * f11 + dirs[j, 2] * f12)
                         + slope[k, 1] * (dirs[j, 0] * f20 + dirs[j, 1] * f21 + dirs[j, 2] * f22)) / c
-            if has[j] != 0.0:
-                if spread and near[j] < cos_f:
-                    u2 = excess[j] + unseen_departure_variance(dev[k], rise, np.arccos(min(c, 1.0)), reach)
-                    out[j] = max(out[j], u2)
-                if c <= cos_x:
-                    continue
-                e2 = 0.0
-                if spread and near[j] < cos_e and rise * dev[k] > 0.0:  # uphill of k, an edge node
-                    e2 = (np.hypot(slope[k, 0], slope[k, 1]) * np.arccos(max(near[j], -1.0))) ** 2
-                e10, e11, e12, e20, e21, e22 = node_frame(dirs[j, 0], dirs[j, 1], dirs[j, 2])
-                t1 = (d0 * e10 + d1 * e11 + d2 * e12) / c  # node k's direction in node j's gnomonic frame
-                t2 = (d0 * e20 + d1 * e21 + d2 * e22) / c
-                e = (x[j, 0] + x[j, 1] * t1 + x[j, 2] * t2 + x[j, 3] * t1 * t1 + x[j, 4] * t1 * t2
-                     + x[j, 5] * t2 * t2 - x[k, 0])
-                e2 = max(e2, e * e)
-                if excess[j] + e2 > out[j]:
-                    out[j] = excess[j] + e2
-            elif spread:
-                out[j] = max(out[j], unseen_departure_variance(dev[k], rise, np.arccos(min(c, 1.0)), reach))
+            if not data:
+                out[j] = max(out[j], unseen_departure_variance(dev[k], rise, a, reach))
+                continue
+            if faint_j:
+                out[j] = max(out[j], excess[j] + unseen_departure_variance(dev[k], rise, a, reach))
+            if not close:
+                continue
+            e2 = 0.0
+            if spread and near[j] < cos_e and rise * dev[k] > 0.0:  # uphill of k, an edge node
+                e2 = (np.hypot(slope[k, 0], slope[k, 1]) * np.arccos(max(near[j], -1.0))) ** 2
+            t1 = (d0 * frames[j, 0] + d1 * frames[j, 1] + d2 * frames[j, 2]) / c  # node k's direction, j's gnomonic frame
+            t2 = (d0 * frames[j, 3] + d1 * frames[j, 4] + d2 * frames[j, 5]) / c
+            e = (x[j, 0] + x[j, 1] * t1 + x[j, 2] * t2 + x[j, 3] * t1 * t1 + x[j, 4] * t1 * t2
+                 + x[j, 5] * t2 * t2 - x[k, 0])
+            e2 = max(e2, e * e)
+            if excess[j] + e2 > out[j]:
+                out[j] = excess[j] + e2
     return out
 
 

@@ -73,6 +73,15 @@ def node_frame(d0, d1, d2):
     return a0, a1, a2, d1 * a2 - d2 * a1, d2 * a0 - d0 * a2, d0 * a1 - d1 * a0
 
 
+@njit(cache=True)
+def node_frames(dirs):
+    """(n, 6): node_frame of every row of dirs (n, 3), e1 then e2 (a table built once per grid)."""
+    F = np.empty((dirs.shape[0], 6))
+    for k in range(dirs.shape[0]):
+        F[k, 0], F[k, 1], F[k, 2], F[k, 3], F[k, 4], F[k, 5] = node_frame(dirs[k, 0], dirs[k, 1], dirs[k, 2])
+    return F
+
+
 @njit(cache=True, inline="always")
 def band(n, uz, chord):
     """[k0, k1): the nodes of an n-node Fibonacci sphere whose z lies within chord of uz

@@ -80,7 +80,7 @@ from models.local.calibration import SigmaCalibration
 from models.local.config import LocalConfig
 from models.local.field_kernels import BOUND_SIZE, radii_at
 from models.local.departures import FAINT_SUPPORT, fill_trend, neighbour_table, node_departures, spread_departures
-from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV
+from models.local.geometry import ELLIPSOID, GLOBAL_SIZE, N_BASIS, N_COV, node_frames
 from models.local.kernels import global_params, solve_nodes
 from models.local.online import holds, local_step
 from models.shapes.validation import as_beams, as_points, as_vector3
@@ -107,6 +107,14 @@ def _neighbour_table_of(n: int, reach_deg: float) -> tuple[np.ndarray, np.ndarra
     for a in table:
         a.setflags(write=False)
     return table
+
+
+@lru_cache(maxsize=4)
+def _node_frames_of(n: int) -> np.ndarray:
+    """geometry.node_frames of the n-node grid, once per process (read-only: shared)."""
+    frames = node_frames(fibonacci_directions(n))
+    frames.setflags(write=False)
+    return frames
 
 
 class LocalRetinaModel:
@@ -274,7 +282,7 @@ class LocalRetinaModel:
         (departures.spread_departures) and, within trend_deg of the data, the trend's
         quadratic (departures.fill_trend): with each field (params, radius_and_sd); the
         predictions of the updates between read the last ones."""
-        spread_departures(self._dirs, self._x, self._has, self._excess, self._dev, self._slope, self._near,
+        spread_departures(self._dirs, _node_frames_of(self.n_nodes), self._x, self._has, self._excess, self._dev, self._slope, self._near,
                           np.radians(self.config.spacing_deg), FAINT_SUPPORT * self._support, self._reach,
                           self.config.departure_floor_mm, self._blend,
                           *self._neighbours(), *self._neighbours(self.config.blend_deg), self._extra)

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from models.adaptive.coverage import fibonacci_directions
 from models.local.departures import FAINT_SUPPORT, neighbour_table, spread_departures
 from models.local.config import LocalConfig
+from models.local.geometry import node_frames
 
 CFG = LocalConfig()
 REACH, CROSS, EDGE = np.radians(CFG.departure_deg), np.radians(CFG.blend_deg), np.radians(CFG.spacing_deg)
@@ -19,7 +20,7 @@ FLOOR = CFG.departure_floor_mm
 
 def spread(dirs, x, has, excess, dev, slope, near, table, near_table=None):
     near_table = table if near_table is None else near_table
-    return spread_departures(dirs, x, has, excess, dev, slope, near, EDGE, FAINT, REACH, FLOOR, CROSS, *table, *near_table,
+    return spread_departures(dirs, node_frames(dirs), x, has, excess, dev, slope, near, EDGE, FAINT, REACH, FLOOR, CROSS, *table, *near_table,
                              np.zeros(len(dirs)))
 
 
