@@ -144,7 +144,7 @@ def _compact_steps(log, path, config) -> list:
         # one robot per setup (a run through several trocars logs a setup per trocar)
         builds = [(ns, StepInputs(Robot(scenario), points, config))
                   for ns, (scenario, points) in ((ns, steps.setup_from_json(d)) for ns, d in setups)]
-        models = {m["index"]: (codec.shape_from_json(m["shape"], "/filter/models shape"), m["kind"])
+        models = {m["index"]: (steps.model_from_json(m["shape"]), m["kind"])
                   for _, m in log.messages.get(steps.MODELS_TOPIC, [])}
     except (ValueError, KeyError, TypeError) as exc:
         raise LogReadError(f"{path}: {exc}") from None
@@ -157,8 +157,12 @@ def _compact_steps(log, path, config) -> list:
             if m.model_index not in models:
                 raise ValueError(f"model {m.model_index} is not on /filter/models")
             shape, kind = models[m.model_index]
-            x = build(m.t, np.array(m.q), np.array([*m.v_cmd_W, m.roll_rate_cmd]), shape, kind, m.model_time_s,
-                      m.sensor_time_s, m.margin_mm, np.array(m.trusted, dtype=bool), np.array(m.misfit_mm),
+            q = np.array(m.q)
+            ip = build.points_at(q)
+            if shape is steps.STEP_VALUES:
+                shape = steps.values_of(m, ip.P_W[:build.boundary_count(kind, len(ip.names))])
+            x = build(m.t, q, np.array([*m.v_cmd_W, m.roll_rate_cmd]), shape, kind, m.model_time_s,
+                      m.sensor_time_s, m.margin_mm, np.array(m.trusted, dtype=bool), np.array(m.misfit_mm), ip,
                       pending=steps.pending_of(m))
         except ValueError as exc:
             raise LogReadError(f"{path}: /filter/step {len(out)}: {exc}") from None

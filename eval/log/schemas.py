@@ -83,7 +83,10 @@ CHANNELS = {
         points={"type": "object"}, trust_angle_deg=NUM, misfit_angle_deg=NUM)),
     "/filter/models": ("vitreoguard.FilterModel", obj(
         "the model the filter used from time t on (W, mm); /filter/step's model_index names it",
-        ("t", "index", "kind"), t=SIM_TIME, index=INT, kind={"type": ["string", "null"]}, shape=SHAPE)),
+        ("t", "index", "kind"), t=SIM_TIME, index=INT, kind={"type": ["string", "null"]},
+        shape={"type": ["object", "null"], "description": SHAPE["description"] + "; {kind: step_values}: the local "
+               "field's distances and gradients at the step's boundary points, in each /filter/step record "
+               "(field_h mm, field_g row-major)"})),
     "/clearance": ("vitreoguard.Clearance", obj(
         "model clearance of the tip and cutter port (mm; > 0 inside); *_true_mm against the true retina",
         ("t",), t=SIM_TIME, tip_mm=OPT_NUM, port_mm=OPT_NUM, tip_true_mm=OPT_NUM, port_true_mm=OPT_NUM)),

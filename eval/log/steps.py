@@ -4,9 +4,12 @@ inputs from them.
 A closed-loop step is logged as what the filter cannot recompute: the time, the joint
 angles, the command, the model's and sensor's times, the margin, the trusted flag and
 measured misfit of each boundary point, the actuator's pending displacements (none for an
-ideal actuator), and the output (joint rates, ok, reason, active constraints, cutter interlock); one "/filter/step" message (protobuf, schema
-FILTER_STEP_SCHEMA, ~250 bytes) per step. The model the filter used goes to
-"/filter/models" (JSON) once per change, numbered; the scenario and monitored points go
+ideal actuator), the output (joint rates, ok, reason, active constraints, cutter
+interlock) and, on the local boundary, its field's distances and gradients at the boundary
+points (what the filter read of a field whose nodes are ~1 MB); one "/filter/step" message
+(protobuf, schema FILTER_STEP_SCHEMA, ~250 bytes, ~650 with the field's values) per step.
+The model the filter used goes to "/filter/models" (JSON) once per change, numbered (the
+local boundary's as STEP_VALUES, once per kind); the scenario and monitored points go
 to "/filter/setup" (JSON) once. Replay rebuilds the kinematics (monitored points, their
 Jacobians, the RCM rows) from the joint angles on the logged scenario's robot with the
 loop's own code (eval.systems.filter.FilterSystem.inputs_from), then the FilterInputs.
@@ -33,8 +36,12 @@ STEP_FIELDS = (
     ("model_index", _U, False), ("model_time_s", _D, False), ("sensor_time_s", _D, False), ("margin_mm", _D, False),
     ("trusted", _B, True), ("misfit_mm", _D, True), ("qdot", _D, True), ("ok", _B, False), ("reason", _S, False),
     ("active", _S, True), ("min_clearance_mm", _D, False), ("cutter_allowed", _B, False),
-    ("intervened", _B, False), ("solve_us", _D, False), ("pending_rad", _D, True),
+    ("intervened", _B, False), ("solve_us", _D, False), ("pending_rad", _D, True), ("field_h", _D, True),
+    ("field_g", _D, True),
 )
+# The /filter/models shape of a local boundary's steps: the field's answers at the step's
+# boundary points are in each step record (field_h mm, field_g row-major; values_of).
+STEP_VALUES = {"kind": "step_values"}
 
 
 def _file_descriptor() -> descriptor_pb2.FileDescriptorProto:
@@ -54,11 +61,13 @@ FilterStep = message_factory.GetMessageClass(_POOL.FindMessageTypeByName(STEP_TY
 
 
 def encode_step(step: int, t_s: float, q, command, model_index: int, model_time_s: float, sensor_time_s: float,
-                margin_mm: float, trusted, misfit_mm, output, pending=None) -> bytes:
+                margin_mm: float, trusted, misfit_mm, output, pending=None, values=None) -> bytes:
     """One step's record: `command` (4,) [v_W mm/s, roll rad/s], the boundary points'
     `trusted` flags and `misfit_mm`, the filter's `output` (safety.FilterOutput), the
     actuator's `pending` displacements (r, 6) rad, row-major (None or no rows: an ideal
-    actuator; decode with pending_of)."""
+    actuator; decode with pending_of), the local field's `values` at the boundary points
+    (models.local.field.FieldValues; None for a shape logged on /filter/models; decode
+    with values_of)."""
     floats = lambda a: a.tolist() if type(a) is np.ndarray and a.dtype == np.float64 else [float(x) for x in a]  # noqa: E731
     return FilterStep(  # protobuf takes Python scalars: ndarray.tolist() is the cheapest way there
         t=float(t_s), step=int(step), q=floats(q), v_cmd_W=floats(command[:3]), roll_rate_cmd=float(command[3]),
@@ -68,6 +77,7 @@ def encode_step(step: int, t_s: float, q, command, model_index: int, model_time_
         min_clearance_mm=float(output.min_clearance_mm), cutter_allowed=bool(output.cutter_allowed),
         intervened=bool(output.intervened), solve_us=float(output.solve_us),
         pending_rad=() if pending is None else floats(np.ravel(pending)),
+        field_h=() if values is None else floats(values.h), field_g=() if values is None else floats(values.g.ravel()),
     ).SerializeToString()
 
 
@@ -79,6 +89,24 @@ def pending_of(m) -> np.ndarray | None:
     if len(m.pending_rad) % 6:
         raise ValueError(f"pending_rad holds {len(m.pending_rad)} numbers, not rows of 6 joints")
     return np.array(m.pending_rad).reshape(-1, 6)
+
+
+def values_of(m, P_W):
+    """The FieldValues of a decoded step's field_h, field_g at its boundary points P_W
+    (K, 3) mm (replay's kinematics at the step's joint angles); ValueError when the record
+    does not hold K distances and K gradients."""
+    from models.local.field import FieldValues
+
+    if len(m.field_h) != len(P_W) or len(m.field_g) != 3 * len(P_W):
+        raise ValueError(f"{len(P_W)} boundary points, but field_h holds {len(m.field_h)} distances and field_g "
+                         f"{len(m.field_g)} numbers")
+    return FieldValues(P_W, np.array(m.field_h), np.array(m.field_g).reshape(-1, 3))
+
+
+def model_from_json(d):
+    """A /filter/models record's shape: STEP_VALUES (the values are in each step record)
+    or codec.shape_from_json's Sphere, Ellipsoid, FieldValues or None; ValueError."""
+    return STEP_VALUES if d == STEP_VALUES else codec.shape_from_json(d, "/filter/models shape")
 
 
 def decode_step(data: bytes):

@@ -38,6 +38,8 @@ from eval.log.reader import MCAP_MAGIC, LogReadError, RunLog, TruncatedLogError,
 from eval.log.scene import M_PER_MM, quaternion_xyzw  # noqa: F401  (part of this module's interface)
 from eval.log.robot_scene import point_cloud
 from eval.log.schemas import CHANNELS
+from eval.log.steps import STEP_VALUES
+from models.local.field import FieldValues
 from safety import FilterConfig, FilterInputs, FilterOutput
 
 _KIND_INDEX = {"prior": 0, "sphere": 1, "ellipsoid": 2}
@@ -242,7 +244,7 @@ class RunLogger:
         if last is None or last[0] is not shape or last[1] != kind:
             self._last_model, self._n_models = (shape, kind), self._n_models + 1
             self._write("/filter/models", ns, {"t": float(t_s), "index": self._n_models - 1, "kind": kind,
-                                               "shape": codec.shape_to_json(shape)})
+                                               "shape": shape if shape is STEP_VALUES else codec.shape_to_json(shape)})
         return self._n_models - 1
 
     def log_step(self, t_s, q, command, shape, kind: str | None, model_time_s: float, sensor_time_s: float,
@@ -256,13 +258,14 @@ class RunLogger:
         if not self._setup_logged:
             raise ValueError("log_setup must come before the first log_step: replay rebuilds the kinematics from it")
         ns = time_ns(t_s)
-        index = self._model_index(ns, t_s, shape, kind)
+        values = shape if isinstance(shape, FieldValues) else None  # in the step record
+        index = self._model_index(ns, t_s, STEP_VALUES if values is not None else shape, kind)
         if self._closed:
             raise ValueError(f"the run log {self.path} is closed")
         self._last_ns = ns
         self._raw_step.log(step_records.encode_step(self.steps, float(t_s), q, command, index, model_time_s,
                                                     sensor_time_s, margin_mm, trusted, misfit_mm, output,
-                                                    pending),
+                                                    pending, values),
                            self.start_ns + ns)
         self.steps += 1
         self._maybe_flush(ns)

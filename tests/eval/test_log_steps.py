@@ -12,10 +12,11 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from eval.log.replay import replay
-from eval.log.steps import STEP_TOPIC, STEP_TYPE, decode_step, setup_from_json, setup_to_json
+from eval.log.steps import STEP_TOPIC, STEP_TYPE, decode_step, setup_from_json, setup_to_json, values_of
 from eval.log.writer import RunLogger, read_log
 from eval.systems.inputs import StepInputs
 from models import Sphere
+from models.local.field import FieldValues
 from planning import SurgeryScenario, start_posture
 from planning.instrument_points import MonitoredPointsConfig
 from planning.robot import Robot
@@ -31,12 +32,14 @@ def setup():
     return scenario, robot, StepInputs(robot, MonitoredPointsConfig(), FilterConfig())
 
 
-def _write(path, setup, tamper: int | None = None, steps: int = 30, models: list | None = None, while_open=None):
+def _write(path, setup, tamper: int | None = None, steps: int = 30, models: list | None = None, while_open=None,
+           values: bool = False):
     """A compact log of `steps` steps against a sphere model, outputs from SafetyFilter;
     step `tamper` logged with its rates changed by 1e-3 rad/s. With a list `models`: a new
-    sphere (the same one, another object) every step, as the local boundary's per-step
-    field values are, and a weak reference to each appended to it; `while_open` called after
-    the last step, the log still open."""
+    sphere (the same one, another object) every step, and a weak reference to each appended
+    to it; `while_open` called after the last step, the log still open. With `values`: the
+    sphere's answers at each step's boundary points as FieldValues, as the local boundary
+    logs its field."""
     scenario, robot, build = setup
     filt = SafetyFilter(FilterConfig())
     model = Sphere(scenario.eye_pose.p_WE, 11.0)
@@ -52,6 +55,9 @@ def _write(path, setup, tamper: int | None = None, steps: int = 30, models: list
             ip = build.points_at(q)
             n = StepInputs.boundary_count("sphere", len(ip.names))
             trusted, misfit = np.ones(n, dtype=bool), np.full(n, 0.01)
+            if values:
+                P = ip.P_W[:n]
+                model = FieldValues(P, *Sphere(scenario.eye_pose.p_WE, 11.0).signed_distance_and_gradient(P))
             out = filt(build(t, q, command, model, "sphere", t - 0.004, t - 0.001, 0.5, trusted, misfit, ip))
             logged = out._replace(qdot=out.qdot + 1e-3) if k == tamper else out
             log.log_step(t, q, command, model, "sphere", t - 0.004, t - 0.001, 0.5, trusted, misfit, logged)
@@ -85,6 +91,24 @@ def test_a_model_per_step_is_logged_per_step_and_not_held(setup, tmp_path):
     assert read_log(tmp_path / "m.mcap").count("/filter/models") == 12
     result = replay(tmp_path / "m.mcap")
     assert result.ok and result.steps == 12 and result.max_abs_diff == 0.0
+
+
+def test_the_local_field_s_values_ride_in_the_step_records(setup, tmp_path):
+    """The local boundary's per-step field values go into each step record (field_h,
+    field_g), its model onto /filter/models once; the log replays bit for bit, and a
+    record whose values do not match its boundary points is refused with the step named."""
+    _write(tmp_path / "v.mcap", setup, steps=12, values=True)
+    log = read_log(tmp_path / "v.mcap")
+    assert log.count("/filter/models") == 1 and log.messages["/filter/models"][0][1]["shape"] == {"kind": "step_values"}
+    records = [decode_step(data) for _, data in log.messages[STEP_TOPIC]]
+    assert all(len(m.field_h) == len(m.misfit_mm) and len(m.field_g) == 3 * len(m.field_h) for m in records)
+    assert all(-1.0 < min(m.field_h) and max(m.field_h) < 11.0 for m in records)  # mm inside an 11 mm sphere
+    k = len(records[0].field_h)  # 4 doubles a point, two packed fields (a tag and a length each)
+    assert max(len(data) for _, data in log.messages[STEP_TOPIC]) <= MAX_STEP_BYTES + 4 * 8 * k + 2 * 3
+    result = replay(tmp_path / "v.mcap")
+    assert result.ok and result.steps == 12 and result.max_abs_diff == 0.0
+    with pytest.raises(ValueError, match="3 boundary points, but field_h holds 6 distances"):
+        values_of(decode_step(log.messages[STEP_TOPIC][0][1]), np.zeros((3, 3)))
 
 
 def test_a_changed_step_is_detected(setup, tmp_path):
