@@ -265,7 +265,7 @@ class LocalRetinaModel:
         if self._gp is None or not self._n_data:
             return
         nodes = self._data_nodes[:self._n_data].copy()
-        node_departures(nodes, self._dirs, self.center, self._gp, self._b, self._wsum, self._dev)  # all first: order-free
+        node_departures(nodes, self._dirs, self.center, self._gp, self._A, self._b, self._wsum, self._dev)  # all first: order-free
         self._has[nodes] = 1.0
         solve_nodes(nodes, len(nodes), self._dirs, self.center, self._gp, self._tp, self._A, self._b, self._rr, self._wsum,
                     self._near, self._prior, self._reach, *self._neighbours(), self._dev, self._slope, self._x, self._cov,

@@ -150,7 +150,7 @@ def solve_node(k, dirs, c0, gp, tp, A, b, rr, wsum, near, prior, reach, nb_off, 
     else:
         m[:] = mg
     noise2 = prior[0] * prior[0]
-    dev[k] = node_departure(k, dirs, c0, gp, b, wsum)
+    dev[k] = node_departure(k, A, b, wsum, mg)
     dep = gathered_departure(k, has, dev, reach, prior[7], nb_off, nb_idx, nb_ang)
     sg = global_sd(np.arccos(min(near[k], 1.0)), prior)
     pinv[0] = 1.0 / (sg * sg + dep)

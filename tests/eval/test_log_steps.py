@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import weakref
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -144,3 +145,14 @@ def test_the_setup_rebuilds_the_scenario(setup):
 def test_a_step_record_without_its_setup_is_refused(tmp_path):
     with RunLogger(tmp_path / "x.mcap", FilterConfig()) as log, pytest.raises(ValueError, match="log_setup"):
         log.log_step(0.0, np.zeros(6), np.zeros(4), None, None, 0.0, 0.0, 0.0, [True, True], [0.0, 0.0], None)
+
+
+def test_a_log_with_the_field_values_as_json_model_records_replays():
+    """Replay reads both forms of the local field's values at the boundary points: in the
+    step records (RunLogger's) and as JSON records on /filter/models, one per step (points,
+    distances, gradients; tests/data: a golden boundary case's first scenario in that form)."""
+    path = Path(__file__).resolve().parents[1] / "data" / "boundary_local_values_json.mcap"
+    log = read_log(path)
+    assert log.messages["/filter/models"][-1][1]["shape"]["kind"] == "values"
+    result = replay(path)
+    assert result.ok and result.steps == log.count(STEP_TOPIC) > 100 and result.mismatches == 0
