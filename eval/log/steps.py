@@ -24,6 +24,7 @@ import numpy as np
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from eval.log import codec
+from models.local.field import FieldValues
 
 STEP_TOPIC, MODELS_TOPIC, SETUP_TOPIC = "/filter/step", "/filter/models", "/filter/setup"
 STEP_TYPE = "vitreoguard.FilterStep"
@@ -95,8 +96,6 @@ def values_of(m, P_W):
     """The FieldValues of a decoded step's field_h, field_g at its boundary points P_W
     (K, 3) mm (replay's kinematics at the step's joint angles); ValueError when the record
     does not hold K distances and K gradients."""
-    from models.local.field import FieldValues
-
     if len(m.field_h) != len(P_W) or len(m.field_g) != 3 * len(P_W):
         raise ValueError(f"{len(P_W)} boundary points, but field_h holds {len(m.field_h)} distances and field_g "
                          f"{len(m.field_g)} numbers")

@@ -38,7 +38,6 @@ from eval.log.reader import MCAP_MAGIC, LogReadError, RunLog, TruncatedLogError,
 from eval.log.scene import M_PER_MM, quaternion_xyzw  # noqa: F401  (part of this module's interface)
 from eval.log.robot_scene import point_cloud
 from eval.log.schemas import CHANNELS
-from eval.log.steps import STEP_VALUES
 from models.local.field import FieldValues
 from safety import FilterConfig, FilterInputs, FilterOutput
 
@@ -243,8 +242,9 @@ class RunLogger:
         last = self._last_model  # only the last is kept: the local boundary logs a new one every step
         if last is None or last[0] is not shape or last[1] != kind:
             self._last_model, self._n_models = (shape, kind), self._n_models + 1
+            shape_json = shape if shape is step_records.STEP_VALUES else codec.shape_to_json(shape)
             self._write("/filter/models", ns, {"t": float(t_s), "index": self._n_models - 1, "kind": kind,
-                                               "shape": shape if shape is STEP_VALUES else codec.shape_to_json(shape)})
+                                               "shape": shape_json})
         return self._n_models - 1
 
     def log_step(self, t_s, q, command, shape, kind: str | None, model_time_s: float, sensor_time_s: float,
@@ -259,7 +259,7 @@ class RunLogger:
             raise ValueError("log_setup must come before the first log_step: replay rebuilds the kinematics from it")
         ns = time_ns(t_s)
         values = shape if isinstance(shape, FieldValues) else None  # in the step record
-        index = self._model_index(ns, t_s, STEP_VALUES if values is not None else shape, kind)
+        index = self._model_index(ns, t_s, step_records.STEP_VALUES if values is not None else shape, kind)
         if self._closed:
             raise ValueError(f"the run log {self.path} is closed")
         self._last_ns = ns

@@ -17,9 +17,9 @@ def node_departure(k, A, b, wsum, mg):
     residual from it, each datum against the quadric along its own direction (mg (6,) the
     quadric's quadratic at the node, geometry.quadric_taylor: (b[k, 0] - sum_c A[k, 0, c]
     mg[c]) / wsum[k], the data alone). Against the quadric's radius at the node itself, data
-    off to one side of it depart by the quadric's slope times their offset: on the
-    emmetropic eye's ellipsoid, 6 deg on average from the nodes, 37-99 um median and up to
-    0.27 mm where the retina departs by nothing."""
+    off to one side of it depart by the quadric's slope times their offset (on the
+    emmetropic eye's model after bench_closed_loop's 3-turn spiral, its data 6 deg from the
+    nodes on average: 37-99 um median, up to 0.27 mm, where the retina departs by nothing)."""
     if not wsum[k] > 0.0:
         return 0.0
     s = b[k, 0]
