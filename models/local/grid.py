@@ -265,7 +265,8 @@ class LocalRetinaModel:
         if self._gp is None or not self._n_data:
             return
         nodes = self._data_nodes[:self._n_data].copy()
-        node_departures(nodes, self._dirs, self.center, self._gp, self._A, self._b, self._wsum, self._dev)  # all first: order-free
+        # every node's departure first (order-free: a node's solve reads its neighbours')
+        node_departures(nodes, self._dirs, self.center, self._gp, self._A, self._b, self._wsum, self._dev)
         self._has[nodes] = 1.0
         solve_nodes(nodes, len(nodes), self._dirs, self.center, self._gp, self._tp, self._A, self._b, self._rr, self._wsum,
                     self._near, self._prior, self._reach, *self._neighbours(), self._dev, self._slope, self._x, self._cov,
@@ -282,10 +283,9 @@ class LocalRetinaModel:
         (departures.spread_departures) and, within trend_deg of the data, the trend's
         quadratic (departures.fill_trend): with each field (params, radius_and_sd); the
         predictions of the updates between read the last ones."""
-        spread_departures(self._dirs, _node_frames_of(self.n_nodes), self._x, self._has, self._excess, self._dev, self._slope, self._near,
-                          np.radians(self.config.spacing_deg), FAINT_SUPPORT * self._support, self._reach,
-                          self.config.departure_floor_mm, self._blend,
-                          *self._neighbours(), *self._neighbours(self.config.blend_deg), self._extra)
+        spread_departures(self._dirs, _node_frames_of(self.n_nodes), self._x, self._has, self._excess, self._dev,
+                          self._slope, self._near, np.radians(self.config.spacing_deg), FAINT_SUPPORT * self._support,
+                          self._reach, self.config.departure_floor_mm, self._blend, *self._neighbours(), *self._neighbours(self.config.blend_deg), self._extra)
         fill_trend(self._dirs, self._has, self._near, self.center, self._tp, np.cos(np.radians(self.config.trend_deg)),
                    self._x)
 

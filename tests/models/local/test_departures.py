@@ -77,8 +77,7 @@ def _scan_lines(radius_of, lift_mm=0.0):
     off to one side (the loop's spiral leaves its rings ~3 mm apart)."""
     a = np.radians(np.linspace(-60.0, 60.0, 1200))
     U = np.concatenate([np.stack([np.sin(a) * np.cos(b), np.full_like(a, np.sin(b)), -np.cos(a) * np.cos(b)], axis=1)
-                        for b in np.radians([-15.0, 0.0, 15.0])])
-    U /= np.linalg.norm(U, axis=1, keepdims=True)
+                        for b in np.radians([-15.0, 0.0, 15.0])])  # unit rows
     return (radius_of(U) - lift_mm)[:, None] * U
 
 
