@@ -125,8 +125,8 @@ def run_boundary(args, out, keep_build: bool = False, workers=None):
         with progress_bar(args.sphere_scenarios, "sphere-phase scenarios", unit="scenario") as bar:
             sphere_campaign = run_campaign(loop, partial.model, partial.coverage, args.sphere_scenarios, args.seed + 1,
                                            args.duration_s, progress=bar_progress(bar), workers=workers)
-        sphere = {"model_kind": partial.kind_final, "sf_mae_um": partial.sf_mae_um,
-                  "model": model_summary(loop, partial), **sphere_campaign.summary()}
+        sphere = {"sf_mae_um": partial.sf_mae_um, "model": {**model_summary(loop, partial), "fitted_kind": partial.kind_final},
+                  **sphere_campaign.summary()}
     s = campaign.summary()
     spiral = build.run
     result = {

@@ -142,12 +142,9 @@ def honesty_along_spiral(runs) -> dict:
     worst_cov, worst_unsafe, worst_excess = np.nanmin(cov, axis=0), np.nanmax(unsafe, axis=0), np.nanmax(excess, axis=0)
     w = worst_honesty(runs[0].fractions, worst_cov, worst_unsafe, worst_excess)
     if w is None:
-        return {"lowest_coverage": None, "lowest_coverage_at": None, "largest_unsafe_fraction": None,
+        return {"lowest_sigma3_coverage": None, "lowest_at": None, "largest_unsafe_fraction": None,
                 "largest_unsafe_at": None, "worst_excess_um": None, "end_coverage": None, "end_unsafe_fraction": None}
-    return {"lowest_coverage": w.lowest_coverage, "lowest_coverage_at": w.lowest_at,
-            "largest_unsafe_fraction": w.largest_unsafe_fraction, "largest_unsafe_at": w.largest_unsafe_at,
-            "worst_excess_um": 1e3 * w.worst_excess_mm,
-            "end_coverage": float(worst_cov[-1]), "end_unsafe_fraction": float(worst_unsafe[-1])}
+    return {**w.report(""), "end_coverage": float(worst_cov[-1]), "end_unsafe_fraction": float(worst_unsafe[-1])}
 
 
 def _fmt(pair) -> str:
@@ -218,10 +215,10 @@ def table_markdown(results: dict, args) -> str:
     ]
     for shape, r in results.items():
         h = r["local_honesty"]
-        if h["lowest_coverage"] is None:
+        if h["lowest_sigma3_coverage"] is None:
             lines.append(f"| {shape} | - | - | - | - |")
             continue
-        lines.append(f"| {shape} | {h['lowest_coverage']:.3f} ({_pct(h['lowest_coverage_at'])}) | "
+        lines.append(f"| {shape} | {h['lowest_sigma3_coverage']:.3f} ({_pct(h['lowest_at'])}) | "
                      f"{h['largest_unsafe_fraction']:.3f} ({_pct(h['largest_unsafe_at'])}) | {h['worst_excess_um']:.0f} | "
                      f"{h['end_coverage']:.3f} / {h['end_unsafe_fraction']:.3f} |")
     lines.append("\n## Accuracy against the paper's 0.5 mm requirement\n")

@@ -55,9 +55,7 @@ class BuildHonesty:
                           [r[1].unsafe_fraction for r in self.rows], [r[1].worst_excess_mm for r in self.rows])
         if w is None:
             return None
-        return {"probes": len(self.rows), "lowest_sigma3_coverage": w.lowest_coverage, "lowest_at_s": w.lowest_at,
-                "largest_unsafe_fraction": w.largest_unsafe_fraction, "largest_unsafe_at_s": w.largest_unsafe_at,
-                "worst_excess_um": 1e3 * w.worst_excess_mm}
+        return {"probes": len(self.rows), **w.report("_s")}
 
 
 def filter_model(loop, build):

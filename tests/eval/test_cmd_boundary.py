@@ -71,8 +71,9 @@ def test_the_sphere_phase_reports_the_model_its_scenarios_start_from(tmp_path):
                  "--spiral-revolutions", "4", "--jobs", "1", "--out", str(tmp_path)]) == 0
     r = json.loads((tmp_path / "boundary.json").read_text())
     young, built = r["sphere_phase"]["model"], r["model"]
-    assert young["kind"] in ("local", "ellipsoid", "sphere") and set(built) - {"fitted_kind", "transition_at", "ef_mae_um",
-                                                                             "sf_mae_um", "n_points", "outliers_rejected"} <= set(young)
+    assert young["kind"] in ("local", "ellipsoid", "sphere") and set(built) - {"transition_at", "ef_mae_um", "sf_mae_um",
+                                                                             "n_points", "outliers_rejected"} <= set(young)
+    assert young["fitted_kind"] == "sphere" and built["fitted_kind"] == "ellipsoid"
     assert young["mae_um"] > built["mae_um"]  # a quarter of the scan: the built model is the better one
     assert young["sigma3_unsafe_fraction"] == 0.0 and 0.0 < young["sigma3_coverage"] <= 1.0
     assert young["on_the_way"]["probes"] >= 1

@@ -84,7 +84,7 @@ def test_cli_writes_the_contract(tmp_path):
     assert isinstance(g["decision_right"], bool) and isinstance(g["timely"], bool) and len(g["per_seed"]) == 1
     assert 0.0 <= g["globe_mae"] < 1.0  # mm: the robust globe of a regular eye, fitted to every 20th A-scan
     h = entry["local_honesty"]
-    assert 0.0 <= h["lowest_coverage"] <= h["end_coverage"] <= 1.0 and 0.0 <= h["lowest_coverage_at"] <= 1.0
+    assert 0.0 <= h["lowest_sigma3_coverage"] <= h["end_coverage"] <= 1.0 and 0.0 <= h["lowest_at"] <= 1.0
     assert 0.0 <= h["end_unsafe_fraction"] <= h["largest_unsafe_fraction"] <= 1.0
     assert (h["largest_unsafe_at"] is None) == (h["largest_unsafe_fraction"] == 0.0) == (h["worst_excess_um"] <= 0.0)
     assert (out / "table2.md").read_text().startswith("# Table 2")
