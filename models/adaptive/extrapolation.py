@@ -11,6 +11,7 @@ from models.fit.quadric_kernels import design_row
 from models.fit.quadric_residuals import half_gradient, sampson_one
 from models.fit.small_linalg import cholesky, dot, lower_inverse, mat_vec
 from models.shapes.sampling import unit_sphere_grid
+from models.shapes.sphere import sphere_distance_one
 
 _DIRECTIONS = unit_sphere_grid(12, 24)  # 288 directions over the whole surface
 
@@ -59,8 +60,7 @@ def _drift_and_gap(D, center_mm, radii_mm, rotation, p0, scale, S, crop_mm, v_ol
         if keep[k]:
             x, y, z = X[k, 0], X[k, 1], X[k, 2]
             drift += sampson_one(v_old, x, y, z)
-            dx, dy, dz = x - c_sf[0], y - c_sf[1], z - c_sf[2]
-            gap += abs(np.sqrt(dx * dx + dy * dy + dz * dz) - r_sf)
+            gap += abs(sphere_distance_one(c_sf, r_sf, x, y, z)[0])
             m += 1
     return (drift / m, gap / m, m) if m else (np.nan, np.nan, 0)
 
@@ -147,8 +147,7 @@ def _largest_gaps(D, S, center_mm, radii_mm, rotation, p0, scale, crop_mm, c_sf_
         if not keep[k]:
             continue
         x0, x1, x2 = p0[0] + scale * X[k, 0], p0[1] + scale * X[k, 1], p0[2] + scale * X[k, 2]  # mm
-        dx, dy, dz = x0 - c_sf_mm[0], x1 - c_sf_mm[1], x2 - c_sf_mm[2]
-        to_sphere = max(to_sphere, abs(np.sqrt(dx * dx + dy * dy + dz * dz) - r_sf_mm))
+        to_sphere = max(to_sphere, abs(sphere_distance_one(c_sf_mm, r_sf_mm, x0, x1, x2)[0]))
         if has_other:  # in the other quadric's scaled coordinates
             to_other = max(to_other, scale * sampson_one(v_other, (x0 - p0_other[0]) / scale, (x1 - p0_other[1]) / scale,
                                                          (x2 - p0_other[2]) / scale))

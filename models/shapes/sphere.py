@@ -13,6 +13,15 @@ from models.shapes.sampling import unit_sphere_grid
 from models.shapes.validation import as_points, as_positive, as_vector3
 
 
+@njit(cache=True, inline="always")
+def sphere_distance_one(center, radius, x0, x1, x2):
+    """(signed distance mm, > 0 inside; the distance from the centre mm) of the point
+    (x0, x1, x2) mm to the sphere (center, radius)."""
+    v0, v1, v2 = center[0] - x0, center[1] - x1, center[2] - x2
+    n = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    return radius - n, n
+
+
 @njit(cache=True)
 def sphere_distance_and_gradient(center, radius, Q):
     """((M,) signed distance mm, > 0 inside; (M, 3) unit gradient, the inward normal, +z
@@ -23,8 +32,7 @@ def sphere_distance_and_gradient(center, radius, Q):
         if not finite[m]:
             continue
         v0, v1, v2 = center[0] - Q[m, 0], center[1] - Q[m, 1], center[2] - Q[m, 2]
-        n = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-        d[m] = radius - n
+        d[m], n = sphere_distance_one(center, radius, Q[m, 0], Q[m, 1], Q[m, 2])
         if n == 0.0:
             g[m, 0], g[m, 1], g[m, 2] = 0.0, 0.0, 1.0
         else:
