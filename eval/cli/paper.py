@@ -139,7 +139,9 @@ def honesty_along_spiral(runs) -> dict:
     cov = np.array([r.lc_coverage_curve for r in runs])
     unsafe = np.array([r.lc_unsafe_curve for r in runs])
     excess = np.array([r.lc_excess_curve for r in runs])
-    worst_cov, worst_unsafe, worst_excess = np.nanmin(cov, axis=0), np.nanmax(unsafe, axis=0), np.nanmax(excess, axis=0)
+    # over the runs, NaN (no field yet) left out; NaN where no run had one (fmin / fmax: no warning)
+    worst_cov = np.fmin.reduce(cov, axis=0)
+    worst_unsafe, worst_excess = np.fmax.reduce(unsafe, axis=0), np.fmax.reduce(excess, axis=0)
     w = worst_honesty(runs[0].fractions, worst_cov, worst_unsafe, worst_excess)
     if w is None:
         return {"lowest_sigma3_coverage": None, "lowest_at": None, "largest_unsafe_fraction": None,

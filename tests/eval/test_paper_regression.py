@@ -65,6 +65,25 @@ def test_best_ellipsoid_curve_takes_either_fit_where_the_other_has_none():
     assert np.isnan(best[0]) and best[1:].tolist() == [2.0, 0.5, 0.4]
 
 
+def test_the_sigma_along_the_spiral_is_the_worst_over_the_runs_where_any_had_a_field():
+    """Before the local model's first field a curve point is NaN in every run: left out
+    (no warning, which the suite turns into an error), and the worst taken over the runs
+    that had one."""
+    from types import SimpleNamespace
+
+    from eval.cli.paper import honesty_along_spiral
+
+    def run(cov, unsafe, excess_mm):
+        return SimpleNamespace(fractions=np.array([0.1, 0.5, 1.0]), lc_coverage_curve=np.array(cov),
+                               lc_unsafe_curve=np.array(unsafe), lc_excess_curve=np.array(excess_mm))
+
+    h = honesty_along_spiral([run([np.nan, 0.9, 1.0], [np.nan, 0.0, 0.0], [np.nan, -0.05, -0.04]),
+                              run([np.nan, np.nan, 0.98], [np.nan, np.nan, 0.01], [np.nan, np.nan, 0.002])])
+    assert h["lowest_sigma3_coverage"] == 0.9 and h["lowest_at"] == 0.5
+    assert h["largest_unsafe_fraction"] == 0.01 and h["largest_unsafe_at"] == 1.0
+    assert h["worst_excess_um"] == pytest.approx(2.0) and h["end_coverage"] == 0.98
+
+
 def test_cli_writes_the_contract(tmp_path):
     out = tmp_path / "paper"
     rc = cli_main(["paper", "--out", str(out), "--shapes", "myopic", "--stride", "20", "--grid", "60", "--jobs", "1"])
