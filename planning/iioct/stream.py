@@ -99,17 +99,19 @@ class StreamHealth:
             if not new.any():
                 self.why = WHY["stuck_clock"]
                 return self.healthy_t_s
+        # as Python floats and bools: the loop reads them one by one (no NumPy scalar per read)
+        times, oks, distances = t_s.tolist(), np.asarray(valid).tolist(), np.asarray(distance_mm).tolist()
         for k in np.flatnonzero(new).tolist():
-            self._last_t = t_s[k]
-            if not valid[k]:
+            self._last_t = times[k]
+            if not oks[k]:
                 self.n_invalid += 1
                 self.why = WHY["invalid"]
                 continue
-            d = distance_mm[k]
+            d = distances[k]
             if d == self._last_d:  # a repeat: no new measurement, the healthy time stays at the value's first
                 self.n_frozen += 1
                 self.why = WHY["frozen"]
                 continue
             self._last_d = d
-            self.healthy_t_s, self.why = t_s[k], ""
+            self.healthy_t_s, self.why = times[k], ""
         return self.healthy_t_s
