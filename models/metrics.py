@@ -129,12 +129,16 @@ class WorstHonesty(NamedTuple):
     worst_excess_mm: float
 
 
-    def report(self, at_suffix: str) -> dict:
-        """The figures as JSON keys: `lowest_sigma3_coverage`, `lowest_at<at_suffix>`,
-        `largest_unsafe_fraction`, `largest_unsafe_at<at_suffix>`, `worst_excess_um`."""
-        return {"lowest_sigma3_coverage": self.lowest_coverage, f"lowest_at{at_suffix}": self.lowest_at,
-                "largest_unsafe_fraction": self.largest_unsafe_fraction,
-                f"largest_unsafe_at{at_suffix}": self.largest_unsafe_at, "worst_excess_um": 1e3 * self.worst_excess_mm}
+def honesty_report(w: WorstHonesty | None, at_suffix: str) -> dict:
+    """The figures of `w` as JSON keys: `lowest_sigma3_coverage`, `lowest_at<at_suffix>`,
+    `largest_unsafe_fraction`, `largest_unsafe_at<at_suffix>`, `worst_excess_um`; each
+    None when `w` is (nothing measured)."""
+    keys = ("lowest_sigma3_coverage", f"lowest_at{at_suffix}", "largest_unsafe_fraction",
+            f"largest_unsafe_at{at_suffix}", "worst_excess_um")
+    if w is None:
+        return dict.fromkeys(keys)
+    return dict(zip(keys, (w.lowest_coverage, w.lowest_at, w.largest_unsafe_fraction, w.largest_unsafe_at,
+                           1e3 * w.worst_excess_mm)))
 
 
 def worst_honesty(at, coverage, unsafe_fraction, worst_excess_mm) -> WorstHonesty | None:

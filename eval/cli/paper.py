@@ -11,7 +11,7 @@ from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_atomic, 
 from eval.experiments.paper import (ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, best_ellipsoid_curve, decision,
                                     optimal_transition, run_shape)
 from eval.experiments.paper_figures import fig5
-from models.metrics import worst_honesty
+from models.metrics import honesty_report, worst_honesty
 from eval.cli.progress import progress_bar
 from eval.cli.workers import add_worker_flags
 from models.adaptive.transition import CRITERIA
@@ -143,10 +143,8 @@ def honesty_along_spiral(runs) -> dict:
     worst_cov = np.fmin.reduce(cov, axis=0)
     worst_unsafe, worst_excess = np.fmax.reduce(unsafe, axis=0), np.fmax.reduce(excess, axis=0)
     w = worst_honesty(runs[0].fractions, worst_cov, worst_unsafe, worst_excess)
-    if w is None:
-        return {"lowest_sigma3_coverage": None, "lowest_at": None, "largest_unsafe_fraction": None,
-                "largest_unsafe_at": None, "worst_excess_um": None, "end_coverage": None, "end_unsafe_fraction": None}
-    return {**w.report(""), "end_coverage": float(worst_cov[-1]), "end_unsafe_fraction": float(worst_unsafe[-1])}
+    end = (None, None) if w is None else (float(worst_cov[-1]), float(worst_unsafe[-1]))
+    return {**honesty_report(w, ""), "end_coverage": end[0], "end_unsafe_fraction": end[1]}
 
 
 def _fmt(pair) -> str:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.metrics import field_report, sigma_honesty, worst_honesty
+from models.metrics import field_report, honesty_report, sigma_honesty, worst_honesty
 
 
 class _ExactField:
@@ -55,7 +55,7 @@ class BuildHonesty:
                           [r[1].unsafe_fraction for r in self.rows], [r[1].worst_excess_mm for r in self.rows])
         if w is None:
             return None
-        return {"probes": len(self.rows), **w.report("_s")}
+        return {"probes": len(self.rows), **honesty_report(w, "_s")}
 
 
 def filter_model(loop, build):
