@@ -9,9 +9,11 @@ from hypothesis import settings
 from scipy.spatial import cKDTree
 
 # The suite is deterministic by default (CI must not flake on a lucky draw); run
-# HYPOTHESIS_PROFILE=explore make test to search new random examples.
-settings.register_profile("deterministic", derandomize=True, print_blob=True)
-settings.register_profile("explore", max_examples=500, print_blob=True)
+# HYPOTHESIS_PROFILE=explore make test to search new random examples. No deadline: the
+# suite asserts no timings (speed lives in `make bench`), and Hypothesis's 200 ms per example
+# failed a property on a VM 1.8 x slower than the one it was written on.
+settings.register_profile("deterministic", derandomize=True, print_blob=True, deadline=None)
+settings.register_profile("explore", max_examples=500, print_blob=True, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "deterministic"))
 
 # no progress bars or spinners in test output (eval.cli.progress), subprocesses included
