@@ -285,7 +285,8 @@ class LocalRetinaModel:
         predictions of the updates between read the last ones."""
         spread_departures(self._dirs, _node_frames_of(self.n_nodes), self._x, self._has, self._excess, self._dev,
                           self._slope, self._near, np.radians(self.config.spacing_deg), FAINT_SUPPORT * self._support,
-                          self._reach, self.config.departure_floor_mm, self._blend, *self._neighbours(), *self._neighbours(self.config.blend_deg), self._extra)
+                          self._reach, self.config.departure_floor_mm, self._blend, *self._neighbours(),
+                          *self._neighbours(self.config.blend_deg), self._extra)
         fill_trend(self._dirs, self._has, self._near, self.center, self._tp, np.cos(np.radians(self.config.trend_deg)),
                    self._x)
 

@@ -40,7 +40,7 @@ def _instrument_path(rng, steps, counts, speed_mm_per_step):
     return out
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(seed=st.integers(0, 2**32 - 1), steps=st.integers(1, 200), speed=st.floats(1e-4, 0.5),
        switch=st.integers(0, 200))
 def test_equals_searching_every_point(seed, steps, speed, switch):
@@ -95,7 +95,7 @@ def _bounds(rng, pts, eye, spread_mm):
     return out
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(seed=st.integers(0, 2**32 - 1), steps=st.integers(1, 200), speed=st.floats(1e-4, 0.5),
        switch=st.integers(0, 200), spread=st.floats(1e-3, 1.0), cap=st.floats(0.0, 12.0))
 def test_bound_excess_equals_searching_every_point(seed, steps, speed, switch, spread, cap):

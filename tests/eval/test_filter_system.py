@@ -45,7 +45,7 @@ def assert_same(out, ref):
     assert out.min_clearance_mm == pytest.approx(ref.min_clearance_mm, abs=1e-12, nan_ok=True)
 
 
-@settings(max_examples=120, deadline=None)
+@settings(max_examples=120)
 @given(start=st.integers(0, 11), kind=st.sampled_from(["prior", "ellipsoid", "sphere", "no coverage"]),
        dq=st.lists(st.floats(-0.02, 0.02), min_size=6, max_size=6),
        v=st.lists(st.floats(-25.0, 25.0), min_size=3, max_size=3), roll=st.floats(-3.0, 3.0))
@@ -120,7 +120,7 @@ def local_setup():
     return loop, starts, {"prior": ModelSnapshot("prior", None, 0.0, np.nan, 0, coverage.view()), "local": snap}
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(start=st.integers(0, 7), kind=st.sampled_from(["prior", "local"]),
        dq=st.lists(st.floats(-0.02, 0.02), min_size=6, max_size=6),
        v=st.lists(st.floats(-25.0, 25.0), min_size=3, max_size=3))
@@ -190,7 +190,7 @@ def actuated_api(loop, q, command, snap, pending):
     return SafetyFilter(loop.config.filter)(x)
 
 
-@settings(max_examples=80, deadline=None)
+@settings(max_examples=80)
 @given(start=st.integers(0, 11), kind=st.sampled_from(["prior", "ellipsoid"]),
        pending=st.lists(st.floats(-0.01, 0.01), min_size=42, max_size=42),
        v=st.lists(st.floats(-25.0, 25.0), min_size=3, max_size=3))

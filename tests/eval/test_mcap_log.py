@@ -261,7 +261,7 @@ def _matrix_of(q):
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200)
 @given(st.lists(st.floats(-1.0, 1.0), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 1e-3))
 def test_quaternion_gives_back_the_rotation(v):
     v = np.asarray(v) / np.linalg.norm(v)
@@ -281,7 +281,7 @@ def same_bits(a, b) -> bool:
 finite_or_not = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
 
-@settings(max_examples=100, deadline=None)
+@settings(max_examples=100)
 @given(st.lists(finite_or_not, min_size=3, max_size=3), st.lists(finite_or_not, min_size=9, max_size=9),
        finite_or_not, st.floats(-1e6, 1e6), st.booleans())
 def test_inputs_round_trip_bit_for_bit(v, J, margin, roll, ellipsoid):

@@ -10,7 +10,7 @@ from eval.experiments.boundary import START_DEPTH_MM
 from eval.experiments.search_adversary import DIMENSIONS, MAX_ROLL_RATE, ParametricCommand, start_of
 
 
-@settings(max_examples=50, deadline=None)
+@settings(max_examples=50)
 @given(st.lists(st.floats(-50, 50), min_size=DIMENSIONS, max_size=DIMENSIONS))
 def test_any_theta_commands_within_the_speed_and_roll_limits_and_starts_inside(theta):
     u, depth = start_of(theta)

@@ -216,7 +216,7 @@ def test_a_run_started_late_on_1_khz_joint_angles_packs_only_the_samples_since_i
     assert packet.t_s.tolist() == (np.arange(10, 20) * 5e-4).tolist()
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=20)
 @given(start_s=st.floats(0.0, 0.012), input_rate_hz=st.sampled_from([None, 1000.0]),
        offset_s=st.sampled_from([0.0, 0.0013]))
 def test_a_full_registers_fast_read_is_the_general_one(setup, start_s, input_rate_hz, offset_s):

@@ -26,7 +26,7 @@ def robot():
 joint_angles = st.lists(st.floats(-3.1, 3.1), min_size=6, max_size=6).map(np.array)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(q=joint_angles)
 def test_every_frame_pose_and_jacobian_is_the_plants(robot, q):
     # the plant's own answers, in mm: the chain is exact up to rounding (1e-9 mm on ~400 mm)
@@ -48,7 +48,7 @@ def test_every_frame_pose_and_jacobian_is_the_plants(robot, q):
         np.testing.assert_allclose(robot.spatial_jacobian(name, q), Js, atol=1e-9)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(q=joint_angles)
 def test_the_product_without_the_jacobian_is_chain_kinematics_bit_for_bit(robot, q):
     R, p = np.full((3, 3), np.nan), np.full(3, np.nan)  # overwritten in place
@@ -57,7 +57,7 @@ def test_the_product_without_the_jacobian_is_chain_kinematics_bit_for_bit(robot,
     assert R.tobytes() == R_ref.tobytes() and p.tobytes() == p_ref.tobytes()
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(q=joint_angles)
 def test_a_frames_pose_position_and_axes_are_the_full_products_bit_for_bit(robot, q):
     # the tip's and the sensor's home poses: frame_pose, frame_position (the loop's command

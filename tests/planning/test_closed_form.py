@@ -14,7 +14,7 @@ from planning.robot import Robot
 ROBOT = Robot()
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(st.lists(st.floats(-0.95, 0.95), min_size=6, max_size=6))
 def test_every_branch_reproduces_the_tip_and_shaft_and_one_is_the_original(fractions):
     q = ROBOT.q_lower + (np.array(fractions) + 1.0) / 2.0 * (ROBOT.q_upper - ROBOT.q_lower)

@@ -19,7 +19,7 @@ def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(st.floats(0.0, 2.0), st.floats(0.0, 4.0), st.lists(st.floats(-1, 1), min_size=3, max_size=3))
 def test_a_sphere_with_a_margin_grants_its_distance_less_k_times_the_margin(margin, k, v):
     """ModelField(sphere, margin) has u = margin everywhere (no coverage): the granted

@@ -269,7 +269,7 @@ def test_an_ascan_packet_is_the_a_scan_chain_on_the_reference_geometry(robots, e
     assert sensor._rng.random() == rng.random()
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(rows=st.lists(st.lists(st.sampled_from([0.0, -0.0, 1.0, np.nan]), min_size=2, max_size=2), min_size=1,
                      max_size=12))
 def test_row_runs_are_the_runs_of_equal_consecutive_rows(rows):

@@ -203,7 +203,7 @@ def test_a_move_whose_spline_swings_past_a_joint_limit_is_not_taken(setup):
 
 
 @given(st.lists(st.floats(0.05, 2.0), min_size=1, max_size=6), st.integers(0, 2**31 - 1))
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 def test_the_withdrawal_is_its_planned_line_run_backwards_exactly(durations, seed):
     """The withdrawal is planned as an insertion and run backwards: the same curve (a cubic
     segment is its ends' values and velocities), not a new curve through its knots."""

@@ -23,7 +23,7 @@ def test_a_port_at_the_reference_distance_and_3_oclock_is_the_reference_trocar()
     assert np.allclose(p, TROCAR_P_EC_MM, atol=1e-3)
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=20)
 @given(hour=st.floats(1.0, 12.0), limbus=st.floats(*PARS_PLANA_MM))
 def test_ports_lie_in_the_wall_on_their_meridian_further_back_the_further_from_the_limbus(hour, limbus):
     ref = default_trocar_E("emmetropic")

@@ -157,7 +157,7 @@ def test_a_midpoint_turns_the_roll_the_way_j6_unwinds(setup):
 
 
 @given(st.floats(-np.pi, np.pi), st.floats(-np.pi, np.pi), st.integers(0, 200))
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25)
 def test_a_postures_roll_is_the_roll_it_was_solved_at_and_turns_with_j6(setup, roll, turn, k):
     scenario, robot, P, _ = setup
     p = P[k % len(P)]

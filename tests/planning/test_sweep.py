@@ -45,7 +45,7 @@ def _band(mask: np.ndarray) -> Band:
                 np.where(mask, "ok", "reach").astype(object), np.zeros(mask.shape))
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(st.lists(st.lists(st.booleans(), min_size=8, max_size=8), min_size=1, max_size=4))
 def test_the_flipped_serpentine_visits_the_same_cells_each_ring_the_other_way(rows):
     mask = np.array(rows, dtype=bool)

@@ -15,7 +15,7 @@ def _curve(t, Q):
     return PiecewisePolynomial.CubicHermite(t, Q.T, waypoint_velocities(t, Q).T)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(st.integers(2, 12), st.integers(0, 2**32 - 1))
 def test_a_joint_stays_within_its_waypoints_where_they_run_monotone(n, seed):
     rng = np.random.default_rng(seed)
@@ -39,7 +39,7 @@ def test_a_joint_stays_within_its_waypoints_where_they_run_monotone(n, seed):
     np.testing.assert_array_equal(waypoint_velocities(t, Q)[[0, -1]], 0.0)  # at rest at both ends
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(st.integers(3, 12), st.integers(0, 2**32 - 1))
 def test_waypoints_on_a_line_in_joint_space_move_along_it(n, seed):
     """Waypoints q0 + u f_i (f rising, unevenly in time): every velocity is a positive

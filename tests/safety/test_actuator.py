@@ -35,7 +35,7 @@ def test_the_ideal_actuator_applies_the_command():
     np.testing.assert_allclose(m.pending_rows(np.zeros(6), np.ones((1, 6)), DT), [np.zeros(6), np.full(6, DT)])
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(st.floats(0.0, 0.03), st.integers(0, 6), st.lists(st.floats(-0.2, 0.2), min_size=3, max_size=3),
        st.integers(0, 2 ** 31))
 def test_the_pending_rows_add_up_to_the_braking_displacement(lag_s, delay, v, seed):

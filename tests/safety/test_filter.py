@@ -68,7 +68,7 @@ def test_tangential_motion_near_the_boundary_is_kept():
     assert out.qdot[2] == pytest.approx(-1.0, rel=0.01)  # the inward part is cut to the barrier rate
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(
     st.lists(st.floats(-1, 1), min_size=3, max_size=3),
     st.lists(st.floats(-15, 15), min_size=3, max_size=3),

@@ -11,7 +11,7 @@ from models.eyes import EYE_SHAPES, EyePose, make_eye
 from safety.margins import UncertaintyMargins, conservative_prior
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=12)
 @given(st.sampled_from(EYE_SHAPES), st.lists(st.floats(-1.0, 1.0), min_size=3, max_size=3), st.floats(-15, 15))
 def test_prior_is_inside_every_retina(shape, offset, tilt_deg):
     offset = np.asarray(offset)

@@ -31,7 +31,7 @@ def random_filter_qp(seed: int, clearance_mm: float, v_cmd=(3.0, 1.0, -2.0)) -> 
     return DenseQP(H, c, np.full(n, -bound), np.full(n, bound), G, h, rng.normal(size=(2, n)), np.zeros(2), names)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(seed=st.integers(0, 2**32 - 1), clearance=st.floats(0.3, 5.0))
 def test_daqp_direct_and_the_shortcut_agree_with_clarabel(seed, clearance):
     # both solve the same convex QP: equal to the solvers' tolerance, whether rows are active

@@ -82,7 +82,7 @@ def test_an_equality_that_is_no_drift_correction_is_never_eased():
     assert not out.ok and out.reason.startswith("QP: infeasible")
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(st.floats(0.2, 1.5), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-0.2, 0.2),
        st.floats(-0.2, 0.2))
 def test_the_step_is_the_first_relaxed_form_that_has_a_velocity(h, gx, gy, gz, ey, ez):

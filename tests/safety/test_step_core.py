@@ -19,7 +19,7 @@ def finish(qp, active):
                        np.zeros(len(qp.h), dtype=np.int64))
 
 
-@settings(max_examples=80, deadline=None)
+@settings(max_examples=80)
 @given(seed=st.integers(0, 2**32 - 1), clearance=st.floats(0.3, 3.0), v=st.lists(st.floats(-40, 40), min_size=3, max_size=3),
        guess=st.lists(st.booleans(), min_size=N_ROWS + 12, max_size=N_ROWS + 12))
 def test_a_certified_warm_solution_is_the_solution(seed, clearance, v, guess):

@@ -203,7 +203,7 @@ def test_no_shape_before_four_points_then_a_sphere():
     assert isinstance(model.shape, Sphere) and model.shape.radius == model.sphere.radius
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25)
 @given(st.integers(2, 150), st.floats(0.5, 20.0), st.integers(0, 2**32 - 1), st.data())
 def test_scan_range_is_the_largest_pairwise_distance(n, spread, seed, data):
     P = np.random.default_rng(seed).normal(0.0, spread, (n, 3)) + [0.0, 0.0, -10.0]

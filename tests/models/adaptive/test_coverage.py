@@ -16,7 +16,6 @@ def test_fibonacci_directions_are_unit_and_even():
     assert abs(D.mean(axis=0)).max() < 1e-3
 
 
-@settings(deadline=None)  # the first call loads the compiled query
 @given(st.floats(0.0, 80.0), st.floats(0.0, 2 * np.pi))
 def test_the_angle_from_a_measured_cap_is_the_angle_past_its_rim(off_deg, azimuth):
     """Data over a 30 deg cap about -z: a direction at 30 + off deg from -z is off deg
@@ -41,7 +40,7 @@ def test_no_data_means_no_trust_and_bad_input_is_refused():
         DirectionCoverage(np.zeros(3), bin_deg=0.0)
 
 
-@settings(deadline=None, max_examples=30)
+@settings(max_examples=30)
 @given(st.integers(0, 2**32 - 1), st.floats(1.0, 30.0))
 def test_queries_equal_a_k_d_tree_reference(seed, angle_deg):
     """The view's scans give the nearest covered direction's angle and the worst misfit
@@ -65,7 +64,7 @@ def test_queries_equal_a_k_d_tree_reference(seed, angle_deg):
     np.testing.assert_allclose(view.local_misfit_mm(Q, np.radians(angle_deg)), ref, atol=1e-12)
 
 
-@settings(deadline=None, max_examples=60)
+@settings(max_examples=60)
 @given(st.integers(0, 2**32 - 1), st.sampled_from([0.5, 2.0, 7.0, 30.0]))
 def test_the_bin_search_equals_a_k_d_tree_on_the_fibonacci_sphere(seed, bin_deg):
     """The compiled nearest-direction search finds the k-d tree's bin for random directions,
@@ -148,7 +147,7 @@ def test_a_rebuilt_view_holds_the_covered_bins_and_their_misfits_exactly(kind):
     assert view.misfits_mm.max() > 0.0  # points inside the shape: misfits to compare
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(seed=st.integers(0, 2**32 - 1), angle_deg=st.floats(1.0, 180.0), n=st.integers(0, 400))
 def test_the_z_band_finds_what_the_full_scan_finds(seed, angle_deg, n):
     # directions sorted by z (as CoverageView keeps them); queries anywhere

@@ -48,7 +48,7 @@ def test_non_finite_points_are_passed_on_for_the_update_to_count():
     assert n == 3 and keep.all()
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200)
 @given(st.lists(st.tuples(st.floats(-0.5, 0.5), st.floats(-0.5, 0.5)), min_size=1, max_size=400))
 def test_no_spot_gives_more_than_the_cap_in_a_row_and_a_point_beyond_the_radius_is_taken(xy):
     """Against a plain reading of the rule: the anchor is the first point of each run of

@@ -16,7 +16,7 @@ from models.adaptive.scan_range import ScanRange
 TOL_MM = 1e-9
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(
     st.integers(2, 400),
     st.floats(0.1, 30.0),

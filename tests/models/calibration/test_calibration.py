@@ -68,7 +68,7 @@ def test_noise_free_recovery_is_exact():
     assert res.residual_max_um < 1e-3
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=8)
 @given(
     seed=st.integers(0, 10_000),
     u=st.sampled_from([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0], [0.6, 0.0, -0.8]]),
@@ -83,7 +83,7 @@ def test_noise_free_recovery_for_any_mounting(seed, u, offset_mm, tilt_deg):
     assert direction_error_deg(res.sensor, truth) < 1e-6
 
 
-@settings(max_examples=5, deadline=None)
+@settings(max_examples=5)
 @given(rotvec=st.tuples(*[st.floats(-3.0, 3.0)] * 3), shift=st.tuples(*[st.floats(-500.0, 500.0)] * 3))
 def test_result_is_invariant_to_the_world_frame(noisy, rotvec, shift):
     """Moving W (robot base) rigidly moves the plate with it and leaves p, u in F unchanged."""
@@ -121,7 +121,7 @@ def test_sampler_aims_the_nominal_sensor_inside_its_design():
     assert np.linalg.svd(a_F - a_F.mean(axis=0), compute_uv=False)[-1] > 0.1 * np.sqrt(len(R))
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(seed=st.integers(0, 10_000), offset_mm=st.floats(0.0, 2.0), tilt_deg=st.floats(0.0, 10.0))
 def test_offset_sensor_pose_has_the_requested_error(seed, offset_mm, tilt_deg):
     truth = offset_sensor_pose(NOMINAL, offset_mm, np.radians(tilt_deg), np.random.default_rng(seed))

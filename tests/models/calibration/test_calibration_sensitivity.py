@@ -35,7 +35,7 @@ def test_unperturbed_reconstruction_is_the_scan(scan):
     assert abs(diameter_error_um(scan, 12.0)) < 1e-6
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=20)
 @given(delta_um=st.floats(-500.0, 500.0), seed=st.integers(0, 1000))
 def test_radial_beams_grow_the_diameter_by_twice_the_offset(delta_um, seed):
     rng = np.random.default_rng(seed)
@@ -63,7 +63,7 @@ def test_paper_geometry_offset_is_linear_and_tilt_is_minor():
     assert np.abs(t).max() < 0.05 * abs(e[-1])  # 2 deg matters far less than 200 um
 
 
-@settings(max_examples=50, deadline=None)
+@settings(max_examples=50)
 @given(theta=st.floats(0.0, 1.5), phi=st.floats(-np.pi, np.pi))
 def test_instrument_x_axis_is_a_unit_normal_to_the_beam(theta, phi):
     b = np.array([[np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), -np.cos(theta)]])

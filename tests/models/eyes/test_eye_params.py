@@ -31,7 +31,7 @@ def test_a_wrong_name_or_value_is_one_line_naming_it_and_its_range(shape, params
     assert "\n" not in msg and all(w in msg for w in words), msg
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=15)
 @given(height=st.floats(0.5, 3.5), angle=st.floats(0.0, 65.0))
 def test_a_detachment_lifts_the_retina_by_its_height_at_its_centre(height, angle):
     a = np.radians(angle)
@@ -41,7 +41,7 @@ def test_a_detachment_lifts_the_retina_by_its_height_at_its_centre(height, angle
     assert healthy - lifted == pytest.approx(height, abs=1e-9)
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=15)
 @given(depth=st.floats(1.0, 3.0), apex=st.floats(2.0, 4.0))
 def test_staphyloma_depth_and_pointed_apex_move_the_wall_outward_by_their_size(depth, apex):
     pole = np.array([[0.0, 0.0, -1.0]])

@@ -174,7 +174,7 @@ def incidences(e, O: np.ndarray, U: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.arccos(np.minimum(1.0, np.abs(np.einsum("ij,ij->i", N, U))))
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25)
 @given(seed=st.integers(0, 10_000), tilt_deg=st.floats(-20.0, 20.0))
 def test_beam_hits_on_an_ellipsoidal_eye_are_its_ray_cast_and_normal(seed, tilt_deg):
     """Eye.beam_hits against Ellipsoid.ray_cast and Eye.surface_normal on a tilted,
@@ -195,7 +195,7 @@ def test_beam_hits_on_an_ellipsoidal_eye_are_its_ray_cast_and_normal(seed, tilt_
 
 
 @pytest.mark.parametrize("name", COMPOSITE)
-@settings(max_examples=5, deadline=None)
+@settings(max_examples=5)
 @given(seed=st.integers(0, 10_000))
 def test_beam_hits_on_a_composite_eye_are_its_ray_cast_and_normal(name, seed):
     """Eye.beam_hits (one compiled call) against Eye.ray_cast then Eye.surface_normal on

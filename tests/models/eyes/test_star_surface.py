@@ -43,7 +43,7 @@ def unit(V) -> np.ndarray:
     return V / np.linalg.norm(V, axis=1, keepdims=True)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25)
 @given(st.integers(0, 2**32 - 1), st.sampled_from(["sphere", "ellipsoid"]))
 def test_ray_casts_match_the_closed_form_from_inside_and_outside(seed, kind):
     rng = np.random.default_rng(seed)
@@ -162,7 +162,7 @@ def rays(draw):
     return name, on_line - rng.uniform(0.5, 6.0) * d, d
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=150)
 @given(rays())
 def test_ray_hits_are_the_first_crossing_of_a_fine_reference_march(ray):
     name, o, d = ray
@@ -191,7 +191,7 @@ def test_a_ray_that_clips_the_detachment_reports_the_clip(depth_mm):
 
 # ---- distances ----------------------------------------------------------------------------------
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=10)
 @given(st.integers(0, 2**32 - 1))
 def test_distances_on_an_ellipsoid_match_the_exact_one(seed):
     """The closest-point search on an ellipsoid written as a radial function against the
@@ -250,7 +250,7 @@ def test_distances_near_the_pointed_crease_match_a_dense_band():
 
 
 @pytest.mark.parametrize("name", ["pointed", "staphyloma", "detached"])
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25)
 @given(seed=st.integers(0, 2**31 - 1))
 def test_the_inside_value_is_the_distance_from_the_centre_minus_rho(name, seed):
     """|x| - rho(x / |x|) at points r u (r in [0, 20] mm): negative inside, zero on the

@@ -19,7 +19,7 @@ from models import Ellipsoid, IncrementalEllipsoidFit, fit_ellipsoid
 import models.fit.ellipsoid_fit as ellipsoid_fit
 
 TOL_MM = 1e-6
-PROPERTY = settings(max_examples=30, deadline=None)
+PROPERTY = settings(max_examples=30)
 
 
 @st.composite
@@ -274,7 +274,7 @@ def test_non_finite_points_are_refused(bad):
         fit_ellipsoid(P)
 
 
-@settings(max_examples=50, deadline=None)
+@settings(max_examples=50)
 @given(seed=st.integers(0, 10_000), n_old=st.integers(10, 200), n_new=st.integers(10, 200))
 def test_residuals_since_a_checkpoint_are_the_rms_distances_of_the_new_points(seed, n_old, n_new):
     # the prequential check's errors: the quadrics' RMS (Taubin) distance over only the points added since

@@ -24,7 +24,7 @@ def noisy_cap(center, radius, seed, n=200):
     return np.asarray(center) + radius * U + rng.normal(0.0, 0.02, (n, 3))
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(
     st.lists(st.floats(-300.0, 300.0), min_size=3, max_size=3),
     st.floats(5.0, 15.0),

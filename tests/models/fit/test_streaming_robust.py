@@ -89,7 +89,7 @@ def test_work_per_step_is_bounded():
     assert fit.passes >= 3
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=10)
 @given(seed=st.integers(0, 2 ** 32 - 1), outliers=st.floats(0.0, 0.2))
 def test_reweighing_between_steps_is_the_packets_work_spread(seed, outliers):
     """One A-scan at a time with `reweigh` after each add and a step every PACKET: the
@@ -318,7 +318,7 @@ def test_taken_globe_outlasts_a_patch_the_sphere_fits_and_yields_to_a_long_run()
     assert model.globe_taken
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(st.floats(-20.0, 9.0))
 def test_every_refractions_retina_is_an_eyes(dioptres):
     """The catalog's retina (Atchison's per-dioptre growth) of any refraction from +9 D to
@@ -326,7 +326,7 @@ def test_every_refractions_retina_is_an_eyes(dioptres):
     assert eyes_radii(*radii_for_refraction(dioptres))
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(st.floats(9.0, 12.5), st.floats(1.001 * EYE_AXIS_RATIO_MAX, 16.0 / 12.5 + 0.001))
 def test_semi_axes_further_apart_than_an_eyes_are_not(shortest, ratio):
     """Semi-axes each within EYE_RADII_MM whose longest exceeds EYE_AXIS_RATIO_MAX (1.25)

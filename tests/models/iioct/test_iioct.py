@@ -167,7 +167,7 @@ def test_a_floater_alone_is_not_taken_for_the_retina(extractor):
         assert not m.valid and np.isnan(m.distance_mm)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(st.floats(*WORKING_RANGE_MM), st.integers(0, 2 ** 31))
 def test_any_distance_in_the_working_range_is_extracted_within_tolerance_or_flagged(distance_mm, seed):
     """Every scan at normal incidence gives either a distance within 3x the SD target or an
@@ -182,7 +182,7 @@ def test_any_distance_in_the_working_range_is_extracted_within_tolerance_or_flag
     assert 0.7 <= m.confidence <= 1.0 and m.snr_db > 13.0
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(st.floats(2.5, 24.0), st.floats(0.0, np.deg2rad(50.0)), st.floats(0.1, 2.0), st.integers(0, 2 ** 31))
 def test_clusters_matched_together_score_as_if_matched_one_by_one(distance_mm, incidence_rad, gap_mm, seed):
     """Candidate interfaces whose ILM ranges overlap share one correlation (speed); each

@@ -24,7 +24,7 @@ def spread(dirs, x, has, excess, dev, slope, near, table, near_table=None):
                              np.zeros(len(dirs)))
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=20)
 @given(st.integers(0, 2**32 - 1))
 def test_the_neighbour_table_loses_no_pair_that_counts(seed):
     """Random data nodes, departures, slopes and quadratics on a 600-node grid: the tables

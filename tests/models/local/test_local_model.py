@@ -130,7 +130,7 @@ def test_far_from_data_the_sd_is_the_global_models(bumped):
     np.testing.assert_allclose(S, np.hypot(m.config.sd_far_mm, m.config.sd_floor_mm), rtol=1e-9)
 
 
-@settings(max_examples=5, deadline=None)
+@settings(max_examples=5)
 @given(split=st.integers(1, 400))
 def test_batches_do_not_matter(split):
     _, P = cap_points(lambda u: np.full(len(u), 11.0), n=800, seed=2)
@@ -185,7 +185,7 @@ def test_field_report_measures_against_the_truth():
     assert r["sigma3_unsafe_fraction"] == 0.0 and -0.1 * 1e3 - 1.0 <= r["sigma3_worst_excess_um"] <= -0.085 * 1e3
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=20)
 @given(seed=st.integers(0, 10_000), local=st.booleans())
 def test_the_barrier_form_holds_the_rate_of_the_sd_too(bumped, seed, local):
     """The barrier keeps h - k u >= d_safe and bounds its rate through the field's gradient:

@@ -24,7 +24,7 @@ def _rotation(angles):
     return Rz @ Ry @ Rx
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(radii=st.lists(st.floats(8.0, 16.0), min_size=3, max_size=3),
        angles=st.lists(st.floats(-np.pi, np.pi), min_size=3, max_size=3),
        p=st.lists(st.floats(-16.0, 16.0), min_size=3, max_size=3), margin=st.floats(0.0, 3.0))
@@ -38,7 +38,7 @@ def test_holds_is_the_exact_distance_test(radii, angles, p, margin):
             assert holds(global_params(shape), p, margin) == (d >= margin)
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=10)
 @given(seed=st.integers(0, 10_000), batch=st.integers(1, 60))
 def test_every_node_some_point_weighed_is_recorded_once(seed, batch):
     _, P = cap_points(detachment(20.0, 25.0, 2.0), n=1500, seed=seed)
@@ -50,7 +50,7 @@ def test_every_node_some_point_weighed_is_recorded_once(seed, batch):
     assert set(recorded.tolist()) == set(np.flatnonzero(m._wsum > 0.0).tolist())
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200)
 @given(sizes=st.lists(st.integers(0, 60), min_size=1, max_size=80), rate=st.sampled_from([0.2, 0.25, 0.5, 1.0, 0.1]))
 def test_the_sweep_owes_its_rate_per_point_over_any_split(sizes, rate):
     # a stream of single A-scans and one of the loop's packets re-solve as many nodes per point

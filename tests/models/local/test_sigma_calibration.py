@@ -45,7 +45,7 @@ def test_a_calibrated_sd_is_not_shrunk():
     assert (cal.factors == 1.0).all()
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=20)
 @given(scale=st.lists(st.floats(0.1, 6.0), min_size=N_CAL, max_size=N_CAL), n=st.integers(0, 400))
 def test_factors_are_at_least_one_and_never_fall_with_the_gap(scale, n):
     cal = SigmaCalibration()

@@ -170,7 +170,7 @@ def distance_and_gradient_via_closest_point(e: Ellipsoid, Q: np.ndarray) -> tupl
     return np.where(implicit_value(e, Q) < 0.0, d, -d), n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(st.integers(0, 2**32 - 1), st.floats(1e-6, 3.0), st.integers(0, 2**32 - 1))
 def test_compiled_query_equals_the_closest_point_construction(rot_seed, scale, seed):
     # the compiled query and the closest-point path are the same construction: equal to
@@ -191,7 +191,7 @@ def test_compiled_query_equals_the_closest_point_construction(rot_seed, scale, s
     np.testing.assert_allclose(g[0] - (g[0] @ s) * s, g_ref[0] - (g_ref[0] @ s) * s, atol=1e-9)
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(st.integers(0, 2**32 - 1), st.floats(0.0, 3.0), st.integers(0, 2**32 - 1))
 def test_ray_hits_lie_on_the_surface_and_are_the_first_crossing(rot_seed, offset, seed):
     rng = np.random.default_rng(seed)

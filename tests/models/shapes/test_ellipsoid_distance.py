@@ -55,7 +55,7 @@ def reference(e: Ellipsoid, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.where(np.sum(L * L, axis=1) < 1.0, d, -d), X
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(st.data())
 def test_every_point_agrees_with_the_closest_point_construction(data):
     """Distance to 1e-9 mm; the gradient is a unit vector whose step back by the distance

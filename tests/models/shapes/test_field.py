@@ -105,7 +105,7 @@ def moved(shape, R: np.ndarray, t: np.ndarray):
     return Ellipsoid(R @ shape.center + t, shape.radii, R @ shape.rotation)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(shapes(), st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1))
 def test_the_distance_is_invariant_under_rigid_motions(shape, rot_seed, seed):
     rng = np.random.default_rng(seed)
@@ -117,7 +117,7 @@ def test_the_distance_is_invariant_under_rigid_motions(shape, rot_seed, seed):
                                    rtol=0, atol=1e-9)
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(shapes(), st.integers(0, 2**32 - 1))
 def test_the_gradient_is_the_unit_direction_of_increasing_distance(shape, seed):
     """Central differences (step 1e-5 mm) of the distance along each axis give the gradient

@@ -17,7 +17,7 @@ from models import Sphere, fit_sphere
 
 TOL_MM = 1e-6
 ROUND_OFF_MM = 1e-9
-PROPERTY = settings(max_examples=30, deadline=None)
+PROPERTY = settings(max_examples=30)
 
 spheres = st.builds(
     Sphere, st.lists(st.floats(-300.0, 300.0), min_size=3, max_size=3), st.floats(5.0, 15.0)
