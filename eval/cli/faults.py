@@ -2,7 +2,8 @@
 
 For each fault class (eval.experiments.faults: actuator delay, lag and acceleration
 limit, calibration error at the declared bound, OCT time offset, encoder noise, dropped,
-frozen and invalid streams, floaters; "ideal" and "none" for reference) builds the model by the
+frozen and invalid streams, floaters, and all but the stream faults at once, "combined";
+"ideal" and "none" for reference) builds the model by the
 spiral through the faulty loop and runs the boundary's adversarial campaign against it.
 Writes faults.json ({"model": the model that bounds the motion, "local" or "quadric" (as
 boundary.json's loop.model), "classes": {name: {"parameters", "scenarios", "violations",

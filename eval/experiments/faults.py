@@ -30,6 +30,10 @@ Parameters and their sources (assumptions where the Meca500's documentation is s
   STREAM_ONSET_S on.
 - floaters: 2 % of the samples (planning.iioct.IioctSensor's worst case in "distance"
   mode: a confident wrong distance).
+- combined: every class of ROBOT_CLASSES at once, as above (the delay, the lag and the
+  acceleration limit in one actuator): the errors a real robot and sensor bring together.
+  The stream classes stay apart: each stops the robot within the sensor age limit, which
+  would end every scenario before the others could act.
 Units: mm, s, deg where named.
 """
 from __future__ import annotations
@@ -48,9 +52,10 @@ STREAM_ONSET_S = 0.1
 ACCEL_LIMIT_DEG_S2 = 1000.0
 ENCODER_NOISE_DEG = 0.001
 FLOATER_RATE = 0.02
-FAULT_CLASSES = ("ideal", "none", "delay", "lag", "accel_limit", "calibration", "time_offset", "encoder_noise", "dropout",
-                 "frozen", "invalid", "stuck_clock", "floaters")
+ROBOT_CLASSES = ("delay", "lag", "accel_limit", "calibration", "time_offset", "encoder_noise", "floaters")
 STREAM_CLASSES = ("dropout", "frozen", "invalid", "stuck_clock")
+FAULT_CLASSES = ("ideal", "none", "delay", "lag", "accel_limit", "calibration", "time_offset", "encoder_noise", "dropout",
+                 "frozen", "invalid", "stuck_clock", "floaters", "combined")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,39 +72,55 @@ class FaultClass:
     floater_rate: float = 0.0
 
 
+_ACTUATOR = {"delay": {"delay_s": 0.005}, "lag": {"lag_s": 0.020},
+             "accel_limit": {"accel_limit_rad_s2": float(np.radians(ACCEL_LIMIT_DEG_S2))}}
+
+
+def _errors(name: str, base) -> tuple[dict, dict, dict, dict, float]:
+    """One error class of ROBOT_CLASSES as (parameters, LoopConfig changes, ActuatorModel
+    keyword arguments, scenario keyword arguments, floater rate)."""
+    if name in _ACTUATOR:
+        return {}, {}, _ACTUATOR[name], {}, 0.0
+    if name == "calibration":
+        mm, deg = base.filter.calibration_bound_mm, base.filter.calibration_bound_deg
+        error = [0.0, 0.0, -mm, deg, 0.0, 0.0]
+        return ({"sensor_pose_error": error, "calibration_bound": [mm, deg]}, {}, {},
+                {"sensor_offset_S_mm": np.array(error[:3]), "sensor_rotvec_S_rad": np.radians(error[3:])}, 0.0)
+    if name == "time_offset":
+        return {"oct_time_offset_ms": 2.6}, {"oct_time_offset_s": 0.0026}, {}, {}, 0.0
+    if name == "encoder_noise":
+        return {"encoder_noise_deg": ENCODER_NOISE_DEG}, {"encoder_noise_rad": float(np.radians(ENCODER_NOISE_DEG))}, {}, {}, 0.0
+    return {"floater_rate": FLOATER_RATE}, {}, {}, {}, FLOATER_RATE  # floaters
+
+
 def fault_class(name: str, base) -> FaultClass:
     """The class `name` (FAULT_CLASSES) on the base LoopConfig (module docstring)."""
-    same = dict(build=base, campaign=base, scenario_kwargs={})
     if name == "ideal":
         cfg = dataclasses.replace(base, filter=dataclasses.replace(base.filter, calibration_bound_mm=0.0,
                                                                   calibration_bound_deg=0.0))
         return FaultClass(name, {"calibration_bound": [0.0, 0.0]}, cfg, cfg, {})
     if name == "none":
-        return FaultClass(name, {}, **same)
-    if name in ("delay", "lag", "accel_limit"):
-        model = {"delay": ActuatorModel(delay_s=0.005), "lag": ActuatorModel(lag_s=0.020),
-                 "accel_limit": ActuatorModel(accel_limit_rad_s2=float(np.radians(ACCEL_LIMIT_DEG_S2)))}[name]
-        cfg = dataclasses.replace(base, actuator=model)
-        return FaultClass(name, {"actuator_delay_ms": 1e3 * model.delay_s, "actuator_lag_ms": 1e3 * model.lag_s,
-                                 "actuator_accel_limit_deg_s2": None if name != "accel_limit" else ACCEL_LIMIT_DEG_S2},
-                          cfg, cfg, {})
-    if name == "calibration":
-        mm, deg = base.filter.calibration_bound_mm, base.filter.calibration_bound_deg
-        error = [0.0, 0.0, -mm, deg, 0.0, 0.0]
-        return FaultClass(name, {"sensor_pose_error": error, "calibration_bound": [mm, deg]}, base, base,
-                          {"sensor_offset_S_mm": np.array(error[:3]), "sensor_rotvec_S_rad": np.radians(error[3:])})
-    if name == "time_offset":
-        cfg = dataclasses.replace(base, oct_time_offset_s=0.0026)
-        return FaultClass(name, {"oct_time_offset_ms": 2.6}, cfg, cfg, {})
-    if name == "encoder_noise":
-        cfg = dataclasses.replace(base, encoder_noise_rad=float(np.radians(ENCODER_NOISE_DEG)))
-        return FaultClass(name, {"encoder_noise_deg": ENCODER_NOISE_DEG}, cfg, cfg, {})
+        return FaultClass(name, {}, base, base, {})
     if name in STREAM_CLASSES:
         cfg = dataclasses.replace(base, stream_fault=StreamFault(name, STREAM_ONSET_S))
         return FaultClass(name, {"stream_fault": name, "onset_s": STREAM_ONSET_S}, base, cfg, {})
-    if name == "floaters":
-        return FaultClass(name, {"floater_rate": FLOATER_RATE}, base, base, {}, FLOATER_RATE)
-    raise ValueError(f"unknown fault class {name!r}; choose from {', '.join(FAULT_CLASSES)}")
+    if name not in ROBOT_CLASSES and name != "combined":
+        raise ValueError(f"unknown fault class {name!r}; choose from {', '.join(FAULT_CLASSES)}")
+    parameters, changes, actuator, scenario_kwargs, floater_rate = {}, {}, {}, {}, 0.0
+    for part in ROBOT_CLASSES if name == "combined" else (name,):
+        p, c, a, k, r = _errors(part, base)
+        parameters.update(p)
+        changes.update(c)
+        actuator.update(a)
+        scenario_kwargs.update(k)
+        floater_rate = max(floater_rate, r)
+    if actuator:
+        model = changes["actuator"] = ActuatorModel(**actuator)
+        parameters = {"actuator_delay_ms": 1e3 * model.delay_s, "actuator_lag_ms": 1e3 * model.lag_s,
+                      "actuator_accel_limit_deg_s2": ACCEL_LIMIT_DEG_S2 if "accel_limit_rad_s2" in actuator else None,
+                      **parameters}
+    cfg = dataclasses.replace(base, **changes) if changes else base
+    return FaultClass(name, parameters, cfg, cfg, scenario_kwargs, floater_rate)
 
 
 def detection_ms(runs, onset_s: float) -> dict:
@@ -155,4 +176,4 @@ def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: f
     return out
 
 
-__all__ = ["FAULT_CLASSES", "FaultClass", "detection_ms", "fault_class", "margin_costs", "run_fault_class"]
+__all__ = ["FAULT_CLASSES", "ROBOT_CLASSES", "STREAM_CLASSES", "FaultClass", "detection_ms", "fault_class", "margin_costs", "run_fault_class"]
