@@ -89,7 +89,8 @@ def _errors(name: str, base) -> tuple[dict, dict, dict, dict, float]:
     if name == "time_offset":
         return {"oct_time_offset_ms": 2.6}, {"oct_time_offset_s": 0.0026}, {}, {}, 0.0
     if name == "encoder_noise":
-        return {"encoder_noise_deg": ENCODER_NOISE_DEG}, {"encoder_noise_rad": float(np.radians(ENCODER_NOISE_DEG))}, {}, {}, 0.0
+        noise_rad = float(np.radians(ENCODER_NOISE_DEG))
+        return {"encoder_noise_deg": ENCODER_NOISE_DEG}, {"encoder_noise_rad": noise_rad}, {}, {}, 0.0
     return {"floater_rate": FLOATER_RATE}, {}, {}, {}, FLOATER_RATE  # floaters
 
 
@@ -176,4 +177,5 @@ def run_fault_class(fc: FaultClass, shape: str, n: int, seed: int, duration_s: f
     return out
 
 
-__all__ = ["FAULT_CLASSES", "ROBOT_CLASSES", "STREAM_CLASSES", "FaultClass", "detection_ms", "fault_class", "margin_costs", "run_fault_class"]
+__all__ = ["FAULT_CLASSES", "ROBOT_CLASSES", "STREAM_CLASSES", "FaultClass",
+           "detection_ms", "fault_class", "margin_costs", "run_fault_class"]
