@@ -192,6 +192,39 @@ def test_storage_is_a_regular_subsample_of_at_most_max_stored_points():
     np.testing.assert_allclose(fit._X[:fit.n_points] * LENGTH_SCALE_MM + fit.p0, P[::fit.stride], atol=1e-12)
 
 
+def test_the_losses_average_every_point_received_whatever_the_storage_stride():
+    """Past max_stored the fit stores every stride-th point, but its losses (and the rival
+    sphere's) score every point received: a stream in which only the unstored points lie
+    off the fit costs it their share of the biweight's cap, c^2 / 6 each, over `memory`
+    points (scored only on the stored subsample, the losses were those of the points on
+    it: a handful of points decided the globe's take-up at the end of a long build)."""
+    eye = make_eye("emmetropic")
+    P = paper_scan(eye, seed=3).points
+    fit = StreamingRobustFit(max_stored=200)
+    for k in range(0, len(P), PACKET):
+        fit.add(P[k:k + PACKET])
+        fit.step()
+    stride = fit.stride
+    assert stride >= 16
+    ell = fit.last_ok.ellipsoid
+    n = 8 * int(fit.memory)  # the averages forget the scan (weight e^-8)
+    D = P[:n] - ell.center  # on the fit along the scan's directions, shifted 1 mm off between the stored ones
+    D /= np.linalg.norm(D, axis=1, keepdims=True)
+    on = ell.center + D * np.linalg.norm(P[:n] - ell.center, axis=1, keepdims=True)
+    on = on - ell.signed_distance(on)[:, None] * ell.gradient(on)  # onto the fit (signed distance > 0 inside)
+    stored = (fit.n_received + np.arange(n)) % stride == 0
+    Q = np.where(stored[:, None], on, on + 1.0 * D)
+    assert np.abs(ell.signed_distance(Q[stored])).max() < 1e-3 and np.abs(ell.signed_distance(Q[~stored])).min() > 0.9
+    sphere = type("Rival", (), {"center": ell.center, "radius": 1e3})()  # off by metres: every point at the cap
+    for k in range(0, n, PACKET):
+        fit.add(Q[k:k + PACKET])
+        fit.step(sphere)
+    cap_mm2 = fit.config.cutoff_mm ** 2 / 6.0
+    share = 1.0 - 1.0 / stride
+    assert fit.loss_mm2 == pytest.approx(share * cap_mm2, rel=0.05)
+    assert fit.rival_loss_mm2 == pytest.approx(cap_mm2, rel=1e-9)
+
+
 def test_bounded_storage_lets_the_globe_escape_a_staphyloma():
     """The streamed globe of the paper's staphyloma (seed 0) comes within 10 um of the batch
     robust fit's accuracy on the same spiral (109 um: models.fit.robust_fit) by its end, and
