@@ -91,7 +91,9 @@ def _errors(name: str, base) -> tuple[dict, dict, dict, dict, float]:
     if name == "encoder_noise":
         noise_rad = float(np.radians(ENCODER_NOISE_DEG))
         return {"encoder_noise_deg": ENCODER_NOISE_DEG}, {"encoder_noise_rad": noise_rad}, {}, {}, 0.0
-    return {"floater_rate": FLOATER_RATE}, {}, {}, {}, FLOATER_RATE  # floaters
+    if name == "floaters":
+        return {"floater_rate": FLOATER_RATE}, {}, {}, {}, FLOATER_RATE
+    raise ValueError(f"{name!r} is not one of ROBOT_CLASSES: {', '.join(ROBOT_CLASSES)}")
 
 
 def fault_class(name: str, base) -> FaultClass:
