@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from models.buffers import grown
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_scatter
 from models.fit.quadric_kernels import add_weighted_design_rows
 from models.fit.quadric_residuals import sampson_distances
@@ -147,9 +148,7 @@ class RobustEllipsoidFit:
             self.p0 = np.array(P[0], dtype=float)
         n = self._n + len(P)
         if n > len(self._X):
-            size = max(n, 2 * len(self._X))
-            self._X = np.concatenate([self._X[: self._n], np.empty((size - self._n, 3))])
-            self._w = np.concatenate([self._w[: self._n], np.empty(size - self._n)])
+            self._X, self._w = grown(self._n, n, self._X, self._w)
         X, w = self._X[self._n : n], self._w[self._n : n]
         X[:] = (P - self.p0) / LENGTH_SCALE_MM
         w[:] = 1.0 if self.last_ok is None else self._weights(X)

@@ -51,6 +51,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from models.buffers import grown
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, fit_of
 from models.fit.quadric_kernels import design_row, fit_ellipsoid_scatter
 from models.fit.quadric_residuals import sampson_one
@@ -226,8 +227,7 @@ class StreamingRobustFit:
         first = (-self.n_received) % self.stride  # the first of P whose count is a multiple of the stride
         m = self._received + k
         if m > len(self._F):
-            size = max(m, 2 * len(self._F))
-            self._F = np.concatenate([self._F[:self._received], np.empty((size - self._received, 3))])
+            self._F, = grown(self._received, m, self._F)
         self._F[self._received:m] = P  # scaled by the step's kernel: no NumPy arithmetic per A-scan
         self.n_received += k
         self._received = m
@@ -237,9 +237,7 @@ class StreamingRobustFit:
             return
         n = self._n + k
         if n > len(self._X):
-            size = max(n, 2 * len(self._X))
-            self._X = np.concatenate([self._X[:self._n], np.empty((size - self._n, 3))])
-            self._w = np.concatenate([self._w[:self._n], np.empty(size - self._n)])
+            self._X, self._w = grown(self._n, n, self._X, self._w)
         self._X[self._n:n] = (P - self.p0) / LENGTH_SCALE_MM
         self._n = n
         while self._n > self.max_stored:

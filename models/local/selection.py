@@ -49,6 +49,7 @@ import math
 import numpy as np
 from numba import njit
 
+from models.buffers import grown
 from models.local.geometry import global_radius
 
 _NO_PREDICTIONS = np.empty((0, 6))
@@ -175,10 +176,7 @@ class LocalChoice:
         kept, the stride doubles and the running pass starts again."""
         n = self.n_rows
         if len(self._r) < self.max_rows:
-            size = min(2 * len(self._r) + k, self.max_rows)
-            self._U = np.concatenate([self._U[:n], np.empty((size - n, 3))])
-            self._r = np.concatenate([self._r[:n], np.empty(size - n)])
-            self._el2 = np.concatenate([self._el2[:n], np.empty(size - n)])
+            self._U, self._r, self._el2 = grown(n, n + k, self._U, self._r, self._el2, limit=self.max_rows)
         if n + k > len(self._r):
             h = (n + 1) // 2
             self._U[:h], self._r[:h], self._el2[:h] = self._U[:n:2].copy(), self._r[:n:2].copy(), self._el2[:n:2].copy()
