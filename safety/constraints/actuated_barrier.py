@@ -3,8 +3,8 @@ keeps once the actuator has carried out what it still carries.
 
 The filter is told the actuator (safety.actuator.ActuatorModel: delay, first-order lag,
 acceleration limit) and, each step, what it still carries out if every command from
-this step on is zero: the rows of `pending` (r, n) rad, one per source (the lag state, each
-queued command). The robot does not stop when the filter commands zero; it stops after
+this step on is zero: the rows of `pending` (r, n) rad, one per queued command's step and
+one for the braking after them (safety.actuator.ActuatorModel.pending_rows). The robot does not stop when the filter commands zero; it stops after
 those displacements.
 
 Safety argument. For a point p (Jacobian J_p, field h with unit gradient g) the braking
@@ -32,8 +32,11 @@ and b fall alike) or raises it (outward). So h^_{k+1} - h_min >= (1 - gain dt)
 (h^_k - h_min): once h^ >= h_min, it stays there, and since the point's worst clearance
 over any braking is at least h^, the point keeps h_min however the command changes,
 including a stop. With an ideal actuator (no rows) h^ = h: the point barrier itself.
-Linearisation (J_p over the braking travel, sub-millimetre) and the acceleration
-limit's non-linearity are not covered by the argument; the campaigns measure them.
+Linearisation (J_p over the braking travel, sub-millimetre) and, under the acceleration
+limit, a new command's effect on the braking after it (the limit is shared by all joints:
+it is not dt qdot) are not covered by the argument; each step's pending rows are (the
+queue's steps exact, the braking bounded), so a step that finds its prediction short is
+a planned stop (below); the campaigns measure the rest.
 
 Planned stop. A point whose present clearance is within `stop_tolerance_mm` of h_min but
 whose predicted clearance is not (h >= h_min - tol > h^: the actuator's motion, not the

@@ -57,7 +57,8 @@ CONTEXT = {
     "point_bound": "per-point lower bound (K,) mm on the TRUE clearance that a barrier's rule assumes, "
                    "h - k u - calibration (+inf: none): the truth below it breaks the rule's premise",
     "pending": "joint displacements (r, n) rad the actuator still carries out if every command from this step on is "
-               "zero, one row per source (safety.actuator.ActuatorModel.pending_rows; r = 0: not modelled)",
+               "zero, rows whose contributions each grow from 0 to full (safety.actuator.ActuatorModel.pending_rows; "
+               "r = 0: not modelled)",
 }
 
 

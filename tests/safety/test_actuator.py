@@ -32,7 +32,7 @@ def test_the_ideal_actuator_applies_the_command():
     m = ActuatorModel()
     assert m.ideal and m.delay_steps(DT) == 0 and m.alpha(DT) == 1.0
     np.testing.assert_array_equal(m.advance(np.ones(6), np.arange(6.0), DT), np.arange(6.0))
-    np.testing.assert_allclose(m.pending_rows(np.zeros(6), np.ones((1, 6)), DT), [np.zeros(6), np.full(6, DT)])
+    np.testing.assert_allclose(m.pending_rows(np.zeros(6), np.ones((1, 6)), DT), [np.full(6, DT), np.zeros(6)])
 
 
 @settings(max_examples=40)
@@ -50,11 +50,58 @@ def test_an_acceleration_limit_brakes_within_its_row():
     a = 2.0  # rad/s^2
     m = ActuatorModel(accel_limit_rad_s2=a)
     v = np.array([0.3, -0.2, 0.0])
-    row = m.pending_rows(v, np.zeros((1, 3)), DT)[0]
-    # every joint brakes in max|v| / a (the fastest at the limit): v max|v| / (2 a), the
-    # discrete ramp adding at most v dt / 2
-    np.testing.assert_allclose(row, v * 0.3 / (2 * a))
-    assert np.all(np.abs(braking_displacement(m, v, np.zeros((1, 3)))) <= np.abs(row) + np.abs(v) * DT)
+    rows = m.pending_rows(v, np.zeros((1, 3)), DT)
+    # the queued zero's step: the fastest joint slows by a dt, all joints alike
+    v1 = v * (1.0 - a * DT / 0.3)
+    np.testing.assert_allclose(rows[0], DT * v1)
+    # then every joint brakes in max|v1| / a: v1 max|v1| / (2 a), the discrete ramp adding at most v1 dt / 2
+    np.testing.assert_allclose(rows[1], v1 * (0.3 - a * DT) / (2 * a) + v1 * DT / 2)
+    total = braking_displacement(m, v, np.zeros((1, 3)))
+    assert np.all(np.abs(total) <= np.abs(rows.sum(axis=0)) + 1e-15)
+
+
+def braking_path(model: ActuatorModel, v, queued, steps: int = 6000) -> np.ndarray:
+    """(k, n) the joints' displacement after each step of the queue and of the braking after it."""
+    v, q, path = np.array(v, dtype=float), np.zeros(len(v)), []
+    for target in list(np.atleast_2d(queued)) + [np.zeros(len(v))] * steps:
+        v = model.advance(v, target, DT)
+        q = q + DT * v
+        path.append(q)
+        if len(path) > len(queued) and not np.any(v):
+            break
+    return np.array(path)
+
+
+@settings(max_examples=60)
+@given(st.sampled_from([0.0, 0.005, 0.01]), st.sampled_from([0.0, 0.02, 0.05]), st.floats(2.0, 60.0),
+       st.floats(0.01, 3.0), st.booleans(), st.integers(0, 2 ** 31))
+def test_no_joint_direction_brakes_past_the_rows_inward_parts(delay_s, lag_s, accel, speed, roll, seed):
+    # the barrier's bound on a point's approach (safety.constraints.actuated_barrier) holds if, along any
+    # joint direction u, the braking path never goes further than the rows' positive parts along u
+    m = ActuatorModel(delay_s, lag_s, accel)
+    rng = np.random.default_rng(seed)
+    v, queued = speed * rng.uniform(-1, 1, 6), speed * rng.normal(size=(m.delay_steps(DT) + 1, 6))
+    if roll:  # the search adversary's commands: a fast wrist roll beside slow positioning joints
+        v[5] = queued[:, 5] = 3.0
+    rows, path = m.pending_rows(v, queued, DT), braking_path(m, v, queued)
+    U = rng.normal(size=(64, 6))
+    U /= np.linalg.norm(U, axis=1)[:, None]
+    reach = np.maximum(path @ U.T, 0.0).max(axis=0)
+    bound = np.maximum(rows @ U.T, 0.0).sum(axis=0)
+    assert np.all(reach <= bound + 1e-12 * (1.0 + bound))
+
+
+def test_a_fast_roll_in_the_queue_is_braked_from_the_velocity_it_reaches():
+    # 5 ms delay, 20 ms lag, 1000 deg/s^2: the fault campaign's actuator; a 3 rad/s roll queued beside a slow
+    # positioning joint; counting each queued command at dt x command misses the braking it adds
+    m = ActuatorModel(0.005, 0.02, np.radians(1000.0))
+    v = np.array([0.0, 0.02, 0.0, 0.0, 0.0, 3.0])
+    queued = np.tile([0.0, 0.3, 0.0, 0.0, 0.0, 3.0], (m.delay_steps(DT) + 1, 1))
+    travel = braking_path(m, v, queued)[-1, 1]
+    rows = m.pending_rows(v, queued, DT)
+    assert rows[:, 1].sum() >= travel
+    counted_at_command = DT * queued[:, 1].sum() + 0.02 * (0.02 + 3.0 / (2 * np.radians(1000.0)))
+    assert counted_at_command < 0.8 * travel
 
 
 @pytest.mark.parametrize("kw", [dict(delay_s=-0.001), dict(lag_s=np.nan), dict(accel_limit_rad_s2=0.0),
