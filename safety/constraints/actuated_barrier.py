@@ -4,8 +4,8 @@ keeps once the actuator has carried out what it still carries.
 The filter is told the actuator (safety.actuator.ActuatorModel: delay, first-order lag,
 acceleration limit) and, each step, what it still carries out if every command from
 this step on is zero: the rows of `pending` (r, n) rad, one per queued command's step and
-one for the braking after them (safety.actuator.ActuatorModel.pending_rows). The robot does not stop when the filter commands zero; it stops after
-those displacements.
+one for the braking after them (safety.actuator.ActuatorModel.pending_rows). The robot
+does not stop when the filter commands zero; it stops after those displacements.
 
 Safety argument. For a point p (Jacobian J_p, field h with unit gradient g) the braking
 still to come moves p by J_p (sum_r w_r(t) pending_r), each weight w_r(t) rising
