@@ -18,14 +18,22 @@ DT = 1e-3
 EYE = Sphere(np.zeros(3), 12.0)
 
 
-def braking_displacement(model: ActuatorModel, v, queued, steps: int = 4000) -> np.ndarray:
-    """The joints' displacement (rad) when every command after the queue is zero, simulated."""
-    v, total = np.array(v, dtype=float), np.zeros(len(v))
-    targets = list(np.atleast_2d(queued)) + [np.zeros(len(v))] * steps
-    for target in targets:
+def braking_path(model: ActuatorModel, v, queued, steps: int = 6000) -> np.ndarray:
+    """(k, n) the joints' displacement (rad) after each step of the queue and of the braking
+    after it (every command after the queue zero), simulated."""
+    v, q, path = np.array(v, dtype=float), np.zeros(len(v)), []
+    for target in list(np.atleast_2d(queued)) + [np.zeros(len(v))] * steps:
         v = model.advance(v, target, DT)
-        total += DT * v
-    return total
+        q = q + DT * v
+        path.append(q)
+        if len(path) > len(np.atleast_2d(queued)) and not np.any(v):
+            break
+    return np.array(path)
+
+
+def braking_displacement(model: ActuatorModel, v, queued) -> np.ndarray:
+    """The joints' whole displacement (rad) when every command after the queue is zero."""
+    return braking_path(model, v, queued)[-1]
 
 
 def test_the_ideal_actuator_applies_the_command():
@@ -58,18 +66,6 @@ def test_an_acceleration_limit_brakes_within_its_row():
     np.testing.assert_allclose(rows[1], v1 * (0.3 - a * DT) / (2 * a) + v1 * DT / 2)
     total = braking_displacement(m, v, np.zeros((1, 3)))
     assert np.all(np.abs(total) <= np.abs(rows.sum(axis=0)) + 1e-15)
-
-
-def braking_path(model: ActuatorModel, v, queued, steps: int = 6000) -> np.ndarray:
-    """(k, n) the joints' displacement after each step of the queue and of the braking after it."""
-    v, q, path = np.array(v, dtype=float), np.zeros(len(v)), []
-    for target in list(np.atleast_2d(queued)) + [np.zeros(len(v))] * steps:
-        v = model.advance(v, target, DT)
-        q = q + DT * v
-        path.append(q)
-        if len(path) > len(queued) and not np.any(v):
-            break
-    return np.array(path)
 
 
 @settings(max_examples=60)
