@@ -119,21 +119,22 @@ def sphere_loss(X, i0, i1, c, r, cutoff):
 @njit(cache=True)
 def step_rows(S, X, w, i0, n, cursor, end, chunk, v, weighing, cutoff, scored, rival, c_mm, r_mm, p0, scale, F, m):
     """One step's compiled work (StreamingRobustFit.step): the points received since the
-    last step, F[:m] (mm, every one whether stored or not), their biweight losses under
-    the fit v (when `scored`) and under the sphere of centre c_mm (3,) and radius r_mm, mm
-    (when `rival`; both scaled here like the stored points: (x - p0) / scale); the pending stored points
-    X[i0:n]' weights, then the running pass's points X[cursor:min(cursor + chunk, end)]'
-    (weigh_rows into S). Returns (loss, rival loss, points given a weight > 0, new cursor)."""
+    last step, F[:m] (mm, every one whether stored or not; scaled in place like the stored
+    points, (x - p0) / scale, when `scored`), their biweight losses under the fit v (when
+    `scored`) and under the sphere of centre c_mm (3,) and radius r_mm, mm (when `rival`;
+    scaled here too); the pending stored points X[i0:n]' weights, then the running pass's
+    points X[cursor:min(cursor + chunk, end)]' (weigh_rows into S). Returns (loss, rival
+    loss, points given a weight > 0, new cursor)."""
     c = np.empty(3)
     for i in range(3):
         c[i] = (c_mm[i] - p0[i]) / scale
     r = r_mm / scale
-    Fs = np.empty((m if scored else 0, 3))
-    for i in range(Fs.shape[0]):
-        for j in range(3):
-            Fs[i, j] = (F[i, j] - p0[j]) / scale
-    loss = biweight_loss(Fs, 0, m, v, cutoff) if scored and m > 0 else 0.0
-    rival_loss = sphere_loss(Fs, 0, m, c, r, cutoff) if scored and rival and m > 0 else 0.0
+    if scored:  # F is the step's scratch: scaled in place, refilled from its start by the next add()
+        for i in range(m):
+            for j in range(3):
+                F[i, j] = (F[i, j] - p0[j]) / scale
+    loss = biweight_loss(F, 0, m, v, cutoff) if scored and m > 0 else 0.0
+    rival_loss = sphere_loss(F, 0, m, c, r, cutoff) if scored and rival and m > 0 else 0.0
     inliers = weigh_rows(S, X, w, i0, n, v, weighing, cutoff) if n > i0 else 0
     if cursor < end:
         i1 = min(cursor + chunk, end)
@@ -228,7 +229,7 @@ class StreamingRobustFit:
         m = self._received + k
         if m > len(self._F):
             self._F, = grown(self._received, m, self._F)
-        self._F[self._received:m] = P  # scaled by the step's kernel: no NumPy arithmetic per A-scan
+        self._F[self._received:m] = P  # the step's kernel scales them in place: no NumPy arithmetic per A-scan
         self.n_received += k
         self._received = m
         P = P[first::self.stride]
