@@ -139,7 +139,8 @@ def _fault(active, q, fault, detail):
 
 
 @njit(cache=True)
-def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, pending, spall, spo, {fp}active, warm, wsf, wsi):
+def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_end, p_WI_end, pending, spall, spo, {fp}active,
+         warm, wsf, wsi):
 """ + views + f"""    fault = input_fault(q, command, J_tip, P, J, times, cfg)
     if fault != OK:
         return _fault(active, q, fault, 0)
@@ -158,12 +159,17 @@ def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, pendin
 """
     if kinematics is not None:
         imports_k = "from {} import {} as KIN\n".format(*_importable(kinematics, "kinematics kernel"))
+        imports_k += "from safety.constraints.rcm import displaced\n"
         src = imports_k + src + f"""
 
 @njit(cache=True)
 def step_at(q, command, times, cfg, kp, pending, spall, spo, {fp}active, warm, wsf, wsi):
     P, J, ranges, J_tip, J_roll, R_WI, p_WI, rcm_error = KIN(kp, q)
-    r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, pending, spall, spo, {fp}active, warm, wsf, wsi)
+    R_WI_end, p_WI_end = R_WI, p_WI
+    if pending.shape[0] > 0 and np.all(np.isfinite(pending)):  # the pose the actuator's pending motion ends in
+        R_WI_end, p_WI_end = KIN(kp, displaced(q, pending))[5:7]
+    r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_end, p_WI_end, pending, spall, spo,
+             {fp}active, warm, wsf, wsi)
     return r, P, ranges, J_tip, rcm_error
 """
     return src

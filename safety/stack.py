@@ -124,18 +124,20 @@ class ConstraintStack:
         self.spall = np.ascontiguousarray(np.concatenate(params) if params else np.zeros(0), dtype=float)
 
     def solve(self, q, command, times, J_tip, J_roll, P, J, ranges, fields: tuple, R_WI=None, p_WI=None,
-              warm: bool = False, pending=None):
+              warm: bool = False, pending=None, X_WI_end=None):
         """(FilterOutput, raw step result) on given points: q (n,) rad, command (4,) [tip
         velocity mm/s, roll rad/s], times [t, model time, sensor time] s, J_tip (3, n),
         J_roll (r, n), P (K, 3) mm, J (K, 3, n), ranges (groups, 2), `fields` the
         params of each field slot in self.slots' order, `pending` (r, n) rad the
-        actuator's pending displacements (None: none modelled)."""
+        actuator's pending displacements (None: none modelled), `X_WI_end` (R (3, 3),
+        p (3,) mm) the instrument's pose once they are carried out (None: the present one)."""
         t0 = time.perf_counter()
         R = np.eye(3) if R_WI is None else R_WI
         p = np.zeros(3) if p_WI is None else p_WI
+        R_end, p_end = (R, p) if X_WI_end is None else X_WI_end
         pending = self._no_pending if pending is None else pending
-        r = self.module.step(q, command, times, self.cfg, J_tip, J_roll, P, J, ranges, R, p, pending, self.spall, self.spo,
-                             *fields, self.active, warm, self.wsf, self.wsi)
+        r = self.module.step(q, command, times, self.cfg, J_tip, J_roll, P, J, ranges, R, p, R_end, p_end, pending,
+                             self.spall, self.spo, *fields, self.active, warm, self.wsf, self.wsi)
         return self.output(r, q, command, times, J_tip, P, ranges, t0, warm), r
 
     def solve_at(self, q, command, times, kp, fields: tuple, pending=None):

@@ -9,7 +9,7 @@ import numpy as np
 from planning.instrument_points import MonitoredPointsConfig, instrument_points
 from planning.robot import RCM_GAIN_PER_S, Robot
 from safety import FilterConfig, FilterInputs, PointKinematics
-from safety.constraints.rcm import fill_rcm
+from safety.constraints.rcm import displaced, fill_rcm
 from safety.filter import rcm_constraint
 from safety.margins import conservative_prior
 
@@ -56,7 +56,8 @@ class StepInputs:
                              f"{len(misfit_mm)} misfits")
         rcm_A, rcm_b = np.zeros((2, 6)), np.zeros(2)
         pending = None if pending is None else np.ascontiguousarray(pending, dtype=float).reshape(-1, 6)
-        code = fill_rcm(self.rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI,
+        end = ip if pending is None or not np.all(np.isfinite(pending)) else self.points_at(displaced(np.asarray(q, dtype=float), pending))
+        code = fill_rcm(self.rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, end.R_WI, end.p_WI,
                         np.zeros((0, 6)) if pending is None else pending, rcm_A, rcm_b, 0)
         return FilterInputs(
             t_s=t_s, q=np.array(q, dtype=float), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,

@@ -40,6 +40,8 @@ CONTEXT = {
     "stop": "one past its last index",
     "R_WI": "the instrument body's rotation (3, 3) in W (its x axis along the shaft)",
     "p_WI": "the instrument body's origin (3,) mm in W",
+    "R_WI_end": "R_WI once the actuator has carried out `pending` (the kinematics at q + the rows' sum; R_WI: none)",
+    "p_WI_end": "p_WI there, mm",
     "fh": "the field's signed distance (stop - start,) mm at the group's points, > 0 inside",
     "fg": "its unit gradient (stop - start, 3)",
     "fu": "its uncertainty (stop - start,) mm",

@@ -73,30 +73,54 @@ def test_rows_out_of_reach_are_screened_and_infinity_means_no_boundary_and_nan_r
                               G, h, ids, 0, 0, point_h, point_bound) == -NON_FINITE_FIELD
 
 
+def translated(pending):
+    """(R_WI_end, p_WI_end, pending) of a shaft along x whose joints translate it (J = I):
+    the end pose is the first-order one, moved by the rows' sum."""
+    return np.eye(3), pending.sum(axis=0) if len(pending) else np.zeros(3), pending
+
+
 def test_the_rcm_rows_hold_the_trocar_and_correct_a_lateral_error():
     # shaft along x through the origin; the trocar 0.1 mm off along y: b = gain * 0.1 on the y row
     A, b = np.zeros((2, 3)), np.zeros(2)
     c = RcmEquality(np.array([0.0, 0.1, 0.0]), gain_per_s=50.0)
-    assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), np.zeros((0, 3)), A, b, 0) == 2
+    assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), *translated(np.zeros((0, 3))), A, b, 0) == 2
     np.testing.assert_allclose(A, [[0, 1, 0], [0, 0, 1]])
     np.testing.assert_allclose(b, [5.0, 0.0])
     # the actuator still moves the point 0.06 mm towards the trocar and 0.02 mm along z (two
     # pending rows, J = I): the rows correct what is left after that motion
     pending = np.array([[0.0, 0.04, 0.02], [0.3, 0.02, 0.0]])
-    assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), pending, A, b, 0) == 2
+    assert fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), *translated(pending), A, b, 0) == 2
     np.testing.assert_allclose(b, [50.0 * 0.04, 50.0 * -0.02])
     # the pending motion carries the shaft 0.3 mm further off (y) and 0.4 mm (z): a correction
     # of 50 x 0.5 = 25 mm/s > the max, a planned stop (the rows written all the same)
     far = RcmEquality(np.array([0.0, 0.0, 0.0]), gain_per_s=50.0, max_correction_mm_s=20.0)
     away = np.array([[0.0, -0.3, -0.4]])
-    assert fill_rcm(far.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), away, A, b, 0) == -CANNOT_HOLD
+    assert fill_rcm(far.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), *translated(away), A, b, 0) == -CANNOT_HOLD
     np.testing.assert_allclose(b, [15.0, 20.0])
     assert far.fault_reason(CANNOT_HOLD) == "actuator cannot hold the trocar"
     # the same error today, at rest (nothing pending, or the motion brings the shaft back): corrected at the gain
     offset = RcmEquality(np.array([0.0, 0.3, 0.4]), gain_per_s=50.0, max_correction_mm_s=20.0)
     for pending, want in ((np.zeros((0, 3)), [15.0, 20.0]), (np.array([[0.0, 0.1, 0.1]]), [10.0, 15.0])):
-        assert fill_rcm(offset.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), pending, A, b, 0) == 2
+        assert fill_rcm(offset.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), *translated(pending), A, b, 0) == 2
         np.testing.assert_allclose(b, want)
+
+
+@given(st.floats(-0.5, 0.5), st.floats(5.0, 40.0))
+def test_the_rcm_predicts_the_mean_of_the_first_order_and_the_end_pose(theta, lever):
+    """The pending motion turns the shaft by theta (rad) about z through a point `lever` mm
+    behind the trocar, which lies on the shaft now: to first order the pivot leaves the
+    trocar by lever theta; at the end pose the trocar lies lever |sin theta| off the shaft,
+    lever sin theta cos theta along the present lateral y. The correction is the mean."""
+    A, b = np.zeros((2, 1)), np.zeros(2)
+    c = RcmEquality(np.array([lever, 0.0, 0.0]), gain_per_s=50.0, max_correction_mm_s=20.0)
+    J = np.array([[[0.0], [lever], [0.0]]])  # the trocar's material point on a joint about z through the origin
+    R_end = np.array([[np.cos(theta), -np.sin(theta), 0.0], [np.sin(theta), np.cos(theta), 0.0], [0.0, 0.0, 1.0]])
+    code = fill_rcm(c.params(), J, 0, np.eye(3), np.zeros(3), R_end, np.zeros(3), np.array([[theta]]), A, b, 0)
+    np.testing.assert_allclose(b, [50.0 * 0.5 * (-lever * theta - lever * np.sin(theta) * np.cos(theta)), 0.0],
+                               atol=1e-12)
+    end = lever * abs(np.sin(theta))
+    if abs(50.0 * end - 20.0) > 1e-9:  # away from the rule's edge: the stop reads the end pose (now: 0)
+        assert (code == -CANNOT_HOLD) == (50.0 * end > 20.0)
 
 
 @given(st.floats(1.0, 100.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0),
@@ -105,7 +129,7 @@ def test_the_rcm_stops_exactly_when_a_growing_error_needs_more_than_its_max(gain
     A, b = np.zeros((2, 3)), np.zeros(2)
     c = RcmEquality(np.array([0.0, ey, ez]), gain_per_s=gain, max_correction_mm_s=vmax)
     pending = np.array([[0.0, dy, dz]])  # J = I: the point moves by the pending displacement
-    code = fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), pending, A, b, 0)
+    code = fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), *translated(pending), A, b, 0)
     now, predicted = np.hypot(ey, ez), np.hypot(ey - dy, ez - dz)
     np.testing.assert_allclose(b, gain * np.array([ey - dy, ez - dz]), atol=1e-12)
     if abs(predicted - now) > 1e-9 and abs(gain * predicted - vmax) > 1e-9:  # away from the rule's edges
@@ -166,7 +190,7 @@ def test_the_rcm_constraint_and_the_robots_rcm_rows_agree():
     for q in q0 + 0.02 * np.random.default_rng(0).standard_normal((5, 6)):
         ip = instrument_points(robot, q, scenario.p_WC)
         A, b = np.zeros((2, 6)), np.zeros(2)
-        fill_rcm(c.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, np.zeros((0, 6)), A, b, 0)
+        fill_rcm(c.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, ip.R_WI, ip.p_WI, np.zeros((0, 6)), A, b, 0)
         A_ref, b_ref = robot.rcm_rows(q, scenario.p_WC, RCM_GAIN_PER_S)
         np.testing.assert_allclose(A, A_ref, atol=1e-9)
         np.testing.assert_allclose(b, b_ref, atol=1e-9)
