@@ -139,8 +139,8 @@ def _fault(active, q, fault, detail):
 
 
 @njit(cache=True)
-def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_end, p_WI_end, pending, spall, spo, {fp}active,
-         warm, wsf, wsi):
+def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_end, p_WI_end, pending, spall, spo,
+         {fp}active, warm, wsf, wsi):
 """ + views + f"""    fault = input_fault(q, command, J_tip, P, J, times, cfg)
     if fault != OK:
         return _fault(active, q, fault, 0)
@@ -166,7 +166,7 @@ def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_e
 def step_at(q, command, times, cfg, kp, pending, spall, spo, {fp}active, warm, wsf, wsi):
     P, J, ranges, J_tip, J_roll, R_WI, p_WI, rcm_error = KIN(kp, q)
     R_WI_end, p_WI_end = R_WI, p_WI
-    if pending.shape[0] > 0 and np.all(np.isfinite(pending)):  # the pose the actuator's pending motion ends in
+    if pending.shape[0] > 0:  # the pose the actuator's pending motion ends in
         R_WI_end, p_WI_end = KIN(kp, displaced(q, pending))[5:7]
     r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_end, p_WI_end, pending, spall, spo,
              {fp}active, warm, wsf, wsi)

@@ -71,8 +71,11 @@ CANNOT_HOLD = 1  # the filler's fault code
 def displaced(q, pending):
     """q (n,) rad plus the sum of the rows of `pending` (r, n) rad, row by row: the joint
     angles once the actuator has carried out its pending motion (the RCM's end pose is the
-    kinematics there, in the loop's compiled step and in the Python inputs alike)."""
+    kinematics there, in the loop's compiled step and in the Python inputs alike); q itself
+    when a row is not finite (the barriers fault on it)."""
     out = q.copy()
+    if not np.all(np.isfinite(pending)):
+        return out
     for k in range(pending.shape[0]):
         for j in range(q.shape[0]):
             out[j] += pending[k, j]

@@ -95,7 +95,8 @@ def test_the_rcm_rows_hold_the_trocar_and_correct_a_lateral_error():
     # of 50 x 0.5 = 25 mm/s > the max, a planned stop (the rows written all the same)
     far = RcmEquality(np.array([0.0, 0.0, 0.0]), gain_per_s=50.0, max_correction_mm_s=20.0)
     away = np.array([[0.0, -0.3, -0.4]])
-    assert fill_rcm(far.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), *translated(away), A, b, 0) == -CANNOT_HOLD
+    code = fill_rcm(far.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), *translated(away), A, b, 0)
+    assert code == -CANNOT_HOLD
     np.testing.assert_allclose(b, [15.0, 20.0])
     assert far.fault_reason(CANNOT_HOLD) == "actuator cannot hold the trocar"
     # the same error today, at rest (nothing pending, or the motion brings the shaft back): corrected at the gain
@@ -194,3 +195,12 @@ def test_the_rcm_constraint_and_the_robots_rcm_rows_agree():
         A_ref, b_ref = robot.rcm_rows(q, scenario.p_WC, RCM_GAIN_PER_S)
         np.testing.assert_allclose(A, A_ref, atol=1e-9)
         np.testing.assert_allclose(b, b_ref, atol=1e-9)
+
+
+def test_the_end_pose_is_the_present_one_when_a_pending_row_is_not_finite():
+    from safety.constraints.rcm import displaced
+
+    q = np.array([0.1, -0.2, 0.3])
+    np.testing.assert_allclose(displaced(q, np.array([[0.01, 0.0, 0.0], [0.0, 0.02, -0.01]])), [0.11, -0.18, 0.29], atol=1e-15)
+    np.testing.assert_array_equal(displaced(q, np.array([[0.01, np.nan, 0.0]])), q)
+    np.testing.assert_array_equal(displaced(q, np.zeros((0, 3))), q)
