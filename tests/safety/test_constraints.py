@@ -10,7 +10,7 @@ from numba import njit
 from safety import ConstraintStack, FilterConfig
 from safety.constraints import JointPositionLimits, JointSpeedLimits, KeepOut, PointBarrier, RcmEquality, TipSpeedLimit
 from safety.constraints.point_barrier import NON_FINITE_FIELD, fill_point_barrier
-from safety.constraints.rcm import CANNOT_HOLD, fill_rcm
+from safety.constraints.rcm import BRAKING_FACTOR, CANNOT_HOLD, GROWTH_TOL_MM, fill_rcm
 from safety.constraints.tip_speed import FACE_NORMALS, REACH, fill_tip_speed
 
 
@@ -119,22 +119,32 @@ def test_the_rcm_predicts_the_mean_of_the_first_order_and_the_end_pose(theta, le
     code = fill_rcm(c.params(), J, 0, np.eye(3), np.zeros(3), R_end, np.zeros(3), np.array([[theta]]), A, b, 0)
     np.testing.assert_allclose(b, [50.0 * 0.5 * (-lever * theta - lever * np.sin(theta) * np.cos(theta)), 0.0],
                                atol=1e-12)
-    end = lever * abs(np.sin(theta))
-    if abs(50.0 * end - 20.0) > 1e-9:  # away from the rule's edge: the stop reads the end pose (now: 0)
-        assert (code == -CANNOT_HOLD) == (50.0 * end > 20.0)
+    first, end = lever * abs(theta), lever * abs(np.sin(theta))  # now: 0
+    if min(abs(50.0 * first - 20.0), abs(first - GROWTH_TOL_MM)) > 1e-9:  # away from the rule's edges
+        assert (code == -CANNOT_HOLD) == (first > GROWTH_TOL_MM and 50.0 * first > 20.0)  # end <= first here
 
 
 @given(st.floats(1.0, 100.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0),
-       st.floats(1.0, 50.0))
-def test_the_rcm_stops_exactly_when_a_growing_error_needs_more_than_its_max(gain, ey, ez, dy, dz, vmax):
+       st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(1.0, 50.0))
+def test_the_rcm_stops_exactly_on_its_two_rules(gain, ey, ez, dy, dz, fy, fz, vmax):
+    """The trocar (0, ey, ez) off a shaft along x; the pending motion moves its point by
+    (dy, dz) to first order (J = I) and ends with the trocar (fy, fz) off the shaft: the
+    rows correct the mean; the step stops when either offset grows (by more than
+    GROWTH_TOL_MM) past its threshold, vmax / gain to first order, BRAKING_FACTOR times
+    that at the end pose."""
     A, b = np.zeros((2, 3)), np.zeros(2)
     c = RcmEquality(np.array([0.0, ey, ez]), gain_per_s=gain, max_correction_mm_s=vmax)
-    pending = np.array([[0.0, dy, dz]])  # J = I: the point moves by the pending displacement
-    code = fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), *translated(pending), A, b, 0)
-    now, predicted = np.hypot(ey, ez), np.hypot(ey - dy, ez - dz)
-    np.testing.assert_allclose(b, gain * np.array([ey - dy, ez - dz]), atol=1e-12)
-    if abs(predicted - now) > 1e-9 and abs(gain * predicted - vmax) > 1e-9:  # away from the rule's edges
-        assert (code == -CANNOT_HOLD) == (predicted > now and gain * predicted > vmax)
+    pending = np.array([[0.0, dy, dz]])
+    p_end = np.array([0.0, ey - fy, ez - fz])
+    code = fill_rcm(c.params(), np.eye(3)[None], 0, np.eye(3), np.zeros(3), np.eye(3), p_end, pending, A, b, 0)
+    now, first, end = np.hypot(ey, ez), np.hypot(ey - dy, ez - dz), np.hypot(fy, fz)
+    np.testing.assert_allclose(b, gain * 0.5 * np.array([ey - dy + fy, ez - dz + fz]), atol=1e-12)
+    edges = (first - now - GROWTH_TOL_MM, gain * first - vmax, end - now - GROWTH_TOL_MM,
+             gain * end - BRAKING_FACTOR * vmax)
+    if min(abs(x) for x in edges) > 1e-9:
+        stop = (first > now + GROWTH_TOL_MM and gain * first > vmax) or \
+               (end > now + GROWTH_TOL_MM and gain * end > BRAKING_FACTOR * vmax)
+        assert (code == -CANNOT_HOLD) == stop
 
 
 def test_the_filters_rcm_stops_at_the_speed_the_tip_can_move_in_every_direction():
