@@ -63,9 +63,9 @@ def test_an_acceleration_limited_robot_keeps_its_pivot_through_a_fast_roll_and_i
     (the fault classes' actuator) then brakes along a straight joint path, which leaves the
     pivot by the kinematics' second order. The trocar error stays within what the RCM's
     planned stop lets a braking leave (BRAKING_FACTOR x max correction / gain: 0.174 mm at
-    the defaults) and, once the robot rests, is corrected away. With the first-order
-    prediction alone it reached 0.20 mm (3 rad/s) and 0.27 mm (5 rad/s), and a stop held
-    the robot at rest with its error for 0.6 s (a lag's tail never reaches zero)."""
+    the defaults) and, once the robot rests, is corrected away. A first-order prediction
+    leaves 0.20 mm (3 rad/s) and 0.27 mm (5 rad/s), and a stop rule that counts any growth
+    holds the robot at rest with its error for 0.6 s (a lag's tail never reaches zero)."""
     from safety.constraints.rcm import BRAKING_FACTOR
 
     actuator = ActuatorModel(delay_s=0.005, lag_s=0.02, accel_limit_rad_s2=float(np.radians(1000.0)))

@@ -211,6 +211,7 @@ def test_the_end_pose_is_the_present_one_when_a_pending_row_is_not_finite():
     from safety.constraints.rcm import displaced
 
     q = np.array([0.1, -0.2, 0.3])
-    np.testing.assert_allclose(displaced(q, np.array([[0.01, 0.0, 0.0], [0.0, 0.02, -0.01]])), [0.11, -0.18, 0.29], atol=1e-15)
+    two = np.array([[0.01, 0.0, 0.0], [0.0, 0.02, -0.01]])
+    np.testing.assert_allclose(displaced(q, two), [0.11, -0.18, 0.29], atol=1e-15)
     np.testing.assert_array_equal(displaced(q, np.array([[0.01, np.nan, 0.0]])), q)
     np.testing.assert_array_equal(displaced(q, np.zeros((0, 3))), q)
