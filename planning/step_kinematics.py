@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from planning.chain import frame_pose
 from planning.instrument_points import MonitoredPointsConfig, instrument_kinematics, kinematics_arguments
 from planning.robot import Robot
 
@@ -34,6 +35,14 @@ def step_kinematics(kp, q):
     ranges[2, 0], ranges[2, 1] = k, k + m
     ranges[3, 0], ranges[3, 1] = k + m, k + m + 1
     return P, J, ranges, J[0].copy(), J_roll.reshape((1, q.shape[0])), R_WI, p_WI, err
+
+
+@njit(cache=True)
+def step_pose(kp, q):
+    """(R_WI (3, 3), p_WI (3,) mm) at q (n,) rad alone, without the points (kp from
+    step_kinematics_params): the instrument's pose where the actuator's pending motion
+    ends (safety.assembly; Robot.pose("I", q) computes the same)."""
+    return frame_pose(kp[0:36].reshape((6, 6)), q, kp[36:45].reshape((3, 3)), kp[45:48])
 
 
 def step_kinematics_params(robot: Robot, p_WC, config: MonitoredPointsConfig) -> np.ndarray:

@@ -81,7 +81,9 @@ def generate(constraints, groups: dict, kernels: dict, kinematics=None, capaciti
              layout: tuple = (6, 0, 0, 0), port: tuple | None = None) -> str:
     """The step's Python source for `constraints` (in order), point `groups` (name ->
     index into `ranges`), field `kernels` (slot -> compiled kernel), an optional
-    `kinematics` kernel, and the workspace `layout` (n, m_cap, p_cap, k_cap): the
+    `kinematics` kernel (or the pair (kernel, pose kernel): (kp, q) -> (R_WI, p_WI), the
+    instrument's pose alone, for the end pose of the actuator's pending motion; without
+    it the kernel's own, points and all), and the workspace `layout` (n, m_cap, p_cap, k_cap): the
     constraints' params come packed in one array (spall, offsets spo), the workspace in
     one float and one int buffer (wsf, wsi), so that a step's call carries few arguments.
     `port`: (group index, index in the group) of the point whose clearance the step
@@ -158,8 +160,12 @@ def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_e
 """ + port_line + """    return code, OK, 0, x, m, p, n_bound, clearance, port, off
 """
     if kinematics is not None:
-        imports_k = "from {} import {} as KIN\n".format(*_importable(kinematics, "kinematics kernel"))
+        kernel, pose = kinematics if isinstance(kinematics, tuple) else (kinematics, None)
+        imports_k = "from {} import {} as KIN\n".format(*_importable(kernel, "kinematics kernel"))
         imports_k += "from safety.constraints.rcm import displaced\n"
+        if pose is not None:
+            imports_k += "from {} import {} as POSE\n".format(*_importable(pose, "pose kernel"))
+        end_pose = "POSE(kp, displaced(q, pending))" if pose is not None else "KIN(kp, displaced(q, pending))[5:7]"
         src = imports_k + src + f"""
 
 @njit(cache=True)
@@ -167,7 +173,7 @@ def step_at(q, command, times, cfg, kp, pending, spall, spo, {fp}active, warm, w
     P, J, ranges, J_tip, J_roll, R_WI, p_WI, rcm_error = KIN(kp, q)
     R_WI_end, p_WI_end = R_WI, p_WI
     if pending.shape[0] > 0:  # the pose the actuator's pending motion ends in
-        R_WI_end, p_WI_end = KIN(kp, displaced(q, pending))[5:7]
+        R_WI_end, p_WI_end = {end_pose}
     r = step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_end, p_WI_end, pending, spall, spo,
              {fp}active, warm, wsf, wsi)
     return r, P, ranges, J_tip, rcm_error

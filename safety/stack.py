@@ -59,7 +59,8 @@ def relaxations(reason: str) -> tuple[str, ...]:
 class ConstraintStack:
     """The constraints (in row order) over point `groups` (name -> capacity, in the order
     of the kinematics' ranges), field slots `kernels` (slot -> compiled kernel), the
-    filter-level `config`, an optional `kinematics` kernel (safety.assembly), and
+    filter-level `config`, an optional `kinematics` kernel or (kernel, pose kernel) pair
+    (safety.assembly), and
     `point_names(group, count)` for the rows' names. `port`: (group, index) of the cutter
     port, whose clearance opens the cutter interlock (None: no interlock)."""
 

@@ -42,7 +42,8 @@ from planning.chain import frame_position
 from planning.diffik import DrakeDiffIK
 from planning.robot import RCM_GAIN_PER_S, Robot
 from planning.scan import start_posture
-from planning.step_kinematics import GROUP_CAPACITY, POINT_GROUPS, point_names, step_kinematics, step_kinematics_params
+from planning.step_kinematics import (GROUP_CAPACITY, POINT_GROUPS, point_names, step_kinematics,
+                                      step_kinematics_params, step_pose)
 from safety import ConstraintStack, default_constraints
 from safety.filter import rcm_constraint
 from safety.constraints import RcmEquality
@@ -121,7 +122,7 @@ class FilterSystem(LeafSystem):
         eye_kernel, shaft_kernel = (local_field,) * 2 if self.local else (model_field_kernel,) * 2
         self.stack = ConstraintStack(self.constraints, {g: GROUP_CAPACITY[g] for g in POINT_GROUPS},
                                      {"eye": eye_kernel, "eye_shaft": shaft_kernel,
-                                      "lens": lens.kernel}, config.filter, kinematics=step_kinematics,
+                                      "lens": lens.kernel}, config.filter, kinematics=(step_kinematics, step_pose),
                                      point_names=point_names, port=("tip_port", 1))
         self._rcm = next(c for c in self.constraints if isinstance(c, RcmEquality))
         self.p_WC = np.asarray(robot.p_WC, dtype=float)  # the active trocar (set_trocar)

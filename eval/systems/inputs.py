@@ -56,8 +56,9 @@ class StepInputs:
                              f"{len(misfit_mm)} misfits")
         rcm_A, rcm_b = np.zeros((2, 6)), np.zeros(2)
         pending = None if pending is None else np.ascontiguousarray(pending, dtype=float).reshape(-1, 6)
-        end = ip if pending is None else self.points_at(displaced(np.asarray(q, dtype=float), pending))
-        code = fill_rcm(self.rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, end.R_WI, end.p_WI,
+        R_end, p_end = (ip.R_WI, ip.p_WI) if pending is None or not len(pending) else \
+            robot.pose("I", displaced(np.asarray(q, dtype=float), pending))  # the loop's step_pose
+        code = fill_rcm(self.rcm.params(), ip.J_C[None], 0, ip.R_WI, ip.p_WI, R_end, p_end,
                         np.zeros((0, 6)) if pending is None else pending, rcm_A, rcm_b, 0)
         return FilterInputs(
             t_s=t_s, q=np.array(q, dtype=float), q_min=robot.q_lower, q_max=robot.q_upper, qdot_max=robot.qdot_max,

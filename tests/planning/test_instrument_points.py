@@ -39,3 +39,17 @@ def test_shaft_points_stay_inside_the_eye_and_lens_points_start_at_the_trocar(se
     np.testing.assert_allclose(d, [o for o in cfg.lens_offsets_mm if o <= lam], atol=1e-6)
     with pytest.raises(ValueError, match="n_shaft"):
         MonitoredPointsConfig(n_shaft=-1)
+
+
+def test_the_loops_pose_kernel_is_the_robots_instrument_pose_bit_for_bit(setup):
+    """The loop's step reads the end pose of the actuator's pending motion from step_pose;
+    the API and replay from Robot.pose("I", q): the same numbers, or a log would not replay."""
+    from planning.step_kinematics import step_kinematics_params, step_pose
+
+    scenario, robot, q0 = setup
+    kp = step_kinematics_params(robot, scenario.p_WC, MonitoredPointsConfig())
+    for q in q0 + 0.3 * np.random.default_rng(1).standard_normal((5, 6)):
+        R, p = step_pose(kp, q)
+        R_ref, p_ref = robot.pose("I", q)
+        np.testing.assert_array_equal(R, R_ref)
+        np.testing.assert_array_equal(p, p_ref)
