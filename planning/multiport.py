@@ -325,7 +325,9 @@ def plan_ports(robot: Robot, scenario, model, ports, spec: BandSpec = BandSpec()
     _mark_depression(robot, scenario, band, spec, ports, static_miss)
     switches, moves = port_switches(robot, retina_of(model), segments, scenario.eye_pose.p_WE)
     if not segments:
-        raise IKFailure("no cell of the band can be swept from these ports")
+        counts = {r: int(np.sum(band.reason == r)) for r in UNREACHABLE if np.any(band.reason == r)}
+        raise IKFailure(f"no cell of the band can be swept from these ports ({band.reason.size} cells: "
+                        + ", ".join(f"{n} {r}" for r, n in counts.items()) + ")")
     return MultiPortPlan(band, ports, port_of, {n: r[0].reshape(shape) for n, r in by_port.items()}, segments,
                          switches, moves, time.perf_counter() - t0)
 

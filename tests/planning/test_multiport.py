@@ -242,3 +242,18 @@ def test_a_pass_whose_ends_cannot_leave_far_enough_leaves_through_a_door_that_ca
         for q in (seg.insert.value(0.0)[:, 0], seg.withdraw.value(seg.withdraw.end_time())[:, 0]):
             p_T = robot.pose("T", q)[1]
             assert model.signed_distance(p_T[None])[0] < 0  # the tip outside the eye
+
+
+def test_a_band_no_port_can_sweep_is_refused_with_every_cells_reason(layout):
+    """A model whose uncertainty puts the boundary past every shaving target (u = 2 mm, k = 1,
+    targets 1 mm deep): no cell is swept, and the refusal counts the cells and their reasons."""
+    from models.adaptive.model_field import ModelField
+    from planning.field_model import FieldModel
+    from planning.ik import IKFailure
+
+    scenario, robot, model, ports = layout
+    with pytest.raises(IKFailure) as err:
+        plan_ports(robot, scenario, FieldModel(ModelField(model, 2.0), 1.0, "sphere"), ports[:2], SPEC)
+    msg = str(err.value)
+    n = int(msg.split("(")[1].split(" cells")[0])
+    assert n > 0 and msg.endswith(f"({n} cells: {n} uncertain)")
