@@ -40,8 +40,10 @@ GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): it
 
 def eyes_radii(r0: float, r1: float, r2: float) -> bool:
     """Whether semi-axes r0, r1, r2 (mm) are an eye's: each within EYE_RADII_MM and the
-    longest at most EYE_AXIS_RATIO_MAX times the shortest (NaN is not). Three floats, not
-    an array: np.min / np.max's dispatch was a third of global_for_local's time per A-scan."""
+    longest at most EYE_AXIS_RATIO_MAX times the shortest (NaN is not). Three Python floats
+    (`*radii.tolist()`), not an array or its NumPy scalars: np.min / np.max's dispatch was a
+    third of global_for_local's time per A-scan, and comparing NumPy scalars takes 3.3 us
+    per call against 1.3 us."""
     lo, hi = EYE_RADII_MM
     return (lo <= r0 <= hi and lo <= r1 <= hi and lo <= r2 <= hi
             and max(r0, r1, r2) <= EYE_AXIS_RATIO_MAX * min(r0, r1, r2))
@@ -183,7 +185,7 @@ class AdaptiveEyeModel:
         leverage and its gaps from the rivals the data do not rule out), else None (the
         local model's for its kind). One look at the model's shape: this runs once per update."""
         ellipsoid = self.ellipsoid if self.kind == "ellipsoid" else None
-        if ellipsoid is not None and eyes_radii(*ellipsoid.radii):
+        if ellipsoid is not None and eyes_radii(*ellipsoid.radii.tolist()):
             return ellipsoid, None, None if self.globe is None else self._global_sd.of_least_squares(self.globe)
         if self.globe_taken:
             return self.globe.last_ok.ellipsoid, ellipsoid, self._global_sd.of_globe(self.globe)
@@ -207,7 +209,7 @@ class AdaptiveEyeModel:
         sphere fits better), and moves the boundary by up to 0.46 mm."""
         globe = self.globe
         fit = globe.last_ok
-        if fit is None or self._range.diameter_mm < GLOBE_MIN_SCAN_RANGE_MM or not eyes_radii(*fit.radii):
+        if fit is None or self._range.diameter_mm < GLOBE_MIN_SCAN_RANGE_MM or not eyes_radii(*fit.radii.tolist()):
             return False
         return globe.loss_mm2 < globe.rival_loss_mm2 or (
             self.globe_taken and globe.held_loss_mm2 < globe.held_rival_loss_mm2)
@@ -337,7 +339,7 @@ class AdaptiveEyeModel:
             self._global_sd.measure_leverage(self.globe)
         if gaps:
             ls = self._ef.last_ok
-            ls = ls if ls is not None and eyes_radii(*ls.radii) else None
+            ls = ls if ls is not None and eyes_radii(*ls.radii.tolist()) else None
             self._global_sd.measure_gaps(self.globe, self.sphere, ls, self._ef.S, self._ef.p0)
 
     def _globe_steps(self, received: int, n_points: int) -> bool:
