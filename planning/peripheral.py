@@ -45,6 +45,11 @@ BOUNDARY_MM = 0.5  # the virtual boundary's d_safe: a standoff must leave room a
 PORT_FACING_MAX_DEG = 60.0
 
 
+SPACING_RANGE_MM = (0.2, 5.0)  # BandSpec.spacing_mm: ring and azimuth spacing (= sweep width)
+STANDOFF_MAX_MM = 5.0  # BandSpec.standoff_mm's upper end
+TIP_SPEED_RANGE_MM_S = (0.1, 20.0)  # BandSpec.tip_speed_mm_s
+
+
 @dataclass(frozen=True)
 class BandSpec:
     """Band z_E range (mm, eye frame), ring and azimuth spacing (= sweep width, mm),
@@ -65,18 +70,20 @@ class BandSpec:
     def __post_init__(self):
         if not (np.isfinite(self.z_min_E) and np.isfinite(self.z_max_E) and self.z_min_E < self.z_max_E):
             raise ValueError(f"band z_E range must be finite with z_min < z_max, got ({self.z_min_E}, {self.z_max_E}) mm")
-        if not (0.2 <= self.spacing_mm <= 5.0):
-            raise ValueError(f"spacing_mm must be in [0.2, 5] mm, got {self.spacing_mm}")
+        if not (SPACING_RANGE_MM[0] <= self.spacing_mm <= SPACING_RANGE_MM[1]):
+            raise ValueError(f"spacing_mm must be in [{SPACING_RANGE_MM[0]:g}, {SPACING_RANGE_MM[1]:g}] mm, "
+                             f"got {self.spacing_mm}")
         if not (BOUNDARY_MM <= self.boundary_mm <= 4.0):
             raise ValueError(f"boundary_mm must be in [{BOUNDARY_MM}, 4] mm (d_safe + the model's and the calibration's margins), "
                              f"got {self.boundary_mm}")
-        if not (self.standoff_mm > self.boundary_mm + 0.1 and self.standoff_mm <= 5.0):
-            raise ValueError(f"standoff_mm must be in ({self.boundary_mm + 0.1:g}, 5] mm (the boundary is "
-                             f"{self.boundary_mm:g} mm and the filter's margins need room), got {self.standoff_mm}")
+        if not (self.standoff_mm > self.boundary_mm + 0.1 and self.standoff_mm <= STANDOFF_MAX_MM):
+            raise ValueError(f"standoff_mm must be in ({self.boundary_mm + 0.1:g}, {STANDOFF_MAX_MM:g}] mm (the boundary "
+                             f"is {self.boundary_mm:g} mm and the filter's margins need room), got {self.standoff_mm}")
         if not (0.0 < self.port_max_deg <= 90.0) or not (0.0 <= self.min_margin_deg < 45.0):
             raise ValueError("port_max_deg must be in (0, 90] and min_margin_deg in [0, 45) deg")
-        if not (0.1 <= self.tip_speed_mm_s <= 20.0):
-            raise ValueError(f"tip_speed_mm_s must be in [0.1, 20] mm/s, got {self.tip_speed_mm_s}")
+        if not (TIP_SPEED_RANGE_MM_S[0] <= self.tip_speed_mm_s <= TIP_SPEED_RANGE_MM_S[1]):
+            lo, hi = TIP_SPEED_RANGE_MM_S
+            raise ValueError(f"tip_speed_mm_s must be in [{lo:g}, {hi:g}] mm/s, got {self.tip_speed_mm_s}")
 
 
 @dataclass(frozen=True, eq=False)

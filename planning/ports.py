@@ -37,6 +37,9 @@ PORT_ROLES = ("working", "infusion")
 STANDARD_LAYOUT = (("superonasal", "working", 2.0, 10.0), ("superotemporal", "working", 10.0, 2.0),
                    ("infusion", "infusion", 8.0, 4.0))
 SIDES = ("right", "left")
+# Two sclerotomies at least this far apart (clock hours, 30 deg each: about 5 mm of pars plana
+# 4 mm behind the limbus); the standard layout's lie 4-6 hours apart.
+MIN_PORT_SEPARATION_H = 1.0
 
 
 @dataclass(frozen=True)
@@ -79,8 +82,15 @@ def standard_ports(side: str = "right", limbus_mm: float = REFERENCE_LIMBUS_MM,
     unknown = sorted(set(hours) - set(names))
     if unknown:
         raise ValueError(f"unknown port {unknown[0]!r}: the ports are {', '.join(names)}")
-    return tuple(Port(name, role, float(hours.get(name, right if side == "right" else left)), float(limbus_mm))
-                 for name, role, right, left in STANDARD_LAYOUT)
+    ports = tuple(Port(name, role, float(hours.get(name, right if side == "right" else left)), float(limbus_mm))
+                  for name, role, right, left in STANDARD_LAYOUT)
+    for i, a in enumerate(ports):
+        for b in ports[i + 1:]:
+            apart = abs(a.clock_hour - b.clock_hour)
+            if min(apart, 12.0 - apart) < MIN_PORT_SEPARATION_H:
+                raise ValueError(f"ports {a.name} ({a.clock_hour:g} o'clock) and {b.name} ({b.clock_hour:g} o'clock) "
+                                 f"lie less than {MIN_PORT_SEPARATION_H:g} clock hour apart")
+    return ports
 
 
 def _meridian(eye, azimuth: float, elevation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -28,9 +28,10 @@ def hi_ok(v, hi, is_open: bool) -> bool:
 class _Ranged:
     """A parser of numbers in [lo, hi] (an open end with lo_open / hi_open; None: unbounded)."""
 
-    def __init__(self, kind, lo=None, hi=None, unit: str = "", lo_open: bool = False, hi_open: bool = False):
+    def __init__(self, kind, lo=None, hi=None, unit: str = "", lo_open: bool = False, hi_open: bool = False,
+                 step: float | None = None):
         self.kind, self.lo, self.hi, self.unit = kind, lo, hi, unit
-        self.lo_open, self.hi_open = lo_open, hi_open
+        self.lo_open, self.hi_open, self.step = lo_open, hi_open, step
 
     @property
     def range(self) -> str:
@@ -44,17 +45,20 @@ class _Ranged:
             text = f"{'<' if self.hi_open else '<='} {_g(hi)}"
         else:
             text = f"{'(' if self.lo_open else '['}{_g(lo)}, {_g(hi)}{')' if self.hi_open else ']'}"
-        return f"{text} {self.unit}".rstrip(" ,")
+        text = f"{text} {self.unit}".rstrip(" ,")
+        return text if self.step is None else f"{text}, whole multiples of {_g(self.step)} {self.unit}".rstrip()
 
     def __call__(self, text: str):
         span = self.range
         what = "an integer" if self.kind is int else "a number"
         what = f"{what} ({span})" if span.startswith("finite") else f"{what} {'' if span[0] in '<>' else 'in '}{span}"
         try:
+            if "_" in text:  # Python's int() and float() read "1_0" as 10
+                raise ValueError(text)
             v = self.kind(text)
         except (TypeError, ValueError):
             raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
-        ok = math.isfinite(v)
+        ok = math.isfinite(v) and (self.step is None or abs(v / self.step - round(v / self.step)) <= 1e-9)
         if ok and lo_ok(v, self.lo, self.lo_open) and hi_ok(v, self.hi, self.hi_open):
             return v
         raise argparse.ArgumentTypeError(f"must be {what}, got {text}")
@@ -68,12 +72,25 @@ def integer(lo: int, hi: int | None = None, unit: str = "") -> _Ranged:
     return _Ranged(int, lo, hi, unit)
 
 
-def number(lo: float | None, hi: float | None, unit: str, lo_open: bool = False, hi_open: bool = False) -> _Ranged:
-    """Type of a finite float flag in [lo, hi] (ends open with lo_open / hi_open)."""
-    return _Ranged(float, lo, hi, unit, lo_open, hi_open)
+def number(lo: float | None, hi: float | None, unit: str, lo_open: bool = False, hi_open: bool = False,
+           step: float | None = None) -> _Ranged:
+    """Type of a finite float flag in [lo, hi] (ends open with lo_open / hi_open), a whole
+    multiple of `step` when it is not None."""
+    return _Ranged(float, lo, hi, unit, lo_open, hi_open, step)
 
 
 SEED = integer(0, SEED_MAX)
+
+
+def out_dir(text: str) -> str:
+    """Type of an output folder flag (--out, --stl): a non-empty path (an empty one would
+    write into the working directory)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"must be a folder's path, got {text!r}")
+    return text
+
+
+out_dir.__name__ = "output folder"
 
 
 def choice(name: str, options) -> callable:

@@ -14,7 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number, out_dir
 from eval.cli.boundary_all import ALL, run_all
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import add_loop_flags, loop_config, loop_record, scenario
@@ -60,7 +60,7 @@ def register(sub) -> None:
     p.add_argument("--search-budget", type=SEARCH_BUDGET, default=None,
                    help=f"simulations of the search adversary, {SEARCH_BUDGET.range}; default 10 x --scenarios")
     add_loop_flags(p)
-    p.add_argument("--out", default="out/boundary", help="output directory")
+    p.add_argument("--out", type=out_dir, default="out/boundary", help="output directory")
     add_worker_flags(p)
     p.set_defaults(func=main)
 

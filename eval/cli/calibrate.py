@@ -14,7 +14,7 @@ import time
 import matplotlib.pyplot as plt
 import numpy as np
 
-from eval.cli.args import SEED, integer, number
+from eval.cli.args import SEED, integer, number, out_dir
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase
 from models.calibration.plate import (
@@ -62,7 +62,7 @@ FIG3_AZIMUTHS_DEG = (0.0, 90.0, 180.0, 270.0)
 
 def register(sub) -> None:
     p = sub.add_parser("calibrate", help="plate calibration of the sensor pose: calibration.json, fig3_sensitivity.png")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", type=out_dir, required=True, help="output directory")
     p.add_argument("--poses", type=POSES, default=250, help=f"number of flange poses, {POSES.range} (paper: 250)")
     p.add_argument("--noise-um", type=NOISE_UM, default=20.0, help=f"SD of the distance noise, {NOISE_UM.range}")
     p.add_argument("--seed", type=SEED, default=0, help=f"random seed, {SEED.range}")

@@ -13,7 +13,7 @@ import argparse
 
 import numpy as np
 
-from eval.cli.args import SEED, choice, integer
+from eval.cli.args import SEED, choice, integer, out_dir
 from eval.cli.io import prepare_out_dir, write_json
 from models.eyes import EYE_SHAPES
 
@@ -23,7 +23,7 @@ ROWS = integer(2, 1000)
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="closed loop on the default eye: spiral scan, transition, adversarial teleoperation")
-    p.add_argument("--out", default="out/demo", help="output directory")
+    p.add_argument("--out", type=out_dir, default="out/demo", help="output directory")
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
     p.add_argument("--seed", type=SEED, default=0, help=f"seed of the sensor noise, starts and adversary, {SEED.range}")

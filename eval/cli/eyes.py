@@ -6,7 +6,7 @@ from __future__ import annotations
 import matplotlib.pyplot as plt
 import numpy as np
 
-from eval.cli.args import add_eye_param, number
+from eval.cli.args import add_eye_param, number, out_dir
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES, make_eye
@@ -20,8 +20,8 @@ _SECTION = {"staphyloma": (np.array([1.0, 0.0, 0.0]), "x (temporal)"), "detached
 
 def register(sub) -> None:
     p = sub.add_parser("eyes", help="render the ground-truth eye shapes to eyes.png")
-    p.add_argument("--out", default=None, help="output directory of eyes.png (required unless --stl)")
-    p.add_argument("--stl", default=None, metavar="DIR",
+    p.add_argument("--out", type=out_dir, default=None, help="output directory of eyes.png (required unless --stl)")
+    p.add_argument("--stl", type=out_dir, default=None, metavar="DIR",
                    help="write each shape's lower half (z <= 0 in E) as a watertight STL shell in mm to DIR/<shape>.stl")
     add_eye_param(p)
     p.add_argument("--wall-mm", type=WALL, default=1.0, help=f"the STL shell's wall thickness, {WALL.range}")
@@ -29,13 +29,14 @@ def register(sub) -> None:
     p.set_defaults(func=main)
 
 
-def figure_eyes():
-    """2 x 6 figure: each shape as a surface coloured by its departure from its base
+def figure_eyes(params: dict | None = None):
+    """2 x 6 figure: each shape (built with its `params`, make_eye's keyword parameters per
+    shape; None: the defaults) as a surface coloured by its departure from its base
     ellipsoid, and its cross-section through the visual axis (and the pathology)."""
     fig = plt.figure(figsize=(18, 6.5))
     stats = {}
     for k, name in enumerate(EYE_SHAPES):
-        eye = make_eye(name)
+        eye = make_eye(name, **(params or {}).get(name, {}))
         n_t, n_p = 60, 90
         U = unit_sphere_grid(n_t, n_p)
         X = eye.surface_points(U)
@@ -64,7 +65,8 @@ def figure_eyes():
         ax2.grid(alpha=0.3)
         if k == 0:
             ax2.legend(fontsize=7, loc="upper right")
-        stats[name] = {"radii_mm": eye.radii.tolist(), "max_inward_mm": float(-dev.min()), "max_outward_mm": float(dev.max())}
+        stats[name] = {"params": dict((params or {}).get(name, {})), "radii_mm": eye.radii.tolist(),
+                       "max_inward_mm": float(-dev.min()), "max_outward_mm": float(dev.max())}
     fig.suptitle("Ground-truth retinas in E (colour: radial departure from the base ellipsoid, red = outward)")
     fig.tight_layout()
     return fig, stats
@@ -102,16 +104,16 @@ def main(args) -> int:
     if args.out is None and args.stl is None:
         raise UsageError("give --out (eyes.png) or --stl DIR (STL phantoms), or both")
     params = shape_params(args.eye_param)
-    if args.stl is not None:
-        folder = prepare_out_dir(args.stl)
+    folder = None if args.stl is None else prepare_out_dir(args.stl)
+    out = None if args.out is None else prepare_out_dir(args.out)  # both checked before anything is written
+    if folder is not None:
         with phase("meshing the six lower halves"):
             paths = write_stl(folder, params, args.wall_mm, args.edge_mm)
         print(f"wrote {len(paths)} STL files to {folder} (mm, eye frame E; inner surface = retina)")
-        if args.out is None:
+        if out is None:
             return 0
-    out = prepare_out_dir(args.out)
     with phase("rendering the six eye shapes"):
-        fig, stats = figure_eyes()
+        fig, stats = figure_eyes(params)
     write_json(out / "eyes.json", stats)
     save_figure(fig, out / "eyes.png")
     print(f"wrote {out / 'eyes.png'} and {out / 'eyes.json'}")

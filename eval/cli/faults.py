@@ -15,7 +15,7 @@ smallest true clearance per scenario); with `--shape all` the same per shape und
 """
 from __future__ import annotations
 
-from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number, out_dir
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import CALIBRATION_BOUND, add_model_flag
 from eval.cli.progress import progress_bar
@@ -42,7 +42,7 @@ def register(sub) -> None:
                    help=f"declared calibration bound the filter keeps, {CALIBRATION_BOUND.range}; default 0.03,0.13")
     add_eye_param(p)
     add_model_flag(p)
-    p.add_argument("--out", default="out/faults", help="output directory")
+    p.add_argument("--out", type=out_dir, default="out/faults", help="output directory")
     add_worker_flags(p)
     p.set_defaults(func=main)
 
@@ -52,7 +52,10 @@ def classes_of(text: str) -> list:
 
     if text.strip() == "all":
         return list(FAULT_CLASSES)
-    names = [c.strip() for c in text.split(",") if c.strip()]
+    names = [c.strip() for c in text.split(",")]
+    if "" in names:
+        raise UsageError(f"--classes: an empty class name in {text!r}; comma-separated names of "
+                         f"{','.join(FAULT_CLASSES)}")
     bad = [c for c in names if c not in FAULT_CLASSES]
     if bad or not names:
         raise UsageError(f"--classes: unknown class {bad[0] if bad else text!r}; choose from {','.join(FAULT_CLASSES)}")

@@ -16,7 +16,7 @@ import os
 import time
 from pathlib import Path
 
-from eval.cli.args import number
+from eval.cli.args import number, out_dir
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase, progress_bar
 from eval.cli.workers import add_worker_flags
@@ -29,7 +29,7 @@ def register(sub) -> None:
     p = sub.add_parser("fit", help="fit a recording (ROS 2 bag or CSV pair): fit.json, sync.png, fit.png")
     p.add_argument("--recording", required=True,
                    help="a ROS 2 bag (folder, .mcap or .db3) with JointState and A-scan Image topics, or a CSV-pair folder")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", type=out_dir, required=True, help="output directory")
     p.add_argument("--calibration", default=None,
                    help="the sensor pose: a `vitreoguard calibrate` calibration.json or {p_FS_mm, u_F} (default: nominal)")
     p.add_argument("--ground-truth", default=None, metavar="MESH.stl",

@@ -24,10 +24,14 @@ import numpy as np
 
 from eval.cli.args import choice, number, numbers
 
-DELAY_MS = number(0.0, 50.0, "ms")
+# the actuator applies its delay in whole control periods (safety.actuator.ActuatorModel; the loop's: 1 kHz)
+DELAY_MS = number(0.0, 50.0, "ms", step=1.0)
 LAG_MS = number(0.0, 200.0, "ms")
-ACCEL = number(0.0, None, "deg/s^2", lo_open=True)
+# Below 100 deg/s^2 a joint needs seconds to stop from the speeds the loop commands (the
+# model-building spiral no longer follows its path); above 1e5 no arm's joints accelerate.
+ACCEL = number(100.0, 1e5, "deg/s^2")
 OFFSET_MS = number(0.0, 100.0, "ms")
+
 ENCODER_NOISE = number(0.0, 1.0, "deg")
 CALIBRATION_BOUND = numbers(("MM", "DEG"), 0.0, 10.0, "(mm, deg)")
 POSE_ERROR = numbers(("DX", "DY", "DZ", "RX", "RY", "RZ"), -10.0, 10.0, "(mm, deg)")
@@ -60,7 +64,7 @@ def add_model_flag(p, default: str = "local") -> None:
 def add_loop_flags(p) -> None:
     """The real-robot error flags (module docstring) on parser `p`."""
     p.add_argument("--actuator-delay-ms", type=DELAY_MS, default=0.0,
-                   help=f"pure delay of the robot's velocity controller, {DELAY_MS.range} (whole control periods)")
+                   help=f"pure delay of the robot's velocity controller, {DELAY_MS.range}")
     p.add_argument("--actuator-lag-ms", type=LAG_MS, default=0.0,
                    help=f"first-order lag (time constant) of the applied joint velocity, {LAG_MS.range}")
     p.add_argument("--actuator-accel-limit", type=ACCEL, default=None,

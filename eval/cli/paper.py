@@ -6,7 +6,7 @@ import signal
 
 import numpy as np
 
-from eval.cli.args import add_eye_param, choice, eye_params, integer, number
+from eval.cli.args import add_eye_param, choice, eye_params, integer, number, out_dir
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_atomic, write_json
 from eval.experiments.paper import (ACCURACY_REQUIRED_MM, PAPER_LAG_RANGE, PAPER_TABLE2, best_ellipsoid_curve, decision,
                                     optimal_transition, run_shape)
@@ -32,7 +32,7 @@ GRID = integer(10, 2000)
 
 def register(sub) -> None:
     p = sub.add_parser("paper", help="the paper's simulation experiment: table2.json/.md and fig5_<shape>.png")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", type=out_dir, required=True, help="output directory")
     p.add_argument("--shapes", nargs="+", type=choice("shape", EYE_SHAPES), default=list(EYE_SHAPES),
                    help=f"true eyes to scan, any of: {' '.join(EYE_SHAPES)}")
     add_eye_param(p)

@@ -28,16 +28,18 @@ from pathlib import Path
 
 import numpy as np
 
-from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number, out_dir
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import add_model_flag, local_model
-from eval.cli.plan_model import flags_named, move_logs, plan_on_model, survey_band
+from eval.cli.plan_model import check_standoff, flags_named, move_logs, plan_on_model, survey_band
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES
+from planning.peripheral import SPACING_RANGE_MM, STANDOFF_MAX_MM, TIP_SPEED_RANGE_MM_S
 from planning.ports import PARS_PLANA_MM
 
-POSITIVE_MM = number(0.0, None, "mm", lo_open=True)
-POSITIVE_MM_S = number(0.0, None, "mm/s", lo_open=True)
+STANDOFF_MM = number(0.0, STANDOFF_MAX_MM, "mm", lo_open=True)  # its floor, the filter's boundary + 0.2 mm: spec_of
+SWEEP_MM = number(*SPACING_RANGE_MM, "mm")
+TIP_SPEED = number(*TIP_SPEED_RANGE_MM_S, "mm/s")
 TRUST_ANGLE = number(0.0, 180.0, "deg", lo_open=True)
 PORT_ANGLE = number(0.0, 90.0, "deg", lo_open=True)
 SURVEY_MM = number(0.0, 3.0, "mm")
@@ -96,15 +98,16 @@ def register(sub) -> None:
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
     add_eye_param(p)
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--standoff-mm", type=POSITIVE_MM, default=1.0,
+    p.add_argument("--out", type=out_dir, required=True, help="output directory")
+    p.add_argument("--standoff-mm", type=STANDOFF_MM, default=1.0,
                    help="shaving standoff inside the model, mm: at least the filter's boundary (0.5 mm + the "
                         "model's margin + the calibration bound's 0.064 mm) + 0.2 mm, and at most 5 mm")
     p.add_argument("--band", type=band_range, default="0,5", metavar="Z0,Z1",
                    help="band z_E range 'z0,z1' in mm (equator 0, ora serrata 5); |z_E| below the smallest retinal "
                         "semi-axis minus the standoff")
-    p.add_argument("--sweep-mm", type=POSITIVE_MM, default=1.0, help="cutter sweep width = ring spacing, [0.2, 5] mm")
-    p.add_argument("--tip-speed-mm-s", type=POSITIVE_MM_S, default=5.0, help="shaving tip speed, [0.1, 20] mm/s")
+    p.add_argument("--sweep-mm", type=SWEEP_MM, default=1.0,
+                   help=f"cutter sweep width = ring spacing, {SWEEP_MM.range}")
+    p.add_argument("--tip-speed-mm-s", type=TIP_SPEED, default=5.0, help=f"shaving tip speed, {TIP_SPEED.range}")
     p.add_argument("--seed", type=SEED, default=0, help=f"sensor noise seed of the model-building scan, {SEED.range}")
     p.add_argument("--no-execute", action="store_true", help="plan only (no closed-loop execution)")
     p.add_argument("--side", type=choice("eye side", SIDES), default="right", help="which eye: right or left (the "
@@ -145,7 +148,13 @@ def spec_of(args):
     from planning.peripheral import BandSpec
     from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
 
+    from safety import FilterConfig
+
     z0, z1 = args.band
+    check_standoff(args.standoff_mm, FilterConfig().boundary_mm(0.0),
+                   "the filter's boundary without the model's margin (d_safe + the calibration margin)")
+    if args.survey_passes > 1 and not args.survey_mm:
+        raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")
     try:
         spec = BandSpec(z_min_E=z0, z_max_E=z1, spacing_mm=args.sweep_mm, standoff_mm=args.standoff_mm,
                         tip_speed_mm_s=args.tip_speed_mm_s, port_max_deg=args.port_angle_deg)
@@ -213,8 +222,6 @@ def main(args) -> int:
     loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=local_model(args)),
                      sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
-    if args.survey_passes > 1 and not args.survey_mm:
-        raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")
     survey = None
     with tempfile.TemporaryDirectory(prefix="vitreoguard-survey-") as survey_logs:
         if args.survey_mm:

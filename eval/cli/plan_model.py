@@ -12,6 +12,7 @@ nearly all of it). Units: mm, s.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import shutil
 from pathlib import Path
@@ -31,6 +32,18 @@ _PARAMETER = re.compile(r"\b(" + "|".join(sorted(map(re.escape, FLAG_OF_PARAMETE
 def flags_named(message: str) -> str:
     """`message` with planning's parameter names replaced by the flags that set them."""
     return _PARAMETER.sub(lambda m: FLAG_OF_PARAMETER[m.group(1)], message)
+
+
+SHAVE_ROOM_MM = 0.2  # between the filter's boundary and the shaving standoff: the filter need not step in
+
+
+def check_standoff(standoff_mm: float, boundary_mm: float, what: str) -> None:
+    """UsageError naming --standoff-mm when it lies less than SHAVE_ROOM_MM beyond the
+    boundary `boundary_mm` (mm; `what`: the boundary's description)."""
+    if standoff_mm < boundary_mm + SHAVE_ROOM_MM:
+        raise UsageError(f"--standoff-mm {standoff_mm:g} is below {what} ({boundary_mm:.3f} mm) + {SHAVE_ROOM_MM:g} mm "
+                         f"to shave without the filter stepping in; use at least "
+                         f"{math.ceil((boundary_mm + SHAVE_ROOM_MM) * 100.0) / 100.0:.2f} mm")
 
 
 def plan_on_model(args, loop, build, scenario, visit, spec):
@@ -56,16 +69,16 @@ def plan_on_model(args, loop, build, scenario, visit, spec):
     shaft = loop.filter.field_objects(trusted)[1]
     model = FieldModel(trusted.field if loop.config.local_model else shaft, loop.config.filter.sigma_factor, trusted.kind,
                        bound=shaft)
-    spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
+    try:
+        spec = dataclasses.replace(spec, boundary_mm=loop.config.filter.boundary_mm(0.0))  # d_safe + calibration
+    except ValueError as exc:
+        raise UsageError(flags_named(str(exc))) from None
     try:
         surface = band_surface(model, scenario.eye_pose, spec)
     except ValueError as exc:  # the band leaves this model
         raise UsageError(f"cannot plan: {flags_named(str(exc))}") from None
     boundary = spec.boundary_mm + least_uncertainty_mm(model, surface, spec.standoff_mm)
-    if spec.standoff_mm < boundary + 0.2:
-        raise UsageError(f"--standoff-mm {spec.standoff_mm:g} is below the boundary the filter keeps from this "
-                         f"{trusted.kind} model ({boundary:.2f} mm + 0.2 mm to shave without the filter "
-                         f"stepping in); use at least {boundary + 0.2:.2f} mm")
+    check_standoff(spec.standoff_mm, boundary, f"the boundary the filter keeps from this {trusted.kind} model")
     try:
         with phase(f"planning the band {spec.standoff_mm:g} mm deep through {len(visit)} ports (reachability, "
                    f"assignment, sweeps, switches)"):

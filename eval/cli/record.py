@@ -13,7 +13,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, number, out_dir
 from eval.cli.io import UsageError, prepare_out_dir, write_json
 from eval.cli.progress import progress_bar
 from eval.recording import SCANS
@@ -30,7 +30,7 @@ BAG_NAME = "recording"
 
 def register(sub) -> None:
     p = sub.add_parser("record", help="simulated rig recording: a ROS 2 bag (MCAP) and truth.json")
-    p.add_argument("--out", required=True, help="output directory (the bag goes to OUT/recording)")
+    p.add_argument("--out", type=out_dir, required=True, help="output directory (the bag goes to OUT/recording)")
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
     add_eye_param(p)

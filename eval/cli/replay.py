@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from eval.cli.args import number
+from eval.cli.args import number, out_dir
 from eval.cli.io import UsageError, prepare_out_dir, write_json
 from eval.log.writer import LogReadError, TruncatedLogError
 from eval.log.replay import replay
@@ -22,7 +22,7 @@ def register(sub) -> None:
     p = sub.add_parser("replay", help="re-run the safety filter on a run log (MCAP) and compare: replay.json")
     p.add_argument("file", help="run log written by eval.log.writer.RunLogger (.mcap)")
     p.add_argument("--tol", type=TOL, default=1e-9, help=f"largest accepted |qdot difference|, {TOL.range}")
-    p.add_argument("--out", default=None, help="output directory (default: the log's directory)")
+    p.add_argument("--out", type=out_dir, default=None, help="output directory (default: the log's directory)")
     p.add_argument("--allow-truncated", action="store_true",
                    help="replay a killed run's log up to its last complete step instead of refusing it")
     p.set_defaults(func=main)
@@ -31,7 +31,7 @@ def register(sub) -> None:
 def main(args) -> int:
     path = Path(args.file)
     if not path.is_file():
-        raise UsageError(f"{path}: no such file")
+        raise UsageError(f"{path}: {'a folder, not a run log file' if path.is_dir() else 'no such file'}")
     try:
         result = replay(path, args.tol, args.allow_truncated)
     except TruncatedLogError as exc:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eval.cli.args import number
+from eval.cli.args import number, out_dir
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase
 
@@ -19,7 +19,7 @@ FIGURE_KEYS = ("max_rcm_error_um", "mean_rcm_error_um", "min_joint_margin_deg", 
 
 def register(sub) -> None:
     p = sub.add_parser("scan", help="spiral scan through the trocar (surgery scenario): scan.json, scan.png")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", type=out_dir, required=True, help="output directory")
     p.add_argument("--tip-speed-mm-s", type=TIP_SPEED, default=5.0, help=f"tip speed along the spiral, {TIP_SPEED.range}")
     p.add_argument("--revolutions", type=REVOLUTIONS, default=18.0,
                    help=f"spiral revolutions over its 9 mm radius, {REVOLUTIONS.range} (paper: 18)")

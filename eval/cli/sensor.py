@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eval.cli.args import SEED, add_eye_param, choice, eye_params, number
+from eval.cli.args import SEED, add_eye_param, choice, eye_params, number, out_dir
 from eval.cli.io import prepare_out_dir, save_figure, write_json
 from eval.cli.loop_flags import add_model_flag, local_model
 from eval.experiments.boundary import SPIRAL_RADIUS_MM, SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S, spiral_pitch_mm
@@ -25,7 +25,7 @@ REVOLUTIONS = number(1.0, 18.0, "revolutions")
 
 def register(sub) -> None:
     p = sub.add_parser("sensor", help="spiral scan through robot + iiOCT + model: sensor.json, ascans.png")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", type=out_dir, required=True, help="output directory")
     p.add_argument("--shape", type=choice("shape", EYE_SHAPES), default="emmetropic",
                    help=f"true eye: one of {' '.join(EYE_SHAPES)}")
     add_eye_param(p)

@@ -23,6 +23,7 @@ Units: mm, s, rad (ms, um where named).
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -133,6 +134,8 @@ def read_recording(path, engine: OctEngine = OctEngine(), joint_topic=None, asca
     p = Path(path)
     if not p.exists():
         raise RecordingError(f"--recording {p} does not exist")
+    if not os.access(p, os.R_OK | (os.X_OK if p.is_dir() else 0)):
+        raise RecordingError(f"--recording {p} is not readable (permission denied)")
     extracted = True
     with Extraction(engine, jobs) as sink:
         if p.is_dir() and (p / "joints.csv").exists():

@@ -93,7 +93,7 @@ def load_stl(path) -> tuple[np.ndarray, np.ndarray]:
 
     p = Path(path)
     if not p.is_file():
-        raise RecordingError(f"--ground-truth {p} does not exist")
+        raise RecordingError(f"--ground-truth {p} {'is a folder, not an STL file' if p.is_dir() else 'does not exist'}")
     try:
         mesh = trimesh.load_mesh(p, file_type="stl")
     except Exception as exc:  # trimesh raises several types for a file that is no STL

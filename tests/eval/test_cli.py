@@ -4,6 +4,7 @@ flags."""
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import subprocess
@@ -53,14 +54,15 @@ BAD_NUMBERS = [
     ("boundary", "--duration-s", "nan", "[0.05, 10] s"), ("boundary", "--spiral-speed-mm-s", "100", "[1, 17] mm/s"),
     ("boundary", "--spiral-revolutions", "inf", "[1, 18]"), ("boundary", "--seed", "1e3", "integer"),
     ("boundary", "--search-budget", "0", "[1, 1000000]"), ("boundary", "--actuator-delay-ms", "-1", "[0, 50] ms"),
-    ("boundary", "--actuator-lag-ms", "nan", "[0, 200] ms"), ("boundary", "--actuator-accel-limit", "0", "> 0 deg/s^2"),
+    ("boundary", "--actuator-lag-ms", "nan", "[0, 200] ms"),
+    ("boundary", "--actuator-accel-limit", "0", "[100, 100000] deg/s^2"),
     ("boundary", "--oct-time-offset-ms", "-2.6", "[0, 100] ms"), ("boundary", "--encoder-noise", "inf", "[0, 1] deg"),
     ("faults", "--scenarios", "0", "[1, 100000]"), ("faults", "--duration-s", "0", "[0.05, 10] s"),
     ("faults", "--seed", "-1", f"[0, {SEED_MAX}]"),
     ("sensor", "--outliers", "0.9", "[0, 0.5]"), ("sensor", "--speed-mm-s", "0", "[1, 17] mm/s"),
     ("sensor", "--revolutions", "18.5", "[1, 18]"), ("sensor", "--seed", str(SEED_MAX + 1), f"[0, {SEED_MAX}]"),
-    ("plan", "--standoff-mm", "-1", "> 0 mm"), ("plan", "--sweep-mm", "nan", "> 0 mm"),
-    ("plan", "--tip-speed-mm-s", "0", "> 0 mm/s"), ("plan", "--trust-angle-deg", "181", "(0, 180] deg"),
+    ("plan", "--standoff-mm", "-1", "(0, 5] mm"), ("plan", "--sweep-mm", "nan", "[0.2, 5] mm"),
+    ("plan", "--tip-speed-mm-s", "0", "[0.1, 20] mm/s"), ("plan", "--trust-angle-deg", "181", "(0, 180] deg"),
     ("plan", "--band", "5,0", "z0 < z1"), ("plan", "--band", "1", "'z0,z1' in mm"), ("plan", "--seed", "-2", "[0, "),
     ("plan", "--port-angle-deg", "91", "(0, 90] deg"), ("plan", "--port-limbus-mm", "2.9", "[3, 5] mm"),
     ("plan", "--survey-mm", "3.1", "[0, 3] mm"), ("plan", "--survey-passes", "5", "[1, 4]"),
@@ -77,7 +79,10 @@ BAD_NUMBERS = [
     ("record", "--encoder-noise-urad", "-1", "[0, 1000] urad"), ("record", "--joint-rate-hz", "10", "[50, 1000] Hz"),
     ("record", "--seed", "-1", f"[0, {SEED_MAX}]"),
     ("fit", "--max-offset-ms", "0", "[1, 1000] ms"), ("fit", "--icp-max-distance-mm", "9", "[0.01, 5] mm"),
-    ("fit", "--jobs", "0", "[1, 1024]"),
+    ("fit", "--jobs", "0", "[1, 1024]"), ("demo", "--scenarios", "1_0", "[1, 1000]"),
+    ("boundary", "--actuator-accel-limit", "1e300", "[100, 100000] deg/s^2"),
+    ("boundary", "--actuator-delay-ms", "0.3", "[0, 50] ms, whole multiples of 1 ms"),
+    ("plan", "--sweep-mm", "0", "[0.2, 5] mm"), ("plan", "--tip-speed-mm-s", "25", "[0.1, 20] mm/s"),
     ("eyes", "--wall-mm", "0", "[0.2, 5] mm"), ("eyes", "--edge-mm", "3", "[0.05, 2] mm"),
 ]
 
@@ -119,17 +124,28 @@ def test_version_comes_from_the_package_metadata(capsys):
     assert code == 0 and out == f"vitreoguard {version('vitreoguard')}\n"
 
 
-@pytest.mark.parametrize("argv, flag", [
-    (["--standoff-mm", "0.55"], "--standoff-mm"), (["--sweep-mm", "9"], "--sweep-mm"),
-    (["--tip-speed-mm-s", "30"], "--tip-speed-mm-s"),
-])
-def test_plan_names_the_flags_not_the_planners_parameters(argv, flag, tmp_path, capsys):
-    code, _, err = run_main(capsys, "plan", "--out", tmp_path / "never", "--no-execute", *argv)
-    assert code == 2 and err.count("\n") == 1
-    assert err.startswith(f"vitreoguard plan: error: {flag} must be in ") and " mm" in err, err
+@pytest.mark.parametrize("standoff", ["0.55", "0.65", "0.76"])
+def test_a_standoff_inside_the_filters_boundary_is_refused_before_the_scan(standoff, tmp_path, capsys):
+    """The filter's boundary without the model's margin is d_safe 0.5 mm + the calibration
+    margin (FilterConfig().boundary_mm(0)); the standoff needs 0.2 mm beyond it, named as
+    the flag, before the model-building scan (no planner parameter named, nothing written)."""
+    from safety import FilterConfig
+
+    least = FilterConfig().boundary_mm(0.0) + 0.2
+    code, stdout, err = run_main(capsys, "plan", "--out", tmp_path / "never", "--no-execute", "--standoff-mm", standoff)
+    assert code == 2 and stdout == "" and err.count("\n") == 1
+    assert err.startswith(f"vitreoguard plan: error: --standoff-mm {standoff} is below the filter's boundary"), err
+    assert f"use at least {math.ceil(least * 100) / 100:.2f} mm" in err  # rounded up: the value given is taken
     for parameter in ("spacing_mm", "standoff_mm", "tip_speed_mm_s", "z_min", "z_max"):
         assert parameter not in err
     assert not (tmp_path / "never").exists()
+
+
+def test_the_delay_flags_step_is_the_loops_control_period():
+    from eval.cli.loop_flags import DELAY_MS
+    from eval.loop_config import LoopConfig
+
+    assert DELAY_MS.step == pytest.approx(1e3 / LoopConfig().control_rate_hz)
 
 
 @pytest.mark.slow

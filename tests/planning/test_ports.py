@@ -1,6 +1,8 @@
 """The 3-port layout: clock hours, distances behind the limbus, bad input."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -49,10 +51,18 @@ def test_the_ports_placement_keeps_the_2_oclock_port_where_the_reference_trocar_
 @pytest.mark.parametrize("kwargs, message", [
     (dict(clock_hours={"nasal": 3}), "unknown port 'nasal'"), (dict(clock_hours={"infusion": 13}), "[1, 12]"),
     (dict(clock_hours={"infusion": 0}), "[1, 12]"), (dict(limbus_mm=2.0), "off the pars plana"),
-    (dict(limbus_mm=7.0), "off the pars plana"), (dict(side="up"), "eye side")])
+    (dict(limbus_mm=7.0), "off the pars plana"), (dict(side="up"), "eye side"),
+    (dict(clock_hours={"superonasal": 10}), "superonasal (10 o'clock) and superotemporal (10 o'clock) lie less than 1"),
+    (dict(clock_hours={"superonasal": 10.5}), "less than 1 clock hour apart")])
 def test_bad_ports_are_refused_by_name(kwargs, message):
-    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+    with pytest.raises(ValueError, match=re.escape(message)):
         standard_ports(**kwargs)
+
+
+def test_ports_an_hour_apart_across_12_oclock_are_taken():
+    """12 and 1 o'clock lie one clock hour apart (the hours wrap): allowed."""
+    ports = standard_ports("right", clock_hours={"superotemporal": 12.0, "superonasal": 1.0})
+    assert [p.clock_hour for p in ports] == [1.0, 12.0, 8.0]
 
 
 def test_an_unknown_port_name_is_refused_by_the_scenario():
