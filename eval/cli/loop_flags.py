@@ -27,8 +27,9 @@ from eval.cli.args import choice, number, numbers
 # the actuator applies its delay in whole control periods (safety.actuator.ActuatorModel; the loop's: 1 kHz)
 DELAY_MS = number(0.0, 50.0, "ms", step=1.0)
 LAG_MS = number(0.0, 200.0, "ms")
-# Below 100 deg/s^2 a joint needs seconds to stop from the speeds the loop commands (the
-# model-building spiral no longer follows its path); above 1e5 no arm's joints accelerate.
+# The fault classes run 1,000 deg/s^2. Below 100 a joint at the spiral's 1.5 rad/s (its wrist)
+# needs 0.9 s to stop; above 1e5 (1,745 rad/s^2) it stops from there within one 1 ms step, so
+# the limit no longer acts.
 ACCEL = number(100.0, 1e5, "deg/s^2")
 OFFSET_MS = number(0.0, 100.0, "ms")
 
