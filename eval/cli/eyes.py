@@ -7,7 +7,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from eval.cli.args import add_eye_param, number, out_dir
-from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
+from eval.cli.io import UsageError, check_out_dir, prepare_out_dir, save_figure, write_json
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES, make_eye
 from models.shapes.sampling import unit_sphere_grid
@@ -104,8 +104,11 @@ def main(args) -> int:
     if args.out is None and args.stl is None:
         raise UsageError("give --out (eyes.png) or --stl DIR (STL phantoms), or both")
     params = shape_params(args.eye_param)
+    for path in (args.stl, args.out):  # both checked before either is made
+        if path is not None:
+            check_out_dir(path)
     folder = None if args.stl is None else prepare_out_dir(args.stl)
-    out = None if args.out is None else prepare_out_dir(args.out)  # both checked before anything is written
+    out = None if args.out is None else prepare_out_dir(args.out)
     if folder is not None:
         with phase("meshing the six lower halves"):
             paths = write_stl(folder, params, args.wall_mm, args.edge_mm)

@@ -11,6 +11,22 @@ class UsageError(Exception):
     """Bad command-line input: the CLI prints the message and exits with code 2."""
 
 
+def check_out_dir(path) -> Path:
+    """Check, creating nothing, that `path` can be an output folder: a folder already, or
+    to be made inside the nearest existing folder above it, which must be writable;
+    raise UsageError if not (for a command with two output folders: both checked before
+    either is made)."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"output directory {out} is not writable: it is a file")
+    above = out
+    while not above.exists():
+        above = above.parent
+    if not above.is_dir() or not os.access(above, os.W_OK | os.X_OK):
+        raise UsageError(f"output directory {out} is not writable: {above} is not a writable folder")
+    return out
+
+
 def prepare_out_dir(path) -> Path:
     """Create `path` if needed and check that it is writable; raise UsageError if not."""
     out = Path(path)
