@@ -146,15 +146,17 @@ def register(sub) -> None:
 def spec_of(args):
     """The planning.peripheral.BandSpec of the flags; UsageError naming the flag at fault."""
     from planning.peripheral import BandSpec
-    from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
-
     from safety import FilterConfig
+    from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
 
     z0, z1 = args.band
     check_standoff(args.standoff_mm, FilterConfig().boundary_mm(0.0),
                    "the filter's boundary without the model's margin (d_safe + the calibration margin)")
     if args.survey_passes > 1 and not args.survey_mm:
         raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")
+    if args.standoff_mm + args.survey_mm > STANDOFF_MAX_MM:
+        raise UsageError(f"--standoff-mm {args.standoff_mm:g} + --survey-mm {args.survey_mm:g} puts the survey deeper "
+                         f"than {STANDOFF_MAX_MM:g} mm inside the model")
     try:
         spec = BandSpec(z_min_E=z0, z_max_E=z1, spacing_mm=args.sweep_mm, standoff_mm=args.standoff_mm,
                         tip_speed_mm_s=args.tip_speed_mm_s, port_max_deg=args.port_angle_deg)

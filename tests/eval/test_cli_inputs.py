@@ -56,6 +56,15 @@ def test_plan_refuses_survey_passes_without_a_survey_before_the_scan(tmp_path, c
     assert not (tmp_path / "never").exists()
 
 
+def test_a_survey_deeper_than_the_standoffs_range_is_refused_before_the_scan(tmp_path, capsys, monkeypatch):
+    import eval.experiments.boundary as experiments
+
+    monkeypatch.setattr(experiments, "build_model_by_spiral", lambda *a, **k: pytest.fail("the scan ran"))
+    refused(capsys, ["plan", "--out", tmp_path / "never", "--standoff-mm", "4.5", "--survey-mm", "0.7"],
+            "--standoff-mm 4.5 + --survey-mm 0.7 puts the survey deeper than 5 mm inside the model")
+    assert not (tmp_path / "never").exists()
+
+
 def test_ports_less_than_an_hour_apart_are_refused_before_the_scan(tmp_path, capsys, monkeypatch):
     import eval.experiments.boundary as experiments
 
