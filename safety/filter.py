@@ -127,7 +127,7 @@ class SafetyFilter:
             untrusted = [i for i, p in enumerate(pts) if not p.trusted]
             if untrusted and x.fallback is not None:  # the tighter of the model and the fallback
                 h_f, g_f = _distance_and_gradient(x.fallback, P[untrusted])
-                tighter = h_f < h[untrusted]
+                tighter = ~(h_f >= h[untrusted])  # a NaN fallback counts: the step then faults on it
                 rows = np.asarray(untrusted)[tighter]
                 h[rows], g[rows] = h_f[tighter], g_f[tighter]
             fields["eye"] = tabulate(h, g, u)
@@ -151,6 +151,16 @@ class SafetyFilter:
             return f"J_tip has shape {np.shape(x.J_tip)}, expected (3, {n})"
         if np.shape(x.v_cmd_W) != (3,):
             return f"v_cmd_W has shape {np.shape(x.v_cmd_W)}, expected (3,)"
+        for name in ("q_min", "q_max", "qdot_max"):
+            if np.shape(getattr(x, name)) != (n,):
+                return f"{name} has shape {np.shape(getattr(x, name))}, expected ({n},)"
+        q_min, q_max, qdot_max = (np.asarray(v, dtype=float) for v in (x.q_min, x.q_max, x.qdot_max))
+        if np.isnan(q_min).any() or np.isnan(q_max).any():  # crossed limits: the joint position rows say so
+            return "invalid joint limits: NaN in q_min or q_max (-inf / +inf: no limit that way)"
+        if not (np.isfinite(qdot_max).all() and (qdot_max > 0).all()):
+            return "invalid joint speed limits: qdot_max must be finite and > 0 rad/s"
+        if x.J_roll is not None and np.atleast_2d(x.J_roll).shape[1:] != (n,):
+            return f"J_roll has shape {np.shape(x.J_roll)}, expected (r, {n})"
         if not x.boundary_points:
             return "no boundary points"
         if x.model is None:

@@ -48,7 +48,8 @@ CORRECTION_EASED = "correction eased"  # an active-row name: the step scaled its
 EASED_SCALES = (0.5, 0.0)  # the drift corrections' scales tried, in order, on a step no other form solves
 RELAXATIONS = (CORRECTION_EASED, RECOVERY_HELD)  # in the order they lead a relaxed step's active rows and reason
 _FAULT_WORDS = {core.NONFINITE_Q: "non-finite q", core.NONFINITE_COMMAND: "non-finite v_cmd_W",
-                core.NONFINITE_J_TIP: "non-finite J_tip"}
+                core.NONFINITE_J_TIP: "non-finite J_tip", core.NONFINITE_ROLL: "non-finite roll_rate_cmd",
+                core.NONFINITE_TIME: "non-finite time stamp (t_s, model_time_s or sensor_time_s)"}
 
 
 def relaxations(reason: str) -> tuple[str, ...]:

@@ -19,7 +19,8 @@ from numba import njit
 from safety.qp import NEEDS_SOLVER, OPTIMAL, rows_at_bound, screen, warm_solution
 
 # fault codes (safety.filter words them); a constraint's filler fault is CONSTRAINT_FAULT + its index
-OK, NONFINITE_Q, NONFINITE_COMMAND, NONFINITE_J_TIP, ABSURD_SPEED, STALE_MODEL, STALE_SENSOR, NONFINITE_POINTS = range(8)
+(OK, NONFINITE_Q, NONFINITE_COMMAND, NONFINITE_J_TIP, ABSURD_SPEED, STALE_MODEL, STALE_SENSOR, NONFINITE_POINTS,
+ NONFINITE_ROLL, NONFINITE_TIME) = range(10)
 CONSTRAINT_FAULT = 100
 # the step's result codes
 STEP_OPTIMAL, STEP_NEEDS_SOLVER, STEP_FAULT, STEP_QP_FAILED = 0, 1, 2, 3
@@ -45,10 +46,14 @@ def input_fault(q, command, J_tip, P, J, times, cfg) -> int:
         return NONFINITE_Q
     if not (np.isfinite(command[0]) and np.isfinite(command[1]) and np.isfinite(command[2])):
         return NONFINITE_COMMAND
+    if not np.isfinite(command[3]):  # read only with roll rows: a NaN must not pass unseen without them
+        return NONFINITE_ROLL
     if not all_finite(J_tip):
         return NONFINITE_J_TIP
     if np.sqrt(command[0] ** 2 + command[1] ** 2 + command[2] ** 2) > cfg[CFG_MAX_COMMAND_SPEED]:
         return ABSURD_SPEED
+    if not all_finite(times):  # an infinite stamp makes an age of -inf, which the age tests pass
+        return NONFINITE_TIME
     if not (times[0] - times[1] <= cfg[CFG_MAX_MODEL_AGE]):
         return STALE_MODEL
     if not (times[0] - times[2] <= cfg[CFG_MAX_SENSOR_AGE]):

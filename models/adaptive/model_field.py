@@ -22,7 +22,7 @@ from numba import njit
 
 from models.adaptive.coverage_kernels import nearest_and_worst
 from models.shapes.ellipsoid_distance import ellipsoid_distance_and_gradient
-from models.shapes.field import FieldKernel, KernelQueries
+from models.shapes.field import FieldKernel, KernelQueries, unanswered
 from models.shapes.sphere import sphere_distance_and_gradient
 
 NONE, SPHERE, ELLIPSOID = 0, 1, 2
@@ -57,11 +57,12 @@ def coverage_trust(fp, P):
 
 @njit(cache=True)
 def model_field_kernel(fp, P):
-    """(h (M,) mm, grad (M, 3), u (M,) mm) of the field packed in fp (ModelField) at P (M, 3) mm."""
+    """(h (M,) mm, grad (M, 3), u (M,) mm) of the field packed in fp (ModelField) at P (M, 3)
+    mm; NaN, NaN and +inf at a non-finite point."""
     M = P.shape[0]
     kind = int(fp[0])
     if kind == NONE:
-        return np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M)
+        return unanswered(P, np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M))
     center, rotation, radii = fp[1:4], fp[4:13].reshape((3, 3)), fp[13:16]
     if kind == ELLIPSOID:
         h, g = ellipsoid_distance_and_gradient(center, rotation, radii, P)
@@ -70,7 +71,7 @@ def model_field_kernel(fp, P):
     margin, fallback, has_coverage = fp[16], fp[17] != 0.0, fp[22] != 0.0
     u = np.full(M, margin)
     if not has_coverage:
-        return h, g, u
+        return unanswered(P, h, g, u)
     trusted, worst = coverage_trust(fp, P)
     for i in range(M):
         u[i] = margin + worst[i]
@@ -80,7 +81,7 @@ def model_field_kernel(fp, P):
             if not trusted[i] and h_f[i] < h[i]:
                 h[i] = h_f[i]
                 g[i, 0], g[i, 1], g[i, 2] = g_f[i, 0], g_f[i, 1], g_f[i, 2]
-    return h, g, u
+    return unanswered(P, h, g, u)
 
 
 class ModelField(KernelQueries):

@@ -110,7 +110,9 @@ class IncrementalEllipsoidFit:
         return self._n
 
     def add(self, P: np.ndarray) -> None:
-        """Accumulate finite points P (N, 3) mm (the caller filters non-finite ones)."""
+        """Accumulate finite points P (N, 3) or (3,) mm; ValueError on a non-finite one (the
+        adaptive model filters them out before)."""
+        P = as_points(P, "P")
         if len(P) == 0:
             return
         if self.p0 is None:

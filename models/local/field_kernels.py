@@ -11,6 +11,7 @@ from numba import njit
 
 from models.local.geometry import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, node_frame, small_angle, wendland
 from models.local.kernels import global_sd
+from models.shapes.field import unanswered
 
 MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60; lateral_bound's 1.75 blends: 185)
 CAL_KNOTS_RAD = np.radians(np.array([0.0, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0]))  # the sd calibration's gaps
@@ -152,11 +153,11 @@ def field_at(fp, P, barrier):
     recovers by moving away from the model's retina. Recovering along g - k grad u, a tip
     the model's update had left 0.66 mm of sigma slid 1.5 mm towards the retina, to 0.21
     mm of it, while the bound rose as sigma fell (`vitreoguard faults --shape detached`,
-    class floaters, seed 0, scenario 42). NaN and +inf for a non-finite point; +inf, 0, 0 everywhere for
+    class floaters, seed 0, scenario 42). NaN and +inf for a non-finite point; +inf, 0, 0 at every finite one for
     the field without a boundary (local flag -1)."""
     M = P.shape[0]
     if fp[2] < 0.0:  # no boundary
-        return np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M)
+        return unanswered(P, np.full(M, np.inf), np.zeros((M, 3)), np.zeros(M))
     dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near = unpack(fp)
     h, g, u = np.empty(M), np.empty((M, 3)), np.empty(M)
     eps = 1e-5

@@ -62,7 +62,7 @@ def absorb_points(P, B, c0, gp, gate, dirs, support, track, A, b, rr, wsum, near
         taken += 1
         if last[3] == 0.0:
             share = 1.0
-        elif beams and B[i, 0] * B[i, 0] + B[i, 1] * B[i, 1] + B[i, 2] * B[i, 2] > 0.25:  # finite, not degenerate
+        elif beams and 0.25 < B[i, 0] * B[i, 0] + B[i, 1] * B[i, 1] + B[i, 2] * B[i, 2] < np.inf:  # finite, not degenerate
             nb = np.sqrt(B[i, 0] * B[i, 0] + B[i, 1] * B[i, 1] + B[i, 2] * B[i, 2])
             b0, b1, b2 = B[i, 0] / nb, B[i, 1] / nb, B[i, 2] / nb
             s0, s1, s2 = P[i, 0] - last[0], P[i, 1] - last[1], P[i, 2] - last[2]

@@ -75,6 +75,17 @@ def finite_row(P, m) -> bool:
 
 
 @njit(cache=True)
+def unanswered(P, h, g, u):
+    """(h, g, u) with NaN, NaN and +inf at the non-finite rows of P (M, 3): a field's answer
+    where it has none (for kernels whose other answers ignore the point's finiteness)."""
+    for i in range(P.shape[0]):
+        if not finite_row(P, i):
+            h[i], u[i] = np.nan, np.inf
+            g[i, 0] = g[i, 1] = g[i, 2] = np.nan
+    return h, g, u
+
+
+@njit(cache=True)
 def field_outputs(P):
     """(h (M,), g (M, 3), finite (M,) bool): a field's output arrays for the points P (M, 3)
     mm, NaN in the rows of the non-finite points (the field's answer there) and 0 in the

@@ -41,6 +41,8 @@ class JointPositionLimits(Constraint):
         if np.shape(self.q_min) != np.shape(self.q_max) or np.ndim(self.q_min) != 1:
             raise ValueError(f"JointPositionLimits: q_min and q_max must be (n,) rad, got {np.shape(self.q_min)} "
                              f"and {np.shape(self.q_max)}")
+        if np.isnan(np.asarray(self.q_min, dtype=float)).any() or np.isnan(np.asarray(self.q_max, dtype=float)).any():
+            raise ValueError("JointPositionLimits: q_min and q_max must not be NaN (rad; -inf / +inf: no limit that way)")
 
     def params(self) -> np.ndarray:
         return as_params(self.gain_per_s, self.margin_rad, self.q_min, self.q_max)

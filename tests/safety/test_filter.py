@@ -93,6 +93,13 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
         (dict(t=1.0, model_time=0.0, sensor_time=1.0), "stale model"),
         (dict(t=1.0, model_time=1.0, sensor_time=0.5), "stale sensor"),
         (dict(model=None), "no eye model"),
+        (dict(roll_rate_cmd=np.nan), "non-finite roll_rate_cmd"),  # no J_roll: the roll is not otherwise read
+        (dict(t=0.0, model_time=np.inf), "non-finite time stamp"), (dict(sensor_time=np.inf), "non-finite time stamp"),
+        (dict(t=-np.inf), "non-finite time stamp"),
+        (dict(q_min=np.array([np.nan, -50.0, -50.0])), "NaN in q_min or q_max"),
+        (dict(qdot_max=np.array([100.0, 100.0, np.nan])), "qdot_max must be finite and > 0"),
+        (dict(qdot_max=np.array([100.0, 100.0])), "qdot_max has shape (2,), expected (3,)"),
+        (dict(J_roll=np.zeros((1, 2))), "J_roll has shape (1, 2), expected (r, 3)"),
         # the RCM asks x at 1 mm/s (eased: 0.5, 0) while x lies 1 below its limit (its bound: >= 10 rad/s)
         (dict(rcm_A=np.array([[1.0, 0, 0]]), rcm_b=np.array([1.0]), q_min=np.array([1.0, -50.0, -50.0])), "QP"),
     ],
@@ -100,8 +107,34 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
 def test_faults_command_zero_velocity_and_say_why(kw, reason):
     args = dict(p=[0, 0, -5.0], v_cmd=[1.0, 0, 0])
     args.update(kw)
-    out = SafetyFilter(NO_CALIBRATION)(inputs(**args))
+    if "qdot_max" in args:
+        x = inputs(**{k: v for k, v in args.items() if k != "qdot_max"})
+        x = FilterInputs(**{**x.__dict__, "qdot_max": args["qdot_max"]})
+    else:
+        x = inputs(**args)
+    out = SafetyFilter(NO_CALIBRATION)(x)
     assert not out.ok and reason in out.reason
+    np.testing.assert_array_equal(out.qdot, np.zeros(3))
+
+
+@pytest.mark.parametrize("h_fallback", [np.nan])
+def test_a_nan_fallback_distance_is_a_fault_not_ignored(h_fallback):
+    """An untrusted point keeps the tighter of the model and the fallback; a fallback that
+    answers NaN is no answer: the step stops (not the model's distance alone). (+inf is a
+    field's "no bound", as ModelField.none() answers: the model's distance stands.)"""
+
+    class Broken:
+        def signed_distance(self, P):
+            return np.full(len(P), h_fallback)
+
+        def gradient(self, P):
+            return np.tile([0.0, 0.0, 1.0], (len(P), 1))
+
+    p = np.array([0.0, 0.0, -5.0])
+    x = inputs(p, [0.0, 0.0, -1.0], fallback=Broken())
+    x = FilterInputs(**{**x.__dict__, "boundary_points": [PointKinematics("tip", p, np.eye(3), trusted=False)]})
+    out = SafetyFilter(NO_CALIBRATION)(x)
+    assert not out.ok
     np.testing.assert_array_equal(out.qdot, np.zeros(3))
 
 

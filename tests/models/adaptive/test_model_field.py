@@ -37,3 +37,18 @@ def test_without_coverage_the_field_is_its_shape_plus_the_margin(shape):
 def test_no_boundary_is_infinitely_far():
     h, g, u = ModelField.none().signed_distance_gradient_uncertainty(np.zeros((3, 3)))
     assert np.isinf(h).all() and (h > 0).all() and np.array_equal(u, np.zeros(3))
+
+
+@pytest.mark.parametrize("field", [ModelField(Sphere(np.zeros(3), 12.0), 0.2), ModelField.none(), "local none"])
+def test_a_non_finite_point_gets_no_answer_and_the_others_theirs(field):
+    """NaN distance and gradient, +inf uncertainty at a point with a NaN or inf coordinate
+    (FieldKernel's rule), whatever the field: the quadric's with its margin, and the fields
+    without a boundary; the finite points' answers as alone."""
+    from models.local.field import LocalField
+
+    field = LocalField.none() if field == "local none" else field
+    P = np.array([[np.nan, 0.0, 0.0], [1.0, 2.0, -3.0], [0.0, np.inf, 0.0]])
+    h, g, u = field.signed_distance_gradient_uncertainty(P)
+    assert np.isnan(h[[0, 2]]).all() and np.isnan(g[[0, 2]]).all() and np.isposinf(u[[0, 2]]).all()
+    h1, g1, u1 = field.signed_distance_gradient_uncertainty(P[1:2])
+    assert h[1] == h1[0] and u[1] == u1[0] and np.array_equal(g[1], g1[0])

@@ -291,3 +291,16 @@ def test_residuals_since_a_checkpoint_are_the_rms_distances_of_the_new_points(se
     e1, e2 = residuals_since(S, S_old, v1, v2)
     assert (e1, e2) == tuple(taubin_residuals(S - S_old, np.array([v1, v2])))  # the same arithmetic
     np.testing.assert_allclose([e1, e2], taubin_residuals(S_new, np.array([v1, v2])), rtol=1e-6)
+
+
+def test_the_incremental_fit_refuses_a_non_finite_point_and_takes_a_single_one():
+    """add() of a NaN point raised nothing and turned every later fit "collinear"; it is a
+    ValueError naming P, and a single (3,) point is one row."""
+    from models.fit.ellipsoid_fit import IncrementalEllipsoidFit
+
+    f = IncrementalEllipsoidFit()
+    with pytest.raises(ValueError, match="P contains NaN or inf"):
+        f.add(np.array([[1.0, 2.0, 3.0], [np.nan, 0.0, 0.0]]))
+    assert f.n_points == 0
+    f.add(np.array([1.0, 2.0, 3.0]))
+    assert f.n_points == 1

@@ -144,3 +144,16 @@ def test_bad_beams_are_refused():
     B = np.full((20, 3), np.nan)  # no usable beam: those points take the rule without beams
     model.update(P[:20], B)
     assert model.n_received == 20
+
+
+@pytest.mark.parametrize("bad", [np.inf, -np.inf])
+def test_an_infinite_beam_counts_as_no_beam(bad):
+    """A beam direction with an infinite component is no direction: the point's share is
+    taken as without its beam (as a zero or NaN row is), n_samples stays finite."""
+    P, B = beamed(arc_points(0.05)[1], NOISE_MM, 0)
+    B_bad, B_none = B.copy(), B.copy()
+    B_bad[7] = [bad, 0.0, 0.0]
+    B_none[7] = 0.0
+    a, b = model_of(P, B_bad), model_of(P, B_none)
+    assert np.isfinite(a.n_samples) and a.n_samples == b.n_samples
+    np.testing.assert_array_equal(a.params(True), b.params(True))
