@@ -49,6 +49,12 @@ class FilterConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"FilterConfig.{name} must be finite and >= 0, got {v}")
+        if self.solver != "daqp":
+            import qpsolvers
+
+            if self.solver not in qpsolvers.available_solvers:
+                raise ValueError(f"FilterConfig.solver must be 'daqp' or an installed qpsolvers solver "
+                                 f"({', '.join(sorted(qpsolvers.available_solvers))}), got {self.solver!r}")
         if not (np.isfinite(self.calibration_bound_deg) and 0.0 <= self.calibration_bound_deg < 45.0):
             raise ValueError(f"FilterConfig.calibration_bound_deg must be in [0, 45) deg, got {self.calibration_bound_deg}")
 

@@ -21,9 +21,11 @@ import numpy as np
 from numba import njit
 
 from models.adaptive.coverage_kernels import nearest_and_worst
+from models.shapes.ellipsoid import Ellipsoid
 from models.shapes.ellipsoid_distance import ellipsoid_distance_and_gradient
 from models.shapes.field import FieldKernel, KernelQueries, unanswered
-from models.shapes.sphere import sphere_distance_and_gradient
+from models.shapes.sphere import Sphere, sphere_distance_and_gradient
+from models.shapes.validation import as_points
 
 NONE, SPHERE, ELLIPSOID = 0, 1, 2
 # params: kind, centre (3), rotation (9), radii (3), margin, fallback (0/1), fallback centre (3), fallback radius,
@@ -96,6 +98,11 @@ class ModelField(KernelQueries):
                  misfit_angle_rad: float = np.radians(10.0), band_chord: float = 2.0):
         if not (np.isfinite(margin_mm) and margin_mm >= 0):
             raise ValueError(f"ModelField.margin_mm must be finite and >= 0 mm, got {margin_mm}")
+        if not (shape is None or isinstance(shape, (Sphere, Ellipsoid))):
+            raise ValueError(f"ModelField.shape must be a models.Sphere, a models.Ellipsoid or None, got {type(shape).__name__}")
+        for name, angle in (("trust_angle_rad", trust_angle_rad), ("misfit_angle_rad", misfit_angle_rad)):
+            if not (0.0 < angle <= np.pi):
+                raise ValueError(f"ModelField.{name} must be in (0, pi] rad, got {angle}")
         self.shape, self.margin_mm, self.coverage, self.fallback = shape, float(margin_mm), coverage, fallback
         head = np.zeros(_HEAD)
         if shape is not None:
@@ -132,7 +139,7 @@ class ModelField(KernelQueries):
     def trust(self, P) -> tuple[np.ndarray, np.ndarray]:
         """((M,) trusted flags, (M,) measured misfit mm) at P (M, 3) mm: what the field's
         distance and uncertainty used (coverage_trust)."""
-        return coverage_trust(self.params, np.ascontiguousarray(np.asarray(P, dtype=float).reshape(-1, 3)))
+        return coverage_trust(self.params, np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True)))
 
     def field_kernel(self) -> FieldKernel:
         """FieldKernel(model_field_kernel, this field's packed parameters) (models.shapes.field)."""
@@ -140,5 +147,5 @@ class ModelField(KernelQueries):
 
     def signed_distance_gradient_uncertainty(self, P) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """((M,) mm, (M, 3), (M,) mm) at P (M, 3) mm."""
-        return model_field_kernel(self.params, np.ascontiguousarray(np.asarray(P, dtype=float).reshape(-1, 3)))
+        return model_field_kernel(self.params, np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True)))
 

@@ -76,6 +76,8 @@ def check_eye_params(shape: str, params: dict) -> dict:
             takes = ", ".join(f"{k} {param_range(shape, k)}" for k in known) if known else "no shape parameters"
             raise ValueError(f"eye shape {shape!r} has no parameter {name!r}; it takes {takes}")
         lo, hi, _ = known[name]
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{shape} {name} must be a number in {param_range(shape, name)}, got {value!r}")
         v = float(value)
         inside = (lo <= v <= hi) if name.endswith("_deg") else (lo < v <= hi)
         if not (np.isfinite(v) and inside):
@@ -95,6 +97,8 @@ def make_eye(name: str = "emmetropic", pose: EyePose | None = None, **params) ->
     """
     if name not in EYE_SHAPES:
         raise ValueError(f"unknown eye shape {name!r}; expected one of {', '.join(EYE_SHAPES)}")
+    if pose is not None and not isinstance(pose, EyePose):
+        raise ValueError(f"pose must be a models.eyes.EyePose or None, got {type(pose).__name__}")
     pose = EyePose() if pose is None else pose
     params = check_eye_params(name, params)
     if name in ("emmetropic", "myopic", "hyperopic"):

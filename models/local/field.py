@@ -19,10 +19,11 @@ import numpy as np
 
 from models.local.field_kernels import (BOUND, BOUND_SIZE, CAL, CAL_KNOTS_RAD, HEAD, N_CAL, local_field, local_model_field,
                                         radii_at, unpack)
+from models.local.geometry import N_BASIS, N_COV
 from models.local.kernels import global_params
 from models.shapes.field import FieldKernel, KernelQueries
 from models.shapes.sampling import unit_sphere_grid
-from models.shapes.validation import as_points
+from models.shapes.validation import as_points, as_vector3
 
 
 class LocalField(KernelQueries):
@@ -35,6 +36,11 @@ class LocalField(KernelQueries):
 
     def __init__(self, params: np.ndarray, kind: str = "local", barrier: bool = False):
         self.params = np.ascontiguousarray(params, dtype=float)
+        p = self.params
+        n = p[0] if p.ndim == 1 and len(p) >= HEAD else -1.0
+        if not (n >= 0 and n == int(n) and len(p) == HEAD + int(n) * (6 + N_BASIS + N_COV)):
+            raise ValueError(f"LocalField: params must be a LocalRetinaModel's params (1-D: {HEAD} numbers, then "
+                             f"{6 + N_BASIS + N_COV} per node of its first number's count), got shape {np.shape(params)}")
         self.kind = kind
         self.barrier = bool(barrier)
         if self.barrier and not self.params[BOUND + 4] > 0.0:
@@ -44,8 +50,12 @@ class LocalField(KernelQueries):
     @classmethod
     def exact(cls, shape, center) -> LocalField:
         """The global `shape` (Sphere or Ellipsoid) alone, exact (sd 0), seen from `center`
-        (3,) mm (inside it): the conservative prior in the same field form."""
-        head = np.concatenate([[0.0, np.radians(5.0), 1.0], np.asarray(center, dtype=float),
+        (3,) mm (inside it): the conservative prior in the same field form; ValueError for a
+        centre that is not a finite (3,) point inside the shape."""
+        center = as_vector3(center, "center")
+        if not float(shape.signed_distance(center[None])[0]) > 0.0:
+            raise ValueError(f"LocalField.exact: center {center.tolist()} mm must lie inside the shape")
+        head = np.concatenate([[0.0, np.radians(5.0), 1.0], center,
                                [0.02, 0.0, 0.0, 1.0, 1.0, 0.0, 1.0, 0.0], global_params(shape), np.ones(N_CAL),
                                np.zeros(BOUND_SIZE)])
         return cls(head, "prior")

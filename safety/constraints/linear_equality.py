@@ -48,6 +48,8 @@ class LinearEquality(Constraint):
         A, b = np.atleast_2d(np.asarray(self.A, dtype=float)), np.atleast_1d(np.asarray(self.b, dtype=float))
         if A.ndim != 2 or b.shape != (A.shape[0],):
             raise ValueError(f"LinearEquality: A must be (r, n) and b (r,), got {np.shape(self.A)} and {np.shape(self.b)}")
+        if not (np.isfinite(A).all() and np.isfinite(b).all()):
+            raise ValueError("LinearEquality: A and b must be finite")
         object.__setattr__(self, "A", A)
         object.__setattr__(self, "b", b)
 

@@ -97,6 +97,8 @@ class PointBarrier(Constraint):
         if not (self.screen_reach_mm > 0):
             raise ValueError(f"{type(self).__name__}.screen_reach_mm must be > 0 mm (inf: keep every row), "
                              f"got {self.screen_reach_mm}")
+        if not (isinstance(self.max_points, int) and self.max_points >= 1):
+            raise ValueError(f"{type(self).__name__}.max_points must be an int >= 1, got {self.max_points}")
         if not (isinstance(self.always_first, int) and self.always_first >= 0):
             raise ValueError(f"{type(self).__name__}.always_first must be an int >= 0, got {self.always_first}")
 
