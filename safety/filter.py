@@ -20,7 +20,7 @@ import numpy as np
 from safety.constraints import (JointPositionLimits, JointSpeedLimits, KeepOut, LinearEquality, PointBarrier, RcmEquality,
                                 TipSpeedLimit)
 from safety.constraints.actuated_barrier import actuator_aware
-from safety.inputs import FilterConfig, FilterInputs, FilterOutput
+from safety.inputs import FilterConfig, FilterInputs, FilterOutput, PointKinematics
 from safety.stack import ConstraintStack
 from safety.tabulated_field import tabulate, tabulated_kernel
 
@@ -163,6 +163,13 @@ class SafetyFilter:
             return f"J_roll has shape {np.shape(x.J_roll)}, expected (r, {n})"
         if not x.boundary_points:
             return "no boundary points"
+        for p in list(x.boundary_points) + (list(x.lens_points) if x.lens is not None else []):
+            if not isinstance(p, PointKinematics):
+                return f"a monitored point is a {type(p).__name__}, not a PointKinematics"
+            if np.shape(p.p_W) != (3,) or np.shape(p.J_W) != (3, n):
+                return f"point {p.name}: p_W {np.shape(p.p_W)} and J_W {np.shape(p.J_W)}, expected (3,) and (3, {n})"
+        if x.pending is not None and (np.ndim(x.pending) != 2 or np.shape(x.pending)[1] != n):
+            return f"pending has shape {np.shape(x.pending)}, expected (r, {n})"
         if x.model is None:
             return "no eye model"
         if not (np.isfinite(x.margin_mm) and x.margin_mm >= 0):

@@ -100,6 +100,10 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
         (dict(qdot_max=np.array([100.0, 100.0, np.nan])), "qdot_max must be finite and > 0"),
         (dict(qdot_max=np.array([100.0, 100.0])), "qdot_max has shape (2,), expected (3,)"),
         (dict(J_roll=np.zeros((1, 2))), "J_roll has shape (1, 2), expected (r, 3)"),
+        (dict(pending=np.zeros((1, 2))), "pending has shape (1, 2), expected (r, 3)"),
+        (dict(boundary_points=[PointKinematics("tip", np.zeros(2), np.eye(3))]), "point tip: p_W (2,) and J_W (3, 3)"),
+        (dict(boundary_points=[PointKinematics("tip", np.zeros(3), np.zeros((3, 2)))]), "expected (3,) and (3, 3)"),
+        (dict(boundary_points=["tip"]), "a monitored point is a str, not a PointKinematics"),
         # the RCM asks x at 1 mm/s (eased: 0.5, 0) while x lies 1 below its limit (its bound: >= 10 rad/s)
         (dict(rcm_A=np.array([[1.0, 0, 0]]), rcm_b=np.array([1.0]), q_min=np.array([1.0, -50.0, -50.0])), "QP"),
     ],
@@ -107,11 +111,10 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
 def test_faults_command_zero_velocity_and_say_why(kw, reason):
     args = dict(p=[0, 0, -5.0], v_cmd=[1.0, 0, 0])
     args.update(kw)
-    if "qdot_max" in args:
-        x = inputs(**{k: v for k, v in args.items() if k != "qdot_max"})
-        x = FilterInputs(**{**x.__dict__, "qdot_max": args["qdot_max"]})
-    else:
-        x = inputs(**args)
+    replaced = {k: args.pop(k) for k in ("qdot_max", "boundary_points") if k in args}
+    x = inputs(**args)
+    if replaced:
+        x = FilterInputs(**{**x.__dict__, **replaced})
     out = SafetyFilter(NO_CALIBRATION)(x)
     assert not out.ok and reason in out.reason
     np.testing.assert_array_equal(out.qdot, np.zeros(3))
