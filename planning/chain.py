@@ -212,9 +212,15 @@ class Chain:
         if not (np.allclose(R, X.rotation().matrix(), atol=1e-12) and np.allclose(p, MM_PER_M * X.translation(), atol=1e-9)):
             raise ValueError("Chain: the plant's joints are not a serial chain in the order of q")
 
+    def home(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's pose at q = 0 (R, p mm); ValueError naming the frames for an unknown one."""
+        if name not in self.homes:
+            raise ValueError(f"unknown frame {name!r}; the frames are {', '.join(sorted(self.homes))}")
+        return self.homes[name]
+
     def pose(self, name: str, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(R_W<name> (3, 3), p_W<name> (3,) mm) at q (n,) rad (finite, checked by the caller)."""
-        R_h, p_h = self.homes[name]
+        R_h, p_h = self.home(name)
         if name in self.fixed:
             return R_h.copy(), p_h.copy()
         return frame_pose(self.S, q, R_h, p_h)
@@ -222,7 +228,7 @@ class Chain:
     def pose_and_jacobian(self, name: str, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(R, p mm, spatial Jacobian (6, n) of the frame's origin: angular rad/rad, then
         translational mm/rad) in W at q."""
-        R_h, p_h = self.homes[name]
+        R_h, p_h = self.home(name)
         if name in self.fixed:
             return R_h.copy(), p_h.copy(), np.zeros((6, self.n))
         return frame_pose_and_jacobian(self.S, q, R_h, p_h)

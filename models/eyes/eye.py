@@ -19,7 +19,7 @@ from models.eyes.star_march import MARCH_STEP_MM, star_hits
 from models.eyes.star_surface import StarSurface
 from models.shapes.ellipsoid import Ellipsoid, ellipsoid_hits
 from models.shapes.field import FieldKernel, exact_uncertainty
-from models.shapes.rays import UNIT_TOL, as_rays
+from models.shapes.rays import as_rays, unit_rays
 from models.shapes.validation import as_points
 
 ANTERIOR_CROP_MM = 5.0  # the paper's metrics ignore the anterior 5 mm along the visual axis
@@ -68,13 +68,8 @@ class Eye:
 
     def ray_cast(self, origins, dirs) -> np.ndarray:
         """(M,) distance (mm) along unit directions `dirs` from `origins` to the retina."""
-        O = self.pose.to_E(as_points(origins, "origins"))
-        D = as_points(dirs, "dirs") @ self.pose.R_WE
-        if O.shape != D.shape:
-            raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
-        n = np.linalg.norm(D, axis=1)
-        if np.any(np.abs(n - 1.0) > UNIT_TOL):
-            raise ValueError("dirs must be unit vectors")
+        O_W, D_W = unit_rays(origins, dirs)
+        O, D = self.pose.to_E(O_W), D_W @ self.pose.R_WE
         if self._star is None:
             return self._ellipsoid_E.ray_cast(O, D)
         return self._star.ray_cast(O, D)

@@ -11,7 +11,7 @@ from numba import njit
 
 from models.shapes.ellipsoid_distance import closest_point_first_octant, ellipsoid_distance_and_gradient
 from models.shapes.field import FieldKernel, exact_uncertainty, field_params
-from models.shapes.rays import incidence_rad, rays_in_frame
+from models.shapes.rays import incidence_rad, rays_in_frame, unit_rays
 from models.shapes.sphere import sample_quadric_surface
 from models.shapes.validation import as_points, as_rotation, as_vector3
 
@@ -121,10 +121,7 @@ class Ellipsoid:
     def ray_cast(self, origins, dirs) -> np.ndarray:
         """(M,) distance (mm) along unit rays to the surface: first hit from inside,
         first entry from outside; NaN where a ray misses."""
-        O = as_points(origins, "origins")
-        D = as_points(dirs, "dirs")
-        if O.shape != D.shape:
-            raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
+        O, D = unit_rays(origins, dirs)
         Lo = (O - self.center) @ self.rotation / self.radii
         Ld = D @ self.rotation / self.radii
         return _unit_sphere_roots(np.ascontiguousarray(Lo), np.ascontiguousarray(Ld))

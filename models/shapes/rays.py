@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from models.shapes.validation import as_points
+
 UNIT_TOL = 1e-6  # |  |u| - 1 | of a unit direction, as Eye.ray_cast allows
 
 
@@ -20,6 +22,18 @@ def as_rays(O_W, U_W) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"O_W and U_W must be (M, 3) arrays of one shape (origins mm, unit directions), "
                          f"got {O.shape} and {U.shape}")
     return O, U
+
+
+def unit_rays(origins, dirs) -> tuple[np.ndarray, np.ndarray]:
+    """(origins, dirs) as finite float (M, 3) arrays of one shape (a single (3,) ray: one
+    row), the directions of unit length within UNIT_TOL; ValueError naming them otherwise
+    (what a shape's `ray_cast` takes)."""
+    O, D = as_points(origins, "origins"), as_points(dirs, "dirs")
+    if O.shape != D.shape:
+        raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
+    if np.any(np.abs(np.linalg.norm(D, axis=1) - 1.0) > UNIT_TOL):
+        raise ValueError(f"dirs must be unit vectors (| |u| - 1 | <= {UNIT_TOL:g})")
+    return O, D
 
 
 @njit(cache=True)

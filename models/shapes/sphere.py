@@ -9,6 +9,7 @@ import numpy as np
 from numba import njit
 
 from models.shapes.field import FieldKernel, exact_uncertainty, field_outputs, field_params
+from models.shapes.rays import unit_rays
 from models.shapes.sampling import unit_sphere_grid
 from models.shapes.validation import as_points, as_positive, as_vector3
 
@@ -117,9 +118,7 @@ class Sphere:
     def ray_cast(self, origins, dirs) -> np.ndarray:
         """(M,) distance (mm) along unit rays to the sphere: first hit from inside, first
         entry from outside; NaN where a ray misses."""
-        O, D = as_points(origins, "origins"), as_points(dirs, "dirs")
-        if O.shape != D.shape:
-            raise ValueError(f"origins and dirs must have the same shape, got {O.shape} and {D.shape}")
+        O, D = unit_rays(origins, dirs)
         V = O - self.center
         b = np.einsum("ij,ij->i", V, D)
         c = np.einsum("ij,ij->i", V, V) - self.radius**2

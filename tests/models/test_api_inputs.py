@@ -71,3 +71,23 @@ def test_the_filters_constraints_refuse_what_they_cannot_hold():
     with pytest.raises(ValueError, match="FilterConfig.solver must be 'daqp' or an installed qpsolvers solver"):
         FilterConfig(solver="bogus")
     assert FilterConfig(solver="clarabel").solver == "clarabel"
+
+
+@pytest.mark.parametrize("cast", [lambda d: SPHERE.ray_cast(np.zeros(3), d),
+                                  lambda d: Ellipsoid(np.zeros(3), [11.4, 11.3, 10.1], np.eye(3)).ray_cast(np.zeros(3), d),
+                                  lambda d: make_eye("detached").ray_cast(np.zeros(3), d)])
+@pytest.mark.parametrize("direction", [[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+def test_every_shape_casts_unit_rays_only(cast, direction):
+    """A zero or non-unit direction gave the sphere 12 mm and the ellipsoid 5.7 mm (the
+    distance in units of its length); every shape refuses it as the eyes did."""
+    with pytest.raises(ValueError, match=r"dirs must be unit vectors"):
+        cast(np.array(direction))
+    assert cast(np.array([0.0, 0.0, 1.0]))[0] > 9.0
+
+
+def test_an_unknown_robot_frame_is_named():
+    from planning import Robot, SurgeryScenario
+
+    robot = Robot(SurgeryScenario())
+    with pytest.raises(ValueError, match="unknown frame 'nosuch'; the frames are"):
+        robot.pose("nosuch", np.zeros(6))

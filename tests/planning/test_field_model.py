@@ -68,7 +68,7 @@ def test_cells_whose_target_the_uncertainty_reaches_are_uncertain(setup):
     eye = scenario.eye
     ell = Ellipsoid(eye.pose.p_WE, eye.radii, eye.pose.R_WE)
     spec = BandSpec(standoff_mm=1.0, boundary_mm=0.564)
-    U = _unit(eye.pose.R_WE @ np.array([[1.0, 0.3, 0.2], [-0.4, 1.0, 0.1], [0.2, -1.0, 0.3]]).T).T
+    U = _unit((eye.pose.R_WE @ np.array([[1.0, 0.3, 0.2], [-0.4, 1.0, 0.1], [0.2, -1.0, 0.3]]).T).T)
     S = eye.pose.p_WE + ell.ray_cast(np.repeat(eye.pose.p_WE[None], 3, axis=0), U)[:, None] * U
     N = ell.gradient(S)
     T = S + spec.standoff_mm * N
