@@ -101,6 +101,7 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
         (dict(qdot_max=np.array([100.0, 100.0])), "qdot_max has shape (2,), expected (3,)"),
         (dict(J_roll=np.zeros((1, 2))), "J_roll has shape (1, 2), expected (r, 3)"),
         (dict(pending=np.zeros((1, 2))), "pending has shape (1, 2), expected (r, 3)"),
+        (dict(pending=np.array([[0.0, np.nan, 0.0]])), "non-finite pending actuator motion"),
         (dict(boundary_points=[PointKinematics("tip", np.zeros(2), np.eye(3))]), "point tip: p_W (2,) and J_W (3, 3)"),
         (dict(boundary_points=[PointKinematics("tip", np.zeros(3), np.zeros((3, 2)))]), "expected (3,) and (3, 3)"),
         (dict(boundary_points=["tip"]), "a monitored point is a str, not a PointKinematics"),
