@@ -75,7 +75,9 @@ class SafetyFilter:
         self.extra = tuple(extra)
         self._stacks: dict = {}
 
-    def _stack(self, x: FilterInputs, n: int, k: int, m: int) -> ConstraintStack:
+    def _constraints(self, x: FilterInputs, k: int, m: int) -> tuple[list, int]:
+        """(the stack's constraints for these inputs, the boundary points always kept); their
+        constructors' rules (joint limits, speed limits, the RCM's rows) raise ValueError."""
         always = 0
         while always < k and x.boundary_points[always].name in ALWAYS_KEPT:
             always += 1
@@ -86,6 +88,9 @@ class SafetyFilter:
                                           ("lens", "lens") if m else None, rcm, self.extra)
         if x.pending is not None:  # the actuator the inputs describe
             constraints = actuator_aware(constraints)
+        return constraints, always
+
+    def _stack(self, x: FilterInputs, constraints: list, always: int, n: int, k: int, m: int) -> ConstraintStack:
         key = (n, k, m, always, tuple(c.key() for c in constraints),
                tuple(c.max_rows(0) for c in constraints if c.kind == "equality"))
         stack = self._stacks.get(key)
@@ -113,11 +118,16 @@ class SafetyFilter:
         on a fault found before the compiled step."""
         n = len(np.atleast_1d(x.q))
         fault = self._fault(x, n)
+        if not fault:
+            pts = list(x.boundary_points)
+            lens_pts = list(x.lens_points) if x.lens is not None else []
+            k, m = len(pts), len(lens_pts)
+            try:  # the constraints' own rules on their numbers (one definition: their constructors)
+                constraints, always = self._constraints(x, k, m)
+            except ValueError as e:
+                fault = f"invalid inputs: {e}"
         if fault:
             return FilterOutput(np.zeros(n), False, fault), None, None, None
-        pts = list(x.boundary_points)
-        lens_pts = list(x.lens_points) if x.lens is not None else []
-        k, m = len(pts), len(lens_pts)
         P = np.array([p.p_W for p in pts + lens_pts], dtype=float).reshape(k + m, 3)
         J = np.array([p.J_W for p in pts + lens_pts], dtype=float).reshape(k + m, 3, n)
         u = float(x.margin_mm) + np.array([p.margin_mm for p in pts], dtype=float)
@@ -133,7 +143,7 @@ class SafetyFilter:
             fields["eye"] = tabulate(h, g, u)
             if m:
                 fields["lens"] = tabulate(*_distance_and_gradient(x.lens, P[k:]), np.zeros(m))
-        stack = self._stack(x, n, k, m)
+        stack = self._stack(x, constraints, always, n, k, m)
         J_roll = np.zeros((0, n)) if x.J_roll is None else np.atleast_2d(np.asarray(x.J_roll, dtype=float))
         command = np.concatenate([np.asarray(x.v_cmd_W, dtype=float), [float(x.roll_rate_cmd)]])
         ranges = np.array([[0, k], [k, k + m]], dtype=np.int64)
@@ -144,9 +154,9 @@ class SafetyFilter:
         return out, stack, r, ranges
 
     def _fault(self, x: FilterInputs, n: int) -> str | None:
-        """Why this step must not move the robot, from the inputs' structure (what the
-        compiled step checks itself, non-finite numbers, the command's speed and the ages,
-        it words itself), or None."""
+        """Why this step must not move the robot, from the inputs' structure, or None: the
+        constraints' constructors check their own numbers (_constraints) and the compiled
+        step the rest (non-finite numbers, the command's speed, the ages), each in its words."""
         if np.shape(x.J_tip) != (3, n):
             return f"J_tip has shape {np.shape(x.J_tip)}, expected (3, {n})"
         if np.shape(x.v_cmd_W) != (3,):
@@ -154,11 +164,6 @@ class SafetyFilter:
         for name in ("q_min", "q_max", "qdot_max"):
             if np.shape(getattr(x, name)) != (n,):
                 return f"{name} has shape {np.shape(getattr(x, name))}, expected ({n},)"
-        q_min, q_max, qdot_max = (np.asarray(v, dtype=float) for v in (x.q_min, x.q_max, x.qdot_max))
-        if np.isnan(q_min).any() or np.isnan(q_max).any():  # crossed limits: the joint position rows say so
-            return "invalid joint limits: NaN in q_min or q_max (-inf / +inf: no limit that way)"
-        if not (np.isfinite(qdot_max).all() and (qdot_max > 0).all()):
-            return "invalid joint speed limits: qdot_max must be finite and > 0 rad/s"
         if x.J_roll is not None and np.atleast_2d(x.J_roll).shape[1:] != (n,):
             return f"J_roll has shape {np.shape(x.J_roll)}, expected (r, {n})"
         if not x.boundary_points:

@@ -96,8 +96,10 @@ def test_one_step_never_crosses_the_margin(direction, v_cmd, clearance):
         (dict(roll_rate_cmd=np.nan), "non-finite roll_rate_cmd"),  # no J_roll: the roll is not otherwise read
         (dict(t=0.0, model_time=np.inf), "non-finite time stamp"), (dict(sensor_time=np.inf), "non-finite time stamp"),
         (dict(t=-np.inf), "non-finite time stamp"),
-        (dict(q_min=np.array([np.nan, -50.0, -50.0])), "NaN in q_min or q_max"),
-        (dict(qdot_max=np.array([100.0, 100.0, np.nan])), "qdot_max must be finite and > 0"),
+        (dict(q_min=np.array([np.nan, -50.0, -50.0])), "q_min and q_max must not be NaN"),
+        (dict(qdot_max=np.array([100.0, 100.0, np.nan])), "qdot_max must be (n,) finite rad/s > 0"),
+        (dict(qdot_max=np.array([100.0, 100.0, -1.0])), "qdot_max must be (n,) finite rad/s > 0"),
+        (dict(rcm_A=np.array([[np.nan, 0, 0]]), rcm_b=np.array([0.0])), "invalid inputs: LinearEquality"),
         (dict(qdot_max=np.array([100.0, 100.0])), "qdot_max has shape (2,), expected (3,)"),
         (dict(J_roll=np.zeros((1, 2))), "J_roll has shape (1, 2), expected (r, 3)"),
         (dict(pending=np.zeros((1, 2))), "pending has shape (1, 2), expected (r, 3)"),
