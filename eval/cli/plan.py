@@ -143,14 +143,22 @@ def register(sub) -> None:
     p.set_defaults(func=main)
 
 
+def loop_config(args):
+    """The eval.closed_loop.LoopConfig the plan's loop runs with (the survey's and the
+    shaving's filter: the quadric boundary's phase margin or, with --model local, the local
+    model's d_safe + k sigma)."""
+    from eval.closed_loop import LoopConfig
+
+    return LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=local_model(args))
+
+
 def spec_of(args):
     """The planning.peripheral.BandSpec of the flags; UsageError naming the flag at fault."""
     from planning.peripheral import BandSpec
-    from safety import FilterConfig
     from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
 
     z0, z1 = args.band
-    check_standoff(args.standoff_mm, FilterConfig().boundary_mm(0.0),
+    check_standoff(args.standoff_mm, loop_config(args).filter.boundary_mm(0.0),
                    "the filter's boundary without the model's margin (d_safe + the calibration margin)")
     if args.survey_passes > 1 and not args.survey_mm:
         raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")
@@ -206,7 +214,6 @@ def main(args) -> int:
     from eval.experiments.model_report import model_summary
     from eval.cli.boundary import make_loop
     from eval.cli.plan_export import coverage_figure, write_ros2_trajectories, write_trajectory_csv
-    from eval.closed_loop import LoopConfig
     from eval.experiments.boundary import build_model_by_spiral
     from eval.experiments.plan_execution import execution_figures, executed_passes, phase_figures, swept_cells
     from eval.log.writer import RunLogger
@@ -220,9 +227,7 @@ def main(args) -> int:
                                    ports=layout)
     except ValueError as exc:
         raise UsageError(f"--port-clock/--port-limbus-mm: {exc}") from None
-    # the quadric boundary (its phase margin) or, with --model local, the local model's d_safe + k sigma
-    loop = make_loop(scenario, LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=local_model(args)),
-                     sensor_seed=args.seed)
+    loop = make_loop(scenario, loop_config(args), sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
     survey = None
     with tempfile.TemporaryDirectory(prefix="vitreoguard-survey-") as survey_logs:
