@@ -30,7 +30,7 @@ import numpy as np
 
 from eval.cli.args import SEED, add_eye_param, choice, eye_params, integer, number, out_dir
 from eval.cli.io import UsageError, prepare_out_dir, save_figure, write_json
-from eval.cli.loop_flags import add_model_flag, local_model
+from eval.cli.loop_flags import add_model_flag, loop_config
 from eval.cli.plan_model import check_standoff, flags_named, move_logs, plan_on_model, survey_band
 from eval.cli.progress import phase
 from models.eyes import EYE_SHAPES
@@ -143,13 +143,11 @@ def register(sub) -> None:
     p.set_defaults(func=main)
 
 
-def loop_config(args):
-    """The eval.closed_loop.LoopConfig the plan's loop runs with (the survey's and the
-    shaving's filter: the quadric boundary's phase margin or, with --model local, the local
-    model's d_safe + k sigma)."""
-    from eval.closed_loop import LoopConfig
-
-    return LoopConfig(trust_angle_deg=args.trust_angle_deg, local_model=local_model(args))
+def plan_loop_config(args):
+    """The LoopConfig the plan's loop runs with (the survey's and the shaving's filter: the
+    quadric boundary's phase margin or, with --model local, the local model's d_safe + k
+    sigma; eval.cli.loop_flags.loop_config)."""
+    return loop_config(args, trust_angle_deg=args.trust_angle_deg)
 
 
 def spec_of(args):
@@ -158,7 +156,7 @@ def spec_of(args):
     from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
 
     z0, z1 = args.band
-    check_standoff(args.standoff_mm, loop_config(args).filter.boundary_mm(0.0),
+    check_standoff(args.standoff_mm, plan_loop_config(args).filter.boundary_mm(0.0),
                    "the filter's boundary without the model's margin (d_safe + the calibration margin)")
     if args.survey_passes > 1 and not args.survey_mm:
         raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")
@@ -227,7 +225,7 @@ def main(args) -> int:
                                    ports=layout)
     except ValueError as exc:
         raise UsageError(f"--port-clock/--port-limbus-mm: {exc}") from None
-    loop = make_loop(scenario, loop_config(args), sensor_seed=args.seed)
+    loop = make_loop(scenario, plan_loop_config(args), sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
     survey = None
     with tempfile.TemporaryDirectory(prefix="vitreoguard-survey-") as survey_logs:
