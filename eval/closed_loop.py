@@ -93,6 +93,7 @@ class LoopRun:
     bound_excess_step: int = -1
     bound_excess_clearance_mm: float = np.nan
     bound_excess_in_reach_mm: float = -np.inf
+    filter_replay_us: np.ndarray = field(default_factory=lambda: np.zeros(0))  # FilterSystem.time_references
 
     @property
     def duration_s(self) -> float:
@@ -228,7 +229,7 @@ class ClosedLoop:
             self.simulator.clear_monitor()
             gc.unfreeze()
         self.model.flush_log()
-        self.filter.time_drake_diffik()
+        self.filter.time_references()
         return self._collect(wall, logger is not None)
 
     def _end_when_finished(self, source) -> None:
@@ -277,7 +278,8 @@ class ClosedLoop:
             model_clearance_mm=a(col["model_clearance"]),
             true_clearance_mm=true_clearances(col["points_W"], eye) if steps else np.zeros(0),
             lens_clearance_mm=lens_clear, kind=col["kind"], rcm_error_mm=a(col["rcm_error_mm"]),
-            drake_diffik_us=a(self.filter.record.drake_diffik_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
+            drake_diffik_us=a(self.filter.record.drake_diffik_us),
+            filter_replay_us=a(self.filter.record.filter_replay_us), model_update_us=a(self.model.update_us), wall_s=wall_s,
             model_epochs=list(self.model.epochs), command_wall_s=self.filter.command_wall_s, model_wall_s=self.model.wall_s,
             filter_wall_s=self.filter.wall_s - self.filter.command_wall_s,
             logged=logged, bound_excess_mm=excess, bound_excess_step=at, bound_excess_clearance_mm=clearance,

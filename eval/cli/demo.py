@@ -55,7 +55,7 @@ def _history_rows(build, rows: int) -> list[dict]:
 
 def main(args) -> int:
     out = prepare_out_dir(args.out)
-    from eval.cli.boundary import run_boundary
+    from eval.cli.boundary import run_boundary, speed_line
     from eval.experiments.boundary import SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S
 
     boundary_args = argparse.Namespace(shape=args.shape, scenarios=args.scenarios, sphere_scenarios=0, seed=args.seed,
@@ -87,6 +87,7 @@ def main(args) -> int:
         print(f"  {key:24s} {v:.4g}" if isinstance(v, float) else f"  {key:24s} {v}")
     print(f"  {'filter solve (us)':24s} median {result['solve_us']['median']:.0f}, p99 {result['solve_us']['p99']:.0f} "
           f"(Drake DoDifferentialInverseKinematics p99 {result['drake_diffik_us']['p99']:.0f})")
+    print(f"  {'filter replayed (us)':24s} {speed_line(result)}")
     write_json(out / "demo.json", {**result, "history": rows})
     print(f"\nwrote {out / 'demo.json'}, plots boundary_clearance.png and boundary_activity.png, "
           f"MCAP logs {out / 'spiral.mcap'} and {out / 'boundary.mcap'} (open in Foxglove; "

@@ -189,7 +189,7 @@ def start_at(loop: ClosedLoop, model_shape, u_E, depth_mm: float):
 
 # The keys of Campaign.summary() a campaign's report carries (boundary.json, faults.json) and prints:
 # its safety, its stops and relaxed steps, its RCM and tracking, its speed (the filter's solve
-# times, "solve_us" and "drake_diffik_us", are printed in a line of their own).
+# times, "solve_us", "drake_diffik_us" and "filter_replay_us", are printed in a line of their own).
 CAMPAIGN_KEYS = ("scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction",
                  "tracking_rmse_mm_s", "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps",
                  "correction_eased_steps", "max_rcm_error_um", "realtime_factor", "realtime_factor_unlogged",
@@ -216,6 +216,7 @@ class Campaign:
         free = np.concatenate([_free_errors(r) for r in runs]) if runs else np.zeros(0)
         solve = np.concatenate([r.solve_us[r.ok] for r in runs]) if runs else np.zeros(0)
         drake = np.concatenate([r.drake_diffik_us for r in runs]) if runs else np.zeros(0)
+        replay = np.concatenate([r.filter_replay_us for r in runs]) if runs else np.zeros(0)
         sim, wall = _simulated_and_wall_s(runs)
         sim_unlogged, wall_unlogged = _simulated_and_wall_s([r for r in runs if not r.logged])
         free_rel = np.concatenate([r.free_tracking_error() for r in runs]) if runs else np.zeros(0)
@@ -236,6 +237,7 @@ class Campaign:
             "correction_eased_steps": relaxed[CORRECTION_EASED],
             "solve_us": _quantiles(solve),
             "drake_diffik_us": _quantiles(drake),
+            "filter_replay_us": _quantiles(replay),
             "realtime_factor": sim / wall if wall > 0 else None,
             # the same without the run logged step by step for replay (the first)
             "realtime_factor_unlogged": sim_unlogged / wall_unlogged if wall_unlogged > 0 else None,

@@ -34,7 +34,7 @@ from eval.log.replay import replay
 
 DEFAULT_TOLERANCE = {"abs": 1e-9, "rel": 1e-9}  # a deterministic simulation: the same within rounding
 # wall-time figures differ from run to run; log paths name the run's folder
-IGNORED_ALWAYS = ("*realtime_factor*", "*solve_us*", "*drake_diffik_us*", "*wall_s*", "*_time_s", "logs", "logs.*")
+IGNORED_ALWAYS = ("*realtime_factor*", "*solve_us*", "*drake_diffik_us*", "*filter_replay_us*", "*wall_s*", "*_time_s", "logs", "logs.*")
 SPEC_KEYS = {"command", "args", "summary", "log", "tolerance", "tolerances", "ignore"}
 
 

@@ -79,12 +79,14 @@ class Step(NamedTuple):
 
 @dataclass
 class StepRecord:
-    """A run's steps (one Step each: one append per control step) and the (q, v_cmd) on
-    which Drake's diff IK is timed after the run."""
+    """A run's steps (one Step each: one append per control step) and the states on which
+    Drake's diff IK and the filter's compiled step are timed after the run
+    (FilterSystem.time_references: (q, command, times, fields, pending, trocar) each)."""
 
     steps: list = field(default_factory=list)
     drake_diffik_us: list = field(default_factory=list)
-    diffik_states: list = field(default_factory=list)
+    filter_replay_us: list = field(default_factory=list)
+    reference_states: list = field(default_factory=list)
 
 
 def loop_constraints(robot: Robot, config: LoopConfig) -> list:
@@ -328,7 +330,8 @@ class FilterSystem(LeafSystem):
         discrete_state.set_value(out.qdot)
         step_us = 1e6 * (time.perf_counter() - t0)
         if self.config.drake_diffik_every and len(rec.steps) % self.config.drake_diffik_every == 0 and out.ok:
-            rec.diffik_states.append((q, command[:3]))  # Drake is timed on these after the run (ClosedLoop.run)
+            # Drake and the filter are timed on these after the run (ClosedLoop.run: time_references)
+            rec.reference_states.append((q, command, self._times.copy(), self._fields, pending.copy(), self.p_WC))
         k = ranges[1, 1]  # the bounds on the points' true clearance; +inf after a fault (no barrier ran)
         bounds = np.full(k, np.inf) if not out.ok and out.min_clearance_mm != out.min_clearance_mm else \
             self.stack.point_bound[:k].copy()
@@ -340,14 +343,23 @@ class FilterSystem(LeafSystem):
             self._log(t, q, command, snap, sensor_t, out, float(meas[0]) if meas[1] > 0 else float("nan"),
                       None if self._actuator is None else pending)
 
-    def time_drake_diffik(self) -> None:
+    def time_references(self) -> None:
         """Time Drake's DoDifferentialInverseKinematics on the states recorded during the
         run (every drake_diffik_every-th step the filter solved), into the record: the
-        same plant and states as the filter, outside the run's wall time."""
+        same plant and states as the filter, outside the run's wall time, one after the
+        other. The filter's compiled step is timed the same way on the same states (those of
+        the run's last trocar: the stack holds its RCM), `filter_replay_us`: the two costs
+        under the same conditions, where the run's own `solve_us` is the filter's in the loop,
+        between the simulator's and the model's work, which leave its caches cold."""
         rec = self.record
-        for q, v_cmd in rec.diffik_states:
+        for q, command, times, fields, pending, p_WC in rec.reference_states:
+            if p_WC is self.p_WC:
+                out = self.stack.solve_at(q, command, times, self._kp, fields, pending)[0]
+                rec.filter_replay_us.append(out.solve_us)
+        self.stack.reset()  # the replay's active set is no step's of the run
+        for q, command, *_ in rec.reference_states:
             t1 = time.perf_counter()
-            self.drake_diffik(q, v_cmd)
+            self.drake_diffik(q, command[:3])
             rec.drake_diffik_us.append(1e6 * (time.perf_counter() - t1))
 
     def _log(self, t: float, q, command, snap, sensor_t: float, out, distance_mm: float, pending) -> None:

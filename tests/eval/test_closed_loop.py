@@ -316,6 +316,13 @@ def test_segments_through_two_trocars_pivot_about_each_and_replay_bit_for_bit(em
     assert max(loop.robot.rcm_error_mm(q, scenario.p_WC) for q in run.q[a]) < RCM_TOL_MM
     assert max(loop.robot.rcm_error_mm(q, other) for q in run.q[b]) < RCM_TOL_MM
     assert np.all(run.ok)
+    # Drake is timed on every 25th step's state, the filter replayed on those of the last trocar (its RCM)
+    every = loop.config.drake_diffik_every
+    steps = np.arange(len(run.t))
+    assert len(run.drake_diffik_us) == np.sum(steps % every == 0)
+    assert len(run.filter_replay_us) == np.sum((steps % every == 0) & b) > 0
+    assert np.all(np.isfinite(run.filter_replay_us)) and np.all(run.filter_replay_us > 0)
+    assert not loop.filter.stack.active.any()  # the replay's active set is forgotten
     result = replay(tmp_path / "two.mcap")
     # the second trocar is logged in E and placed back in W: a rounding of 1e-14 mm
     assert result.ok and result.max_abs_diff <= 1e-12 and result.steps == len(run.t)

@@ -12,7 +12,7 @@ from eval.loop_config import LoopConfig
 
 KEYS = {"scenarios", "violations", "contacts", "min_true_clearance_mm", "intervention_fraction", "tracking_rmse_mm_s",
         "failsafe_stops", "stops_by_reason", "infeasible_qp_stops", "recovery_held_steps", "correction_eased_steps", "solve_us",
-        "drake_diffik_us", "realtime_factor"}
+        "drake_diffik_us", "filter_replay_us", "realtime_factor"}
 
 
 REDUCED = ["--scenarios", "3", "--sphere-scenarios", "2", "--duration-s", "0.3", "--spiral-revolutions", "2"]
@@ -38,6 +38,7 @@ def test_boundary_writes_the_contract(boundary_run):
     assert isinstance(r["recovery_held_steps"], int) and r["recovery_held_steps"] >= 0
     assert isinstance(r["correction_eased_steps"], int) and r["correction_eased_steps"] >= 0
     assert set(r["solve_us"]) == {"median", "p99"} and set(r["drake_diffik_us"]) == {"median", "p99"}
+    assert set(r["filter_replay_us"]) == {"median", "p99"} and r["filter_replay_us"]["p99"] > 0
     assert r["realtime_factor"] > 0 and 0.0 <= r["intervention_fraction"] <= 1.0
     # the first scenario goes to the MCAP log step by step, the others not: reported apart
     assert r["realtime_factor_unlogged"] > 0
