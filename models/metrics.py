@@ -168,8 +168,11 @@ def distances_and_sigmas(field, P) -> tuple[np.ndarray, np.ndarray]:
 
 def sigma_honesty(field, samples) -> SigmaHonesty:
     """SigmaHonesty of a distance field with `uncertainty` (e.g. models.local.field.LocalField)
-    at `samples` (N, 3) mm of the true retina (e.g. Eye.reference_samples)."""
-    return SigmaHonesty.of(*distances_and_sigmas(field, as_points(samples, "samples")))
+    at `samples` (N, 3) mm of the true retina (e.g. Eye.reference_samples), N >= 1."""
+    samples = as_points(samples, "samples")
+    if not len(samples):
+        raise ValueError("sigma_honesty: samples must hold at least one point (N, 3) mm")
+    return SigmaHonesty.of(*distances_and_sigmas(field, samples))
 
 
 def field_report(field, truth, angle_from_data_rad, n_grid: int = 100, scanned_deg: float = 10.0) -> dict:

@@ -101,6 +101,12 @@ def waypoint_velocities(t, Q) -> np.ndarray:
     own slopes, Drake's CubicShapePreserving) is not: on the peripheral plan's sweep it left
     the RCM 20 um off where the tip path turns a corner."""
     t, Q = np.asarray(t, dtype=float), np.asarray(Q, dtype=float)
+    if t.ndim != 1 or Q.shape != (len(t), 6) or len(t) < 2:
+        raise ValueError(f"waypoint_velocities: t must be (N,) s and Q (N, 6) rad with N >= 2, got {t.shape} and {Q.shape}")
+    if not (np.isfinite(t).all() and np.isfinite(Q).all()):
+        raise ValueError("waypoint_velocities: t and Q must be finite")
+    if not np.all(np.diff(t) > 0.0):
+        raise ValueError("waypoint_velocities: the times t must increase strictly (s)")
     h = np.diff(t)[:, None]
     s = np.diff(Q, axis=0) / h
     V = np.zeros_like(Q)

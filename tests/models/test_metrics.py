@@ -109,3 +109,8 @@ def test_sigma_honesty_misses_on_the_safe_side_are_not_unsafe():
     assert (h.coverage, h.unsafe_fraction) == (pytest.approx(2 / 3), 0.0)
     assert h.worst_excess_mm == pytest.approx(-0.25)
     assert np.isnan(SigmaHonesty.of(np.array([0.0]), np.array([np.inf])).coverage)
+
+
+def test_sigma_honesty_of_no_samples_is_refused():
+    with pytest.raises(ValueError, match="at least one point"):
+        sigma_honesty(_ShiftedSphere(), np.zeros((0, 3)))

@@ -3,7 +3,10 @@ overshoot where a joint's waypoints run monotone, and one direction for all join
 the waypoints do (the RCM-constrained motion's velocity to first order)."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydrake.trajectories import PiecewisePolynomial
@@ -52,3 +55,16 @@ def test_waypoints_on_a_line_in_joint_space_move_along_it(n, seed):
     V = waypoint_velocities(t, u * f[:, None])
     np.testing.assert_allclose(V - np.outer(V @ u / (u @ u), u), 0.0, atol=1e-9 * np.abs(V).max() + 1e-15)
     assert np.all(V[1:-1] @ u > 0.0)
+
+
+@pytest.mark.parametrize("t, Q, words", [
+    ([0.0, 1.0, 1.0, 2.0], np.zeros((4, 6)), "increase strictly"),  # a repeated time: no secant there
+    ([0.0, 2.0, 1.0], np.zeros((3, 6)), "increase strictly"),
+    ([0.0, np.nan, 2.0], np.zeros((3, 6)), "finite"),
+    ([0.0, 1.0], np.full((2, 6), np.inf), "finite"),
+    ([0.0, 1.0, 2.0], np.zeros((3, 5)), "Q (N, 6)"),
+    ([0.0], np.zeros((1, 6)), "N >= 2"),
+])
+def test_waypoints_the_curve_cannot_pass_are_refused(t, Q, words):
+    with pytest.raises(ValueError, match=re.escape(words)):
+        waypoint_velocities(t, Q)
