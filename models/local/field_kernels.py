@@ -9,87 +9,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from models.local.geometry import GLOBAL_SIZE, N_BASIS, N_COV, band, global_radius, node_frame, small_angle, wendland
-from models.local.kernels import global_sd
+from models.local.blend import MAX_CANDIDATES, N_SUMS, blend_many, candidates
+from models.local.geometry import GLOBAL_SIZE, N_BASIS, N_COV, global_radius, node_frame
 from models.shapes.field import unanswered
 
-MAX_CANDIDATES = 256  # nodes a blend may read (blend_deg / spacing_deg <= 4: about 60; lateral_bound's 1.75 blends: 185)
 CAL_KNOTS_RAD = np.radians(np.array([0.0, 1.0, 2.0, 3.0, 5.0, 7.5, 10.0, 15.0]))  # the sd calibration's gaps
 N_CAL = CAL_KNOTS_RAD.shape[0]
-
-
-@njit(cache=True, inline="always")
-def candidates(dirs, u0, u1, u2, angle, cand):
-    """The number of nodes within `angle` rad of the unit direction u, their indices
-    written to cand (as many as it holds)."""
-    k0, k1 = band(dirs.shape[0], u2, 2.0 * np.sin(0.5 * angle))
-    cos_a = np.cos(angle)
-    nc = 0
-    for k in range(k0, k1):
-        if u0 * dirs[k, 0] + u1 * dirs[k, 1] + u2 * dirs[k, 2] > cos_a and nc < cand.shape[0]:
-            cand[nc] = k
-            nc += 1
-    return nc
-
-
-@njit(cache=True, inline="always")
-def _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc):
-    """(radius mm, sd mm, gap rad) of the field at the unit direction u: the nodes within `blend`
-    rad (their quadratics; at nodes without data the trend quadric's quadratic where
-    departures.fill_trend put one, else the global radius) averaged with
-    Wendland's weight over each one's variance there (a node extrapolating across its
-    data counts little); the sd their standard deviations with the same weights and the
-    spread of their radii about that mean in Wendland's weights alone (the variance of a
-    mixture: a confident node must not hide the others' disagreement); the gap the nodes'
-    angles from the nearest data in Wendland's weights (smooth over directions: what the
-    sd's calibration is indexed by, calibrated_sd). The sd is the uncalibrated one."""
-    cos_b = np.cos(blend)
-    rg = np.nan
-    sw, sr, ss, sW, sWr, sWrr, sWa = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    for j in range(nc):
-        k = cand[j]
-        d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
-        c = u0 * d0 + u1 * d1 + u2 * d2
-        if c <= cos_b:
-            continue
-        w = wendland(small_angle(c) / blend)
-        if w <= 0.0:
-            continue
-        if has[k] != 0.0 or x[k, 0] > 0.0:  # its quadratic: fitted, or the trend's (departures.fill_trend)
-            e10, e11, e12, e20, e21, e22 = node_frame(d0, d1, d2)
-            t1 = (u0 * e10 + u1 * e11 + u2 * e12) / c
-            t2 = (u0 * e20 + u1 * e21 + u2 * e22) / c
-            p1, p2, p3, p4, p5 = t1, t2, t1 * t1, t1 * t2, t2 * t2
-            r = x[k, 0] + x[k, 1] * p1 + x[k, 2] * p2 + x[k, 3] * p3 + x[k, 4] * p4 + x[k, 5] * p5
-        if has[k] != 0.0:
-            C = cov[k]
-            v = (C[0] + 2.0 * (C[1] * p1 + C[2] * p2 + C[3] * p3 + C[4] * p4 + C[5] * p5)
-                 + C[6] * p1 * p1 + 2.0 * (C[7] * p1 * p2 + C[8] * p1 * p3 + C[9] * p1 * p4 + C[10] * p1 * p5)
-                 + C[11] * p2 * p2 + 2.0 * (C[12] * p2 * p3 + C[13] * p2 * p4 + C[14] * p2 * p5)
-                 + C[15] * p3 * p3 + 2.0 * (C[16] * p3 * p4 + C[17] * p3 * p5)
-                 + C[18] * p4 * p4 + 2.0 * C[19] * p4 * p5 + C[20] * p5 * p5) + excess[k]
-        else:
-            if not x[k, 0] > 0.0:
-                if rg != rg:
-                    rg = global_radius(c0, gp, u0, u1, u2)
-                r = rg
-            sd = global_sd(small_angle(near[k]), prior)
-            v = sd * sd + excess[k]  # and the departure of the data nodes nearby (spread_departures)
-        v += prior[5] * prior[5]  # the floor: what the quadratics' spread near data leaves unexplained
-        sWa += w * small_angle(near[k])
-        sW += w  # the nodes' spread about the mean in their plain Wendland weights (a confident node
-        sWr += w * r  # that extrapolates must not hide the others' disagreement)
-        sWrr += w * r * r
-        w /= v
-        sw += w
-        sr += w * r
-        ss += w * np.sqrt(v)
-    if sw <= 0.0:
-        return global_radius(c0, gp, u0, u1, u2), prior[2], np.pi
-    rm = sr / sw
-    spread = max((sWrr - 2.0 * rm * sWr) / sW + rm * rm, 0.0)  # the nodes' disagreement about the mean
-    sd = ss / sw
-    return rm, np.sqrt(sd * sd + spread), sWa / sW
 
 
 @njit(cache=True, inline="always")
@@ -163,6 +88,7 @@ def field_at(fp, P, barrier):
     eps = 1e-5
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
     wide = np.empty(MAX_CANDIDATES, dtype=np.int64)  # lateral_bound's
+    W, sums, blends = np.empty((3, 3)), np.empty((3, N_SUMS)), np.empty((3, 3))  # the point's three directions
     sin_nearest = np.sin(LATERAL_NEAREST * blend)  # a point r from c0 lies r sin_nearest or more from the look's rays
     for m in range(M):
         v0, v1, v2 = P[m, 0] - c0[0], P[m, 1] - c0[1], P[m, 2] - c0[2]
@@ -175,20 +101,25 @@ def field_at(fp, P, barrier):
             v0, v1, v2, r = 0.0, 0.0, -1e-9, 1e-9
         u0, u1, u2 = v0 / r, v1 / r, v2 / r
         nc = candidates(dirs, u0, u1, u2, blend + 2.0 * eps, cand)
-        R0, sd, gap = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
+        W[0, 0], W[0, 1], W[0, 2] = u0, u1, u2  # the point's direction, then a step along each tangent
+        for s in range(2):
+            a0, a1, a2 = (e10, e11, e12) if s == 0 else (e20, e21, e22)
+            w0, w1, w2 = u0 + eps * a0, u1 + eps * a1, u2 + eps * a2
+            q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            W[1 + s, 0], W[1 + s, 1], W[1 + s, 2] = w0 / q, w1 / q, w2 / q
+        blend_many(W, 3, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc, sums, blends)
+        R0, sd, gap = blends[0, 0], blends[0, 1], blends[0, 2]
         sd = calibrated_sd(sd, gap, cal)
         if local == 0.0:  # the global surface, uncertain by the local estimate's disagreement too
             S0 = _global_form_sd(sd, R0, c0, gp, u0, u1, u2)
         else:
             S0 = sd
-        e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
         grad0, grad1, grad2 = 0.0, 0.0, 0.0
         gs0, gs1, gs2 = 0.0, 0.0, 0.0  # grad of the sd (it depends on the direction alone)
         for s in range(2):
             a0, a1, a2 = (e10, e11, e12) if s == 0 else (e20, e21, e22)
-            w0, w1, w2 = u0 + eps * a0, u1 + eps * a1, u2 + eps * a2
-            q = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-            Rp, Sp, gap = _blend_at(w0 / q, w1 / q, w2 / q, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            Rp, Sp, gap = blends[1 + s, 0], blends[1 + s, 1], blends[1 + s, 2]
             dR = (Rp - R0) / eps  # mm per rad along the tangent a
             grad0 += dR * a0 / r
             grad1 += dR * a1 / r
@@ -196,7 +127,7 @@ def field_at(fp, P, barrier):
             if barrier:  # the sd's rate: only the barrier's form reads it
                 Sp = calibrated_sd(Sp, gap, cal)
                 if local == 0.0:
-                    Sp = _global_form_sd(Sp, Rp, c0, gp, w0 / q, w1 / q, w2 / q)
+                    Sp = _global_form_sd(Sp, Rp, c0, gp, W[1 + s, 0], W[1 + s, 1], W[1 + s, 2])
                 dS = (Sp - S0) / eps
                 gs0, gs1, gs2 = gs0 + dS * a0 / r, gs1 + dS * a1 / r, gs2 + dS * a2 / r
         grad0, grad1, grad2 = grad0 - u0, grad1 - u1, grad2 - u2  # grad of R(u) - r
@@ -246,7 +177,7 @@ def lateral_bound(r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near,
     over directions w beside u, LATERAL_AZIMUTHS on each ring of LATERAL_RINGS blends
     from it: along each w the retina lies no nearer the centre than the field's radius
     R(w) less k times its sd there (the global form's when `local` is 0, as field_at
-    answers both: _blend_at, calibrated_sd, _global_form_sd), so the point is at least as
+    answers both: blend.blend_many, calibrated_sd, _global_form_sd), so the point is at least as
     far from it as from the nearest point of w beyond that radius (the point's foot on w
     where that radius lies below it). The bound at the point's
     own direction, h - k sigma, holds while the nearest retina lies along it; where a
@@ -257,13 +188,17 @@ def lateral_bound(r, u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near,
     nc = candidates(dirs, u0, u1, u2, (LATERAL_REACH + 1.0) * blend + 1e-4, cand)
     e10, e11, e12, e20, e21, e22 = node_frame(u0, u1, u2)
     best = np.inf
-    for i in range(len(LATERAL_RINGS)):
+    W, sums, blends = np.empty((LATERAL_AZIMUTHS, 3)), np.empty((LATERAL_AZIMUTHS, N_SUMS)), np.empty((LATERAL_AZIMUTHS, 3))
+    for i in range(len(LATERAL_RINGS)):  # a ring's directions blended in one pass over the nodes
         theta = LATERAL_RINGS[i] * blend
         ct, st = np.cos(theta), np.sin(theta)
         for a in range(LATERAL_AZIMUTHS):
             t1, t2 = st * LATERAL_TURNS[i, a, 0], st * LATERAL_TURNS[i, a, 1]
-            w0, w1, w2 = ct * u0 + t1 * e10 + t2 * e20, ct * u1 + t1 * e11 + t2 * e21, ct * u2 + t1 * e12 + t2 * e22
-            R, sd, gap = _blend_at(w0, w1, w2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+            W[a, 0], W[a, 1], W[a, 2] = ct * u0 + t1 * e10 + t2 * e20, ct * u1 + t1 * e11 + t2 * e21, ct * u2 + t1 * e12 + t2 * e22
+        blend_many(W, LATERAL_AZIMUTHS, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc, sums, blends)
+        for a in range(LATERAL_AZIMUTHS):
+            w0, w1, w2 = W[a, 0], W[a, 1], W[a, 2]
+            R, sd, gap = blends[a, 0], blends[a, 1], blends[a, 2]
             sd = calibrated_sd(sd, gap, cal)
             if local == 0.0:
                 sd = _global_form_sd(sd, R, c0, gp, w0, w1, w2)
@@ -324,14 +259,16 @@ def unpack(fp):
 @njit(cache=True)
 def radii_at(dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near, U):
     """(M,) radius (mm) and (M,) calibrated standard deviation (mm) of the blended field
-    along the unit directions U (M, 3) from c0 (_blend_at per row); with `local` 0 the
+    along the unit directions U (M, 3) from c0 (blend.blend_many per row); with `local` 0 the
     global surface's, as local_field answers it (_global_form_sd)."""
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    sums, blends = np.empty((1, N_SUMS)), np.empty((1, 3))
     R, S = np.empty(U.shape[0]), np.empty(U.shape[0])
     for m in range(U.shape[0]):
         u0, u1, u2 = U[m, 0], U[m, 1], U[m, 2]
         nc = candidates(dirs, u0, u1, u2, blend, cand)
-        R[m], sd, gap = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        blend_many(U[m:m + 1], 1, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc, sums, blends)
+        R[m], sd, gap = blends[0, 0], blends[0, 1], blends[0, 2]
         S[m] = calibrated_sd(sd, gap, cal)
         if local == 0.0:
             S[m] = _global_form_sd(S[m], R[m], c0, gp, u0, u1, u2)
@@ -343,12 +280,13 @@ def radii_at(dirs, blend, local, c0, prior, gp, cal, x, cov, excess, has, near, 
 def predictions(P, c0, gp, gate, dirs, blend, prior, x, cov, excess, has, near, out):
     """Each point of P (M, 3) mm predicted along its direction from c0 before it is absorbed:
     out (M, 6) rows [measured radius, the local field's radius, its uncalibrated sd (mm),
-    its gap (rad: _blend_at), the global quadric's radius (mm), the angle from the data of
+    its gap (rad: blend.blend_many), the global quadric's radius (mm), the angle from the data of
     the node nearest the point (rad)], for the points absorb_points
     would take (gate); NaN rows for the others. Returns out. What the local model is
     chosen by (models.local.selection) and its sd calibrated on
     (models.local.calibration): the data's own held-out errors."""
     cand = np.empty(MAX_CANDIDATES, dtype=np.int64)
+    W, sums, blends = np.empty((1, 3)), np.empty((1, N_SUMS)), np.empty((1, 3))
     for i in range(P.shape[0]):
         out[i, :] = np.nan
         v0, v1, v2 = P[i, 0] - c0[0], P[i, 1] - c0[1], P[i, 2] - c0[2]
@@ -365,6 +303,8 @@ def predictions(P, c0, gp, gate, dirs, blend, prior, x, cov, excess, has, near, 
             c = u0 * dirs[cand[j], 0] + u1 * dirs[cand[j], 1] + u2 * dirs[cand[j], 2]
             if c > best:
                 best, nearest = c, np.arccos(max(min(near[cand[j]], 1.0), -1.0))
-        rl, sd, gap = _blend_at(u0, u1, u2, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc)
+        W[0, 0], W[0, 1], W[0, 2] = u0, u1, u2
+        blend_many(W, 1, dirs, blend, c0, gp, x, cov, excess, has, near, prior, cand, nc, sums, blends)
+        rl, sd, gap = blends[0, 0], blends[0, 1], blends[0, 2]
         out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = r, rl, sd, gap, rg, nearest
     return out
