@@ -32,7 +32,8 @@ from pydrake.systems.primitives import DiscreteTimeIntegrator
 from eval.clearance import bound_excess, true_clearances
 from eval.loop_config import LoopConfig
 from eval.systems.actuator import ActuatorSystem
-from eval.systems.filter import FilterSystem, Step
+from eval.systems.filter import FilterSystem
+from eval.systems.step_record import Step
 from eval.systems.model import AdaptiveModelSystem, ModelSnapshot, semi_axes_mm, snapshot_of
 from eval.systems.sensor import IioctSensorSystem
 from models import AdaptiveEyeModel

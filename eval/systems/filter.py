@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numpy as np
 from pydrake.common.value import AbstractValue
@@ -34,6 +32,7 @@ from eval.log.steps import setup_to_json
 from eval.loop_config import LoopConfig
 from eval.systems.inputs import StepInputs
 from eval.systems.model import ModelSnapshot
+from eval.systems.step_record import Step, StepRecord
 from models.adaptive.coverage import band_chord
 from models.adaptive.model_field import ModelField, coverage_trust, model_field_kernel
 from models.local.field import FieldValues, LocalField
@@ -50,43 +49,6 @@ from safety.constraints import RcmEquality
 from safety.constraints.actuated_barrier import actuator_aware
 
 JOINT_NAMES = tuple(f"J{k}" for k in range(1, 7))
-
-
-class Step(NamedTuple):
-    """One control step's record: time, joints, command and result, what the filter saw
-    (mm, s, rad; W). The tip velocity done is J_tip qdot (LoopRun computes it);
-    `bounds_mm` (k,) the lower bound on each boundary point's (points_W) true clearance
-    that the barrier assumed, h - k sigma - calibration (+inf: none; all +inf at a step refused
-    by a fault, whose output carries no clearance; a QP the filter could not solve keeps them)."""
-
-    t: float
-    q: np.ndarray
-    qdot: np.ndarray
-    v_cmd: np.ndarray
-    J_tip: np.ndarray
-    ok: bool
-    reason: str
-    intervened: bool
-    solve_us: float
-    step_us: float
-    model_clearance: float
-    kind: str
-    rcm_error_mm: float
-    points_W: np.ndarray
-    lens_W: np.ndarray
-    bounds_mm: np.ndarray
-
-
-@dataclass
-class StepRecord:
-    """A run's steps (one Step each: one append per control step) and the states on which
-    Drake's diff IK and the filter's compiled step are timed after the run
-    (FilterSystem.time_references: (q, command, times, fields, pending, trocar) each)."""
-
-    steps: list = field(default_factory=list)
-    drake_diffik_us: list = field(default_factory=list)
-    filter_replay_us: list = field(default_factory=list)
-    reference_states: list = field(default_factory=list)
 
 
 def loop_constraints(robot: Robot, config: LoopConfig) -> list:
