@@ -293,7 +293,8 @@ class FilterSystem(LeafSystem):
         step_us = 1e6 * (time.perf_counter() - t0)
         if self.config.drake_diffik_every and len(rec.steps) % self.config.drake_diffik_every == 0 and out.ok:
             # Drake and the filter are timed on these after the run (ClosedLoop.run: time_references)
-            rec.reference_states.append((q, command, self._times.copy(), self._fields, pending.copy(), self.p_WC))
+            rec.diffik_states.append((q, command[:3]))
+            rec.keep_filter_state((q, command, self._times.copy(), self._fields, pending.copy(), self.p_WC))
         k = ranges[1, 1]  # the bounds on the points' true clearance; +inf after a fault (no barrier ran)
         bounds = np.full(k, np.inf) if not out.ok and out.min_clearance_mm != out.min_clearance_mm else \
             self.stack.point_bound[:k].copy()
@@ -309,19 +310,20 @@ class FilterSystem(LeafSystem):
         """Time Drake's DoDifferentialInverseKinematics on the states recorded during the
         run (every drake_diffik_every-th step the filter solved), into the record: the
         same plant and states as the filter, outside the run's wall time, one after the
-        other. The filter's compiled step is timed the same way on the same states (those of
-        the run's last trocar: the stack holds its RCM), `filter_replay_us`: the two costs
-        under the same conditions, where the run's own `solve_us` is the filter's in the loop,
-        between the simulator's and the model's work, which leave its caches cold."""
+        other. The filter's compiled step is timed the same way on a subsample of the same
+        states (StepRecord.keep_filter_state; those of the run's last trocar: the stack holds
+        its RCM), `filter_replay_us`: the two costs under the same conditions, where the
+        run's own `solve_us` is the filter's in the loop, between the simulator's and the
+        model's work."""
         rec = self.record
-        for q, command, times, fields, pending, p_WC in rec.reference_states:
+        for q, command, times, fields, pending, p_WC in rec.filter_states:
             if p_WC is self.p_WC:
                 out = self.stack.solve_at(q, command, times, self._kp, fields, pending)[0]
                 rec.filter_replay_us.append(out.solve_us)
         self.stack.reset()  # the replay's active set is no step's of the run
-        for q, command, *_ in rec.reference_states:
+        for q, v_cmd in rec.diffik_states:
             t1 = time.perf_counter()
-            self.drake_diffik(q, command[:3])
+            self.drake_diffik(q, v_cmd)
             rec.drake_diffik_us.append(1e6 * (time.perf_counter() - t1))
 
     def _log(self, t: float, q, command, snap, sensor_t: float, out, distance_mm: float, pending) -> None:

@@ -34,13 +34,33 @@ class Step(NamedTuple):
     bounds_mm: np.ndarray
 
 
+MAX_FILTER_STATES = 32  # the filter's replay states a run keeps: each holds its step's field params (~1 MB)
+
+
 @dataclass
 class StepRecord:
     """A run's steps (one Step each: one append per control step) and the states on which
-    Drake's diff IK and the filter's compiled step are timed after the run
-    (FilterSystem.time_references: (q, command, times, fields, pending, trocar) each)."""
+    Drake's diff IK ((q, v_cmd) each) and the filter's compiled step ((q, command, times,
+    fields, pending, trocar) each) are timed after the run (FilterSystem.time_references).
+    The filter's are a regular subsample of at most MAX_FILTER_STATES (keep_filter_state):
+    a state holds the field params of its step, which the model remakes every 50 ms, and
+    a minute's run would otherwise keep a gigabyte of them."""
 
     steps: list = field(default_factory=list)
     drake_diffik_us: list = field(default_factory=list)
     filter_replay_us: list = field(default_factory=list)
-    reference_states: list = field(default_factory=list)
+    diffik_states: list = field(default_factory=list)
+    filter_states: list = field(default_factory=list)
+    filter_stride: int = 1
+    filter_seen: int = 0
+
+    def keep_filter_state(self, state: tuple) -> None:
+        """Keep every filter_stride-th state offered; past MAX_FILTER_STATES drop every other
+        one kept and double the stride."""
+        self.filter_seen += 1
+        if (self.filter_seen - 1) % self.filter_stride:
+            return
+        self.filter_states.append(state)
+        if len(self.filter_states) > MAX_FILTER_STATES:
+            del self.filter_states[1::2]
+            self.filter_stride *= 2
