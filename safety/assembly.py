@@ -143,7 +143,7 @@ def _fault(active, q, fault, detail):
 @njit(cache=True)
 def step(q, command, times, cfg, J_tip, J_roll, P, J, ranges, R_WI, p_WI, R_WI_end, p_WI_end, pending, spall, spo,
          {fp}active, warm, wsf, wsi):
-""" + views + f"""    fault = input_fault(q, command, J_tip, P, J, times, cfg)
+""" + views + f"""    fault = input_fault(q, command, J_tip, P, J, times, pending, cfg)
     if fault != OK:
         return _fault(active, q, fault, 0)
     tracking_cost(J_tip, command[:3], J_roll, np.full(J_roll.shape[0], command[3]), cfg[CFG_DAMPING], H, c)

@@ -49,7 +49,8 @@ EASED_SCALES = (0.5, 0.0)  # the drift corrections' scales tried, in order, on a
 RELAXATIONS = (CORRECTION_EASED, RECOVERY_HELD)  # in the order they lead a relaxed step's active rows and reason
 _FAULT_WORDS = {core.NONFINITE_Q: "non-finite q", core.NONFINITE_COMMAND: "non-finite v_cmd_W",
                 core.NONFINITE_J_TIP: "non-finite J_tip", core.NONFINITE_ROLL: "non-finite roll_rate_cmd",
-                core.NONFINITE_TIME: "non-finite time stamp (t_s, model_time_s or sensor_time_s)"}
+                core.NONFINITE_TIME: "non-finite time stamp (t_s, model_time_s or sensor_time_s)",
+                core.NONFINITE_PENDING: "non-finite pending actuator motion"}
 
 
 def relaxations(reason: str) -> tuple[str, ...]:

@@ -20,7 +20,7 @@ from safety.qp import NEEDS_SOLVER, OPTIMAL, rows_at_bound, screen, warm_solutio
 
 # fault codes (safety.filter words them); a constraint's filler fault is CONSTRAINT_FAULT + its index
 (OK, NONFINITE_Q, NONFINITE_COMMAND, NONFINITE_J_TIP, ABSURD_SPEED, STALE_MODEL, STALE_SENSOR, NONFINITE_POINTS,
- NONFINITE_ROLL, NONFINITE_TIME) = range(10)
+ NONFINITE_ROLL, NONFINITE_TIME, NONFINITE_PENDING) = range(11)
 CONSTRAINT_FAULT = 100
 # the step's result codes
 STEP_OPTIMAL, STEP_NEEDS_SOLVER, STEP_FAULT, STEP_QP_FAILED = 0, 1, 2, 3
@@ -39,9 +39,10 @@ def all_finite(a) -> bool:
 
 
 @njit(cache=True)
-def input_fault(q, command, J_tip, P, J, times, cfg) -> int:
+def input_fault(q, command, J_tip, P, J, times, pending, cfg) -> int:
     """The first fault of the step's inputs (a code above), or OK. times = [t, the model's
-    time, the newest sensor sample's time] s; cfg as CFG_*."""
+    time, the newest sensor sample's time] s; pending (r, n) rad the actuator's pending
+    displacements (0 rows: none); cfg as CFG_*."""
     if not all_finite(q):
         return NONFINITE_Q
     if not (np.isfinite(command[0]) and np.isfinite(command[1]) and np.isfinite(command[2])):
@@ -60,6 +61,8 @@ def input_fault(q, command, J_tip, P, J, times, cfg) -> int:
         return STALE_SENSOR
     if not (all_finite(P) and all_finite(J)):
         return NONFINITE_POINTS
+    if not all_finite(pending):
+        return NONFINITE_PENDING
     return OK
 
 

@@ -97,7 +97,7 @@ def make_loop(scenario, config=None, **kwargs):
 def speed_line(s: dict) -> str:
     """The filter's compiled step timed after the run on Drake's states (a campaign summary's
     filter_replay_us) and its p99 over Drake's DoDifferentialInverseKinematics p99, so timed
-    and as the loop timed it (solve_us, cold: between the simulator's and the model's work)."""
+    and as the loop timed it (solve_us: between the simulator's and the model's work)."""
     f, d, live = s["filter_replay_us"], s["drake_diffik_us"], s["solve_us"]
     if f["p99"] is None or d["p99"] is None or live["p99"] is None:
         return "no step timed"

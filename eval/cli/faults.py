@@ -57,8 +57,8 @@ def classes_of(text: str) -> list:
         raise UsageError(f"--classes: an empty class name in {text!r}; comma-separated names of "
                          f"{','.join(FAULT_CLASSES)}")
     bad = [c for c in names if c not in FAULT_CLASSES]
-    if bad or not names:
-        raise UsageError(f"--classes: unknown class {bad[0] if bad else text!r}; choose from {','.join(FAULT_CLASSES)}")
+    if bad:
+        raise UsageError(f"--classes: unknown class {bad[0]!r}; choose from {','.join(FAULT_CLASSES)}")
     return list(dict.fromkeys(names))
 
 

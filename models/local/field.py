@@ -17,9 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from models.local.field_kernels import (BOUND, BOUND_SIZE, CAL, CAL_KNOTS_RAD, HEAD, N_CAL, local_field, local_model_field,
-                                        radii_at, unpack)
-from models.local.geometry import N_BASIS, N_COV
+from models.local.field_kernels import (BOUND, BOUND_SIZE, CAL, CAL_KNOTS_RAD, HEAD, N_CAL, PER_NODE, local_field,
+                                        local_model_field, radii_at, unpack)
 from models.local.kernels import global_params
 from models.shapes.field import FieldKernel, KernelQueries
 from models.shapes.sampling import unit_sphere_grid
@@ -38,9 +37,9 @@ class LocalField(KernelQueries):
         self.params = np.ascontiguousarray(params, dtype=float)
         p = self.params
         n = p[0] if p.ndim == 1 and len(p) >= HEAD else -1.0
-        if not (n >= 0 and n == int(n) and len(p) == HEAD + int(n) * (6 + N_BASIS + N_COV)):
+        if not (n >= 0 and n == int(n) and len(p) == HEAD + int(n) * PER_NODE):
             raise ValueError(f"LocalField: params must be a LocalRetinaModel's params (1-D: {HEAD} numbers, then "
-                             f"{6 + N_BASIS + N_COV} per node of its first number's count), got shape {np.shape(params)}")
+                             f"{PER_NODE} per node of its first number's count), got shape {np.shape(params)}")
         self.kind = kind
         self.barrier = bool(barrier)
         if self.barrier and not self.params[BOUND + 4] > 0.0:

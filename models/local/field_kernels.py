@@ -237,6 +237,7 @@ BOUND_SIZE = 7  # [k, fallback centre (3), fallback radius, the distance kept be
 HEAD = 6 + 8 + GLOBAL_SIZE + N_CAL + BOUND_SIZE  # n, blend, local, c0 (3), prior (8), global (16), sd calibration, bound
 CAL = 14 + GLOBAL_SIZE  # where the sd calibration's factors begin
 BOUND = HEAD - BOUND_SIZE  # where the bound block begins (fallback radius 0: none)
+PER_NODE = 3 + N_BASIS + N_COV + 3  # unpack's numbers per node: direction, quadratic, covariance, excess, has, near
 
 
 @njit(cache=True)

@@ -57,8 +57,7 @@ from numba import njit
 from safety.constraints.base import as_params, check_finite_positive
 from safety.constraints.point_barrier import NON_FINITE_FIELD, PointBarrier, fill_point_barrier
 
-CANNOT_BRAKE = 2  # the filler's fault codes (NON_FINITE_FIELD = 1)
-NON_FINITE_PENDING = 3
+CANNOT_BRAKE = 2  # the filler's fault code (NON_FINITE_FIELD = 1; non-finite pending rows: the step's input fault)
 
 
 @njit(cache=True)
@@ -97,16 +96,12 @@ def braking_margins(side, P, J, start, stop, fh, fg, pending, inv_2r, revolute, 
 def fill_actuated_barrier(sp, P, J, start, stop, fh, fg, fu, pending, G, h, ids, m, id0, point_h, point_bound):
     """sp = [len(base), the PointBarrier's params (base), 1 / (2 R) 1/mm, stop tolerance mm,
     revolute joints 1/0];
-    the point barrier's rows on the predicted clearance, or -CANNOT_BRAKE (module docstring),
-    -NON_FINITE_PENDING for a non-finite pending row."""
+    the point barrier's rows on the predicted clearance, or -CANNOT_BRAKE (module docstring)."""
     nb = int(sp[0])
     base = sp[1:1 + nb]
     side, d_safe, k_sigma, calibration = base[0], base[1], base[2], base[7]
     inv_2r, tol, revolute = sp[1 + nb], sp[2 + nb], sp[3 + nb]
     k = stop - start
-    for v in pending.ravel():
-        if not np.isfinite(v):
-            return -NON_FINITE_PENDING
     b = braking_margins(side, P, J, start, stop, fh, fg, pending, inv_2r, revolute, np.empty(k))
     predicted = np.empty(k)
     for i in range(k):
@@ -162,8 +157,6 @@ class ActuatedPointBarrier(PointBarrier):
     def fault_reason(self, code: int) -> str:
         if code == CANNOT_BRAKE:
             return "actuator cannot brake before the boundary"
-        if code == NON_FINITE_PENDING:
-            return "non-finite pending actuator motion"
         return super().fault_reason(code)
 
 
