@@ -13,9 +13,10 @@ run's wall-clock start (`RunLogger.start_ns`, ns since the epoch, also in the fi
 "time" metadata as start_time_ns) + its simulation time; the simulation time itself is
 the message's `t` (the scene's entities carry it as metadata 'sim_time_s').
 
-Crash safety: the writer closes its chunk and flushes the file whenever a second of
-simulation or wall time has passed since the last flush, so a killed run leaves every
-message up to the last second readable by `read_log(..., allow_truncated=True)`.
+Crash safety: the writer closes its chunk and flushes the file whenever the simulation
+time crosses a whole second and whenever a second of wall time has passed since the last
+flush, so a killed run leaves every message up to the last whole second of simulation
+(and of wall time) readable by `read_log(..., allow_truncated=True)`.
 """
 from __future__ import annotations
 
@@ -111,7 +112,7 @@ class RunLogger:
             self._writer.write_metadata("run", {str(k): str(v) for k, v in metadata.items()})
         self.steps = 0
         self._last_ns = 0  # simulation time of the newest message
-        self._last_flush = (0.0, time.monotonic())
+        self._last_flush = (0, time.monotonic())  # (whole flush periods of simulation time, wall time)
         self._write("/filter/config", 0, codec.config_to_json(filter_config or FilterConfig()))
         self._writer.flush()
 
@@ -153,13 +154,14 @@ class RunLogger:
         self._maybe_flush(ns)
 
     def _maybe_flush(self, ns: int) -> None:
-        """Close the chunk and flush the file once a second (simulation or wall time) has
-        passed: called after each whole record group, so a step is never split."""
-        t_sim, t_wall = self._last_flush
-        now = time.monotonic()
-        if ns * 1e-9 - t_sim >= self.flush_every_s or now - t_wall >= self.flush_every_s:
+        """Close the chunk and flush the file when the simulation time enters a new period
+        of `flush_every_s` (whatever wall-time flushes came between) or that much wall time
+        has passed: called after each whole record group, so a step is never split."""
+        period, t_wall = self._last_flush
+        now, new_period = time.monotonic(), int(ns * 1e-9 // self.flush_every_s)
+        if new_period > period or now - t_wall >= self.flush_every_s:
             self._writer.flush()
-            self._last_flush = (ns * 1e-9, now)
+            self._last_flush = (max(period, new_period), now)
 
     def log_joint_states(self, t_s, q, qdot, names) -> None:
         """Joint angles q (n,) rad and rates qdot (n,) rad/s, with the joint `names`."""

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 
 from eval.log import codec
+from eval.log import writer as writer_module
 from eval.log.writer import M_PER_MM, RunLogger, quaternion_xyzw, read_log
 from eval.log.scene import MESSAGES as FOXGLOVE_MESSAGES
 from models import AdaptiveEyeModel, Ellipsoid, Sphere
@@ -351,12 +353,19 @@ def make_unloggable_model():
     return Plane()
 
 
-def test_an_open_log_is_readable_up_to_the_last_second(tmp_path):
+@pytest.mark.parametrize("wall_flush_at_step", [None, 1986])
+def test_an_open_log_is_readable_up_to_the_last_second(tmp_path, monkeypatch, wall_flush_at_step):
     """Without closing (the writer still holds the file), every step up to the last whole
-    second of simulation time is on disk."""
+    second of simulation time is on disk, also when a second of wall time passed (and the
+    writer flushed) a few steps before that second: the wall clock is frozen but for one
+    jump of 1.5 s before step 1986."""
+    wall = [0.0]
+    monkeypatch.setattr(writer_module, "time", SimpleNamespace(monotonic=lambda: wall[0], time_ns=time.time_ns))
     filt, p = SafetyFilter(), np.array([0.0, 0.0, -10.0])
     log = RunLogger(tmp_path / "open.mcap", flush_every_s=1.0)
     for k in range(2500):
+        if k == wall_flush_at_step:
+            wall[0] += 1.5
         p = toy_step(log, filt, k, p)
     partial = read_log(tmp_path / "open.mcap", allow_truncated=True)
     assert partial.truncated
