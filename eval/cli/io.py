@@ -11,29 +11,40 @@ class UsageError(Exception):
     """Bad command-line input: the CLI prints the message and exits with code 2."""
 
 
+def _probe(folder: Path) -> None:
+    """Create and remove a file in `folder`: the test both output checks make (os.access
+    may call a read-only mount writable); OSError if it cannot."""
+    with tempfile.NamedTemporaryFile(dir=folder, prefix=".probe-"):
+        pass
+
+
 def check_out_dir(path) -> Path:
-    """Check, creating nothing, that `path` can be an output folder: a folder already, or
-    to be made inside the nearest existing folder above it, which must be writable;
-    raise UsageError if not (for a command with two output folders: both checked before
-    either is made)."""
+    """Check, leaving nothing behind, that `path` can be an output folder: a folder
+    already, or to be made inside the nearest existing folder above it; a probe file is
+    made and removed there, as prepare_out_dir makes it (for a command with two output
+    folders: both checked before either is made). UsageError if not."""
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise UsageError(f"output directory {out} is not writable: it is a file")
     above = out
     while not above.exists():
         above = above.parent
-    if not above.is_dir() or not os.access(above, os.W_OK | os.X_OK):
-        raise UsageError(f"output directory {out} is not writable: {above} is not a writable folder")
+    if not above.is_dir():
+        raise UsageError(f"output directory {out} is not writable: {above} is not a folder")
+    try:
+        _probe(above)
+    except OSError as exc:
+        raise UsageError(f"output directory {out} is not writable: {above}: {exc.strerror or exc}") from None
     return out
 
 
 def prepare_out_dir(path) -> Path:
-    """Create `path` if needed and check that it is writable; raise UsageError if not."""
+    """Create `path` if needed and check that it is writable (a probe file made and
+    removed); raise UsageError if not."""
     out = Path(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out, prefix=".probe-"):
-            pass
+        _probe(out)
     except OSError as exc:
         raise UsageError(f"output directory {out} is not writable: {exc.strerror or exc}") from None
     return out

@@ -150,13 +150,14 @@ def plan_loop_config(args):
     return loop_config(args, trust_angle_deg=args.trust_angle_deg)
 
 
-def spec_of(args):
-    """The planning.peripheral.BandSpec of the flags; UsageError naming the flag at fault."""
+def spec_of(args, config):
+    """The planning.peripheral.BandSpec of the flags, whose standoff `config` (the plan's
+    LoopConfig, plan_loop_config) must keep; UsageError naming the flag at fault."""
     from planning.peripheral import BandSpec
     from safety.margins import SMALLEST_RETINAL_SEMI_AXIS_MM
 
     z0, z1 = args.band
-    check_standoff(args.standoff_mm, plan_loop_config(args).filter.boundary_mm(0.0),
+    check_standoff(args.standoff_mm, config.filter.boundary_mm(0.0),
                    "the filter's boundary without the model's margin (d_safe + the calibration margin)")
     if args.survey_passes > 1 and not args.survey_mm:
         raise UsageError("--survey-passes needs --survey-mm above 0 mm (the survey's depth beyond --standoff-mm)")
@@ -207,7 +208,8 @@ def outside_loop_margin_deg(robot, plan) -> float | None:
 
 
 def main(args) -> int:
-    spec = spec_of(args)
+    config = plan_loop_config(args)
+    spec = spec_of(args, config)
     args.eye_params = eye_params(args.eye_param, args.shape)
     from eval.experiments.model_report import model_summary
     from eval.cli.boundary import make_loop
@@ -225,7 +227,7 @@ def main(args) -> int:
                                    ports=layout)
     except ValueError as exc:
         raise UsageError(f"--port-clock/--port-limbus-mm: {exc}") from None
-    loop = make_loop(scenario, plan_loop_config(args), sensor_seed=args.seed)
+    loop = make_loop(scenario, config, sensor_seed=args.seed)
     build = build_model_by_spiral(loop, progress=f"spiral scan building the model ({args.shape} eye, {visit[0].name} port)")
     survey = None
     with tempfile.TemporaryDirectory(prefix="vitreoguard-survey-") as survey_logs:

@@ -36,6 +36,29 @@ def test_eyes_checks_both_output_folders_before_writing_either(tmp_path, capsys)
     assert os.listdir(tmp_path) == ["file"]
 
 
+def test_a_read_only_file_system_is_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """os.access calls a read-only mount writable (and root may write anywhere): both checks
+    probe with a file, so the first check refuses what the folder's making would; the
+    probe leaves nothing behind where it succeeds."""
+    import errno
+    import tempfile
+
+    real = tempfile.NamedTemporaryFile
+
+    def read_only(*args, **kwargs):
+        if str(kwargs.get("dir", "")).startswith(str(tmp_path / "ro")):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+        return real(*args, **kwargs)
+
+    (tmp_path / "ro").mkdir()
+    monkeypatch.setattr(tempfile, "NamedTemporaryFile", read_only)
+    refused(capsys, ["eyes", "--stl", tmp_path / "stl", "--out", tmp_path / "ro" / "png"], "Read-only file system")
+    assert sorted(os.listdir(tmp_path)) == ["ro"] and os.listdir(tmp_path / "ro") == []
+    from eval.cli.io import check_out_dir
+    check_out_dir(tmp_path / "new" / "sub")
+    assert sorted(os.listdir(tmp_path)) == ["ro"]
+
+
 def test_eyes_draws_the_shapes_with_their_eye_params(tmp_path, capsys):
     """--eye-param reaches eyes.png and eyes.json, not only the STL phantoms: a detachment
     3 mm high lifts the retina further than the default 2 mm (the profile's peak)."""
