@@ -150,7 +150,7 @@ def add_eye_param(p) -> None:
 
     takes = "; ".join(f"{s}: " + ", ".join(f"{k} {param_range(s, k)}" for k in ps) for s, ps in EYE_PARAMS.items())
     p.add_argument("--eye-param", type=eye_param, action="append", default=[], metavar="NAME=VALUE",
-                   help=f"a shape parameter of the true eye (repeatable; defaults: design.md) - {takes}")
+                   help=f"a shape parameter of the true eye (repeatable; defaults: models.eyes.EYE_PARAMS) - {takes}")
 
 
 def eye_params(pairs, shape: str) -> dict:

@@ -214,7 +214,9 @@ def main(args) -> int:
           f"(Drake DoDifferentialInverseKinematics: median {result['drake_diffik_us']['median']:.0f}  "
           f"p99 {result['drake_diffik_us']['p99']:.0f})")
     print(f"{'filter_replay_us':24s} {speed_line(result)}")
-    print(f"wrote {out / 'boundary.json'}, boundary_clearance.png, boundary_activity.png, spiral.mcap and boundary.mcap (scenario 0)")
+    sigma_png = " model_error_sigma.png," if (out / "model_error_sigma.png").exists() else ""
+    print(f"wrote {out / 'boundary.json'}, boundary_clearance.png, boundary_activity.png,{sigma_png} spiral.mcap and "
+          f"boundary.mcap (scenario 0)")
     return 0
 
 

@@ -89,7 +89,8 @@ def main(args) -> int:
           f"(Drake DoDifferentialInverseKinematics p99 {result['drake_diffik_us']['p99']:.0f})")
     print(f"  {'filter replayed (us)':24s} {speed_line(result)}")
     write_json(out / "demo.json", {**result, "history": rows})
-    print(f"\nwrote {out / 'demo.json'}, plots boundary_clearance.png and boundary_activity.png, "
+    sigma_png = " and model_error_sigma.png" if (out / "model_error_sigma.png").exists() else ""
+    print(f"\nwrote {out / 'demo.json'}, plots boundary_clearance.png, boundary_activity.png{sigma_png}, "
           f"MCAP logs {out / 'spiral.mcap'} and {out / 'boundary.mcap'} (open in Foxglove; "
           f"`vitreoguard replay {out / 'boundary.mcap'}` re-runs the filter)")
     if args.meshcat:

@@ -19,7 +19,7 @@ _SECTION = {"staphyloma": (np.array([1.0, 0.0, 0.0]), "x (temporal)"), "detached
 
 
 def register(sub) -> None:
-    p = sub.add_parser("eyes", help="render the ground-truth eye shapes to eyes.png")
+    p = sub.add_parser("eyes", help="render the ground-truth eye shapes to eyes.png and eyes.json")
     p.add_argument("--out", type=out_dir, default=None, help="output directory of eyes.png (required unless --stl)")
     p.add_argument("--stl", type=out_dir, default=None, metavar="DIR",
                    help="write each shape's lower half (z <= 0 in E) as a watertight STL shell in mm to DIR/<shape>.stl")

@@ -120,8 +120,13 @@ def scenario(args, **kwargs):
 
 
 def loop_record(args, config) -> dict:
-    """The loop's real-robot errors for a results file: the flags and the margin the
-    filter keeps for the calibration bound (mm)."""
+    """The loop's real-robot errors for a results file: the flags (the true sensor pose's
+    error the scenario's default when --sensor-pose-error is not given: offset mm, rotation
+    vector deg) and the margin the filter keeps for the calibration bound (mm)."""
+    from planning.scenario import SENSOR_OFFSET_S_MM, SENSOR_ROTVEC_S_RAD
+
     f = flags(args)
+    if f["sensor_pose_error"] is None:  # the scenario's default true error, in the flag's units (mm, deg)
+        f = {**f, "sensor_pose_error": [*map(float, SENSOR_OFFSET_S_MM), *map(float, np.degrees(SENSOR_ROTVEC_S_RAD))]}
     return {**f, "calibration_bound": [config.filter.calibration_bound_mm, config.filter.calibration_bound_deg],
             "calibration_margin_mm": config.filter.calibration_margin_mm}

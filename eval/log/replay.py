@@ -63,7 +63,7 @@ def _logged_steps(log) -> list[tuple[int, dict, dict, dict]]:
     log misses part of a step (a truncated log may lose its last step's tail)."""
     inputs, outputs, status = (_by_step(log.messages.get(t, ()), t) for t in TOPICS[1:])
     if not inputs:
-        raise LogReadError("the log holds no /filter/inputs messages: nothing to replay")
+        raise LogReadError("the log holds no filter steps (neither /filter/step nor /filter/inputs messages): nothing to replay")
     steps = []
     for s in sorted(inputs):
         if s in outputs and s in status:

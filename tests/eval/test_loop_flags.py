@@ -54,3 +54,19 @@ def test_a_calibration_bound_changes_only_the_bound():
     args = build_parser().parse_args(["boundary", "--calibration-bound", "0.05,0.2"])
     expected = dataclasses.replace(LoopConfig().filter, calibration_bound_mm=0.05, calibration_bound_deg=0.2)
     assert loop_config(args).filter == expected
+
+
+def test_the_results_record_the_true_sensor_pose_error_given_or_not():
+    """boundary.json's `loop` says which true sensor pose error the run simulated: the
+    scenario's default (0.02 mm along x, 0.1 deg about y) when the flag is not given."""
+    import numpy as np
+
+    from eval.cli.loop_flags import loop_record, scenario
+
+    for argv, error in ((["boundary"], [0.02, 0.0, 0.0, 0.0, 0.1, 0.0]),
+                        (["boundary", "--sensor-pose-error", "0.1,0,0,0,0,0.5"], [0.1, 0.0, 0.0, 0.0, 0.0, 0.5])):
+        args = build_parser().parse_args(argv)
+        recorded = loop_record(args, loop_config(args))["sensor_pose_error"]
+        assert recorded == pytest.approx(error, abs=1e-12)
+        sc = scenario(args)  # the pose the loop simulates is the recorded one
+        assert np.allclose(np.append(sc.sensor_offset_S_mm, np.degrees(sc.sensor_rotvec_S_rad)), recorded, atol=1e-12)

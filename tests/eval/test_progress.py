@@ -1,4 +1,4 @@
-"""eval.cli.progress: bars and phase spinners on a terminal's stderr, nothing elsewhere."""
+"""eval.cli.progress: bars and phase spinners on a terminal's stderr, whole lines elsewhere."""
 from __future__ import annotations
 
 import io
@@ -86,3 +86,31 @@ def test_phases_are_off_when_turned_off():
     with phase("compiling", stream=term, delay_s=0.0):
         time.sleep(0.3)
     assert term.getvalue() == ""
+
+
+def test_off_a_terminal_a_bar_writes_whole_lines_at_most_every_interval(shown, monkeypatch, capsys):
+    log = io.StringIO()
+    monkeypatch.setattr(progress, "LINE_INTERVAL_S", 0.0)
+    with progress_bar(4, "scenarios", unit="scenario", stream=log) as bar:
+        bar.update()
+        bar.update(n=3)
+    lines = log.getvalue().splitlines()
+    assert "\r" not in log.getvalue() and len(lines) == 3  # two updates and the close
+    assert lines[0].startswith("scenarios: 1/4 scenario (25 %), ") and lines[-1].startswith("scenarios: 4/4 scenario (100 %)")
+    monkeypatch.setattr(progress, "LINE_INTERVAL_S", 3600.0)
+    quiet = io.StringIO()
+    with progress_bar(4, "scenarios", stream=quiet) as bar:  # done within the interval: no line at all
+        bar.update(n=4)
+    assert quiet.getvalue() == "" and capsys.readouterr() == ("", "")
+
+
+def test_off_a_terminal_a_long_phase_writes_a_line_and_its_duration(shown):
+    log, threads = io.StringIO(), threading.active_count()
+    with phase("compiling", stream=log, delay_s=0.05):
+        time.sleep(0.3)
+    assert log.getvalue().splitlines() == ["compiling ...", "compiling: 0 s"]
+    short = io.StringIO()
+    with phase("quick", stream=short, delay_s=0.5):
+        pass
+    assert short.getvalue() == ""
+    assert threading.active_count() == threads
