@@ -86,12 +86,11 @@ def progress_bar(total: int, desc: str, *, unit: str = "it", stream=None):
     """A tqdm bar on stderr (or `stream`) for `total` units of `unit`, labelled `desc`, on
     a terminal; a LineBar elsewhere; disabled (every call a no-op) when progress is
     turned off or `total` < MIN_TOTAL."""
-    total = int(total)
-    if total >= MIN_TOTAL and not turned_off() and not enabled(stream):
+    total, terminal = int(total), enabled(stream)
+    if total >= MIN_TOTAL and not terminal and not turned_off():
         return LineBar(total, desc, unit, _stream(stream))
-    return tqdm(total=total, desc=desc, unit=unit, file=_stream(stream),
-                disable=total < MIN_TOTAL or not enabled(stream), leave=False, dynamic_ncols=True,
-                mininterval=0.25)
+    return tqdm(total=total, desc=desc, unit=unit, file=_stream(stream), disable=total < MIN_TOTAL or not terminal,
+                leave=False, dynamic_ncols=True, mininterval=0.25)
 
 
 @contextmanager
