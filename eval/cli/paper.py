@@ -33,8 +33,8 @@ GRID = integer(10, 2000)
 def register(sub) -> None:
     p = sub.add_parser("paper", help="the paper's simulation experiment: table2.json/.md and fig5_<shape>.png")
     p.add_argument("--out", type=out_dir, required=True, help="output directory")
-    p.add_argument("--shapes", nargs="+", type=choice("shape", EYE_SHAPES), default=list(EYE_SHAPES),
-                   help=f"true eyes to scan, any of: {' '.join(EYE_SHAPES)}")
+    p.add_argument("--shapes", nargs="+", type=choice("shape", (*EYE_SHAPES, "all")), default=list(EYE_SHAPES),
+                   help=f"true eyes to scan, any of: {' '.join(EYE_SHAPES)}, or all (each once)")
     add_eye_param(p)
     p.add_argument("--seeds", type=SEEDS, default=1, help=f"number of noise seeds, {SEEDS.range}; figures are means")
     p.add_argument("--noise-um", type=NOISE_UM, default=20.0, help=f"SD of the distance noise, {NOISE_UM.range}")
@@ -57,6 +57,7 @@ def _validate(args) -> None:
 
     if args.fit == "robust" and args.noise_um <= 0:
         raise UsageError("--fit robust needs --noise-um > 0 um: its cut-off is 4.685 noise SDs")
+    args.shapes = list(EYE_SHAPES) if "all" in args.shapes else list(dict.fromkeys(args.shapes))  # each shape once
     if len(args.shapes) == 1:
         args.eye_params = {args.shapes[0]: eye_params(args.eye_param, args.shapes[0])}
         return

@@ -210,6 +210,17 @@ def test_a_wrong_eye_parameter_is_one_line_and_nothing_is_written(command, argv,
     assert not out.exists()
 
 
+def test_paper_takes_all_shapes_and_each_shape_once(tmp_path, capsys):
+    """--shapes all is the six shapes (so a detachment's parameter out of range is refused by
+    the detached eye's rule); a shape given twice is run once."""
+    code, stdout, err = run_main(capsys, "paper", "--shapes", "all", "--eye-param", "height_mm=9", "--out", tmp_path / "a")
+    assert code == 2 and stdout == "" and "detached height_mm must be in (0, 5] mm" in err, err
+    code, _, err = run_main(capsys, "paper", "--shapes", "myopic", "myopic", "--eye-param", "height_mm=3",
+                            "--out", tmp_path / "b")
+    assert code == 2 and "eye shape 'myopic' has no parameter 'height_mm'" in err, err  # one shape, its own rule
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
 def test_paper_applies_an_eye_parameter_to_the_shapes_that_take_it_and_refuses_one_none_takes(tmp_path, capsys):
     code, _, err = run_main(capsys, "paper", "--shapes", "emmetropic", "myopic", "--eye-param", "height_mm=3",
                             "--out", tmp_path / "never")
