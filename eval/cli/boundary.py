@@ -195,6 +195,14 @@ def write_shape(args, out, workers) -> dict:
     return result
 
 
+PLOTS = ("boundary_clearance.png", "boundary_activity.png", "model_error_sigma.png")  # write_shape's (the last: a model)
+
+
+def plots_written(out) -> list[str]:
+    """The names of write_shape's plots in `out` (the model's error map only with a model)."""
+    return [name for name in PLOTS if (Path(out) / name).exists()]
+
+
 def main(args) -> int:
     validate(args)
     if args.shape == ALL:
@@ -214,9 +222,7 @@ def main(args) -> int:
           f"(Drake DoDifferentialInverseKinematics: median {result['drake_diffik_us']['median']:.0f}  "
           f"p99 {result['drake_diffik_us']['p99']:.0f})")
     print(f"{'filter_replay_us':24s} {speed_line(result)}")
-    sigma_png = " model_error_sigma.png," if (out / "model_error_sigma.png").exists() else ""
-    print(f"wrote {out / 'boundary.json'}, boundary_clearance.png, boundary_activity.png,{sigma_png} spiral.mcap and "
-          f"boundary.mcap (scenario 0)")
+    print(f"wrote {out / 'boundary.json'}, {', '.join(plots_written(out))}, spiral.mcap and boundary.mcap (scenario 0)")
     return 0
 
 

@@ -55,7 +55,7 @@ def _history_rows(build, rows: int) -> list[dict]:
 
 def main(args) -> int:
     out = prepare_out_dir(args.out)
-    from eval.cli.boundary import run_boundary, speed_line
+    from eval.cli.boundary import plots_written, run_boundary, speed_line
     from eval.experiments.boundary import SPIRAL_REVOLUTIONS, SPIRAL_SPEED_MM_S
 
     boundary_args = argparse.Namespace(shape=args.shape, scenarios=args.scenarios, sphere_scenarios=0, seed=args.seed,
@@ -89,8 +89,7 @@ def main(args) -> int:
           f"(Drake DoDifferentialInverseKinematics p99 {result['drake_diffik_us']['p99']:.0f})")
     print(f"  {'filter replayed (us)':24s} {speed_line(result)}")
     write_json(out / "demo.json", {**result, "history": rows})
-    sigma_png = " and model_error_sigma.png" if (out / "model_error_sigma.png").exists() else ""
-    print(f"\nwrote {out / 'demo.json'}, plots boundary_clearance.png, boundary_activity.png{sigma_png}, "
+    print(f"\nwrote {out / 'demo.json'}, plots {', '.join(plots_written(out))}, "
           f"MCAP logs {out / 'spiral.mcap'} and {out / 'boundary.mcap'} (open in Foxglove; "
           f"`vitreoguard replay {out / 'boundary.mcap'}` re-runs the filter)")
     if args.meshcat:
