@@ -248,9 +248,10 @@ class ClosedLoop:
 
     def new_model(self) -> AdaptiveEyeModel:
         """A fresh adaptive model with the predictive criteria and, with config.local_model,
-        the local model about the nominal eye centre (models.local)."""
+        the local model about the nominal eye centre (models.local) and the trocar's pivot
+        as a known point of the eye wall (models.fit.eye_globe)."""
         local = LocalRetinaModel(self.scenario.eye_pose.p_WE) if self.config.local_model else None
-        return AdaptiveEyeModel(criteria=PredictiveCriteria(), local=local)
+        return AdaptiveEyeModel(criteria=PredictiveCriteria(), local=local, wall_W=self.scenario.p_WC[None])
 
     def new_coverage(self) -> DirectionCoverage:
         """An empty record of measured directions, seen from the nominal eye centre."""

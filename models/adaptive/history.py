@@ -12,6 +12,12 @@ from __future__ import annotations
 
 import operator
 from collections.abc import Iterable, Iterator, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from models.shapes.ellipsoid import Ellipsoid
+from models.shapes.sphere import Sphere
 
 
 class History(Sequence):
@@ -72,3 +78,39 @@ class History(Sequence):
 
 
 __all__ = ["History"]
+
+
+class ModelUpdate(NamedTuple):
+    """One entry of the model history (mm, frame of the measured points).
+
+    `n_points`: points in the model; `n_received`: points offered so far, including the
+    non-finite and gated ones (so entries can be matched to A-scans);
+    `criteria` maps each criterion name to (value, met); `ef_status` is "ok" or why the
+    ellipsoid fit failed at this update (the previous good fit is kept). A NamedTuple:
+    one is made per A-scan, so it must be cheap.
+    """
+
+    n_points: int
+    kind: str
+    scan_range_mm: float
+    sf_residual_mm: float
+    ef_residual_mm: float
+    axis_change: float
+    criteria: dict
+    ef_status: str
+    sphere_center: np.ndarray | None
+    sphere_radius: float
+    ellipsoid_center: np.ndarray | None
+    ellipsoid_radii: np.ndarray | None
+    ellipsoid_rotation: np.ndarray | None
+    n_received: int = 0
+
+    @property
+    def sphere(self) -> Sphere | None:
+        return None if self.sphere_center is None else Sphere(self.sphere_center, self.sphere_radius)
+
+    @property
+    def ellipsoid(self) -> Ellipsoid | None:
+        if self.ellipsoid_center is None:
+            return None
+        return Ellipsoid(self.ellipsoid_center, self.ellipsoid_radii, self.ellipsoid_rotation)

@@ -2,13 +2,12 @@
 from __future__ import annotations
 
 import copy
-from typing import NamedTuple
-
+import math
 import numpy as np
 
 from models.adaptive.dwell import DWELL_MAX_POINTS, DWELL_RADIUS_MM, dwell_keep, new_state
 from models.adaptive.global_sd import GlobalSd
-from models.adaptive.history import History
+from models.adaptive.history import History, ModelUpdate
 from models.adaptive.outlier_gate import GateState, OutlierGate
 from models.adaptive.scan_range import ScanRange
 from models.adaptive.transition import FitSnapshot, PaperCriteria
@@ -16,6 +15,7 @@ from models.adaptive.update_kernel import (
     OUT_CENTER, OUT_RADII, OUT_ROTATION, OUT_SF_CENTER, OUT_SIZE, OUT_STATE, OUT_V_EF, OUT_V_SF, fit_summary, packet_update,
 )
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM, EllipsoidFit, IncrementalEllipsoidFit
+from models.fit.eye_globe import EyeGlobe
 from models.fit.quadric_kernels import FIT_STATUS
 from models.fit.robust_fit import RobustEllipsoidFit, RobustFitConfig
 from models.fit.streaming_robust import StreamingRobustFit
@@ -49,42 +49,6 @@ def eyes_radii(r0: float, r1: float, r2: float) -> bool:
             and max(r0, r1, r2) <= EYE_AXIS_RATIO_MAX * min(r0, r1, r2))
 
 
-class ModelUpdate(NamedTuple):
-    """One entry of the model history (mm, frame of the measured points).
-
-    `n_points`: points in the model; `n_received`: points offered so far, including the
-    non-finite and gated ones (so entries can be matched to A-scans);
-    `criteria` maps each criterion name to (value, met); `ef_status` is "ok" or why the
-    ellipsoid fit failed at this update (the previous good fit is kept). A NamedTuple:
-    one is made per A-scan, so it must be cheap.
-    """
-
-    n_points: int
-    kind: str
-    scan_range_mm: float
-    sf_residual_mm: float
-    ef_residual_mm: float
-    axis_change: float
-    criteria: dict
-    ef_status: str
-    sphere_center: np.ndarray | None
-    sphere_radius: float
-    ellipsoid_center: np.ndarray | None
-    ellipsoid_radii: np.ndarray | None
-    ellipsoid_rotation: np.ndarray | None
-    n_received: int = 0
-
-    @property
-    def sphere(self) -> Sphere | None:
-        return None if self.sphere_center is None else Sphere(self.sphere_center, self.sphere_radius)
-
-    @property
-    def ellipsoid(self) -> Ellipsoid | None:
-        if self.ellipsoid_center is None:
-            return None
-        return Ellipsoid(self.ellipsoid_center, self.ellipsoid_radii, self.ellipsoid_rotation)
-
-
 class AdaptiveEyeModel:
     """Retina model from measured retinal points: sphere (Kalman filter) -> ellipsoid.
 
@@ -104,14 +68,17 @@ class AdaptiveEyeModel:
     """
 
     def __init__(self, criteria=None, gate: OutlierGate | None = OutlierGate(), robust: RobustFitConfig | None = None,
-                 local=None):
+                 local=None, wall_W=None):
         """`criteria`: PaperCriteria (default, the paper's) or PredictiveCriteria, or any
         object with the same `initial_state`/`evaluate` interface (models.adaptive.transition);
         `gate`: the innovation gate against outliers (None: accept every finite point);
         `robust`: None for the paper's least-squares ellipsoid, or the settings of the
         robust one that down-weights pathological patches (models.fit.robust_fit);
         `local`: None, or a models.local.grid.LocalRetinaModel that takes the same points on
-        top of the global quadric (models.local.selection decides when it is used)."""
+        top of the global quadric (models.local.selection decides when it is used);
+        `wall_W`: None or (K, 3) mm, known points of the eye wall in the frame of the points
+        (the trocars' pivots), which the eye globe under the local model weighs
+        (models.fit.eye_globe; with a local model only)."""
         self.criteria = PaperCriteria() if criteria is None else criteria
         self.gate = gate
         self._gate = None if gate is None else GateState(gate)
@@ -138,6 +105,7 @@ class AdaptiveEyeModel:
         self.globe = StreamingRobustFit() if local is not None else None
         self.globe_taken = False  # the robust globe is the quadric under the local model (_globe_taken)
         self._global_sd = GlobalSd()  # the sd far from the data of the ellipsoid under the local model
+        self.eye_globe = EyeGlobe(EYE_RADII_MM, EYE_AXIS_RATIO_MAX, wall_W) if local is not None else None
 
     def __deepcopy__(self, memo) -> AdaptiveEyeModel:
         """An independent copy (it updates without touching this model) that shares the
@@ -172,7 +140,8 @@ class AdaptiveEyeModel:
     def global_for_local(self) -> Sphere | Ellipsoid | None:
         """The global quadric under the local model: the ellipsoid while the model is one
         and its semi-axes are an eye's (eyes_radii); else the robust globe
-        (models.fit.streaming_robust) while it is taken up (_globe_taken); else the sphere fit."""
+        (models.fit.streaming_robust) while it is taken up (_globe_taken); else, while the
+        model is an ellipsoid that is no eye's, the eye globe (models.fit.eye_globe); else the sphere fit."""
         return self.quadrics_for_local()[0]
 
     def quadrics_for_local(self) -> tuple[Sphere | Ellipsoid | None, Ellipsoid | None, float | None]:
@@ -183,12 +152,18 @@ class AdaptiveEyeModel:
         from them (models.local.config.LocalConfig.trend_deg), and the global quadric's own
         sd far from the data (mm) when it is an ellipsoid (models.adaptive.global_sd: its
         leverage and its gaps from the rivals the data do not rule out), else None (the
-        local model's for its kind). One look at the model's shape: this runs once per update."""
+        local model's for its kind). Where that ellipsoid is no eye's and the robust globe
+        is not taken, the global quadric is the eye globe (models.fit.eye_globe: the eye's
+        ellipsoid nearest the data and the wall points) once fitted, with sd math.inf: a
+        guess no better known than the sphere, whose prior the local model gives it. One
+        look at the model's shape: this runs once per update."""
         ellipsoid = self.ellipsoid if self.kind == "ellipsoid" else None
         if ellipsoid is not None and eyes_radii(*ellipsoid.radii.tolist()):
             return ellipsoid, None, None if self.globe is None else self._global_sd.of_least_squares(self.globe)
         if self.globe_taken:
             return self.globe.last_ok.ellipsoid, ellipsoid, self._global_sd.of_globe(self.globe)
+        if ellipsoid is not None and self.eye_globe is not None and self.eye_globe.ellipsoid is not None:
+            return self.eye_globe.ellipsoid, ellipsoid, math.inf
         return self.sphere, ellipsoid, None
 
     @property
@@ -285,6 +260,7 @@ class AdaptiveEyeModel:
         if self.local is not None:
             self.globe.add(self.last_accepted)
             self._advance_globe(len(P), n + k, k)
+            self._refit_eye_globe(n + k)
             self.local_choice.absorb(self.local, self.last_accepted, *self.quadrics_for_local(), self.last_beams)
         sf.took(k, out[OUT_STATE:OUT_V_SF] if sf_ok else None)
         scan.took(k, diameter)
@@ -330,6 +306,17 @@ class AdaptiveEyeModel:
         if not single and globe.last_ok is not self._global_sd.fit:
             self._globe_sd(gaps=True)
         self.globe_taken = self._globe_taken()
+
+    def _refit_eye_globe(self, n_points: int) -> None:
+        """Refit the eye globe (models.fit.eye_globe) when due, while the model is the
+        ellipsoid the criteria chose, its semi-axes are no eye's and the robust globe is not
+        taken: the case where it stands under the local model (quadrics_for_local)."""
+        eg, ls = self.eye_globe, self._ef.last_ok
+        if (self.kind != "ellipsoid" or self.globe_taken or ls is None or not eg.due(n_points)
+                or eyes_radii(*ls.radii.tolist())):
+            return
+        sphere = self.sphere
+        eg.refit(self._ef.S, self._ef.p0, n_points, sphere.center, sphere.radius, ls.rotation)
 
     def _globe_sd(self, gaps: bool, leverage: bool = True) -> None:
         """Measure the robust globe's last fit for the sd far from the data (GlobalSd): its

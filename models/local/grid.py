@@ -70,6 +70,7 @@ Units: mm, rad (deg where named).
 """
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -199,7 +200,8 @@ class LocalRetinaModel:
         or the Ellipsoid the nodes read past the data and are centred on (LocalConfig.trend_deg;
         one that does not hold the centre 1 mm deep: none). `shape_sd_mm`: None, or the
         global quadric's own sd far from the data (mm), where it exceeds the config's for its
-        kind (up to the sphere's sd_far_mm). One compiled call (models.local.online.local_step)."""
+        kind (up to the sphere's sd_far_mm); math.inf: a quadric no better known than the
+        sphere fit (the eye globe, models.fit.eye_globe), which takes the sphere's prior. One compiled call (models.local.online.local_step)."""
         if not (type(P) is np.ndarray and P.dtype == np.float64 and P.ndim == 2 and P.flags.c_contiguous):
             P = np.ascontiguousarray(as_points(P, "P", allow_nonfinite=True).reshape(-1, 3))
         B = _NO_BEAMS if beam_W is None else as_beams(beam_W, len(P))
@@ -236,6 +238,8 @@ class LocalRetinaModel:
         and the nodes no data came within track_deg of (angle pi) take the quadric's own, up
         to the kind's rate x 180 deg (1.55 mm on an ellipsoid). The same array while it is
         the same."""
+        if shape_sd_mm == math.inf:  # a global quadric no better known than the sphere fit
+            return self._priors[0]
         base = self._priors[int(gp[0] == ELLIPSOID)]
         if shape_sd_mm is None or not shape_sd_mm > base[2]:
             return base
