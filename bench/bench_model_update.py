@@ -16,6 +16,7 @@ from models.adaptive.transition import PredictiveCriteria
 from models.eyes import make_eye
 from models.eyes.eye import ANTERIOR_CROP_MM
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM
+from models.fit.eye_globe import REFIT_ITERATIONS
 from models.fit.robust_fit import RobustFitConfig
 from models.fit.small_linalg import cholesky, eigh_sym, lower_inverse, pivoted_solve
 from models.local.field import LocalField
@@ -189,6 +190,34 @@ def local_field_figures(points: np.ndarray) -> None:
                 model.sphere, fit.v, globe.p0)
     t = time_calls_us(lambda i: largest_gaps(*gap_args), 2000)
     print(f"  its largest gaps from the sphere and another quadric (largest_gaps), detached eye: {summary_us(t)}")
+    eye_globe_figures()
+
+
+def eye_globe_figures() -> None:
+    """The eye globe's refit (models.fit.eye_globe: one candidate's steps and every
+    candidate's cost, every 20 points while it stands under the local model) on the pointed eye's paper spiral,
+    with a wall point, and the pointed eye's update per A-scan, where it runs."""
+    eye = make_eye("pointed")
+    scan = paper_scan(eye, seed=0)
+    wall = eye.pose.p_WE + np.array([0.0, 11.0, 5.0])  # a point of the wall in front of the equator
+    times = []
+    for _ in range(2):  # the first stream loads the compiled code: the second's times
+        m = AdaptiveEyeModel(PredictiveCriteria(), local=LocalRetinaModel(eye.pose.p_WE), wall_W=wall[None])
+        refit, times = m.eye_globe.refit, []
+
+        def timed(*args, refit=refit, times=times):
+            t0 = time.perf_counter()
+            refit(*args)
+            times.append(1e6 * (time.perf_counter() - t0))
+
+        m.eye_globe.refit = timed  # each refit of a packet stream, timed where the model calls it
+        with collector_paused():
+            for i in range(0, len(scan.points), 20):
+                m.update(scan.points[i:i + 20], scan.beam_W[i:i + 20])
+    print(f"  the eye globe's refit (one of 3 candidates, up to {REFIT_ITERATIONS} steps), pointed eye, packets, "
+          f"{len(times)} refits: {summary_us(np.array(times))}")
+    t = _update_times(scan.points, PredictiveCriteria(), 1, local=True, beams=scan.beam_W)
+    print(f"  AdaptiveEyeModel.update, one A-scan per call, predictive + local, pointed eye: {summary_us(t)}")
 
 
 def run() -> None:

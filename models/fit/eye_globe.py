@@ -12,9 +12,11 @@ mean semi-axis: the algebraic residual of a point near the surface times h is it
 distance from it, so the cost is about the mean squared distance of the points, mm^2).
 Known points of the eye wall (`wall_W`: the trocars', whose cannulas pass through it)
 weigh WALL_SHARE of the data together: one of them pins the globe where the scan does
-not look, in front of the equator. Levenberg-Marquardt over the centre, the semi-axes (a smooth map onto
-the eye's: _radii) and a rotation vector about the last rotation; forward-difference
-Jacobian (13 x 10 at most: one refit is a few hundred evaluations of ~200 operations).
+not look, in front of the equator. Levenberg-Marquardt over the centre, the semi-axes (clamped to
+EYE_RADII_MM after each step, their ratio beyond the bound a penalty residual) and a
+rotation vector about the last rotation; forward-difference Jacobian (11 + K rows, 9
+columns: a step is about 20 evaluations of ~200 operations). An LM step from the last fit
+can stall in a poor minimum: three candidates from different spheres are kept (EyeGlobe).
 
 Measured on the loop's spiral (pointed eye, the local model on top, the default
 sensor): the sphere under the local model leaves MAE 1,199 um over the paper's reference
@@ -37,12 +39,14 @@ from models.shapes.ellipsoid import Ellipsoid
 
 WALL_SHARE = 0.1  # the wall points' weight, together, as a share of the data's (module docstring)
 RATIO_PENALTY = 30.0  # residual per mm of the longest semi-axis beyond the ratio's bound
-FIRST_ITERATIONS = 40  # Levenberg-Marquardt steps of a first fit; a refit is warm-started
-REFIT_ITERATIONS = 4
-# Every refit also starts afresh from spheres of these radii about the sphere fit's centre and keeps
-# the lowest cost: warm-started alone, the pointed eye with a 4 mm apex stalled at 7.3 mm^2 (MAE
-# 2,306 um); with these starts 0.19 mm^2 (626 um). One start costs ~15-30 us (make bench).
-COLD_STARTS_MM = (10.0, 12.0)
+REFIT_ITERATIONS = 12  # Levenberg-Marquardt steps per refit, of one of the candidates in turn
+# The candidates: fits started from spheres of these radii about the sphere fit's centre,
+# advanced in turn, the lowest cost published. One LM alone stalled on the pointed eye with
+# a 4 mm apex at 7.3 mm^2 (MAE 2,306 um); the best of three reached 0.195 mm^2 (667 um). A
+# refit: median 39-60 us, max 149 us (make bench); with 4 steps, 496 / 958 um on the default
+# and the 4 mm apex (12 steps: 430 / 667; the three run to convergence at every refit:
+# 419 / 626, but ~340 us each).
+START_RADII_MM = (None, 10.0, 12.0)  # None: the sphere fit's own radius
 _REGULARISATION = 1e-12  # relative to trace(S): S of a patch is near singular (a quadric's worth of data)
 
 
@@ -181,16 +185,70 @@ def fit_eye_globe(S, p0, scale, x, R0, wall, wall_share, r_lo, r_hi, ratio_max, 
         if not improved:
             break
     x[0:6] = y[0:6]
+    hi = ratio_max * min(x[3], x[4], x[5])  # the penalty's slack (~1e-4 mm) taken off
+    for i in range(3, 6):
+        x[i] = min(x[i], hi)
+    _orthonormalise(R0)  # the folded steps' rounding drifts
     return cost, damping
+
+
+@njit(cache=True, inline="always")
+def _orthonormalise(R):
+    """R (3, 3) made a rotation again, in place (Gram-Schmidt on its columns, the third
+    their cross product)."""
+    n = np.sqrt(R[0, 0] ** 2 + R[1, 0] ** 2 + R[2, 0] ** 2)
+    for i in range(3):
+        R[i, 0] /= n
+    d = R[0, 0] * R[0, 1] + R[1, 0] * R[1, 1] + R[2, 0] * R[2, 1]
+    for i in range(3):
+        R[i, 1] -= d * R[i, 0]
+    n = np.sqrt(R[0, 1] ** 2 + R[1, 1] ** 2 + R[2, 1] ** 2)
+    for i in range(3):
+        R[i, 1] /= n
+    R[0, 2] = R[1, 0] * R[2, 1] - R[2, 0] * R[1, 1]
+    R[1, 2] = R[2, 0] * R[0, 1] - R[0, 0] * R[2, 1]
+    R[2, 2] = R[0, 0] * R[1, 1] - R[1, 0] * R[0, 1]
+
+
+@njit(cache=True)
+def refit_candidates(S, p0, scale, X, Rs, started, k, iterations, sphere, wall, wall_share, r_lo, r_hi, ratio_max):
+    """One refit (EyeGlobe.refit): candidate k of X (c, 6) [centre, semi-axes] mm and
+    Rs (c, 3, 3) advanced by `iterations` steps in place, then every started candidate's
+    cost and the sphere's (`sphere` [centre, radius] mm, clipped to [r_lo, r_hi]) on S.
+    Returns (index of the lowest-cost candidate or -1 when none is below the sphere or
+    the fit failed, its cost mm^2); a failed candidate is marked not started."""
+    x, R = X[k].copy(), Rs[k].copy()
+    cost, _ = fit_eye_globe(S, p0, scale, x, R, wall, wall_share, r_lo, r_hi, ratio_max, iterations, 1e-3)
+    ok = np.isfinite(cost)
+    for i in range(6):
+        ok = ok and np.isfinite(x[i])
+    if ok:
+        X[k], Rs[k] = x, R
+    else:
+        started[k] = False
+    r = min(max(sphere[3], r_lo), r_hi)
+    xs = np.array([sphere[0], sphere[1], sphere[2], r, r, r])
+    limit, _ = fit_eye_globe(S, p0, scale, xs, np.eye(3), wall, wall_share, r_lo, r_hi, ratio_max, 0, 1e-3)
+    best, best_cost = -1, limit
+    for j in range(X.shape[0]):
+        if started[j]:
+            cj = cost if j == k else fit_eye_globe(S, p0, scale, X[j].copy(), Rs[j].copy(), wall, wall_share, r_lo,
+                                                   r_hi, ratio_max, 0, 1e-3)[0]
+            if cj < best_cost:
+                best, best_cost = j, cj
+    return best, best_cost
 
 
 class EyeGlobe:
     """The eye globe of a model's least-squares scatter matrix (module docstring), refitted
-    from the last fit every `every` points; `ellipsoid` the last good fit (None before one).
+    every `every` points; `ellipsoid` the best fit while it fits the data and the wall
+    points better than the sphere fit does (else None: the sphere stands), `cost_mm2` its cost.
 
-    `wall_W`: None or (K, 3) mm, known points of the eye wall in the frame of the points
-    (the trocars'). `r_range` and `ratio_max`: the eye's semi-axes and axis ratio
-    (models.adaptive.model.EYE_RADII_MM, EYE_AXIS_RATIO_MAX)."""
+    Three candidates (START_RADII_MM) are kept; each refit advances one of them in turn by
+    REFIT_ITERATIONS steps (a few tens of us: make bench) and publishes the lowest cost
+    on the current scatter matrix. `wall_W`: None or (K, 3) mm, known points of the eye
+    wall in the frame of the points (the trocars'). `r_range` and `ratio_max`: the eye's
+    semi-axes and axis ratio (models.adaptive.model.EYE_RADII_MM, EYE_AXIS_RATIO_MAX)."""
 
     def __init__(self, r_range: tuple[float, float], ratio_max: float, wall_W=None, every: int = 20):
         wall = np.zeros((0, 3)) if wall_W is None else np.asarray(wall_W, dtype=float).reshape(-1, 3)
@@ -200,38 +258,43 @@ class EyeGlobe:
         self.r_range, self.ratio_max, self.every = (float(r_range[0]), float(r_range[1])), float(ratio_max), int(every)
         self.ellipsoid = None
         self.cost_mm2 = np.nan
-        self._x = None
-        self._R = np.eye(3)
+        n = len(START_RADII_MM)
+        self._X, self._Rs, self._started = np.zeros((n, 6)), np.zeros((n, 3, 3)), np.zeros(n, dtype=np.bool_)
+        self._sphere = np.zeros(4)
+        self._turn = 0
         self._at = -1
 
     def due(self, n_points: int) -> bool:
         """Whether a model of n_points refits it (every `every` points)."""
-        return self._x is None or n_points - self._at >= self.every
+        return self._at < 0 or n_points - self._at >= self.every
 
     def refit(self, S, p0, n_points: int, center, radius: float, rotation) -> None:
-        """Refit to the scatter matrix S (10, 10) about p0 (scale LENGTH_SCALE_MM); the first
-        fit starts from a sphere of `radius` (mm, clipped to the eye's) about `center` with
-        its axes along `rotation` (3, 3). A failed fit keeps the last good one."""
-        first = self._x is None
-        if first:
-            r = float(np.clip(radius, *self.r_range))
-            self._x = np.concatenate([np.asarray(center, dtype=float), [r, r, r]])
-            self._R = np.array(rotation, dtype=float)
-        x, R = self._x.copy(), self._R.copy()
-        cost, _ = fit_eye_globe(S, p0, LENGTH_SCALE_MM, x, R, self.wall, WALL_SHARE, *self.r_range, self.ratio_max,
-                                      FIRST_ITERATIONS if first else REFIT_ITERATIONS, 1e-3)
-        for r0 in COLD_STARTS_MM:  # an LM started from the last fit can stall in a poor minimum
-            xc, Rc = np.concatenate([np.asarray(center, dtype=float), [r0, r0, r0]]), np.array(rotation, dtype=float)
-            cc, _ = fit_eye_globe(S, p0, LENGTH_SCALE_MM, xc, Rc, self.wall, WALL_SHARE, *self.r_range, self.ratio_max,
-                                   FIRST_ITERATIONS, 1e-3)
-            if cc < cost or not np.isfinite(cost):
-                x, R, cost = xc, Rc, cc
+        """Advance one candidate on the scatter matrix S (10, 10) about p0 (scale
+        LENGTH_SCALE_MM) and publish the best (refit_candidates: one compiled call); a
+        candidate starts from a sphere about `center` (mm) of its START_RADII_MM radius
+        (None: the sphere fit's `radius`, mm), clipped to the eye's, with its axes along
+        `rotation` (3, 3). A candidate whose fit fails starts again at its next turn."""
         self._at = n_points
-        if not (np.isfinite(cost) and np.all(np.isfinite(x)) and np.all(np.isfinite(R))):
-            if first:
-                self._x = None
-            return
-        x[3:6] = np.minimum(x[3:6], self.ratio_max * x[3:6].min())  # the penalty's slack (~1e-4 mm) taken off
-        U, _, Vt = np.linalg.svd(R)  # the nearest rotation: the folded steps' rounding drifts
-        self._x, self._R, self.cost_mm2 = x, U @ Vt, float(cost)
-        self.ellipsoid = Ellipsoid(x[:3], x[3:6], self._R)
+        k = self._turn
+        self._turn = (k + 1) % len(START_RADII_MM)
+        sphere = self._sphere
+        sphere[:3], sphere[3] = center, radius
+        if not self._started[k]:
+            r0 = min(max(radius if START_RADII_MM[k] is None else START_RADII_MM[k], self.r_range[0]), self.r_range[1])
+            self._X[k, :3], self._X[k, 3:] = center, r0
+            self._Rs[k] = rotation
+            self._started[k] = True
+        best, cost = refit_candidates(S, p0, LENGTH_SCALE_MM, self._X, self._Rs, self._started, k, REFIT_ITERATIONS,
+                                      sphere, self.wall, WALL_SHARE, *self.r_range, self.ratio_max)
+        if best < 0:
+            self.ellipsoid, self.cost_mm2 = None, np.nan
+        elif self.ellipsoid is None or cost != self.cost_mm2:
+            self.ellipsoid, self.cost_mm2 = Ellipsoid(self._X[best, :3], self._X[best, 3:], self._Rs[best]), float(cost)
+
+    def cost_of(self, S, p0, center, radii, rotation) -> float:
+        """The fit's cost (mm^2: the data's mean squared distance and the wall points'
+        share, module docstring) of the ellipsoid (centre mm, semi-axes mm, rotation) on the
+        scatter matrix S about p0; NaN when S holds no points."""
+        x = np.concatenate([np.asarray(center, dtype=float), np.asarray(radii, dtype=float)])
+        return float(fit_eye_globe(S, p0, LENGTH_SCALE_MM, x, np.array(rotation, dtype=float), self.wall, WALL_SHARE,
+                                   *self.r_range, self.ratio_max, 0, 1e-3)[0])

@@ -23,6 +23,14 @@ def _scatter(P, p0):
     return S
 
 
+def _refits(g: EyeGlobe, P, center, radius, rotation, n: int = 30) -> None:
+    """n refits on the scatter matrix of P, as a stream's every 20 points (the same points:
+    the candidates' steps converge)."""
+    S = _scatter(P, P[0])
+    for k in range(n):
+        g.refit(S, P[0], len(P) + 20 * k, center, radius, rotation)
+
+
 def _cap(ell: Ellipsoid, z_max: float, n: int = 40) -> np.ndarray:
     """Points of `ell` posterior of z_max in its own frame (a scan's cap), in W."""
     return ell.sample_surface(n, n, z_max=z_max)
@@ -39,7 +47,7 @@ def test_an_eyes_ellipsoid_seen_over_its_posterior_half_is_found(a, b, c, yaw):
     truth = Ellipsoid(np.array([1.0, -2.0, 3.0]), np.array([a, b, c]), Rotation.from_euler("z", yaw).as_matrix())
     P = _cap(truth, 0.0)
     g = EyeGlobe(EYE_RADII_MM, EYE_AXIS_RATIO_MAX)
-    g.refit(_scatter(P, P[0]), P[0], len(P), P.mean(axis=0) + np.array([0, 0, 5.0]), 10.0, np.eye(3))
+    _refits(g, P, P.mean(axis=0) + np.array([0, 0, 5.0]), 10.0, np.eye(3))
     assert g.ellipsoid is not None
     err = np.abs(g.ellipsoid.signed_distance(truth.sample_surface(20, 20)))
     assert err.max() < 0.05
@@ -52,7 +60,7 @@ def test_its_semi_axes_are_an_eyes_on_a_pointed_pole():
     P = paper_scan(eye, seed=0).points
     P = P[np.isfinite(P).all(axis=1)]
     g = EyeGlobe(EYE_RADII_MM, EYE_AXIS_RATIO_MAX)
-    g.refit(_scatter(P, P[0]), P[0], len(P), P.mean(axis=0) + np.array([0, 0, 5.0]), 10.0, np.eye(3))
+    _refits(g, P, P.mean(axis=0) + np.array([0, 0, 5.0]), 10.0, np.eye(3))
     assert eyes_radii(*g.ellipsoid.radii.tolist())
     assert g.ellipsoid.radii.max() > 1.2 * g.ellipsoid.radii.min()  # at the ratio's bound: the pole pulls it
 
@@ -66,9 +74,34 @@ def test_a_wall_point_pins_the_globe_in_front_of_the_scan():
     wall = np.array([[12.0, 0.0, 0.0]])
     for W, near in ((None, False), (wall, True)):
         g = EyeGlobe(EYE_RADII_MM, EYE_AXIS_RATIO_MAX, W)
-        g.refit(_scatter(P, P[0]), P[0], len(P), np.zeros(3), 11.0, np.eye(3))
+        _refits(g, P, np.zeros(3), 11.0, np.eye(3))
         d = abs(float(g.ellipsoid.signed_distance(wall)[0]))
         assert (d < 0.1) == near, d
+
+
+def test_it_is_published_only_while_it_fits_better_than_the_sphere():
+    """Streamed the pointed eye's paper spiral 20 points at a time, the scatter matrix
+    growing: after every refit the published globe's cost (data and wall point, mm^2) is
+    below the sphere's on the same matrix, and a globe is published by the end."""
+    from models import fit_sphere
+
+    eye = make_eye("pointed")
+    P = paper_scan(eye, seed=0).points
+    P = P[np.isfinite(P).all(axis=1)]
+    wall = eye.pose.p_WE + np.array([[0.0, 11.5, 5.0]])
+    g = EyeGlobe(EYE_RADII_MM, EYE_AXIS_RATIO_MAX, wall)
+    S = np.zeros((10, 10))
+    for i in range(0, 3000, 20):
+        add_design_rows(S, P[i:i + 20], P[0], LENGTH_SCALE_MM)
+        if i < 400:
+            continue
+        s = fit_sphere(P[:i + 20])
+        g.refit(S, P[0], i + 20, s.center, s.radius, np.eye(3))
+        if g.ellipsoid is not None:
+            r = float(np.clip(s.radius, *EYE_RADII_MM))
+            sphere = g.cost_of(S, P[0], s.center, [r, r, r], np.eye(3))
+            assert g.cost_mm2 < sphere
+    assert g.ellipsoid is not None
 
 
 def test_bad_wall_points_are_refused():
