@@ -193,7 +193,8 @@ def table_markdown(results: dict, args) -> str:
         "The quadric under the local model (AdaptiveEyeModel.global_for_local): the least-squares ellipsoid once "
         "the driving criterion takes it and its semi-axes are an eye's (8-16 mm), else the robust globe once its "
         "semi-axes are an eye's and it predicts the new points better than the sphere (over ~400 points; once taken, "
-        "over ~400 or ~4,000), else the sphere. Optimal = "
+        "over ~400 or ~4,000), else, while the criterion's ellipsoid is no eye's, the eye globe (an eye's ellipsoid "
+        "nearest the points, models.fit.eye_globe) while it fits them better than the sphere, else the sphere. Optimal = "
         "the first point after which the better of the two ellipsoids stays more accurate than the sphere (MAE over "
         "the reference region); at = the point after which the global quadric stays an ellipsoid; right and timely "
         "as above.\n",

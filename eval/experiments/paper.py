@@ -95,8 +95,8 @@ def run_shape(
     `n_curve` MAE points along the spiral (each on a 60 x 60 ground-truth sampling);
     `grid` x `grid` sampling for the final Table 2 metrics (the paper: 500).
     The first criterion's model carries the local part; its global quadric
-    (AdaptiveEyeModel.global_for_local: the least-squares ellipsoid or the robust globe,
-    else the sphere) is followed along the curve (`global_ellipsoid_at`), with the robust
+    (AdaptiveEyeModel.global_for_local: the least-squares ellipsoid, the robust globe or
+    the eye globe, else the sphere) is followed along the curve (`global_ellipsoid_at`), with the robust
     globe's MAE (`globe_mae_curve`), and so is the honesty of the local model's sigma
     (`lc_coverage_curve`, `lc_unsafe_curve`, `lc_excess_curve`: models.metrics.SigmaHonesty).
     `keep_history` keeps the model history (of the first criterion) in the result;

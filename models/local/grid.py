@@ -28,7 +28,10 @@ The global quadric under it (models.adaptive.model.AdaptiveEyeModel.global_for_l
 ellipsoid once the transition criteria accept it, else the robust ellipsoid
 (models.fit.streaming_robust: Tukey's biweight leaves a detachment or a staphyloma out of
 the fit) while it is an eye's and predicts the new points better than the sphere (once
-taken, over a longer run of them: AdaptiveEyeModel._globe_taken). Measured
+taken, over a longer run of them: AdaptiveEyeModel._globe_taken); else, while the
+criteria's ellipsoid is no eye's (the pointed eye's cigar), the eye globe
+(models.fit.eye_globe: the eye's ellipsoid nearest the points and the trocar), with the
+sphere's standard deviations; else the sphere. Measured
 on the closed loop's spiral (sensor seed 11): on the detached eye the sphere under the
 local model left 881 um of mean error more than 10 deg from the data and the robust
 ellipsoid 59 um; on the staphyloma 445 and 82 um (the figures in the README's results).
