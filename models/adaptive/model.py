@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import copy
 import math
+
 import numpy as np
 
 from models.adaptive.dwell import DWELL_MAX_POINTS, DWELL_RADIUS_MM, dwell_keep, new_state

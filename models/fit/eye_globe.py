@@ -251,9 +251,11 @@ class EyeGlobe:
     semi-axes and axis ratio (models.adaptive.model.EYE_RADII_MM, EYE_AXIS_RATIO_MAX)."""
 
     def __init__(self, r_range: tuple[float, float], ratio_max: float, wall_W=None, every: int = 20):
-        wall = np.zeros((0, 3)) if wall_W is None else np.asarray(wall_W, dtype=float).reshape(-1, 3)
-        if not np.all(np.isfinite(wall)):
-            raise ValueError(f"wall_W must hold finite points (K, 3) mm, got {wall_W!r}")
+        wall = np.zeros((0, 3)) if wall_W is None else np.asarray(wall_W, dtype=float)
+        if wall.shape == (3,):
+            wall = wall.reshape(1, 3)
+        if wall.ndim != 2 or wall.shape[1] != 3 or not np.all(np.isfinite(wall)):
+            raise ValueError(f"wall_W must be None or finite points (3,) or (K, 3) mm, got shape {wall.shape}")
         self.wall = np.ascontiguousarray(wall)
         self.r_range, self.ratio_max, self.every = (float(r_range[0]), float(r_range[1])), float(ratio_max), int(every)
         self.ellipsoid = None

@@ -104,9 +104,15 @@ def test_it_is_published_only_while_it_fits_better_than_the_sphere():
     assert g.ellipsoid is not None
 
 
-def test_bad_wall_points_are_refused():
+@pytest.mark.parametrize("wall", [[[0.0, np.nan, 0.0]], [0.0, 1.0, 2.0, 3.0, 4.0, 5.0], [[0.0, 1.0]], [[[0.0, 1.0, 2.0]]]])
+def test_bad_wall_points_are_refused(wall):
+    """Non-finite points and any shape but (3,) or (K, 3): one line naming wall_W."""
     with pytest.raises(ValueError, match="wall_W"):
-        EyeGlobe(EYE_RADII_MM, EYE_AXIS_RATIO_MAX, [[0.0, np.nan, 0.0]])
+        EyeGlobe(EYE_RADII_MM, EYE_AXIS_RATIO_MAX, wall)
+
+
+def test_one_wall_point_may_be_given_as_a_vector():
+    assert EyeGlobe(EYE_RADII_MM, EYE_AXIS_RATIO_MAX, [1.0, 2.0, 3.0]).wall.shape == (1, 3)
 
 
 def test_under_the_local_model_it_replaces_the_sphere_on_the_pointed_eye():
