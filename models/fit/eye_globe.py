@@ -119,18 +119,12 @@ def _residuals(x, R0, LT, n_eff, p0, scale, wall, wall_w, ratio_max, out, R, v):
 
 
 @njit(cache=True)
-def fit_eye_globe(S, p0, scale, x, R0, wall, wall_share, r_lo, r_hi, ratio_max, iterations, damping):
-    """(cost mm^2, damping) after up to `iterations` Levenberg-Marquardt steps from x =
-    [centre (3) mm, semi-axes (3) mm] and rotation R0 (3, 3), both updated in place (the
-    rotation vector folded into R0 after each step); the semi-axes clamped to
-    [r_lo, r_hi] after each step, their ratio beyond ratio_max a penalty residual. `wall`
-    (K, 3) mm: known points of the eye wall, weighing `wall_share` of the data together;
-    `damping` the first step's. Cost NaN when S holds no points or cannot be factored
-    (x, R0 untouched)."""
+def factor_scatter(S):
+    """(L^T (10, 10), N, ok): the transposed Cholesky factor of S (regularised, module
+    docstring) and its number of points; not ok when S holds none or cannot be factored."""
     n_eff = S[9, 9]
-    m = 11 + wall.shape[0]
     if not (n_eff > 0.0):
-        return np.nan, damping
+        return np.zeros((10, 10)), n_eff, False
     tr = 0.0
     for i in range(10):
         tr += S[i, i]
@@ -138,10 +132,20 @@ def fit_eye_globe(S, p0, scale, x, R0, wall, wall_share, r_lo, r_hi, ratio_max, 
     for i in range(10):
         Sr[i, i] += _REGULARISATION * tr
     L, ok = cholesky(Sr)
-    if not ok:
-        return np.nan, damping
-    LT = np.ascontiguousarray(L.T)
+    return np.ascontiguousarray(L.T), n_eff, ok
+
+
+@njit(cache=True)
+def fit_eye_globe(LT, n_eff, p0, scale, x, R0, wall, wall_share, r_lo, r_hi, ratio_max, iterations):
+    """The cost (mm^2) after up to `iterations` Levenberg-Marquardt steps (0: the cost of
+    x itself) on the factored scatter matrix (factor_scatter: LT, n_eff) from x = [centre
+    (3) mm, semi-axes (3) mm] and rotation R0 (3, 3), both updated in place (the rotation
+    vector folded into R0 after each step); the semi-axes clamped to [r_lo, r_hi] after
+    each step, their ratio beyond ratio_max a penalty residual. `wall` (K, 3) mm: known
+    points of the eye wall, weighing `wall_share` of the data together."""
+    m = 11 + wall.shape[0]
     wall_w = np.sqrt(wall_share / wall.shape[0]) if wall.shape[0] else 0.0
+    damping = 1e-3
     y = np.zeros(9)
     y[0:6] = x[0:6]
     for i in range(3, 6):
@@ -189,7 +193,7 @@ def fit_eye_globe(S, p0, scale, x, R0, wall, wall_share, r_lo, r_hi, ratio_max, 
     for i in range(3, 6):
         x[i] = min(x[i], hi)
     _orthonormalise(R0)  # the folded steps' rounding drifts
-    return cost, damping
+    return cost
 
 
 @njit(cache=True, inline="always")
@@ -216,9 +220,14 @@ def refit_candidates(S, p0, scale, X, Rs, started, k, iterations, sphere, wall, 
     Rs (c, 3, 3) advanced by `iterations` steps in place, then every started candidate's
     cost and the sphere's (`sphere` [centre, radius] mm, clipped to [r_lo, r_hi]) on S.
     Returns (index of the lowest-cost candidate or -1 when none is below the sphere or
-    the fit failed, its cost mm^2); a failed candidate is marked not started."""
+    S cannot be factored, its cost mm^2); a failed candidate is marked not started. S is
+    factored once (factor_scatter) for the steps and every cost."""
+    LT, n_eff, ok = factor_scatter(S)
+    if not ok:  # no candidate's cost is defined: k starts again at its next turn
+        started[k] = False
+        return -1, np.nan
     x, R = X[k].copy(), Rs[k].copy()
-    cost, _ = fit_eye_globe(S, p0, scale, x, R, wall, wall_share, r_lo, r_hi, ratio_max, iterations, 1e-3)
+    cost = fit_eye_globe(LT, n_eff, p0, scale, x, R, wall, wall_share, r_lo, r_hi, ratio_max, iterations)
     ok = np.isfinite(cost)
     for i in range(6):
         ok = ok and np.isfinite(x[i])
@@ -228,12 +237,11 @@ def refit_candidates(S, p0, scale, X, Rs, started, k, iterations, sphere, wall, 
         started[k] = False
     r = min(max(sphere[3], r_lo), r_hi)
     xs = np.array([sphere[0], sphere[1], sphere[2], r, r, r])
-    limit, _ = fit_eye_globe(S, p0, scale, xs, np.eye(3), wall, wall_share, r_lo, r_hi, ratio_max, 0, 1e-3)
-    best, best_cost = -1, limit
+    best, best_cost = -1, fit_eye_globe(LT, n_eff, p0, scale, xs, np.eye(3), wall, wall_share, r_lo, r_hi, ratio_max, 0)
     for j in range(X.shape[0]):
         if started[j]:
-            cj = cost if j == k else fit_eye_globe(S, p0, scale, X[j].copy(), Rs[j].copy(), wall, wall_share, r_lo,
-                                                   r_hi, ratio_max, 0, 1e-3)[0]
+            cj = cost if j == k else fit_eye_globe(LT, n_eff, p0, scale, X[j].copy(), Rs[j].copy(), wall, wall_share,
+                                                   r_lo, r_hi, ratio_max, 0)
             if cj < best_cost:
                 best, best_cost = j, cj
     return best, best_cost
@@ -296,7 +304,10 @@ class EyeGlobe:
     def cost_of(self, S, p0, center, radii, rotation) -> float:
         """The fit's cost (mm^2: the data's mean squared distance and the wall points'
         share, module docstring) of the ellipsoid (centre mm, semi-axes mm, rotation) on the
-        scatter matrix S about p0; NaN when S holds no points."""
+        scatter matrix S about p0; NaN when S holds no points or cannot be factored."""
+        LT, n_eff, ok = factor_scatter(S)
+        if not ok:
+            return float("nan")
         x = np.concatenate([np.asarray(center, dtype=float), np.asarray(radii, dtype=float)])
-        return float(fit_eye_globe(S, p0, LENGTH_SCALE_MM, x, np.array(rotation, dtype=float), self.wall, WALL_SHARE,
-                                   *self.r_range, self.ratio_max, 0, 1e-3)[0])
+        return float(fit_eye_globe(LT, n_eff, p0, LENGTH_SCALE_MM, x, np.array(rotation, dtype=float), self.wall,
+                                   WALL_SHARE, *self.r_range, self.ratio_max, 0))
