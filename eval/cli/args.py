@@ -127,6 +127,35 @@ class Parser(argparse.ArgumentParser):
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
+    def parse_known_args(self, args=None, namespace=None):
+        """As argparse's, with a value that reads as negative numbers joined to the long flag
+        before it (`--seed -inf` as `--seed=-inf`, `--band -1,2` as `--band=-1,2`): argparse
+        takes only '-1' and '-1.5' for numbers, and '-inf', '-1e3' or '-1,2' for an unknown
+        flag ("expected one argument"), where the flag's own type names its range."""
+        import sys
+
+        argv = list(sys.argv[1:] if args is None else args)
+        out: list[str] = []
+        for a in argv:
+            if out and _reads_as_negative_numbers(a) and out[-1].startswith("--") and "=" not in out[-1]:
+                out[-1] = f"{out[-1]}={a}"
+            else:
+                out.append(a)
+        return super().parse_known_args(out, namespace)
+
+
+def _reads_as_negative_numbers(text: str) -> bool:
+    """Whether `text` starts with '-' (not '--') and each of its comma-separated parts is
+    what float() reads (-1e3, -inf, -nan, -.5, -1,2)."""
+    if not text.startswith("-") or text.startswith("--"):
+        return False
+    try:
+        for part in text.split(","):
+            float(part)
+    except ValueError:
+        return False
+    return True
+
 
 def eye_param(text: str) -> tuple[str, float]:
     """Type of --eye-param: 'NAME=VALUE' with a finite number VALUE (the name is checked

@@ -103,6 +103,28 @@ def test_every_numeric_flag_is_checked_before_anything_is_written(command, flag,
     assert not out.exists() and os.listdir(tmp_path) == []
 
 
+# values argparse alone takes for unknown flags ("expected one argument"): each reaches its flag's own check
+NEGATIVE_LOOKING = [("boundary", "--seed", "-inf", f"[0, {SEED_MAX}]"), ("boundary", "--scenarios", "-1e3", "[1, 100000]"),
+                    ("boundary", "--duration-s", "-nan", "[0.05, 10] s"), ("plan", "--standoff-mm", "-1e-3", "(0, 5] mm"),
+                    ("plan", "--seed", "-.5", f"[0, {SEED_MAX}]"), ("record", "--time-offset-ms", "-1e3", "[-100, 100] ms")]
+
+
+@pytest.mark.parametrize("command, flag, value, names", NEGATIVE_LOOKING)
+def test_a_value_that_reads_as_a_negative_number_is_the_flags_value(command, flag, value, names, tmp_path, capsys):
+    out = tmp_path / "never"
+    code, stdout, err = run_main(capsys, command, flag, value, "--out", out)
+    assert code == 2 and stdout == ""
+    assert err.count("\n") == 1 and f"argument {flag}: must be" in err and names in err and value in err, err
+    assert not out.exists() and os.listdir(tmp_path) == []
+
+
+def test_negative_numbers_in_any_form_are_values_not_flags():
+    args = build_parser().parse_args(["plan", "--band", "-1,2", "--port-limbus-mm", "4", "--out", "x"])
+    assert args.band == (-1.0, 2.0)
+    args = build_parser().parse_args(["record", "--time-offset-ms", "-2.5e0", "--out", "x"])
+    assert args.time_offset_ms == -2.5
+
+
 def test_help_shows_every_default_and_every_numbers_unit_or_range():
     for name, parser in subparsers().items():
         text = parser.format_help()
