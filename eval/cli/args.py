@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 SEED_MAX = 2**32 - 1
 
@@ -132,8 +133,6 @@ class Parser(argparse.ArgumentParser):
         before it (`--seed -inf` as `--seed=-inf`, `--band -1,2` as `--band=-1,2`): argparse
         takes only '-1' and '-1.5' for numbers, and '-inf', '-1e3' or '-1,2' for an unknown
         flag ("expected one argument"), where the flag's own type names its range."""
-        import sys
-
         argv = list(sys.argv[1:] if args is None else args)
         out: list[str] = []
         for a in argv:
