@@ -47,7 +47,7 @@ GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says 
 # variance it was taken at 21-22 / 24-25 / 28.5-29.5 / 41-43 % (optimum 25.5-30.4 %), the
 # detached eye's at 12.8 % (up to 2.0) and 15.7 % (optimum 10.3 %); at 2.25 (the middle of
 # the window where both are taken within 10 % after their optimum) 33-34 % and 14.2 %, and
-# on seeds 3-5, not used to choose it, 6-9 % and 0-2 % after the optimum.
+# on seeds 3-5, which did not enter the choice, 6-9 % and 0-2 % after the optimum.
 SPHERE_ADEQUATE_LOSS = 2.25
 GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
 
