@@ -36,19 +36,6 @@ EYE_RADII_MM = (8.0, 16.0)  # semi-axes of any plausible retina (human: 9.5-12.5
 # from the data, where an eye's globe is trusted to 0.3 mm.
 EYE_AXIS_RATIO_MAX = 1.25
 GLOBE_MIN_SCAN_RANGE_MM = 10.0  # as PredictiveCriteria's: a smaller patch says nothing about the globe's shape
-# The sphere stays under the local model while it predicts the new A-scans (their biweight
-# loss, models.fit.streaming_robust) to within this many times the noise's variance, however
-# the globe does: noise alone costs a right model about half its variance, so a sphere is
-# replaced once it misses the new points by about sqrt(3) noise sd (35 um) RMS beyond the
-# noise. Measured on the paper's spiral (seeds 0-2, noise 20 um): the myopic eye's globe,
-# nearly a sphere (12.3 x 12.0 x 11.9 mm), predicted its new points as well as the sphere
-# (loss ratio 1.02) at 17-18 % of the spiral while 0.5-0.8 mm off against the sphere's 0.12
-# (taken 8-13 % before its optimum); at a sphere loss of 1.5 / 1.75 / 2.0 / 2.5 x the
-# variance it was taken at 21-22 / 24-25 / 28.5-29.5 / 41-43 % (optimum 25.5-30.4 %), the
-# detached eye's at 12.8 % (up to 2.0) and 15.7 % (optimum 10.3 %); at 2.25 (the middle of
-# the window where both are taken within 10 % after their optimum) 33-34 % and 14.2 %, and
-# on seeds 3-5, which did not enter the choice, 6-9 % and 0-2 % after the optimum.
-SPHERE_ADEQUATE_LOSS = 2.25
 GLOBE_BATCH = 20  # points the robust globe takes per step (a sensor packet): its per-call overhead spread over them
 
 
@@ -190,9 +177,8 @@ class AdaptiveEyeModel:
         """Whether the robust globe is the quadric under the local model (after its step):
         its semi-axes are an eye's and the scan range at least GLOBE_MIN_SCAN_RANGE_MM, and
         it predicts the new points better than the sphere (a lower biweight loss: a
-        pathology counts as much against either) over the last ~`memory` points while the
-        sphere no longer predicts them within the noise (SPHERE_ADEQUATE_LOSS), or, once
-        taken, better over the last ~`hold_memory` (models.fit.streaming_robust). Judged over the
+        pathology counts as much against either) over the last ~`memory` points, or, once
+        taken, over the last ~`hold_memory` (models.fit.streaming_robust). Judged over the
         short memory alone, the quadric swaps between globe and sphere 7-10 times in each
         local plan of the detached eye and the staphyloma (seed 0), each time for 200-600
         A-scans as the tool enters through a port (the retina by the ora serrata, which the
@@ -201,8 +187,7 @@ class AdaptiveEyeModel:
         fit = globe.last_ok
         if fit is None or self._range.diameter_mm < GLOBE_MIN_SCAN_RANGE_MM or not eyes_radii(*fit.radii.tolist()):
             return False
-        adequate = SPHERE_ADEQUATE_LOSS * globe.config.noise_sd_mm ** 2
-        return (globe.loss_mm2 < globe.rival_loss_mm2 and globe.rival_loss_mm2 > adequate) or (
+        return globe.loss_mm2 < globe.rival_loss_mm2 or (
             self.globe_taken and globe.held_loss_mm2 < globe.held_rival_loss_mm2)
 
     @property
