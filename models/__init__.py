@@ -3,7 +3,8 @@
 Millimetres everywhere; points in whatever frame the caller uses (W or E).
 """
 import models.compiled_cache  # noqa: F401, I001  (first: numba's cache folder, before any compiled function)
-from models.adaptive.model import AdaptiveEyeModel, ModelUpdate
+from models.adaptive.history import ModelUpdate
+from models.adaptive.model import AdaptiveEyeModel
 from models.adaptive.transition import PaperCriteria, PredictiveCriteria
 from models.fit.ellipsoid_fit import EllipsoidFit, IncrementalEllipsoidFit, fit_ellipsoid
 from models.fit.sphere_kalman import SphereKalmanFilter

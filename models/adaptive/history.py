@@ -77,9 +77,6 @@ class History(Sequence):
         return f"History({self._n} entries)"
 
 
-__all__ = ["History"]
-
-
 class ModelUpdate(NamedTuple):
     """One entry of the model history (mm, frame of the measured points).
 
@@ -114,3 +111,6 @@ class ModelUpdate(NamedTuple):
         if self.ellipsoid_center is None:
             return None
         return Ellipsoid(self.ellipsoid_center, self.ellipsoid_radii, self.ellipsoid_rotation)
+
+
+__all__ = ["History", "ModelUpdate"]

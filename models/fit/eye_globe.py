@@ -36,6 +36,7 @@ from numba import njit
 from models.fit.ellipsoid_fit import LENGTH_SCALE_MM
 from models.fit.small_linalg import cholesky, pivoted_solve
 from models.shapes.ellipsoid import Ellipsoid
+from models.shapes.validation import as_points
 
 WALL_SHARE = 0.1  # the wall points' weight, together, as a share of the data's (module docstring)
 RATIO_PENALTY = 30.0  # residual per mm of the longest semi-axis beyond the ratio's bound
@@ -259,12 +260,7 @@ class EyeGlobe:
     semi-axes and axis ratio (models.adaptive.model.EYE_RADII_MM, EYE_AXIS_RATIO_MAX)."""
 
     def __init__(self, r_range: tuple[float, float], ratio_max: float, wall_W=None, every: int = 20):
-        wall = np.zeros((0, 3)) if wall_W is None else np.asarray(wall_W, dtype=float)
-        if wall.shape == (3,):
-            wall = wall.reshape(1, 3)
-        if wall.ndim != 2 or wall.shape[1] != 3 or not np.all(np.isfinite(wall)):
-            raise ValueError(f"wall_W must be None or finite points (3,) or (K, 3) mm, got shape {wall.shape}")
-        self.wall = np.ascontiguousarray(wall)
+        self.wall = np.zeros((0, 3)) if wall_W is None else np.ascontiguousarray(as_points(wall_W, "wall_W"))
         self.r_range, self.ratio_max, self.every = (float(r_range[0]), float(r_range[1])), float(ratio_max), int(every)
         self.ellipsoid = None
         self.cost_mm2 = np.nan
